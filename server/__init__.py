@@ -1,0 +1,1 @@
+"""BAM Study: the domains, the learners and the study server."""

@@ -1,0 +1,367 @@
+"""Shared core of the grid-world domains: actions, tasks, sparse transition tables and the
+learner's parametric transition model T_theta.
+
+Every environment of the paper has at most a handful of possible successors for each
+(state, action) pair, so transitions are stored sparsely: ``next_states[s, a, m]`` with
+``probabilities[s, a, m]``. The parametric model is linear in a small vector of "primitive"
+probabilities p(theta) (a sigmoid per navigation cell, a softmax row per gravity colour or
+farming machine):
+
+    T_theta(s, a, next_states[s, a, m]) = const[s, a, m] + coef[s, a, m] * p(theta)[index[s, a, m]]
+
+which gives the log-likelihood of observed transitions and the pull-back of any gradient on T
+to theta with the same few lines for every domain.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+ACTIONS: tuple[str, ...] = ("STAY", "UP", "DOWN", "LEFT", "RIGHT")
+STAY, UP, DOWN, LEFT, RIGHT = range(5)
+NUM_ACTIONS = len(ACTIONS)
+# (row, column) offsets, row 0 at the top.
+DELTAS: tuple[tuple[int, int], ...] = ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1))
+
+
+def check_finite(name: str, values: np.ndarray) -> np.ndarray:
+    """Reject NaN or infinite parameters at the boundary instead of propagating them."""
+    array = np.asarray(values, dtype=np.float64)
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} contains NaN or infinite values")
+    return array
+
+
+def check_shape(name: str, values: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    array = np.asarray(values)
+    if array.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {array.shape}")
+    return array
+
+
+@dataclass(frozen=True)
+class Task:
+    """One task of an environment: reward 1 on its goal cells, 0 elsewhere."""
+
+    name: str
+    reward: np.ndarray  # (states,)
+    start: np.ndarray  # (states,) distribution used in simulation
+    goal_cells: tuple[tuple[int, int], ...]
+    study_start: np.ndarray | None = None  # (states,) distribution used in the user study
+
+    @property
+    def study_start_distribution(self) -> np.ndarray:
+        return self.start if self.study_start is None else self.study_start
+
+
+@dataclass(frozen=True)
+class SparseTransitions:
+    """Transition probabilities T(s, a, next_states[s, a, m]) = probabilities[s, a, m]."""
+
+    next_states: np.ndarray  # (S, A, M) int64
+    probabilities: np.ndarray  # (S, A, M) float64
+
+    @property
+    def num_states(self) -> int:
+        return int(self.next_states.shape[0])
+
+    def dense(self) -> np.ndarray:
+        s, a, m = self.next_states.shape
+        out = np.zeros((s, a, s))
+        rows = np.broadcast_to(np.arange(s)[:, None, None], (s, a, m))
+        cols = np.broadcast_to(np.arange(a)[None, :, None], (s, a, m))
+        np.add.at(out, (rows, cols, self.next_states), self.probabilities)
+        return out
+
+    @classmethod
+    def from_dense(cls, transitions: np.ndarray) -> SparseTransitions:
+        transitions = np.asarray(transitions, dtype=np.float64)
+        if transitions.ndim != 3 or transitions.shape[0] != transitions.shape[2]:
+            raise ValueError(
+                f"transitions must have shape (states, actions, states), got {transitions.shape}"
+            )
+        s, a, _ = transitions.shape
+        width = max(1, int((transitions > 0).sum(axis=2).max()))
+        next_states = np.tile(np.arange(s)[:, None, None], (1, a, width))
+        probabilities = np.zeros((s, a, width))
+        for state in range(s):
+            for action in range(a):
+                (successors,) = np.nonzero(transitions[state, action])
+                next_states[state, action, : len(successors)] = successors
+                probabilities[state, action, : len(successors)] = transitions[
+                    state, action, successors
+                ]
+        return cls(next_states.astype(np.int64), probabilities)
+
+
+class TransitionModel:
+    """The learner's parametric dynamics model T_theta (see the module docstring).
+
+    Subclasses define the primitive probabilities p(theta) and their vector-Jacobian product.
+    """
+
+    def __init__(
+        self,
+        next_states: np.ndarray,
+        const: np.ndarray,
+        coef: np.ndarray,
+        index: np.ndarray,
+        num_parameters: int,
+        initial_value: float,
+        parameter_names: Sequence[str],
+    ) -> None:
+        self.next_states = np.ascontiguousarray(next_states, dtype=np.int64)
+        self.const = np.ascontiguousarray(const, dtype=np.float64)
+        self.coef = np.ascontiguousarray(coef, dtype=np.float64)
+        self.index = np.ascontiguousarray(index, dtype=np.int64)
+        self.num_parameters = int(num_parameters)
+        self.initial_value = float(initial_value)
+        self.parameter_names = tuple(parameter_names)
+        self.num_states, self.num_actions, self.width = self.next_states.shape
+        self._parametric = self.coef != 0.0
+
+    # -- primitives, defined by subclasses -------------------------------------------------
+    @property
+    def num_primitives(self) -> int:
+        raise NotImplementedError
+
+    def primitives(self, theta: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def primitives_pullback(self, theta: np.ndarray, d_primitives: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    # -- the model ------------------------------------------------------------------------
+    def initial_parameters(self) -> np.ndarray:
+        return np.full(self.num_parameters, self.initial_value)
+
+    def check_parameters(self, theta: np.ndarray) -> np.ndarray:
+        theta = check_shape("dynamics parameters", theta, (self.num_parameters,))
+        return check_finite("dynamics parameters", theta)
+
+    def probabilities(self, theta: np.ndarray) -> np.ndarray:
+        p = self.primitives(self.check_parameters(theta))
+        return self.const + self.coef * p[self.index]
+
+    def transitions(self, theta: np.ndarray) -> SparseTransitions:
+        return SparseTransitions(self.next_states, self.probabilities(theta))
+
+    def pullback(self, theta: np.ndarray, d_probabilities: np.ndarray) -> np.ndarray:
+        """Gradient with respect to theta of a function whose gradient with respect to the
+        sparse transition probabilities is ``d_probabilities`` (shape (S, A, M))."""
+        theta = self.check_parameters(theta)
+        d_probabilities = check_shape(
+            "gradient on transition probabilities", d_probabilities, self.next_states.shape
+        )
+        weights = (self.coef * d_probabilities)[self._parametric]
+        d_p = np.bincount(
+            self.index[self._parametric], weights=weights, minlength=self.num_primitives
+        )
+        return self.primitives_pullback(theta, d_p)
+
+    def pullback_dense(self, theta: np.ndarray, d_transitions: np.ndarray) -> np.ndarray:
+        """Pull back a gradient on the dense (S, A, S) transition array to theta."""
+        s, a, _ = self.next_states.shape
+        d_transitions = check_shape("gradient on transitions", d_transitions, (s, a, s))
+        d_probabilities = np.take_along_axis(d_transitions, self.next_states, axis=2)
+        return self.pullback(theta, d_probabilities)
+
+    def transition_log_likelihood(
+        self, theta: np.ndarray, observed: np.ndarray
+    ) -> tuple[float, np.ndarray]:
+        """Sum over observed (state, action, next_state) rows of ln T_theta(s, a, s'), and its
+        gradient with respect to theta. A transition the model space cannot produce is an error."""
+        observed = np.asarray(observed, dtype=np.int64).reshape(-1, 3)
+        if len(observed) == 0:
+            return 0.0, np.zeros(self.num_parameters)
+        s, a, s2 = observed.T
+        if np.any((s < 0) | (s >= self.num_states) | (s2 < 0) | (s2 >= self.num_states)):
+            raise ValueError("observed transition has a state out of range")
+        if np.any((a < 0) | (a >= self.num_actions)):
+            raise ValueError("observed transition has an action out of range")
+        probabilities = self.probabilities(theta)
+        match = self.next_states[s, a] == s2[:, None]  # (N, M)
+        row_probability = (probabilities[s, a] * match).sum(axis=1)
+        if np.any(row_probability <= 0.0):
+            bad = int(np.argmin(row_probability))
+            raise ValueError(
+                f"observed transition {tuple(int(x) for x in observed[bad])} is impossible "
+                "under the model space"
+            )
+        value = float(np.log(row_probability).sum())
+        d_probabilities = np.zeros_like(probabilities)
+        np.add.at(d_probabilities, (s, a), match / row_probability[:, None])
+        return value, self.pullback(theta, d_probabilities)
+
+
+class SigmoidModel(TransitionModel):
+    """One logit per parameter; the primitive is sigmoid(theta) (navigation: a move into cell i
+    fails with probability sigmoid(theta_i))."""
+
+    @property
+    def num_primitives(self) -> int:
+        return self.num_parameters
+
+    def primitives(self, theta: np.ndarray) -> np.ndarray:
+        return 0.5 * (1.0 + np.tanh(0.5 * theta))  # stable sigmoid
+
+    def primitives_pullback(self, theta: np.ndarray, d_primitives: np.ndarray) -> np.ndarray:
+        p = self.primitives(theta)
+        return d_primitives * p * (1.0 - p)
+
+
+class SoftmaxRowsModel(TransitionModel):
+    """Parameters form a (groups, choices) matrix; each row is a softmax (gravity: per colour
+    over four gravities; farming: per machine over three terrains)."""
+
+    def __init__(self, *args: Any, groups: int, choices: int, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        if groups * choices != self.num_parameters:
+            raise ValueError("groups * choices must equal the number of parameters")
+        self.groups = groups
+        self.choices = choices
+
+    @property
+    def num_primitives(self) -> int:
+        return self.num_parameters
+
+    def primitives(self, theta: np.ndarray) -> np.ndarray:
+        logits = theta.reshape(self.groups, self.choices)
+        z = np.exp(logits - logits.max(axis=1, keepdims=True))
+        return (z / z.sum(axis=1, keepdims=True)).ravel()
+
+    def primitives_pullback(self, theta: np.ndarray, d_primitives: np.ndarray) -> np.ndarray:
+        p = self.primitives(theta).reshape(self.groups, self.choices)
+        g = d_primitives.reshape(self.groups, self.choices)
+        return (p * (g - (g * p).sum(axis=1, keepdims=True))).ravel()
+
+
+@dataclass
+class Environment:
+    """A grid-world environment: true dynamics, tasks and the learner's model space.
+
+    States index (cell, feature) pairs: ``state = cell * num_features + feature`` where
+    ``cell = row * width + column`` and the feature is the gravity or the machine carried
+    (navigation has a single feature).
+    """
+
+    name: str
+    domain: str
+    height: int
+    width: int
+    num_features: int
+    horizon: int
+    tasks: tuple[Task, ...]
+    true_transitions: SparseTransitions
+    model: TransitionModel
+    layout: dict[str, Any]  # JSON-serialisable description for drawing (see describe())
+    feature_names: tuple[str, ...] = ("none",)
+    num_actions: int = NUM_ACTIONS
+    state_cells: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.state_cells = np.arange(self.num_states) // self.num_features
+
+    # -- sizes ----------------------------------------------------------------------------
+    @property
+    def num_cells(self) -> int:
+        return self.height * self.width
+
+    @property
+    def num_states(self) -> int:
+        return self.num_cells * self.num_features
+
+    @property
+    def task_names(self) -> tuple[str, ...]:
+        return tuple(task.name for task in self.tasks)
+
+    # -- states ---------------------------------------------------------------------------
+    def state_of(self, row: int, column: int, feature: int = 0) -> int:
+        if not (0 <= row < self.height and 0 <= column < self.width):
+            raise ValueError(f"cell ({row}, {column}) is outside the {self.height}x{self.width} grid")
+        if not 0 <= feature < self.num_features:
+            raise ValueError(f"feature {feature} out of range 0..{self.num_features - 1}")
+        return (row * self.width + column) * self.num_features + feature
+
+    def cell_of(self, state: int) -> tuple[int, int]:
+        state = self.check_state(state)
+        return divmod(state // self.num_features, self.width)
+
+    def feature_of(self, state: int) -> int:
+        return self.check_state(state) % self.num_features
+
+    def check_state(self, state: int) -> int:
+        if isinstance(state, bool) or not isinstance(state, int | np.integer):
+            raise ValueError(f"state must be an integer, got {state!r}")
+        if not 0 <= int(state) < self.num_states:
+            raise ValueError(f"state {state} out of range 0..{self.num_states - 1}")
+        return int(state)
+
+    def check_action(self, action: int) -> int:
+        if isinstance(action, bool) or not isinstance(action, int | np.integer):
+            raise ValueError(f"action must be an integer, got {action!r}")
+        if not 0 <= int(action) < self.num_actions:
+            raise ValueError(f"action {action} out of range 0..{self.num_actions - 1} ({', '.join(ACTIONS)})")
+        return int(action)
+
+    def check_task(self, task: int) -> int:
+        if isinstance(task, bool) or not isinstance(task, int | np.integer):
+            raise ValueError(f"task must be an integer, got {task!r}")
+        if not 0 <= int(task) < len(self.tasks):
+            raise ValueError(f"task {task} out of range 0..{len(self.tasks) - 1}")
+        return int(task)
+
+    # -- dynamics -------------------------------------------------------------------------
+    def transition_probabilities(self) -> np.ndarray:
+        """The true dynamics as a dense (states, actions, states) array whose rows sum to 1."""
+        return self.true_transitions.dense()
+
+    def step(self, state: int, action: int, rng: np.random.Generator) -> int:
+        state = self.check_state(state)
+        action = self.check_action(action)
+        probabilities = self.true_transitions.probabilities[state, action]
+        successors = self.true_transitions.next_states[state, action]
+        if probabilities.max() >= 1.0:
+            return int(successors[int(np.argmax(probabilities))])
+        return int(rng.choice(successors, p=probabilities / probabilities.sum()))
+
+    def sample_start(self, task: int, rng: np.random.Generator, study: bool = False) -> int:
+        task_obj = self.tasks[self.check_task(task)]
+        start = task_obj.study_start_distribution if study else task_obj.start
+        return int(rng.choice(self.num_states, p=start))
+
+    def is_goal(self, task: int, state: int) -> bool:
+        return bool(self.tasks[self.check_task(task)].reward[self.check_state(state)] > 0)
+
+    # -- drawing --------------------------------------------------------------------------
+    def describe(self) -> dict[str, Any]:
+        """Static JSON-serialisable description for drawing the grid."""
+        return {
+            "name": self.name,
+            "domain": self.domain,
+            "height": self.height,
+            "width": self.width,
+            "horizon": self.horizon,
+            "actions": list(ACTIONS),
+            "features": list(self.feature_names),
+            "tasks": [
+                {"name": task.name, "goal_cells": [list(cell) for cell in task.goal_cells]}
+                for task in self.tasks
+            ],
+            **self.layout,
+        }
+
+    def describe_state(self, state: int) -> dict[str, Any]:
+        """The agent's cell and its feature (the machine carried or the gravity)."""
+        row, column = self.cell_of(state)
+        feature = self.feature_of(state)
+        described: dict[str, Any] = {"state": int(state), "row": row, "column": column}
+        if self.domain == "farming":
+            described["carrying"] = self.feature_names[feature]
+        elif self.domain == "gravity":
+            described["gravity"] = self.feature_names[feature]
+        return described

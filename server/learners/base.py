@@ -1,0 +1,242 @@
+"""The protocol every learner follows, and the data it learns from.
+
+A learner is taught one environment's tasks. It records what it observes:
+
+- a demonstration step (task, state, action, next state): a teacher action for the task and an
+  observed transition;
+- an agent step (task, state, action, next state, feedback in {+1, -1, 0}): the agent's own
+  action, an observed transition and the teacher's feedback on it (0 = none given);
+- a transition alone (state, action, next state): the agent was moved without a demonstration
+  (the study's idle mode); it tells the learner about the dynamics only.
+
+``update()`` fits the learner to everything recorded so far (warm-started from the previous
+update), ``policy(task)`` gives its action probabilities per state and ``greedy_policy(task)``
+one action per state. ``state_dict()`` captures the whole learner (data, parameters,
+optimiser state, random generator) and ``Learner.from_state_dict(env, state)`` restores it
+exactly: the server persists learners between episodes and across restarts.
+"""
+
+from __future__ import annotations
+
+import io
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from server.domains.base import Environment
+
+# Columns of the recorded-data arrays.
+DEMONSTRATION_FIELDS = ("task", "state", "action", "next_state")
+AGENT_STEP_FIELDS = ("task", "state", "action", "next_state", "feedback")
+TRANSITION_FIELDS = ("state", "action", "next_state")
+
+
+@dataclass(frozen=True)
+class UpdateResult:
+    """What one ``update()`` did."""
+
+    seconds: float
+    objective: float
+    steps: int
+
+
+class DataLog:
+    """Append-only integer tables of demonstrations, agent steps and transitions alone."""
+
+    def __init__(self) -> None:
+        self._demonstrations: list[tuple[int, ...]] = []
+        self._agent_steps: list[tuple[int, ...]] = []
+        self._transitions: list[tuple[int, ...]] = []
+
+    @staticmethod
+    def _table(rows: list[tuple[int, ...]], width: int) -> np.ndarray:
+        return np.asarray(rows, dtype=np.int64).reshape(-1, width)
+
+    @property
+    def demonstrations(self) -> np.ndarray:
+        return self._table(self._demonstrations, len(DEMONSTRATION_FIELDS))
+
+    @property
+    def agent_steps(self) -> np.ndarray:
+        return self._table(self._agent_steps, len(AGENT_STEP_FIELDS))
+
+    @property
+    def transitions_alone(self) -> np.ndarray:
+        return self._table(self._transitions, len(TRANSITION_FIELDS))
+
+    def observed_transitions(self) -> np.ndarray:
+        """Every observed (state, action, next_state): D_E of equation (5)."""
+        return np.concatenate(
+            [
+                self.demonstrations[:, 1:4],
+                self.agent_steps[:, 1:4],
+                self.transitions_alone,
+            ]
+        )
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        return {
+            "demonstrations": self.demonstrations,
+            "agent_steps": self.agent_steps,
+            "transitions_alone": self.transitions_alone,
+        }
+
+    @classmethod
+    def from_state_dict(cls, state: dict[str, Any]) -> DataLog:
+        log = cls()
+        log._demonstrations = [tuple(int(v) for v in row) for row in np.asarray(state["demonstrations"]).reshape(-1, 4)]
+        log._agent_steps = [tuple(int(v) for v in row) for row in np.asarray(state["agent_steps"]).reshape(-1, 5)]
+        log._transitions = [tuple(int(v) for v in row) for row in np.asarray(state["transitions_alone"]).reshape(-1, 3)]
+        return log
+
+
+class Learner(ABC):
+    """Base class of every learner (see the module docstring)."""
+
+    name: ClassVar[str]
+    default_settings: ClassVar[dict[str, Any]]
+
+    def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
+        unknown = sorted(set(settings) - set(self.default_settings))
+        if unknown:
+            raise ValueError(
+                f"unknown setting(s) for learner {self.name!r}: {', '.join(unknown)}; "
+                f"valid: {', '.join(sorted(self.default_settings))}"
+            )
+        self.env = env
+        self.settings: dict[str, Any] = {**self.default_settings, **settings}
+        self.seed = int(seed)
+        self.rng = np.random.default_rng(self.seed)
+        self.data = DataLog()
+        self.updates = 0
+
+    # -- recording ------------------------------------------------------------------------
+    def _check_step(self, state: int, action: int, next_state: int) -> tuple[int, int, int]:
+        return (
+            self.env.check_state(state),
+            self.env.check_action(action),
+            self.env.check_state(next_state),
+        )
+
+    def record_demonstration(self, task: int, state: int, action: int, next_state: int) -> None:
+        task = self.env.check_task(task)
+        self.data._demonstrations.append((task, *self._check_step(state, action, next_state)))
+
+    def record_agent_step(
+        self, task: int, state: int, action: int, next_state: int, feedback: int = 0
+    ) -> None:
+        task = self.env.check_task(task)
+        if feedback not in (-1, 0, 1):
+            raise ValueError(f"feedback must be +1, -1 or 0 (none), got {feedback!r}")
+        self.data._agent_steps.append(
+            (task, *self._check_step(state, action, next_state), int(feedback))
+        )
+
+    def record_feedback(self, feedback: int) -> None:
+        """Attach feedback to the most recent agent step (the study's +/- keys)."""
+        if feedback not in (-1, 1):
+            raise ValueError(f"feedback must be +1 or -1, got {feedback!r}")
+        if not self.data._agent_steps:
+            raise ValueError("there is no agent step to give feedback on")
+        *step, _ = self.data._agent_steps[-1]
+        self.data._agent_steps[-1] = (*step, int(feedback))
+
+    def record_transition(self, state: int, action: int, next_state: int) -> None:
+        self.data._transitions.append(self._check_step(state, action, next_state))
+
+    # -- learning -------------------------------------------------------------------------
+    def update(self) -> UpdateResult:
+        started = time.perf_counter()
+        objective, steps = self._fit()
+        self.updates += 1
+        return UpdateResult(time.perf_counter() - started, float(objective), int(steps))
+
+    @abstractmethod
+    def _fit(self) -> tuple[float, int]:
+        """Fit to all recorded data; return the final objective and the number of steps."""
+
+    @abstractmethod
+    def policy(self, task: int) -> np.ndarray:
+        """Action probabilities, shape (states, actions)."""
+
+    def greedy_policy(self, task: int) -> np.ndarray:
+        """One action per state (ties and states without preference resolved by ``policy``)."""
+        probabilities = self.policy(task)
+        return np.argmax(probabilities, axis=1).astype(np.int64)
+
+    def act(self, task: int, state: int, rng: np.random.Generator) -> int:
+        """The action the agent takes in ``state`` (sampled where the policy is not one-hot)."""
+        row = self.policy(task)[self.env.check_state(state)]
+        if row.max() >= 1.0:
+            return int(np.argmax(row))
+        return int(rng.choice(len(row), p=row))
+
+    # -- persistence ----------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "learner": self.name,
+            "environment": self.env.name,
+            "settings": dict(self.settings),
+            "seed": self.seed,
+            "updates": self.updates,
+            "rng": self.rng.bit_generator.state,
+            "data": self.data.state_dict(),
+            "parameters": self._parameters_state(),
+        }
+
+    @abstractmethod
+    def _parameters_state(self) -> dict[str, np.ndarray]:
+        """Learned parameters and optimiser state as arrays (copied)."""
+
+    @abstractmethod
+    def _load_parameters_state(self, state: dict[str, Any]) -> None:
+        """Inverse of ``_parameters_state``."""
+
+    @classmethod
+    def from_state_dict(cls, env: Environment, state: dict[str, Any]) -> Learner:
+        if state.get("learner") != cls.name:
+            raise ValueError(f"state is for learner {state.get('learner')!r}, not {cls.name!r}")
+        if state.get("environment") != env.name:
+            raise ValueError(
+                f"state is for environment {state.get('environment')!r}, not {env.name!r}"
+            )
+        learner = cls(env, seed=state["seed"], **state["settings"])
+        learner.updates = int(state["updates"])
+        learner.rng.bit_generator.state = state["rng"]
+        learner.data = DataLog.from_state_dict(state["data"])
+        learner._load_parameters_state(
+            {key: np.array(value) for key, value in state["parameters"].items()}
+        )
+        return learner
+
+
+def dumps(state: dict[str, Any]) -> bytes:
+    """Serialise a learner state dict to bytes (compressed NumPy archive plus JSON header)."""
+    import json
+
+    arrays: dict[str, np.ndarray] = {}
+    for key, value in state["data"].items():
+        arrays[f"data/{key}"] = np.asarray(value)
+    for key, value in state["parameters"].items():
+        arrays[f"parameters/{key}"] = np.asarray(value)
+    header = {k: v for k, v in state.items() if k not in ("data", "parameters")}
+    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **arrays)
+    return buffer.getvalue()
+
+
+def loads(blob: bytes) -> dict[str, Any]:
+    """Inverse of ``dumps``."""
+    import json
+
+    with np.load(io.BytesIO(blob), allow_pickle=False) as archive:
+        header = json.loads(bytes(archive["header"]).decode())
+        data = {k.split("/", 1)[1]: archive[k] for k in archive.files if k.startswith("data/")}
+        parameters = {
+            k.split("/", 1)[1]: archive[k] for k in archive.files if k.startswith("parameters/")
+        }
+    return {**header, "data": data, "parameters": parameters}

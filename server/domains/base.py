@@ -282,7 +282,9 @@ class Environment:
     # -- states ---------------------------------------------------------------------------
     def state_of(self, row: int, column: int, feature: int = 0) -> int:
         if not (0 <= row < self.height and 0 <= column < self.width):
-            raise ValueError(f"cell ({row}, {column}) is outside the {self.height}x{self.width} grid")
+            raise ValueError(
+                f"cell ({row}, {column}) is outside the {self.height}x{self.width} grid"
+            )
         if not 0 <= feature < self.num_features:
             raise ValueError(f"feature {feature} out of range 0..{self.num_features - 1}")
         return (row * self.width + column) * self.num_features + feature
@@ -305,7 +307,9 @@ class Environment:
         if isinstance(action, bool) or not isinstance(action, int | np.integer):
             raise ValueError(f"action must be an integer, got {action!r}")
         if not 0 <= int(action) < self.num_actions:
-            raise ValueError(f"action {action} out of range 0..{self.num_actions - 1} ({', '.join(ACTIONS)})")
+            raise ValueError(
+                f"action {action} out of range 0..{self.num_actions - 1} ({', '.join(ACTIONS)})"
+            )
         return int(action)
 
     def check_task(self, task: int) -> int:

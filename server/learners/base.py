@@ -87,9 +87,16 @@ class DataLog:
     @classmethod
     def from_state_dict(cls, state: dict[str, Any]) -> DataLog:
         log = cls()
-        log._demonstrations = [tuple(int(v) for v in row) for row in np.asarray(state["demonstrations"]).reshape(-1, 4)]
-        log._agent_steps = [tuple(int(v) for v in row) for row in np.asarray(state["agent_steps"]).reshape(-1, 5)]
-        log._transitions = [tuple(int(v) for v in row) for row in np.asarray(state["transitions_alone"]).reshape(-1, 3)]
+        log._demonstrations = [
+            tuple(int(v) for v in row) for row in np.asarray(state["demonstrations"]).reshape(-1, 4)
+        ]
+        log._agent_steps = [
+            tuple(int(v) for v in row) for row in np.asarray(state["agent_steps"]).reshape(-1, 5)
+        ]
+        log._transitions = [
+            tuple(int(v) for v in row)
+            for row in np.asarray(state["transitions_alone"]).reshape(-1, 3)
+        ]
         return log
 
 

@@ -1,0 +1,162 @@
+"""Farming: reach a field; each field terrain can only be entered with the right machine.
+Soil needs the plow, immature crops (grass) the sprinkler, grown crops the harvester; dirt is
+free. The learner does not know which machine works on which terrain: its model is, per
+machine, a softmax over the three field terrains.
+
+States are (cell, machine carried) with machines none, plow, sprinkler, harvester. Machines
+stand on dirt cells and stay there (they are sources): stepping onto a machine's cell moves
+there and the carried machine becomes that one. Moving onto dirt always succeeds (known).
+Moving onto a field cell of terrain t while carrying machine m succeeds with model probability
+p = softmax(theta[m])[t] (row ``[moved, stay]`` = ``[p, 1 - p]``) and truly iff m works on t;
+carrying nothing never enters a field (known). STAY and moves off the grid stay put (known).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from server.domains.base import NUM_ACTIONS, Environment, SoftmaxRowsModel, Task
+from server.domains.grid import (
+    GridMap,
+    Successor,
+    TransitionTable,
+    empty_layout,
+    goal_reward,
+    known,
+    make_environment,
+    target_cell,
+    uniform,
+)
+
+DOMAIN = "farming"
+FEATURES: tuple[str, ...] = ("none", "plow", "sprinkler", "harvester")
+MACHINES = FEATURES[1:]  # the model's softmax rows
+TERRAINS: tuple[str, ...] = ("soil", "grass", "crops")  # the model's softmax columns
+# Map letters.
+DIRT = "."
+TERRAIN_OF_LETTER: dict[str, str] = {".": "dirt", "s": "soil", "i": "grass", "c": "crops"}
+MACHINE_OF_LETTER: dict[str, str] = {"P": "plow", "W": "sprinkler", "H": "harvester"}
+# The true (hidden) rule: the terrain each machine works on.
+TERRAIN_OF_MACHINE: dict[str, str] = {"plow": "soil", "sprinkler": "grass", "harvester": "crops"}
+TRUE_LOGIT = 30.0  # softmax(+30 against -30) is within 1e-26 of one-hot
+WIDTH = 2  # successors per (state, action)
+
+
+def horizon(height: int, width: int) -> int:
+    return 4 * (width + height)
+
+
+def build(name: str, grid_map: GridMap) -> Environment:
+    grid_map.check_characters("".join(TERRAIN_OF_LETTER) + "".join(MACHINE_OF_LETTER))
+    if grid_map.goal_letters:
+        raise ValueError(f"map {name!r}: farming tasks are fields, not letters")
+    height, width = grid_map.height, grid_map.width
+    num_features = len(FEATURES)
+    num_states = height * width * num_features
+    # Machines stand on dirt.
+    terrain = {
+        cell: TERRAIN_OF_LETTER.get(grid_map.char(cell), "dirt") for cell in grid_map.cells()
+    }
+    machine_of_cell = {
+        cell: MACHINE_OF_LETTER[grid_map.char(cell)]
+        for cell in grid_map.cells()
+        if grid_map.char(cell) in MACHINE_OF_LETTER
+    }
+
+    def state_of(cell: tuple[int, int], feature: int) -> int:
+        return (cell[0] * width + cell[1]) * num_features + feature
+
+    table = TransitionTable(num_states, WIDTH)
+    for cell in grid_map.cells():
+        for feature, carried in enumerate(FEATURES):
+            state = state_of(cell, feature)
+            for action in range(NUM_ACTIONS):
+                target = target_cell(cell, action, height, width)
+                if target is None:
+                    table.set(state, action, known(state))
+                elif terrain[target] == "dirt":
+                    machine = machine_of_cell.get(target)
+                    new = feature if machine is None else FEATURES.index(machine)
+                    table.set(state, action, known(state_of(target, new)))
+                elif carried == "none":
+                    table.set(state, action, known(state))
+                else:
+                    index = MACHINES.index(carried) * len(TERRAINS) + TERRAINS.index(
+                        terrain[target]
+                    )
+                    works = float(TERRAIN_OF_MACHINE[carried] == terrain[target])
+                    table.set(
+                        state,
+                        action,
+                        [
+                            Successor(state_of(target, feature), 0.0, 1.0, index, works),
+                            Successor(state, 1.0, -1.0, index, 1.0 - works),
+                        ],
+                    )
+    model = SoftmaxRowsModel(
+        **table.model_arrays(),
+        num_parameters=len(MACHINES) * len(TERRAINS),
+        initial_value=0.0,
+        parameter_names=[f"{machine}->{t}" for machine in MACHINES for t in TERRAINS],
+        groups=len(MACHINES),
+        choices=len(TERRAINS),
+    )
+
+    start = uniform(
+        num_states,
+        (
+            state_of(cell, 0)
+            for cell in grid_map.cells()
+            if terrain[cell] == "dirt" and cell not in machine_of_cell and cell in grid_map.start
+        ),
+    )
+    if grid_map.study_starts:
+        raise ValueError(f"map {name!r}: farming maps have no study starts")
+    tasks = []
+    for spec in grid_map.tasks:
+        kinds = {terrain[cell] for cell in spec.goal_cells}
+        if len(kinds) != 1 or kinds == {"dirt"}:
+            raise ValueError(f"map {name!r}: task {spec.name!r} must cover one field terrain")
+        tasks.append(
+            Task(
+                name=spec.name,
+                reward=goal_reward(num_states, num_features, width, spec.goal_cells),
+                start=start,
+                goal_cells=spec.goal_cells,
+            )
+        )
+
+    layout = empty_layout(height, width, "dirt")
+    layout["terrain"] = [
+        [terrain[(row, column)] for column in range(width)] for row in range(height)
+    ]
+    layout["machines"] = [
+        {"row": row, "column": column, "machine": machine}
+        for (row, column), machine in sorted(machine_of_cell.items())
+    ]
+    return make_environment(
+        name=name,
+        domain=DOMAIN,
+        grid_map=grid_map,
+        num_features=num_features,
+        feature_names=FEATURES,
+        horizon=horizon(height, width),
+        tasks=tasks,
+        table=table,
+        model=model,
+        layout=layout,
+    )
+
+
+def true_model_parameters(env: Environment) -> np.ndarray:
+    """Logits under which the model's probabilities equal the true dynamics (within 1e-9):
+    per machine, +30 on the terrain it works on and -30 on the others."""
+    if env.domain != DOMAIN:
+        raise ValueError(f"{env.name!r} is a {env.domain} environment, not {DOMAIN}")
+    return np.asarray(
+        [
+            TRUE_LOGIT if TERRAIN_OF_MACHINE[machine] == terrain else -TRUE_LOGIT
+            for machine in MACHINES
+            for terrain in TERRAINS
+        ]
+    )

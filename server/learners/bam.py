@@ -1,0 +1,82 @@
+"""Behavior Aware Modeling (section 3.1): maximise equation (5) over the dynamics parameters
+theta and every task's costs, alternating cost steps and dynamics steps. The dynamics steps use
+the observed transitions AND the teacher's data through the planner, which is how BAM learns
+about dynamics the teacher knows but the agent never observed (the doorway's walls)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from server.learners.objective import TeacherData, maximize_lbfgs
+from server.learners.planner_learner import PlannerLearner
+
+
+class BAM(PlannerLearner):
+    name = "bam"
+    default_settings = {
+        **PlannerLearner.default_settings,
+        "alternations": 10,
+        "cost_steps": 20,
+        "dynamics_steps": 20,
+    }
+
+    def _fit(self) -> tuple[float, int]:
+        data = TeacherData.from_log(self.data)
+        observed = self.data.observed_transitions()
+        if self.settings["optimizer"] == "lbfgs":
+            return self._fit_lbfgs(data, observed)
+        steps = 0
+        objective = float("nan")
+        for _ in range(int(self.settings["alternations"])):
+            if not data.empty:
+                operator = self.operator()
+                for _ in range(int(self.settings["cost_steps"])):
+                    self.cost_step(operator, data)
+                    steps += 1
+            for _ in range(int(self.settings["dynamics_steps"])):
+                objective = self._dynamics_step(data, observed)
+                steps += 1
+        return objective, steps
+
+    def _fit_lbfgs(self, data: TeacherData, observed: np.ndarray) -> tuple[float, int]:
+        """Equation (5) over theta and the informed costs jointly with L-BFGS-B."""
+        if data.empty:
+            return self.fit_theta_lbfgs(observed)
+        num_theta = self.env.model.num_parameters
+
+        def objective(vector: np.ndarray) -> tuple[float, np.ndarray]:
+            self.theta = vector[:num_theta]
+            self.set_cost_vector(data, vector[num_theta:])
+            value, d_theta = self.transition_objective(self.theta, observed)
+            teacher, d_rewards, d_transitions = self.teacher_objective(
+                self.operator(), data, need_transitions=True
+            )
+            assert d_transitions is not None
+            d_theta = d_theta + self.env.model.pullback(self.theta, d_transitions)
+            prior, d_costs = self.packed_cost_gradient(data, d_rewards)
+            return value + teacher + prior, np.concatenate([d_theta, d_costs])
+
+        start = np.concatenate([self.theta, self.cost_vector(data)])
+        bounds = [(None, None)] * num_theta + self.cost_bounds(data)
+        best, value, evaluations = maximize_lbfgs(
+            objective, start, bounds, int(self.settings["max_evaluations"])
+        )
+        self.theta = best[:num_theta].copy()
+        self.set_cost_vector(data, best[num_theta:])
+        return value, evaluations
+
+    def _dynamics_step(self, data: TeacherData, observed: Any) -> float:
+        """One momentum step on theta for the whole of equation (5); returns it before."""
+        value, grad = self.transition_objective(self.theta, observed)
+        if not data.empty:
+            teacher, _, d_transitions = self.teacher_objective(
+                self.operator(), data, need_transitions=True
+            )
+            assert d_transitions is not None
+            value += teacher
+            grad = grad + self.env.model.pullback(self.theta, d_transitions)
+        cost_prior, _ = self.cost_prior(self.costs)
+        self.theta = self.theta_optimizer.step(self.theta, grad)
+        return value + cost_prior

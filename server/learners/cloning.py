@@ -1,0 +1,90 @@
+"""Behavioural cloning (section 4.1): a table Q(s, a) per task fitted to the demonstrated
+actions and the feedback under the same action and feedback models as the other learners,
+with no generalisation between states; in states without data for a task it acts at random."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from server.domains.base import Environment, check_finite
+from server.learners.base import Learner
+from server.learners.likelihoods import gaussian_log_prior
+from server.learners.objective import (
+    COMMON_SETTINGS,
+    MomentumAscent,
+    TeacherData,
+    action_model,
+    feedback_model,
+    teacher_log_likelihood,
+)
+
+
+class BehavioralCloning(Learner):
+    name = "cloning"
+    default_settings = {
+        **COMMON_SETTINGS,
+        "steps": 200,
+        "learning_rate": 0.01,
+        "q_prior_sd": 1.0,
+    }
+
+    def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
+        super().__init__(env, seed, **settings)
+        self.table = np.zeros((len(env.tasks), env.num_states, env.num_actions))
+        self.optimizer = MomentumAscent(
+            self.table.size,
+            self.settings["learning_rate"],
+            self.settings["momentum"],
+            self.settings["max_step"],
+        )
+
+    def _fit(self) -> tuple[float, int]:
+        data = TeacherData.from_log(self.data)
+        if data.empty:
+            return 0.0, 0
+        actions, feedback = action_model(self.settings), feedback_model(self.settings)
+        objective = 0.0
+        for _ in range(int(self.settings["steps"])):
+            value, d_q = teacher_log_likelihood(self.table[data.tasks], data, actions, feedback)
+            prior, prior_grad = gaussian_log_prior(self.table, 0.0, self.settings["q_prior_sd"])
+            grad = prior_grad
+            grad[data.tasks] += d_q
+            objective = value + prior
+            self.table = self.optimizer.step(self.table.ravel(), grad.ravel()).reshape(
+                self.table.shape
+            )
+        return objective, int(self.settings["steps"])
+
+    def policy(self, task: int) -> np.ndarray:
+        task = self.env.check_task(task)
+        visited = TeacherData.from_log(self.data).visited(len(self.env.tasks), self.env.num_states)[
+            task
+        ]
+        probabilities = np.full(
+            (self.env.num_states, self.env.num_actions), 1.0 / self.env.num_actions
+        )
+        greedy = np.argmax(self.table[task], axis=1)
+        probabilities[visited] = 0.0
+        probabilities[visited, greedy[visited]] = 1.0
+        return probabilities
+
+    def greedy_policy(self, task: int) -> np.ndarray:
+        """An action per state: the table's argmax where there is data, a random action (drawn
+        from the learner's seeded generator) elsewhere."""
+        probabilities = self.policy(task)
+        actions = np.argmax(probabilities, axis=1)
+        unseen = probabilities.max(axis=1) < 1.0
+        actions[unseen] = self.rng.integers(0, self.env.num_actions, size=int(unseen.sum()))
+        return actions.astype(np.int64)
+
+    def _parameters_state(self) -> dict[str, np.ndarray]:
+        return {"table": self.table.copy(), "velocity": self.optimizer.velocity.copy()}
+
+    def _load_parameters_state(self, state: dict[str, Any]) -> None:
+        table = check_finite("Q table", state["table"])
+        if table.shape != self.table.shape:
+            raise ValueError(f"Q table must have shape {self.table.shape}, got {table.shape}")
+        self.table = table.copy()
+        self.optimizer.velocity = check_finite("velocity", state["velocity"]).copy()

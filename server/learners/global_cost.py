@@ -1,0 +1,86 @@
+"""Model-based IRL with a global cost (section 4.3): as model-based IRL, but every task's reward
+is its own per-cell cost plus one cost over full states shared by all tasks, the simpler way to
+share knowledge across tasks that BAM is compared against."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from server.domains.base import Environment, check_finite
+from server.learners.model_based import ModelBasedIRL
+from server.learners.objective import MomentumAscent, TeacherData, cell_gradient, cell_rewards
+from server.learners.planning import TransitionOperator
+
+
+class GlobalCostIRL(ModelBasedIRL):
+    name = "global-cost"
+    default_settings = {**ModelBasedIRL.default_settings, "global_prior_sd": 1.0}
+
+    def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
+        super().__init__(env, seed, **settings)
+        self.global_costs = np.zeros(env.num_states)
+        # One optimiser over [task costs, global cost]: they are fitted jointly.
+        self.cost_optimizer = MomentumAscent(
+            self.costs.size + env.num_states,
+            self.settings["cost_learning_rate"],
+            self.settings["momentum"],
+            self.settings["max_step"],
+        )
+
+    def rewards(self) -> np.ndarray:
+        return cell_rewards(self.env, self.costs) + self.global_costs[None, :]
+
+    def task_rewards(self, data: TeacherData, costs: np.ndarray) -> np.ndarray:
+        return cell_rewards(self.env, costs[data.tasks]) + self.global_costs[None, :]
+
+    def cost_step(self, operator: TransitionOperator, data: TeacherData) -> float:
+        value, d_rewards, _ = self.teacher_objective(operator, data, need_transitions=False)
+        grad = np.zeros_like(self.costs)
+        grad[data.tasks] = cell_gradient(self.env, d_rewards)
+        prior, prior_grad = self.cost_prior(self.costs)
+        global_prior, global_prior_grad = self._global_prior()
+        joint = np.concatenate([self.costs.ravel(), self.global_costs])
+        joint_grad = np.concatenate(
+            [(grad + prior_grad).ravel(), d_rewards.sum(axis=0) + global_prior_grad]
+        )
+        bound = self.settings["cost_bound"]
+        updated = np.clip(self.cost_optimizer.step(joint, joint_grad), -bound, bound)
+        self.costs = updated[: self.costs.size].reshape(self.costs.shape)
+        self.global_costs = updated[self.costs.size :]
+        return value + prior + global_prior
+
+    # L-BFGS-B packing: the informed task costs, then the global cost.
+    def cost_vector(self, data: TeacherData) -> np.ndarray:
+        return np.concatenate([super().cost_vector(data), self.global_costs])
+
+    def set_cost_vector(self, data: TeacherData, vector: np.ndarray) -> None:
+        super().set_cost_vector(data, vector)
+        self.global_costs = vector[len(data.tasks) * self.env.num_cells :].copy()
+
+    def packed_cost_gradient(
+        self, data: TeacherData, d_rewards: np.ndarray
+    ) -> tuple[float, np.ndarray]:
+        prior, grad = super().packed_cost_gradient(data, d_rewards)
+        global_prior, global_grad = self._global_prior()
+        return prior + global_prior, np.concatenate([grad, d_rewards.sum(axis=0) + global_grad])
+
+    def _extra_objective(self, d_rewards: np.ndarray) -> tuple[float, dict[str, np.ndarray]]:
+        prior, prior_grad = self._global_prior()
+        return prior, {"global_costs": d_rewards.sum(axis=0) + prior_grad}
+
+    def _global_prior(self) -> tuple[float, np.ndarray]:
+        from server.learners.likelihoods import gaussian_log_prior
+
+        return gaussian_log_prior(self.global_costs, 0.0, self.settings["global_prior_sd"])
+
+    def _parameters_state(self) -> dict[str, np.ndarray]:
+        return {**super()._parameters_state(), "global_costs": self.global_costs.copy()}
+
+    def _load_parameters_state(self, state: dict[str, Any]) -> None:
+        super()._load_parameters_state(state)
+        global_costs = check_finite("global costs", state["global_costs"])
+        if global_costs.shape != (self.env.num_states,):
+            raise ValueError(f"global costs must have shape ({self.env.num_states},)")
+        self.global_costs = global_costs.copy()

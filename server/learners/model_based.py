@@ -1,0 +1,41 @@
+"""Model-based IRL (section 4.1): fit T_theta to the observed transitions only (maximum
+likelihood in the same model space as BAM), then fit each task's costs by ML-IRL under that
+fixed model."""
+
+from __future__ import annotations
+
+from server.learners.objective import TeacherData
+from server.learners.planner_learner import PlannerLearner
+
+
+class ModelBasedIRL(PlannerLearner):
+    name = "model-based"
+    default_settings = {
+        **PlannerLearner.default_settings,
+        "dynamics_steps": 200,
+        "cost_steps": 200,
+    }
+
+    def _fit(self) -> tuple[float, int]:
+        observed = self.data.observed_transitions()
+        if self.settings["optimizer"] == "lbfgs":
+            dynamics_objective, dynamics_evaluations = self.fit_theta_lbfgs(observed)
+            data = TeacherData.from_log(self.data)
+            if data.empty:
+                return dynamics_objective, dynamics_evaluations
+            teacher_objective, cost_evaluations = self.fit_costs_lbfgs(self.operator(), data)
+            return dynamics_objective + teacher_objective, dynamics_evaluations + cost_evaluations
+        dynamics_objective = 0.0
+        for _ in range(int(self.settings["dynamics_steps"])):
+            dynamics_objective, grad = self.transition_objective(self.theta, observed)
+            self.theta = self.theta_optimizer.step(self.theta, grad)
+        data = TeacherData.from_log(self.data)
+        teacher_objective = 0.0
+        if not data.empty:
+            operator = self.operator()
+            for _ in range(int(self.settings["cost_steps"])):
+                teacher_objective = self.cost_step(operator, data)
+        steps = int(self.settings["dynamics_steps"]) + (
+            0 if data.empty else int(self.settings["cost_steps"])
+        )
+        return dynamics_objective + teacher_objective, steps

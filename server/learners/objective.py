@@ -1,0 +1,212 @@
+"""Pieces shared by the learners: teacher data as arrays, the optimiser, and the teacher-data
+log-likelihood through the soft planner (the first term of the paper's equation (5))."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from server.domains.base import Environment
+from server.learners.base import DataLog
+from server.learners.likelihoods import (
+    ActionModel,
+    FeedbackModel,
+    demonstration_log_likelihood,
+    feedback_log_likelihood,
+)
+from server.learners.planning import TransitionOperator, soft_plan
+
+# Settings every learner shares (the paper's authors' reference settings).
+COMMON_SETTINGS: dict[str, Any] = {
+    "beta": 1.0,
+    "normalized_actions": True,
+    "epsilon": 0.05,
+    "alpha": 1.0,
+    "mu_plus": 0.1,
+    "mu_minus": 0.1,
+    "momentum": 0.7,
+    "max_step": 0.1,
+}
+
+# Settings of the learners that fit per-cell costs through a planner.
+COST_SETTINGS: dict[str, Any] = {
+    "cost_prior_sd": 1.0,
+    "cost_bound": 3.0,
+    "cost_learning_rate": 0.01,
+    "dynamics_learning_rate": 1.0,
+    # m(theta): a weak Gaussian prior centred on the model's initialisation.
+    "dynamics_prior_sd": 3.0,
+    # "momentum": the reference schedule of fixed momentum steps (the default: measured to reach
+    # a higher likelihood than L-BFGS-B capped at 40 evaluations on two-fields and flip);
+    # "lbfgs": L-BFGS-B over all parameter blocks at once, 2.5-3x faster, stopping at
+    # convergence or after `max_evaluations` objective evaluations.
+    "optimizer": "momentum",
+    "max_evaluations": 40,
+}
+
+
+@dataclass(frozen=True)
+class TeacherData:
+    """Demonstrated actions and agent steps with feedback, restricted to the tasks that have
+    any, re-indexed 0..len(tasks)-1 so the planner only plans the tasks it needs."""
+
+    tasks: np.ndarray  # original task indices with data
+    demo_tasks: np.ndarray
+    demo_states: np.ndarray
+    demo_actions: np.ndarray
+    step_tasks: np.ndarray
+    step_states: np.ndarray
+    step_actions: np.ndarray
+    step_feedback: np.ndarray
+
+    @classmethod
+    def from_log(cls, log: DataLog, include_silent_steps: bool = True) -> TeacherData:
+        demos = log.demonstrations
+        steps = log.agent_steps
+        if not include_silent_steps:
+            steps = steps[steps[:, 4] != 0]
+        tasks = np.unique(np.concatenate([demos[:, 0], steps[:, 0]]))
+        remap = {int(t): i for i, t in enumerate(tasks)}
+
+        def local(column: np.ndarray) -> np.ndarray:
+            return np.array([remap[int(t)] for t in column], dtype=np.int64)
+
+        return cls(
+            tasks=tasks,
+            demo_tasks=local(demos[:, 0]),
+            demo_states=demos[:, 1],
+            demo_actions=demos[:, 2],
+            step_tasks=local(steps[:, 0]),
+            step_states=steps[:, 1],
+            step_actions=steps[:, 2],
+            step_feedback=steps[:, 4],
+        )
+
+    @property
+    def empty(self) -> bool:
+        return len(self.tasks) == 0
+
+    def visited(self, num_tasks: int, num_states: int) -> np.ndarray:
+        """(tasks, states) mask of the states where the teacher gave data for each task."""
+        mask = np.zeros((num_tasks, num_states), dtype=bool)
+        mask[self.tasks[self.demo_tasks], self.demo_states] = True
+        mask[self.tasks[self.step_tasks], self.step_states] = True
+        return mask
+
+
+def action_model(settings: dict[str, Any]) -> ActionModel:
+    return ActionModel(
+        beta=float(settings["beta"]), normalized=bool(settings["normalized_actions"])
+    )
+
+
+def feedback_model(settings: dict[str, Any]) -> FeedbackModel:
+    return FeedbackModel(
+        epsilon=float(settings["epsilon"]),
+        alpha=float(settings["alpha"]),
+        mu_plus=float(settings["mu_plus"]),
+        mu_minus=float(settings["mu_minus"]),
+    )
+
+
+def teacher_log_likelihood(
+    q: np.ndarray, data: TeacherData, actions: ActionModel, feedback: FeedbackModel
+) -> tuple[float, np.ndarray]:
+    """ln p(D_T | Q) over every task with data, and dL/dQ; q is (tasks with data, S, A)."""
+    value_d, d_q = demonstration_log_likelihood(
+        q, data.demo_tasks, data.demo_states, data.demo_actions, actions
+    )
+    value_f, d_q_f = feedback_log_likelihood(
+        q, data.step_tasks, data.step_states, data.step_actions, data.step_feedback, feedback
+    )
+    return value_d + value_f, d_q + d_q_f
+
+
+def planned_teacher_log_likelihood(
+    operator: TransitionOperator,
+    rewards: np.ndarray,
+    data: TeacherData,
+    settings: dict[str, Any],
+    horizon: int,
+    need_transitions: bool,
+) -> tuple[float, np.ndarray, np.ndarray | None]:
+    """Teacher data likelihood with Q from soft value iteration under (operator, rewards).
+
+    ``rewards`` is (tasks with data, S). Returns the value, dL/drewards and, if asked, dL/dT on
+    the operator's sparse entries (S, A, M).
+    """
+    plan = soft_plan(operator, rewards, float(settings["beta"]), horizon)
+    value, d_q = teacher_log_likelihood(
+        plan.q_all, data, action_model(settings), feedback_model(settings)
+    )
+    d_rewards, d_transitions = plan.backward(d_q, need_transitions=need_transitions)
+    return value, d_rewards, d_transitions
+
+
+class MomentumAscent:
+    """Momentum gradient ascent with the step's norm clipped (reference settings: momentum
+    0.7, step norm at most 0.1). Its velocity persists across updates (warm start)."""
+
+    def __init__(self, size: int, learning_rate: float, momentum: float, max_step: float) -> None:
+        self.velocity = np.zeros(size)
+        self.learning_rate = float(learning_rate)
+        self.momentum = float(momentum)
+        self.max_step = float(max_step)
+
+    def step(self, parameters: np.ndarray, gradient: np.ndarray) -> np.ndarray:
+        if not np.all(np.isfinite(gradient)):
+            raise FloatingPointError("the objective's gradient is not finite")
+        step = self.momentum * self.velocity + self.learning_rate * gradient
+        norm = float(np.linalg.norm(step))
+        if norm > self.max_step:
+            step *= self.max_step / norm
+        self.velocity = step
+        return parameters + step
+
+
+def maximize_lbfgs(
+    objective: Callable[[np.ndarray], tuple[float, np.ndarray]],
+    start: np.ndarray,
+    bounds: list[tuple[float | None, float | None]] | None,
+    max_evaluations: int,
+) -> tuple[np.ndarray, float, int]:
+    """Maximise ``objective`` (value, gradient) with L-BFGS-B from ``start``; returns the best
+    point, its value and the number of evaluations."""
+    from scipy.optimize import minimize
+
+    best: dict[str, Any] = {"value": -np.inf, "x": start.copy()}
+    evaluations = 0
+
+    def negative(x: np.ndarray) -> tuple[float, np.ndarray]:
+        nonlocal evaluations
+        evaluations += 1
+        value, gradient = objective(x)
+        if not np.isfinite(value) or not np.all(np.isfinite(gradient)):
+            raise FloatingPointError("the objective or its gradient is not finite")
+        if value > best["value"]:
+            best["value"], best["x"] = value, x.copy()
+        return -value, -gradient
+
+    minimize(
+        negative,
+        start,
+        jac=True,
+        method="L-BFGS-B",
+        bounds=bounds,
+        options={"maxfun": int(max_evaluations), "maxiter": int(max_evaluations)},
+    )
+    return best["x"], float(best["value"]), evaluations
+
+
+def cell_rewards(env: Environment, costs: np.ndarray) -> np.ndarray:
+    """Per-state rewards (K, S) from per-cell parameters (K, cells), shared across features."""
+    return costs[:, env.state_cells]
+
+
+def cell_gradient(env: Environment, d_rewards: np.ndarray) -> np.ndarray:
+    """Pull a gradient on per-state rewards (K, S) back to per-cell parameters (K, cells)."""
+    # States are ordered cell-major (state = cell * num_features + feature).
+    return d_rewards.reshape(d_rewards.shape[0], env.num_cells, env.num_features).sum(axis=2)

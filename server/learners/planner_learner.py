@@ -1,0 +1,229 @@
+"""Base of the learners that act on a learned dynamics model and learned per-cell costs through
+the soft planner: BAM, model-based IRL and model-based IRL with a global cost."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from server.domains.base import Environment, check_finite
+from server.learners.base import Learner
+from server.learners.likelihoods import gaussian_log_prior
+from server.learners.objective import (
+    COMMON_SETTINGS,
+    COST_SETTINGS,
+    MomentumAscent,
+    TeacherData,
+    cell_gradient,
+    cell_rewards,
+    maximize_lbfgs,
+    planned_teacher_log_likelihood,
+)
+from server.learners.planning import TransitionOperator, soft_plan
+
+
+class PlannerLearner(Learner):
+    """Learned dynamics parameters theta (the environment's model space) and per-cell reward
+    parameters per task (the paper's cost C = -reward), acting greedily on soft Q."""
+
+    default_settings = {**COMMON_SETTINGS, **COST_SETTINGS}
+
+    def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
+        super().__init__(env, seed, **settings)
+        if self.settings["optimizer"] not in ("lbfgs", "momentum"):
+            raise ValueError(
+                f"optimizer must be 'lbfgs' or 'momentum', got {self.settings['optimizer']!r}"
+            )
+        self.theta = env.model.initial_parameters()
+        self.costs = np.zeros((len(env.tasks), env.num_cells))
+        self.theta_optimizer = MomentumAscent(
+            env.model.num_parameters,
+            self.settings["dynamics_learning_rate"],
+            self.settings["momentum"],
+            self.settings["max_step"],
+        )
+        self.cost_optimizer = MomentumAscent(
+            self.costs.size,
+            self.settings["cost_learning_rate"],
+            self.settings["momentum"],
+            self.settings["max_step"],
+        )
+        self._policies: np.ndarray | None = None
+
+    # -- the model ------------------------------------------------------------------------
+    def rewards(self) -> np.ndarray:
+        """Per-state rewards (tasks, S) the learner currently believes in."""
+        return cell_rewards(self.env, self.costs)
+
+    def operator(self) -> TransitionOperator:
+        return TransitionOperator.build(self.env.model.transitions(self.theta))
+
+    def q_values(self) -> np.ndarray:
+        """Soft Q (tasks, S, A) under the learned model and rewards."""
+        return soft_plan(
+            self.operator(),
+            self.rewards(),
+            self.settings["beta"],
+            self.env.horizon,
+            keep_trace=False,
+        ).q_all
+
+    def policy(self, task: int) -> np.ndarray:
+        task = self.env.check_task(task)
+        if self._policies is None:
+            greedy = np.argmax(self.q_values(), axis=2)
+            policies = np.zeros((len(self.env.tasks), self.env.num_states, self.env.num_actions))
+            np.put_along_axis(policies, greedy[:, :, None], 1.0, axis=2)
+            self._policies = policies
+        return self._policies[task]
+
+    # -- objective pieces -----------------------------------------------------------------
+    def cost_prior(self, costs: np.ndarray) -> tuple[float, np.ndarray]:
+        return gaussian_log_prior(costs, 0.0, self.settings["cost_prior_sd"])
+
+    def dynamics_prior(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
+        return gaussian_log_prior(
+            theta, self.env.model.initial_value, self.settings["dynamics_prior_sd"]
+        )
+
+    def transition_objective(
+        self, theta: np.ndarray, observed: np.ndarray
+    ) -> tuple[float, np.ndarray]:
+        """ln T_theta over observed transitions plus ln m(theta), and the gradient."""
+        value, grad = self.env.model.transition_log_likelihood(theta, observed)
+        prior, prior_grad = self.dynamics_prior(theta)
+        return value + prior, grad + prior_grad
+
+    def task_rewards(self, data: TeacherData, costs: np.ndarray) -> np.ndarray:
+        """Rewards (tasks with data, S) for the planner; subclasses add a global cost."""
+        return cell_rewards(self.env, costs[data.tasks])
+
+    def teacher_objective(
+        self,
+        operator: TransitionOperator,
+        data: TeacherData,
+        need_transitions: bool,
+    ) -> tuple[float, np.ndarray, np.ndarray | None]:
+        """Teacher-data log-likelihood, dL/d(per-state rewards of tasks with data), dL/dT."""
+        return planned_teacher_log_likelihood(
+            operator,
+            self.task_rewards(data, self.costs),
+            data,
+            self.settings,
+            self.env.horizon,
+            need_transitions,
+        )
+
+    def cost_step(self, operator: TransitionOperator, data: TeacherData) -> float:
+        """One momentum step on the costs (tasks with data); returns the objective before it."""
+        value, d_rewards, _ = self.teacher_objective(operator, data, need_transitions=False)
+        grad = np.zeros_like(self.costs)
+        grad[data.tasks] = cell_gradient(self.env, d_rewards)
+        prior, prior_grad = self.cost_prior(self.costs)
+        bound = self.settings["cost_bound"]
+        updated = self.cost_optimizer.step(self.costs.ravel(), (grad + prior_grad).ravel())
+        self.costs = np.clip(updated.reshape(self.costs.shape), -bound, bound)
+        return value + prior
+
+    # -- L-BFGS-B fitting over packed parameter vectors ------------------------------------
+    def cost_vector(self, data: TeacherData) -> np.ndarray:
+        """The cost parameters that the teacher data informs, packed into one vector."""
+        return self.costs[data.tasks].ravel().copy()
+
+    def set_cost_vector(self, data: TeacherData, vector: np.ndarray) -> None:
+        costs = self.costs.copy()
+        costs[data.tasks] = vector[: len(data.tasks) * self.env.num_cells].reshape(
+            len(data.tasks), self.env.num_cells
+        )
+        self.costs = costs
+
+    def cost_bounds(self, data: TeacherData) -> list[tuple[float | None, float | None]]:
+        bound = float(self.settings["cost_bound"])
+        return [(-bound, bound)] * len(self.cost_vector(data))
+
+    def packed_cost_gradient(
+        self, data: TeacherData, d_rewards: np.ndarray
+    ) -> tuple[float, np.ndarray]:
+        """Cost priors and the gradient of (teacher likelihood + priors) in the packed layout."""
+        prior, prior_grad = self.cost_prior(self.costs[data.tasks])
+        return prior, (cell_gradient(self.env, d_rewards) + prior_grad).ravel()
+
+    def fit_costs_lbfgs(self, operator: TransitionOperator, data: TeacherData) -> tuple[float, int]:
+        """Costs by L-BFGS-B under a fixed dynamics model; returns (objective, evaluations)."""
+
+        def objective(vector: np.ndarray) -> tuple[float, np.ndarray]:
+            self.set_cost_vector(data, vector)
+            value, d_rewards, _ = self.teacher_objective(operator, data, need_transitions=False)
+            prior, grad = self.packed_cost_gradient(data, d_rewards)
+            return value + prior, grad
+
+        best, value, evaluations = maximize_lbfgs(
+            objective,
+            self.cost_vector(data),
+            self.cost_bounds(data),
+            int(self.settings["max_evaluations"]),
+        )
+        self.set_cost_vector(data, best)
+        return value, evaluations
+
+    def fit_theta_lbfgs(self, observed: np.ndarray) -> tuple[float, int]:
+        """Dynamics by L-BFGS-B on the observed transitions and the prior alone."""
+        best, value, evaluations = maximize_lbfgs(
+            lambda theta: self.transition_objective(theta, observed),
+            self.theta.copy(),
+            None,
+            int(self.settings["max_evaluations"]),
+        )
+        self.theta = best
+        return value, evaluations
+
+    def objective(self) -> tuple[float, dict[str, np.ndarray]]:
+        """Equation (5) at the current parameters over all recorded data, with its gradient
+        for every parameter block (used by tests and to compare optimisers)."""
+        data = TeacherData.from_log(self.data)
+        value, d_theta = self.transition_objective(self.theta, self.data.observed_transitions())
+        d_costs = np.zeros_like(self.costs)
+        d_rewards = np.zeros((0, self.env.num_states))
+        if not data.empty:
+            teacher, d_rewards, d_transitions = self.teacher_objective(
+                self.operator(), data, need_transitions=True
+            )
+            assert d_transitions is not None
+            value += teacher
+            d_theta = d_theta + self.env.model.pullback(self.theta, d_transitions)
+            d_costs[data.tasks] = cell_gradient(self.env, d_rewards)
+        prior, prior_grad = self.cost_prior(self.costs)
+        gradients = {"theta": d_theta, "costs": d_costs + prior_grad}
+        extra_value, extra = self._extra_objective(d_rewards)
+        gradients.update(extra)
+        return value + prior + extra_value, gradients
+
+    def _extra_objective(self, d_rewards: np.ndarray) -> tuple[float, dict[str, np.ndarray]]:
+        """Objective terms and gradients of parameter blocks a subclass adds."""
+        return 0.0, {}
+
+    # -- persistence ----------------------------------------------------------------------
+    def _parameters_state(self) -> dict[str, np.ndarray]:
+        return {
+            "theta": self.theta.copy(),
+            "costs": self.costs.copy(),
+            "theta_velocity": self.theta_optimizer.velocity.copy(),
+            "cost_velocity": self.cost_optimizer.velocity.copy(),
+        }
+
+    def _load_parameters_state(self, state: dict[str, Any]) -> None:
+        self.theta = self.env.model.check_parameters(state["theta"]).copy()
+        costs = check_finite("costs", state["costs"])
+        if costs.shape != self.costs.shape:
+            raise ValueError(f"costs must have shape {self.costs.shape}, got {costs.shape}")
+        self.costs = costs.copy()
+        self.theta_optimizer.velocity = check_finite(
+            "theta velocity", state["theta_velocity"]
+        ).copy()
+        self.cost_optimizer.velocity = check_finite("cost velocity", state["cost_velocity"]).copy()
+        self._policies = None
+
+    def update(self):  # type: ignore[override]
+        self._policies = None
+        return super().update()

@@ -1,0 +1,287 @@
+"""Finite-horizon planning: soft value iteration (the paper's equations (1)-(2)) with an exact
+reverse-mode gradient, hard-max value iteration for the teacher, and exact expected returns.
+
+Conventions. Rewards are per state, ``reward[k, s]`` for task k (the paper's cost is
+C = -reward). Q after ``horizon`` backups is the expected sum of ``horizon`` rewards:
+
+    Q_1(s, a) = r(s)
+    Q_t(s, a) = r(s) + sum_s' T(s, a, s') V_{t-1}(s')
+    V_t(s)    = sum_a pi_t(a|s) Q_t(s, a),   pi_t proportional to exp(beta Q_t)
+
+(a Boltzmann expectation, not log-sum-exp). Transitions are a dense (S, A, S) array or a
+``SparseTransitions``; the gradient with respect to them comes back in the same form.
+
+The reverse pass walks the backups once from t = horizon down to 1, so its cost is a small
+constant times the forward pass whatever the number of parameters (the paper's forward-mode
+Jacobians cost a factor of the number of parameters more).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from server.domains.base import SparseTransitions, check_finite
+from server.learners import _kernels
+
+
+class TransitionOperator:
+    """A validated transition table in the padded sparse layout the compiled kernels use:
+    rows ``s * A + a`` of ``width`` (next state, probability) entries. Dense (S, A, S) input
+    becomes rows of width S."""
+
+    def __init__(self, transitions: np.ndarray | SparseTransitions) -> None:
+        self.dense_input = not isinstance(transitions, SparseTransitions)
+        if self.dense_input:
+            probabilities = check_finite("transitions", transitions)
+            if probabilities.ndim != 3 or probabilities.shape[0] != probabilities.shape[2]:
+                raise ValueError(
+                    "transitions must have shape (states, actions, states), "
+                    f"got {probabilities.shape}"
+                )
+            num_states, num_actions, _ = probabilities.shape
+            next_states = np.broadcast_to(
+                np.arange(num_states), (num_states, num_actions, num_states)
+            )
+        else:
+            assert isinstance(transitions, SparseTransitions)
+            next_states = np.asarray(transitions.next_states)
+            probabilities = check_finite("transition probabilities", transitions.probabilities)
+            if next_states.shape != probabilities.shape or next_states.ndim != 3:
+                raise ValueError(
+                    "sparse transitions: next_states and probabilities must share one "
+                    "(S, A, M) shape"
+                )
+            num_states, num_actions, _ = next_states.shape
+            if next_states.min() < 0 or next_states.max() >= num_states:
+                raise ValueError("sparse transitions: a next state is out of range")
+        if np.any(probabilities < 0.0):
+            raise ValueError("transition probabilities must be non-negative")
+        sums = probabilities.sum(axis=2)
+        if not np.allclose(sums, 1.0, atol=1e-8):
+            worst = np.unravel_index(np.argmax(np.abs(sums - 1.0)), sums.shape)
+            raise ValueError(
+                f"transition probabilities of (state, action) {tuple(int(i) for i in worst)} "
+                f"sum to {sums[worst]:.6g}, not 1"
+            )
+        self.num_states = int(num_states)
+        self.num_actions = int(num_actions)
+        self.width = int(next_states.shape[2])
+        self.next_flat = np.ascontiguousarray(next_states, dtype=np.int64).reshape(-1)
+        self.probs_flat = np.ascontiguousarray(probabilities, dtype=np.float64).reshape(-1)
+        self._matrix: sp.csr_matrix | None = None
+
+    @classmethod
+    def build(cls, transitions: np.ndarray | SparseTransitions) -> TransitionOperator:
+        return cls(transitions)
+
+    @property
+    def matrix(self) -> sp.csr_matrix:
+        """The table as a sparse (S*A, S) matrix (built on first use)."""
+        if self._matrix is None:
+            rows = np.repeat(np.arange(self.num_states * self.num_actions), self.width)
+            self._matrix = sp.csr_matrix(
+                (self.probs_flat, (rows, self.next_flat)),
+                shape=(self.num_states * self.num_actions, self.num_states),
+            )
+        return self._matrix
+
+
+@dataclass
+class SoftPlan:
+    """The result of a soft value iteration forward pass, kept for its reverse pass."""
+
+    q_all: np.ndarray  # (K, S, A) after `horizon` backups
+    operator: TransitionOperator
+    beta: float
+    horizon: int
+    values: np.ndarray  # (horizon, K, S): V_1 .. V_horizon
+    value_jacobians: np.ndarray  # (horizon, K, S, A): dV_t/dQ_t = pi (1 + beta (Q - V))
+    single_task: bool
+
+    @property
+    def q(self) -> np.ndarray:
+        """Q after `horizon` backups, with the caller's task dimension."""
+        return self.q_all[0] if self.single_task else self.q_all
+
+    def backward(
+        self, d_q: np.ndarray, *, need_transitions: bool = True
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """From dL/dQ (same shape as ``q`` as returned), dL/dreward and dL/dtransitions.
+
+        The transition gradient has the shape of the transitions given to the forward pass
+        (dense (S, A, S) or the sparse (S, A, M) probabilities); ``need_transitions=False``
+        skips it (a cost-only step).
+        """
+        op = self.operator
+        d_q = np.asarray(d_q, dtype=np.float64)
+        expected = self.q.shape
+        if d_q.shape != expected:
+            raise ValueError(f"dL/dQ must have shape {expected}, got {d_q.shape}")
+        check_finite("dL/dQ", d_q)
+        g_q = d_q[None] if self.single_task else d_q
+        if self.values.shape[0] != self.horizon:
+            raise ValueError("this plan was computed without keep_trace; it has no reverse pass")
+        d_reward, d_probs = _kernels.soft_backward(
+            op.next_flat,
+            op.probs_flat,
+            op.width,
+            self.values,
+            self.value_jacobians,
+            np.ascontiguousarray(g_q),
+            self.horizon,
+            need_transitions,
+        )
+        if self.single_task:
+            d_reward = d_reward[0]
+        if not need_transitions:
+            return d_reward, None
+        # Dense input: width == S and the entries are T itself, so this is dL/dT.
+        return d_reward, d_probs.reshape(op.num_states, op.num_actions, op.width)
+
+
+def soft_value_iteration(
+    transitions: np.ndarray | SparseTransitions | TransitionOperator,
+    reward: np.ndarray,
+    beta: float,
+    horizon: int,
+) -> np.ndarray:
+    """Q after ``horizon`` soft backups; shape (S, A) for a reward (S,), (K, S, A) for (K, S)."""
+    return soft_plan(transitions, reward, beta, horizon, keep_trace=False).q
+
+
+def soft_plan(
+    transitions: np.ndarray | SparseTransitions | TransitionOperator,
+    reward: np.ndarray,
+    beta: float,
+    horizon: int,
+    *,
+    keep_trace: bool = True,
+) -> SoftPlan:
+    """Forward pass of soft value iteration, keeping what the reverse pass needs."""
+    operator = (
+        transitions
+        if isinstance(transitions, TransitionOperator)
+        else TransitionOperator.build(transitions)
+    )
+    reward = check_finite("reward", reward)
+    single_task = reward.ndim == 1
+    rewards = reward[None] if single_task else reward
+    if rewards.ndim != 2 or rewards.shape[1] != operator.num_states:
+        raise ValueError(
+            f"reward must have shape ({operator.num_states},) or (tasks, {operator.num_states}), "
+            f"got {reward.shape}"
+        )
+    if not np.isfinite(beta) or beta <= 0:
+        raise ValueError(f"beta must be a positive finite number, got {beta!r}")
+    if int(horizon) != horizon or horizon < 1:
+        raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
+    horizon = int(horizon)
+    q, values, jacobians = _kernels.soft_forward(
+        operator.next_flat,
+        operator.probs_flat,
+        operator.width,
+        np.ascontiguousarray(rewards),
+        float(beta),
+        horizon,
+        operator.num_actions,
+        keep_trace,
+    )
+    return SoftPlan(
+        q_all=q,
+        operator=operator,
+        beta=float(beta),
+        horizon=horizon,
+        values=values,
+        value_jacobians=jacobians,
+        single_task=single_task,
+    )
+
+
+def soft_value_iteration_backward(
+    transitions: np.ndarray | SparseTransitions,
+    reward: np.ndarray,
+    beta: float,
+    horizon: int,
+    d_q: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Convenience: forward pass then reverse pass; returns (dL/dreward, dL/dtransitions)."""
+    d_reward, d_transitions = soft_plan(transitions, reward, beta, horizon).backward(d_q)
+    assert d_transitions is not None
+    return d_reward, d_transitions
+
+
+# -- the teacher's planner and exact evaluation ---------------------------------------------
+
+
+def hard_value_iteration(
+    transitions: np.ndarray | SparseTransitions | TransitionOperator,
+    reward: np.ndarray,
+    horizon: int,
+) -> np.ndarray:
+    """Optimal finite-horizon Q after ``horizon`` backups with a hard max (same shapes as
+    ``soft_value_iteration``)."""
+    operator = (
+        transitions
+        if isinstance(transitions, TransitionOperator)
+        else TransitionOperator.build(transitions)
+    )
+    reward = check_finite("reward", reward)
+    rewards = reward[None] if reward.ndim == 1 else reward
+    if rewards.ndim != 2 or rewards.shape[1] != operator.num_states:
+        raise ValueError(
+            f"reward must have shape ({operator.num_states},) or (tasks, {operator.num_states})"
+        )
+    if int(horizon) != horizon or horizon < 1:
+        raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
+    q = _kernels.hard_backups(
+        operator.next_flat,
+        operator.probs_flat,
+        operator.width,
+        np.ascontiguousarray(rewards),
+        int(horizon),
+        operator.num_actions,
+    )
+    return q[0] if reward.ndim == 1 else q
+
+
+def expected_return(
+    transitions: np.ndarray | SparseTransitions | TransitionOperator,
+    policy: np.ndarray,
+    reward: np.ndarray,
+    start: np.ndarray,
+    horizon: int,
+) -> float:
+    """Exact expected sum of ``horizon`` rewards of a stationary policy (S, A) of action
+    probabilities (or (S,) actions) from the start distribution; no sampling."""
+    operator = (
+        transitions
+        if isinstance(transitions, TransitionOperator)
+        else TransitionOperator.build(transitions)
+    )
+    s, a = operator.num_states, operator.num_actions
+    policy = np.asarray(policy)
+    if policy.shape == (s,):
+        actions = policy.astype(np.int64)
+        if np.any((actions < 0) | (actions >= a)):
+            raise ValueError("policy has an action out of range")
+        policy = np.zeros((s, a))
+        policy[np.arange(s), actions] = 1.0
+    if policy.shape != (s, a):
+        raise ValueError(f"policy must have shape ({s}, {a}) or ({s},), got {policy.shape}")
+    check_finite("policy", policy)
+    reward = check_finite("reward", reward)
+    start = check_finite("start distribution", start)
+    # P_pi = sum_a pi(s, a) T(s, a, .) as a sparse (S, S) matrix.
+    weights = sp.csr_matrix(
+        (policy.reshape(-1), (np.repeat(np.arange(s), a), np.arange(s * a))), shape=(s, s * a)
+    )
+    p_pi_t = (weights @ operator.matrix).T.tocsr()
+    distribution = start.astype(np.float64)
+    total = 0.0
+    for _ in range(int(horizon)):
+        total += float(distribution @ reward)
+        distribution = p_pi_t @ distribution
+    return total

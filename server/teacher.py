@@ -1,0 +1,84 @@
+"""The simulated teacher: optimal demonstrations from hard-max value iteration on the true
+dynamics (ties broken at random) and feedback sampled from A-SABL on the teacher's Q.
+
+A demonstration from a start state follows the teacher's greedy policy until the first goal
+state, then appends one STAY so the learner sees the teacher remain at the goal; the whole
+demonstration is capped at the horizon. ``mistake_probability`` makes the teacher take a
+uniformly random move instead, to simulate imperfect people.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from server.domains.base import STAY, Environment
+from server.learners.likelihoods import FeedbackModel
+from server.learners.planning import TransitionOperator, hard_value_iteration
+
+Step = tuple[int, int, int]  # (state, action, next_state)
+
+# Actions whose values are within this of the best count as ties.
+TIE_TOLERANCE = 1e-9
+
+
+class Teacher:
+    def __init__(
+        self,
+        env: Environment,
+        seed: int = 0,
+        epsilon: float = 0.05,
+        mu: float = 0.1,
+        alpha: float = 1.0,
+        mistake_probability: float = 0.0,
+    ) -> None:
+        if not 0.0 <= mistake_probability <= 1.0:
+            raise ValueError(f"mistake_probability must be in [0, 1], got {mistake_probability!r}")
+        self.env = env
+        self.rng = np.random.default_rng(seed)
+        self.feedback_model = FeedbackModel(epsilon=epsilon, alpha=alpha, mu_plus=mu, mu_minus=mu)
+        self.mistake_probability = float(mistake_probability)
+        rewards = np.stack([task.reward for task in env.tasks])
+        self.q = hard_value_iteration(
+            TransitionOperator.build(env.true_transitions), rewards, env.horizon
+        )
+
+    def q_values(self, task: int) -> np.ndarray:
+        return self.q[self.env.check_task(task)]
+
+    def best_actions(self, task: int, state: int) -> np.ndarray:
+        row = self.q_values(task)[self.env.check_state(state)]
+        return np.flatnonzero(row >= row.max() - TIE_TOLERANCE)
+
+    def next_action(self, task: int, state: int) -> int:
+        """The teacher's move in ``state`` (never STAY: people cannot press it)."""
+        if self.mistake_probability and self.rng.random() < self.mistake_probability:
+            return int(self.rng.integers(1, self.env.num_actions))
+        best = self.best_actions(task, state)
+        moves = best[best != STAY]
+        return int(self.rng.choice(moves if len(moves) else best))
+
+    def demonstration(self, task: int, start_state: int) -> list[Step]:
+        """Steps from ``start_state`` to the first goal state plus one STAY, at most
+        ``horizon`` steps in all."""
+        task = self.env.check_task(task)
+        state = self.env.check_state(start_state)
+        steps: list[Step] = []
+        while not self.env.is_goal(task, state) and len(steps) < self.env.horizon - 1:
+            action = self.next_action(task, state)
+            next_state = self.env.step(state, action, self.rng)
+            steps.append((state, action, next_state))
+            state = next_state
+        steps.append((state, STAY, self.env.step(state, STAY, self.rng)))
+        return steps
+
+    def feedback(self, task: int, state: int, action: int) -> int:
+        """+1, -1 or 0 (none), sampled from A-SABL on the teacher's Q."""
+        row = self.q_values(task)[self.env.check_state(state)]
+        advantage = row[self.env.check_action(action)] - row.mean()
+        positive, negative = self.feedback_model.probabilities(np.array([advantage]))
+        u = self.rng.random()
+        if u < positive[0]:
+            return 1
+        if u < positive[0] + negative[0]:
+            return -1
+        return 0

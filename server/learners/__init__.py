@@ -43,6 +43,7 @@ def restore(env: Environment, state: dict[str, Any]) -> Learner:
 
 
 __all__ = [
+    "BAM",
     "DISPLAY_NAMES",
     "LEARNERS",
     "NAMES",

@@ -54,7 +54,8 @@ def soft_forward(
                     continue
                 total = 0.0
                 for a in range(num_actions):
-                    w = np.exp(beta * (row[a] - best))
+                    # exp(0) = 1 for the best action(s): skip the call.
+                    w = 1.0 if row[a] == best else np.exp(beta * (row[a] - best))
                     weights[a] = w
                     total += w
                 value = 0.0

@@ -232,7 +232,7 @@ def dumps(state: dict[str, Any]) -> bytes:
     header = {k: v for k, v in state.items() if k not in ("data", "parameters")}
     arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
     buffer = io.BytesIO()
-    np.savez_compressed(buffer, **arrays)
+    np.savez_compressed(buffer, **arrays)  # type: ignore[arg-type]
     return buffer.getvalue()
 
 

@@ -34,7 +34,7 @@ class TransitionOperator:
 
     def __init__(self, transitions: np.ndarray | SparseTransitions) -> None:
         self.dense_input = not isinstance(transitions, SparseTransitions)
-        if self.dense_input:
+        if not isinstance(transitions, SparseTransitions):
             probabilities = check_finite("transitions", transitions)
             if probabilities.ndim != 3 or probabilities.shape[0] != probabilities.shape[2]:
                 raise ValueError(
@@ -46,7 +46,6 @@ class TransitionOperator:
                 np.arange(num_states), (num_states, num_actions, num_states)
             )
         else:
-            assert isinstance(transitions, SparseTransitions)
             next_states = np.asarray(transitions.next_states)
             probabilities = check_finite("transition probabilities", transitions.probabilities)
             if next_states.shape != probabilities.shape or next_states.ndim != 3:

@@ -12,7 +12,12 @@ import sys
 from collections.abc import Sequence
 
 # name -> (module, one-line help)
-SUBCOMMANDS: dict[str, tuple[str, str]] = {}
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "analyze": (
+        "analysis.cli",
+        "Turn a study's exported data into the paper's results tables, tests and plots.",
+    ),
+}
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,128 @@
+"""Learning curves: normalised return against cumulative episodes or actions, the mean and
+standard error over a learner's sessions, one panel per environment.
+
+Each session's curve is a step function: at a count x it is the normalised return of the
+session's latest evaluation made at a count of at most x (its last evaluation carries forward
+to the end of the axis; before its first evaluation it has no value and does not count).
+The curves are evaluated on the union of all counts at which any session of the environment
+was evaluated, so the means are exact, not binned.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from analysis.names import LEARNERS, environment_display, learner_display, threshold_label
+from analysis.results import Analysis
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+AXIS_NAMES = {"episodes": "Episodes", "actions": "Actions"}
+# One colour per learner, the same in every panel and figure.
+COLOURS = dict(zip(LEARNERS, ("#1b7837", "#2166ac", "#8c510a", "#b2182b"), strict=True))
+
+
+def step_values(counts: np.ndarray, returns: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """One session's normalised return at each grid count (NaN before its first evaluation).
+
+    ``counts`` are the session's cumulative counts in update order (non-decreasing); where
+    several updates share a count, the latest one holds."""
+    index = np.searchsorted(counts, grid, side="right") - 1
+    values = np.full(len(grid), np.nan)
+    valid = index >= 0
+    values[valid] = returns[index[valid]]
+    return values
+
+
+def mean_and_standard_error(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per column of a sessions x grid array with NaN for "no value": the mean, the standard
+    error of the mean (NaN with fewer than two values) and the number of values."""
+    present = ~np.isnan(values)
+    n = present.sum(axis=0)
+    filled = np.where(present, values, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(n > 0, filled.sum(axis=0) / n, np.nan)
+        squares = np.where(present, (values - mean) ** 2, 0.0).sum(axis=0)
+        se = np.where(n > 1, np.sqrt(squares / (n - 1)) / np.sqrt(n), np.nan)
+    return mean, se, n
+
+
+def learning_curve_figure(analysis: Analysis, x: str) -> Figure:
+    """The figure of normalised return against ``x`` ("episodes" or "actions")."""
+    from matplotlib.figure import Figure
+
+    environments = analysis.environments
+    columns = min(len(environments), 4)
+    rows = math.ceil(len(environments) / columns)
+    figure = Figure(figsize=(4.2 * columns, 3.4 * rows + 0.8), layout="constrained")
+    axes = figure.subplots(rows, columns, squeeze=False, sharey=True)
+    evaluations = analysis.evaluations
+    for ax, environment in zip(axes.flat, environments, strict=False):
+        in_environment = evaluations.loc[evaluations["environment"] == environment]
+        ax.set_title(environment_display(environment))
+        ax.set_xlabel(AXIS_NAMES[x])
+        ax.set_ylim(0, 1.05)
+        for threshold in analysis.thresholds:
+            ax.axhline(threshold, color="0.6", linestyle=":", linewidth=0.9)
+        if in_environment.empty:
+            ax.text(0.5, 0.5, "no evaluations", ha="center", va="center", transform=ax.transAxes)
+            continue
+        grid = np.unique(np.concatenate([[0], in_environment[x].to_numpy()]))
+        for learner in analysis.learners:
+            of_learner = in_environment.loc[in_environment["learner"] == learner]
+            if of_learner.empty:
+                continue
+            ordered = of_learner.sort_values(["session_id", "update_index"], kind="stable")
+            values = np.vstack(
+                [
+                    step_values(group[x].to_numpy(), group["normalized_return"].to_numpy(), grid)
+                    for _, group in ordered.groupby("session_id", sort=False)
+                ]
+            )
+            mean, se, _ = mean_and_standard_error(values)
+            colour = COLOURS[learner]
+            ax.plot(
+                grid,
+                mean,
+                drawstyle="steps-post",
+                color=colour,
+                linewidth=1.6,
+                label=f"{learner_display(learner)} (n={len(values)})",
+            )
+            ax.fill_between(
+                grid, mean - se, mean + se, step="post", color=colour, alpha=0.2, linewidth=0
+            )
+        ax.legend(fontsize="small", loc="lower right")
+    for ax in axes.flat[len(environments) :]:
+        ax.set_visible(False)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("Normalised return")
+    thresholds = ", ".join(f"{threshold_label(t)}%" for t in analysis.thresholds)
+    figure.suptitle(
+        f"Normalised return against {x}: mean ± standard error over learning sessions "
+        f"(dotted: {thresholds})",
+        fontsize="medium",
+    )
+    return figure
+
+
+def save_learning_curves(analysis: Analysis, folder: Path) -> list[Path]:
+    """``return_vs_episodes`` and ``return_vs_actions`` as PNG and SVG in ``folder``."""
+    import matplotlib
+
+    written = []
+    for x in ("episodes", "actions"):
+        figure = learning_curve_figure(analysis, x)
+        # A fixed salt and no date make the SVG files reproducible.
+        with matplotlib.rc_context({"svg.hashsalt": "bam-study"}):
+            for suffix in ("png", "svg"):
+                path = folder / f"return_vs_{x}.{suffix}"
+                metadata = {"Date": None} if suffix == "svg" else {}
+                figure.savefig(path, dpi=150, metadata=metadata)
+                written.append(path)
+    return written

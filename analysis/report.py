@@ -1,0 +1,120 @@
+"""Writing an analysis's outputs into a folder, all or nothing."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+from analysis.names import threshold_label
+from analysis.options import InputError
+from analysis.plots import save_learning_curves
+from analysis.results import Analysis
+from analysis.stats import COMPARISON_COLUMNS
+from analysis.tables import (
+    appendix_all_latex,
+    appendix_all_markdown,
+    appendix_raw_latex,
+    appendix_raw_markdown,
+    table1_latex,
+    table1_markdown,
+)
+
+
+def describe_outputs(analysis: Analysis) -> str:
+    """The README written beside the outputs: what each file holds."""
+    labels = ", ".join(threshold_label(t) for t in analysis.thresholds)
+    return f"""# Results of `bam-study analyze`
+
+Baseline learner: `{analysis.baseline}`. Thresholds (percent of the optimal total return):
+{labels}. False discovery rate of the Benjamini-Yekutieli correction: {analysis.fdr:g}.
+
+- `table1.md`, `table1.tex`: the paper's Table 1. Per environment and learner, the total
+  learning sessions, the sessions whose normalised return reached each threshold, and the mean
+  episodes and actions required (cumulative counts at the first evaluation that reached it,
+  averaged over the sessions that reached it). `*`: significantly worse than the baseline
+  (p <= 0.05); `†`: still significant after the correction. The `.tex` file needs booktabs.
+- `appendix_all.md`, `appendix_all.tex`: p-values of the comparisons across all environments
+  (Fisher's exact test on pooled success counts; type II ANOVA of the OLS model
+  `value ~ C(learner) + C(environment) + C(position)` for episodes and actions).
+- `appendix_raw.md`, `appendix_raw.tex`: raw p-values of the environment-specific comparisons
+  (Fisher's exact test; Welch's t-test).
+- `comparisons.csv`: one row per comparison. `scope` is an environment or `all`; `measure` is
+  `success`, `episodes` or `actions`; `threshold` a fraction. `baseline_value` and
+  `alternative_value` are success counts for `success` and means over the sessions that
+  reached the threshold otherwise. `statistic` is the odds ratio (fisher_exact), t of
+  baseline minus alternative (welch_t_test) or the learner factor's F (anova_type2).
+  `p_adjusted` is the Benjamini-Yekutieli adjusted p-value over all environment-specific
+  comparisons with a p-value (empty for `all`); `significant` is p <= 0.05 in either
+  direction, `significant_adjusted` is p_adjusted <= the false discovery rate. `test` is
+  `N/A` where a test could not be done, and `note` says why; otherwise `note` gives the
+  counts and the direction of the difference.
+- `sessions_summary.csv`: one row per learning session: its number of evaluations, best and
+  final normalised return, and per threshold `reached_T`, `episodes_T` and `actions_T`
+  (empty where not reached).
+- `return_vs_episodes.png|svg`, `return_vs_actions.png|svg`: normalised return against the
+  cumulative counts, mean and standard error per learner, one panel per environment; each
+  session's latest evaluation is carried forward.
+"""
+
+
+def write_outputs(analysis: Analysis, out: Path | str) -> list[str]:
+    """Write every output into ``out`` (created if needed) and return the file names.
+
+    Everything is written into a temporary folder beside ``out`` first and moved into place
+    at the end, so that a failure leaves ``out`` as it was."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out: {out} exists and is not a folder")
+    texts = {
+        "table1.md": table1_markdown(analysis),
+        "table1.tex": table1_latex(analysis),
+        "appendix_all.md": appendix_all_markdown(analysis),
+        "appendix_all.tex": appendix_all_latex(analysis),
+        "appendix_raw.md": appendix_raw_markdown(analysis),
+        "appendix_raw.tex": appendix_raw_latex(analysis),
+        "README.md": describe_outputs(analysis),
+    }
+    parent = out.absolute().parent
+    created = _first_missing(parent)
+    parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=parent))
+    try:
+        staging.chmod(0o777 & ~_umask())  # mkdtemp's folder is private; out should not be
+        for name, text in texts.items():
+            (staging / name).write_text(text, encoding="utf-8")
+        analysis.summary.to_csv(staging / "sessions_summary.csv", index=False)
+        analysis.comparisons.loc[:, list(COMPARISON_COLUMNS)].to_csv(
+            staging / "comparisons.csv", index=False
+        )
+        save_learning_curves(analysis, staging)
+        names = sorted(path.name for path in staging.iterdir())
+        if out.exists():
+            for name in names:
+                os.replace(staging / name, out / name)
+            staging.rmdir()
+        else:
+            os.rename(staging, out)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        if created is not None:
+            shutil.rmtree(created, ignore_errors=True)
+        raise
+    return names
+
+
+def _first_missing(folder: Path) -> Path | None:
+    """The outermost ancestor of ``folder`` (or itself) that does not exist yet."""
+    missing = None
+    for candidate in [folder, *folder.parents]:
+        if candidate.exists():
+            break
+        missing = candidate
+    return missing
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask

@@ -1,0 +1,59 @@
+"""Learning curves: each session's latest value carried forward on a common grid, then the
+mean and standard error per learner, a panel per environment."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from analysis.data import load_tables
+from analysis.plots import learning_curve_figure, mean_and_standard_error, step_values
+from analysis.results import analyze
+
+
+def test_step_values_carry_the_latest_evaluation_forward() -> None:
+    counts = np.array([2, 4, 4, 7])  # two updates at 4 episodes: the later one holds
+    returns = np.array([0.1, 0.3, 0.5, 0.9])
+    grid = np.array([0, 1, 2, 3, 4, 5, 7, 10])
+    values = step_values(counts, returns, grid)
+    assert np.isnan(values[:2]).all()  # before the first evaluation: no value
+    assert values[2:].tolist() == [0.1, 0.1, 0.5, 0.5, 0.9, 0.9]
+
+
+def test_mean_and_standard_error_over_the_sessions_with_a_value() -> None:
+    values = np.array(
+        [
+            [np.nan, 0.2, 0.4],
+            [np.nan, 0.6, 0.8],
+            [0.5, 0.7, np.nan],
+        ]
+    )
+    mean, se, n = mean_and_standard_error(values)
+    assert n.tolist() == [1, 3, 2]
+    assert mean[0] == pytest.approx(0.5) and np.isnan(se[0])  # one value: no error bar
+    # [0.2, 0.6, 0.7]: mean 0.5, sample variance (0.09 + 0.01 + 0.04) / 2 = 0.07
+    assert mean[1] == pytest.approx(0.5)
+    assert se[1] == pytest.approx(math.sqrt(0.07 / 3))
+    # [0.4, 0.8]: mean 0.6, sample variance 0.08
+    assert se[2] == pytest.approx(math.sqrt(0.08 / 2))
+
+
+def test_one_panel_per_environment_with_a_curve_per_learner(export: Path) -> None:
+    sessions, evaluations = load_tables(export)
+    analysis = analyze(sessions, evaluations)
+    figure = learning_curve_figure(analysis, "episodes")
+    panels = [ax for ax in figure.axes if ax.get_visible()]
+    assert [ax.get_title() for ax in panels] == ["Two Rooms", "Doorway"]
+    two_rooms = panels[0]
+    labels = [line.get_label() for line in two_rooms.get_lines() if line.get_label()[0] != "_"]
+    assert labels == ["BAM (n=4)", "Model-Based IRL (n=4)", "Behavioral Cloning (n=4)"]
+    # BAM in Two Rooms after 10 episodes: every session's last value, 0.9.
+    bam = two_rooms.get_lines()[len(analysis.thresholds)]  # after the threshold lines
+    x, y = bam.get_data()
+    assert y[list(x).index(10)] == pytest.approx(0.9)
+    # Doorway's cloning curve counts only the 3 sessions with evaluations.
+    doorway_labels = [line.get_label() for line in panels[1].get_lines()]
+    assert "Behavioral Cloning (n=3)" in doorway_labels

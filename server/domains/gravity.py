@@ -28,6 +28,7 @@ from server.domains.grid import (
     GridMap,
     Successor,
     TransitionTable,
+    can_reach,
     empty_layout,
     goal_reward,
     known,
@@ -109,26 +110,29 @@ def build(name: str, grid_map: GridMap) -> Environment:
         choices=num_features,
     )
 
-    start = uniform(
-        num_states,
-        (
-            state_of(cell, gravity)
-            for cell in grid_map.cells()
-            if cell in grid_map.start
-            for gravity in range(num_features)
-        ),
-    )
+    candidates = [
+        state_of(cell, gravity)
+        for cell in grid_map.cells()
+        if cell in grid_map.start
+        for gravity in range(num_features)
+    ]
+    true_transitions = table.true_transitions()
     if grid_map.study_starts:
         raise ValueError(f"map {name!r}: gravity maps have no study starts")
     tasks = []
     for spec in grid_map.tasks:
         if set(spec.goal_cells) & set(colour_of_cell):
             raise ValueError(f"map {name!r}: the goal of task {spec.name!r} is coloured")
+        reward = goal_reward(num_states, num_features, width, spec.goal_cells)
+        # "Any cell, any gravity", less the few states from which no policy can ever reach the
+        # goal (e.g. gravity east in the last column with no colour in it, for a goal at the
+        # left): a demonstration from there could never end at the goal.
+        reachable = can_reach(true_transitions, reward > 0, horizon(height, width) - 1)
         tasks.append(
             Task(
                 name=spec.name,
-                reward=goal_reward(num_states, num_features, width, spec.goal_cells),
-                start=start,
+                reward=reward,
+                start=uniform(num_states, (s for s in candidates if reachable[s])),
                 goal_cells=spec.goal_cells,
             )
         )

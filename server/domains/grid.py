@@ -325,6 +325,20 @@ def empty_layout(height: int, width: int, terrain: str) -> dict[str, Any]:
     }
 
 
+def can_reach(true_transitions: SparseTransitions, goal: np.ndarray, max_steps: int) -> np.ndarray:
+    """Mask of the states from which some sequence of at most ``max_steps`` actions reaches a
+    goal state under the (deterministic) true dynamics."""
+    reached = goal.copy()
+    possible = true_transitions.probabilities > 0
+    for _ in range(max_steps):
+        successors_reached = (reached[true_transitions.next_states] & possible).any(axis=2)
+        updated = reached | successors_reached.any(axis=1)
+        if np.array_equal(updated, reached):
+            break
+        reached = updated
+    return reached
+
+
 def make_environment(
     *,
     name: str,

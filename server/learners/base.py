@@ -213,7 +213,14 @@ class Learner(ABC):
         learner = cls(env, seed=state["seed"], **state["settings"])
         learner.updates = int(state["updates"])
         learner.rng.bit_generator.state = state["rng"]
-        learner.data = DataLog.from_state_dict(state["data"])
+        # Re-record every row through the checks, so corrupt data fails here, clearly.
+        stored = DataLog.from_state_dict(state["data"])
+        for task, s, a, s2 in stored.demonstrations.tolist():
+            learner.record_demonstration(task, s, a, s2)
+        for task, s, a, s2, feedback in stored.agent_steps.tolist():
+            learner.record_agent_step(task, s, a, s2, feedback)
+        for s, a, s2 in stored.transitions_alone.tolist():
+            learner.record_transition(s, a, s2)
         learner._load_parameters_state(
             {key: np.array(value) for key, value in state["parameters"].items()}
         )

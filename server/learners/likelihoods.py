@@ -65,12 +65,26 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
     return 0.5 * (1.0 + np.tanh(0.5 * x))
 
 
+def _integer_array(name: str, values: np.ndarray) -> np.ndarray:
+    """Whole-number indices as int64; fractional or non-finite values are an error, not
+    silently truncated."""
+    array = np.asarray(values)
+    if array.dtype.kind in "iu":
+        return array.astype(np.int64).reshape(-1)
+    if array.size and array.dtype.kind != "f":
+        raise ValueError(f"{name} must be integers, got dtype {array.dtype}")
+    if array.size and (not np.all(np.isfinite(array)) or np.any(array != np.round(array))):
+        raise ValueError(f"{name} must be whole numbers")
+    return array.astype(np.int64).reshape(-1)
+
+
 def _check_indices(q: np.ndarray, tasks: np.ndarray, states: np.ndarray, actions: np.ndarray):
     q = check_finite("Q", q)
     if q.ndim != 3:
         raise ValueError(f"Q must have shape (tasks, states, actions), got {q.shape}")
     tasks, states, actions = (
-        np.asarray(x, dtype=np.int64).reshape(-1) for x in (tasks, states, actions)
+        _integer_array(name, x)
+        for name, x in (("tasks", tasks), ("states", states), ("actions", actions))
     )
     if not len(tasks) == len(states) == len(actions):
         raise ValueError("tasks, states and actions must have the same length")
@@ -135,7 +149,7 @@ def feedback_log_likelihood(
     """Sum of ln p(f | s, a) under A-SABL over (task, state, action, feedback) rows, feedback in
     {+1, -1, 0 = none}, and dL/dQ."""
     q, tasks, states, actions = _check_indices(q, tasks, states, actions)
-    feedback = np.asarray(feedback, dtype=np.int64).reshape(-1)
+    feedback = _integer_array("feedback", feedback)
     if len(feedback) != len(tasks):
         raise ValueError("feedback must have one entry per agent step")
     if np.any((feedback < -1) | (feedback > 1)):

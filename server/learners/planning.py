@@ -175,9 +175,7 @@ def soft_plan(
         )
     if not np.isfinite(beta) or beta <= 0:
         raise ValueError(f"beta must be a positive finite number, got {beta!r}")
-    if int(horizon) != horizon or horizon < 1:
-        raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
-    horizon = int(horizon)
+    horizon = check_horizon(horizon)
     q, values, jacobians = _kernels.soft_forward(
         operator.next_flat,
         operator.probs_flat,
@@ -215,6 +213,15 @@ def soft_value_iteration_backward(
 # -- the teacher's planner and exact evaluation ---------------------------------------------
 
 
+def check_horizon(horizon: object) -> int:
+    """A positive whole number of backups (rejects NaN, infinity, fractions and bools)."""
+    if isinstance(horizon, bool) or not isinstance(horizon, int | float | np.integer | np.floating):
+        raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
+    if not np.isfinite(horizon) or int(horizon) != horizon or horizon < 1:
+        raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
+    return int(horizon)
+
+
 def hard_value_iteration(
     transitions: np.ndarray | SparseTransitions | TransitionOperator,
     reward: np.ndarray,
@@ -233,8 +240,7 @@ def hard_value_iteration(
         raise ValueError(
             f"reward must have shape ({operator.num_states},) or (tasks, {operator.num_states})"
         )
-    if int(horizon) != horizon or horizon < 1:
-        raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
+    horizon = check_horizon(horizon)
     q = _kernels.hard_backups(
         operator.next_flat,
         operator.probs_flat,
@@ -280,7 +286,7 @@ def expected_return(
     p_pi_t = (weights @ operator.matrix).T.tocsr()
     distribution = start.astype(np.float64)
     total = 0.0
-    for _ in range(int(horizon)):
+    for _ in range(check_horizon(horizon)):
         total += float(distribution @ reward)
         distribution = p_pi_t @ distribution
     return total

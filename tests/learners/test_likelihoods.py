@@ -1,0 +1,310 @@
+"""Log-likelihoods of teacher data given Q: the Boltzmann action model (plain and normalised),
+A-SABL feedback (equations (3)-(4)) and the Gaussian prior, against direct formulas and
+finite differences."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from server.learners.likelihoods import (
+    ActionModel,
+    FeedbackModel,
+    demonstration_log_likelihood,
+    feedback_log_likelihood,
+    gaussian_log_prior,
+)
+from tests.learners._support import central_difference
+
+
+def sigmoid(x: float) -> float:
+    return 1.0 / (1.0 + math.exp(-x))
+
+
+def log_softmax(logits: np.ndarray) -> np.ndarray:
+    shifted = logits - logits.max()
+    return shifted - math.log(float(np.exp(shifted).sum()))
+
+
+# One task, two states, five actions.
+Q = np.array([[[0.0, 1.0, 2.0, -1.0, 0.5], [3.0, 3.0, 1.0, 0.0, 2.0]]])
+
+
+# -- demonstrated actions ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("beta", [1.0, 2.0])
+def test_plain_action_model_by_hand(beta: float) -> None:
+    value, _ = demonstration_log_likelihood(Q, [0], [0], [2], ActionModel(beta, normalized=False))
+    row = Q[0, 0]
+    expected = beta * 2.0 - math.log(sum(math.exp(beta * q) for q in row))
+    assert value == pytest.approx(expected, abs=1e-12)
+
+
+@pytest.mark.parametrize("beta", [1.0, 0.5])
+def test_normalised_action_model_by_hand(beta: float) -> None:
+    """p(a|s) proportional to exp(beta (Q(s,a) - Q(s,STAY)) / std_a Q(s,.))."""
+    value, _ = demonstration_log_likelihood(Q, [0, 0], [0, 1], [2, 4], ActionModel(beta, True))
+    expected = 0.0
+    for state, action in ((0, 2), (1, 4)):
+        row = Q[0, state]
+        logits = beta * (row - row[0]) / row.std()
+        expected += log_softmax(logits)[action]
+    assert value == pytest.approx(expected, abs=1e-7)
+    # Scale invariance: multiplying Q by a constant leaves the normalised model unchanged
+    # (it is what keeps the model meaningful as Q grows with the horizon); the plain one is not.
+    scaled, _ = demonstration_log_likelihood(
+        10 * Q, [0, 0], [0, 1], [2, 4], ActionModel(beta, True)
+    )
+    assert scaled == pytest.approx(value, abs=1e-6)
+    plain, _ = demonstration_log_likelihood(Q, [0, 0], [0, 1], [2, 4], ActionModel(beta, False))
+    plain_scaled, _ = demonstration_log_likelihood(
+        10 * Q, [0, 0], [0, 1], [2, 4], ActionModel(beta, False)
+    )
+    assert abs(plain - plain_scaled) > 1.0
+
+
+def test_sum_over_rows_and_empty_data() -> None:
+    model = ActionModel(1.0, True)
+    both, _ = demonstration_log_likelihood(Q, [0, 0], [0, 1], [2, 4], model)
+    first, _ = demonstration_log_likelihood(Q, [0], [0], [2], model)
+    second, _ = demonstration_log_likelihood(Q, [0], [1], [4], model)
+    assert both == pytest.approx(first + second, abs=1e-12)
+    value, gradient = demonstration_log_likelihood(Q, [], [], [], model)
+    assert value == 0.0 and gradient.shape == Q.shape and not gradient.any()
+
+
+@pytest.mark.parametrize("normalized", [False, True])
+def test_action_probabilities_sum_to_one(normalized: bool) -> None:
+    rng = np.random.default_rng(0)
+    q = rng.normal(0.0, 3.0, size=(2, 4, 5))
+    model = ActionModel(1.3, normalized)
+    for task in range(2):
+        for state in range(4):
+            total = sum(
+                math.exp(demonstration_log_likelihood(q, [task], [state], [a], model)[0])
+                for a in range(5)
+            )
+            assert total == pytest.approx(1.0, abs=1e-12)
+
+
+def test_normalised_model_is_uniform_where_all_actions_are_equal() -> None:
+    q = np.zeros((1, 1, 5))
+    q[0, 0] = 2.5
+    value, gradient = demonstration_log_likelihood(q, [0], [0], [3], ActionModel(1.0, True))
+    assert value == pytest.approx(-math.log(5), abs=1e-12)
+    assert np.all(np.isfinite(gradient))
+
+
+@pytest.mark.parametrize(
+    ("normalized", "beta"), [(False, 1.0), (False, 2.0), (True, 1.0), (True, 2.0)]
+)
+def test_action_gradient_matches_finite_differences(normalized: bool, beta: float) -> None:
+    rng = np.random.default_rng(1)
+    q = rng.normal(0.0, 2.0, size=(2, 4, 5))
+    tasks = rng.integers(0, 2, 12)
+    states = rng.integers(0, 4, 12)
+    actions = rng.integers(0, 5, 12)
+    model = ActionModel(beta, normalized)
+    _, gradient = demonstration_log_likelihood(q, tasks, states, actions, model)
+
+    def value(x: np.ndarray) -> float:
+        return demonstration_log_likelihood(x.reshape(q.shape), tasks, states, actions, model)[0]
+
+    numeric = central_difference(value, q)
+    np.testing.assert_allclose(gradient.ravel(), numeric, rtol=1e-6, atol=1e-8)
+    assert np.abs(gradient).max() > 0.1
+
+
+# -- feedback (A-SABL) -------------------------------------------------------------------------
+
+
+def a_sabl(delta: float, model: FeedbackModel) -> dict[int, float]:
+    """Equations (3)-(4) written out."""
+    positive = (1 - model.mu_plus) * (
+        (1 - 2 * model.epsilon) * sigmoid(model.alpha * delta) + model.epsilon
+    )
+    negative = (1 - model.mu_minus) * (
+        (1 - 2 * model.epsilon) * sigmoid(-model.alpha * delta) + model.epsilon
+    )
+    return {1: positive, -1: negative, 0: 1 - positive - negative}
+
+
+FEEDBACK_MODELS = [
+    FeedbackModel(),  # the reference settings: epsilon 0.05, alpha 1, mu+ = mu- = 0.1
+    FeedbackModel(epsilon=0.2, alpha=2.5, mu_plus=0.3, mu_minus=0.05),
+]
+
+
+def test_reference_feedback_settings() -> None:
+    model = FeedbackModel()
+    assert (model.epsilon, model.alpha, model.mu_plus, model.mu_minus) == (0.05, 1.0, 0.1, 0.1)
+
+
+@pytest.mark.parametrize("model", FEEDBACK_MODELS)
+@pytest.mark.parametrize("feedback", [1, -1, 0])
+def test_feedback_likelihood_by_hand(model: FeedbackModel, feedback: int) -> None:
+    # State 0, action 2: advantage = Q(s, a) - mean_a Q(s, .) = 2 - 0.5 = 1.5.
+    # State 1, action 3: advantage = 0 - 1.8 = -1.8.
+    for state, action, delta in ((0, 2, 1.5), (1, 3, -1.8)):
+        assert Q[0, state, action] - Q[0, state].mean() == pytest.approx(delta)
+        value, _ = feedback_log_likelihood(Q, [0], [state], [action], [feedback], model)
+        assert value == pytest.approx(math.log(a_sabl(delta, model)[feedback]), abs=1e-12)
+
+
+@pytest.mark.parametrize("model", FEEDBACK_MODELS)
+def test_feedback_probabilities_sum_to_one(model: FeedbackModel) -> None:
+    rng = np.random.default_rng(2)
+    q = rng.normal(0.0, 3.0, size=(1, 3, 5))
+    for state in range(3):
+        for action in range(5):
+            total = sum(
+                math.exp(feedback_log_likelihood(q, [0], [state], [action], [f], model)[0])
+                for f in (1, -1, 0)
+            )
+            assert total == pytest.approx(1.0, abs=1e-12)
+
+
+def test_feedback_prefers_good_actions() -> None:
+    model = FeedbackModel()
+    good, _ = feedback_log_likelihood(Q, [0], [0], [2], [1], model)  # advantage +1.5
+    bad, _ = feedback_log_likelihood(Q, [0], [0], [3], [1], model)  # advantage -1.5
+    assert good > bad
+    good_minus, _ = feedback_log_likelihood(Q, [0], [0], [2], [-1], model)
+    bad_minus, _ = feedback_log_likelihood(Q, [0], [0], [3], [-1], model)
+    assert good_minus < bad_minus
+
+
+@pytest.mark.parametrize("model", FEEDBACK_MODELS)
+def test_feedback_gradient_matches_finite_differences(model: FeedbackModel) -> None:
+    rng = np.random.default_rng(3)
+    q = rng.normal(0.0, 2.0, size=(2, 4, 5))
+    count = 15
+    tasks = rng.integers(0, 2, count)
+    states = rng.integers(0, 4, count)
+    actions = rng.integers(0, 5, count)
+    feedback = np.array([1, -1, 0] * 5)
+    _, gradient = feedback_log_likelihood(q, tasks, states, actions, feedback, model)
+    numeric = central_difference(
+        lambda x: feedback_log_likelihood(
+            x.reshape(q.shape), tasks, states, actions, feedback, model
+        )[0],
+        q,
+    )
+    np.testing.assert_allclose(gradient.ravel(), numeric, rtol=1e-6, atol=1e-8)
+    assert np.abs(gradient).max() > 0.05
+
+
+# -- the prior ---------------------------------------------------------------------------------
+
+
+def test_gaussian_prior_value_and_gradient() -> None:
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=7)
+    value, gradient = gaussian_log_prior(x, 0.5, 2.0)
+    assert value == pytest.approx(-0.5 * float(((x - 0.5) ** 2).sum()) / 4.0, abs=1e-12)
+    numeric = central_difference(lambda p: gaussian_log_prior(p, 0.5, 2.0)[0], x)
+    np.testing.assert_allclose(gradient, numeric, rtol=1e-7, atol=1e-9)
+    mean = rng.normal(size=7)
+    value, gradient = gaussian_log_prior(x, mean, 1.0)
+    np.testing.assert_allclose(gradient, mean - x, rtol=1e-12)
+
+
+# -- bad input ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("tasks", "states", "actions", "match"),
+    [
+        ([1], [0], [0], "task"),
+        ([-1], [0], [0], "task"),
+        ([0], [2], [0], "state"),
+        ([0], [-1], [0], "state"),
+        ([0], [0], [5], "action"),
+        ([0], [0], [-1], "action"),
+        ([0, 0], [0], [0], "length"),
+        ([0], [0.5], [0], "state"),
+        ([0], [0], [1.5], "action"),
+    ],
+    ids=[
+        "task-too-large",
+        "task-negative",
+        "state-too-large",
+        "state-negative",
+        "action-too-large",
+        "action-negative",
+        "lengths-differ",
+        "state-not-integer",
+        "action-not-integer",
+    ],
+)
+def test_bad_indices_are_rejected(tasks, states, actions, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        demonstration_log_likelihood(Q, tasks, states, actions, ActionModel())
+    with pytest.raises(ValueError, match=match):
+        feedback_log_likelihood(Q, tasks, states, actions, [1] * len(tasks), FeedbackModel())
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_non_finite_q_is_rejected(bad: float) -> None:
+    q = Q.copy()
+    q[0, 1, 3] = bad
+    for normalized in (False, True):
+        with pytest.raises(ValueError, match="NaN or infinite"):
+            demonstration_log_likelihood(q, [0], [0], [0], ActionModel(1.0, normalized))
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        feedback_log_likelihood(q, [0], [0], [0], [1], FeedbackModel())
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        gaussian_log_prior(np.array([0.0, bad]), 0.0, 1.0)
+
+
+def test_q_of_the_wrong_shape_is_rejected() -> None:
+    with pytest.raises(ValueError, match="shape"):
+        demonstration_log_likelihood(Q[0], [0], [0], [0], ActionModel())
+    with pytest.raises(ValueError, match="shape"):
+        feedback_log_likelihood(Q[0], [0], [0], [0], [1], FeedbackModel())
+
+
+@pytest.mark.parametrize("feedback", [2, -2, 5])
+def test_feedback_outside_plus_minus_none_is_rejected(feedback: int) -> None:
+    with pytest.raises(ValueError, match="feedback"):
+        feedback_log_likelihood(Q, [0, 0], [0, 1], [0, 1], [1, feedback], FeedbackModel())
+    with pytest.raises(ValueError, match="feedback"):
+        feedback_log_likelihood(Q, [0], [0], [0], [1, 1], FeedbackModel())
+
+
+def test_impossible_silence_is_an_error_not_minus_infinity() -> None:
+    """With mu+ = mu- = 0 a teacher always gives feedback, so 'none' has probability 0."""
+    model = FeedbackModel(mu_plus=0.0, mu_minus=0.0)
+    with pytest.raises(ValueError, match="probability 0"):
+        feedback_log_likelihood(Q, [0], [0], [0], [0], model)
+
+
+@pytest.mark.parametrize(
+    "settings",
+    [
+        {"epsilon": 0.5},
+        {"epsilon": -0.1},
+        {"alpha": 0.0},
+        {"alpha": np.nan},
+        {"mu_plus": 1.0},
+        {"mu_minus": -0.2},
+    ],
+)
+def test_bad_feedback_model_settings_are_rejected(settings: dict[str, float]) -> None:
+    with pytest.raises(ValueError):
+        FeedbackModel(**settings)
+
+
+@pytest.mark.parametrize("beta", [0.0, -1.0, np.nan, np.inf])
+def test_bad_action_model_beta_is_rejected(beta: float) -> None:
+    with pytest.raises(ValueError, match="beta"):
+        ActionModel(beta=beta)
+
+
+@pytest.mark.parametrize("sd", [0.0, -1.0, np.nan])
+def test_bad_prior_sd_is_rejected(sd: float) -> None:
+    with pytest.raises(ValueError, match="standard deviation"):
+        gaussian_log_prior(np.zeros(3), 0.0, sd)

@@ -1,0 +1,170 @@
+"""Every learner's objective gradient equals central finite differences with respect to every
+parameter block, on real environments with demonstrations, agent steps with feedback and
+idle transitions recorded."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+
+from server import domains, learners
+from server.learners.base import Learner
+from server.learners.likelihoods import gaussian_log_prior
+from server.learners.objective import (
+    TeacherData,
+    action_model,
+    feedback_model,
+    teacher_log_likelihood,
+)
+from server.teacher import Teacher
+from tests.learners._support import (
+    agent_episode,
+    central_difference,
+    demonstrate_round,
+    idle_transitions,
+    probe_indices,
+)
+
+PLANNER_LEARNERS = [name for name in learners.NAMES if name != "cloning"]
+# The parameter blocks each learner's objective must give gradients for.
+BLOCKS = {
+    "bam": ("theta", "costs"),
+    "model-based": ("theta", "costs"),
+    "global-cost": ("theta", "costs", "global_costs"),
+    "cloning": ("table",),
+}
+
+
+def test_every_learner_has_its_blocks_listed() -> None:
+    assert set(learners.NAMES) == set(BLOCKS)
+
+
+def teach(learner: Learner, seed: int, all_tasks: bool = True) -> None:
+    """Demonstrations (of every task, or of the last task only), agent steps with feedback
+    for the first task (one given after the step, the study's +/- keys) and idle moves."""
+    env = learner.env
+    teacher = Teacher(env, seed=seed)
+    rng = np.random.default_rng(seed)
+    if all_tasks:
+        demonstrate_round(learner, env, teacher, rng)
+    else:
+        last = len(env.tasks) - 1
+        for state, action, next_state in teacher.demonstration(last, env.sample_start(last, rng)):
+            learner.record_demonstration(last, state, action, next_state)
+    agent_episode(learner, env, teacher, rng, task=0, steps=12)
+    state = env.sample_start(0, rng)
+    learner.record_agent_step(0, state, 1, env.step(state, 1, rng))
+    learner.record_feedback(-1)
+    idle_transitions(learner, env, rng, count=10)
+
+
+def randomise(learner: Learner, seed: int) -> None:
+    """Parameters away from the initialisation, so that every term of the objective (and the
+    teacher data's dependence on the dynamics) is active."""
+    rng = np.random.default_rng(seed)
+    if hasattr(learner, "theta"):
+        learner.theta = learner.theta + rng.normal(0.0, 1.0, learner.theta.shape)
+        learner.costs = rng.normal(0.0, 0.5, learner.costs.shape)
+    if hasattr(learner, "global_costs"):
+        learner.global_costs = rng.normal(0.0, 0.3, learner.global_costs.shape)
+    if hasattr(learner, "table"):
+        learner.table = rng.normal(0.0, 1.0, learner.table.shape)
+
+
+def cloning_objective(learner: Any) -> tuple[float, dict[str, np.ndarray]]:
+    """Behavioural cloning's objective: ln p(D_T | table) + ln prior(table)."""
+    if hasattr(learner, "objective"):
+        return learner.objective()
+    data = TeacherData.from_log(learner.data)
+    value, d_q = teacher_log_likelihood(
+        learner.table[data.tasks],
+        data,
+        action_model(learner.settings),
+        feedback_model(learner.settings),
+    )
+    prior, gradient = gaussian_log_prior(learner.table, 0.0, learner.settings["q_prior_sd"])
+    gradient = gradient.copy()
+    gradient[data.tasks] += d_q
+    return value + prior, {"table": gradient}
+
+
+def objective_of(learner: Any) -> tuple[float, dict[str, np.ndarray]]:
+    return cloning_objective(learner) if learner.name == "cloning" else learner.objective()
+
+
+def check_gradients(learner: Any, seed: int) -> None:
+    value, gradients = objective_of(learner)
+    assert np.isfinite(value)
+    assert set(gradients) == set(BLOCKS[learner.name])
+    rng = np.random.default_rng(seed)
+    for block in BLOCKS[learner.name]:
+        parameters = getattr(learner, block).copy()
+        analytic = gradients[block]
+        assert analytic.shape == parameters.shape
+        assert np.all(np.isfinite(analytic))
+        assert np.abs(analytic).max() > 1e-3, block  # not vacuous
+
+        def value_at(x: np.ndarray, block: str = block, shape=parameters.shape) -> float:
+            setattr(learner, block, x.reshape(shape))
+            return objective_of(learner)[0]
+
+        indices = probe_indices(analytic, rng, count=6)
+        numeric = central_difference(value_at, parameters, indices)
+        setattr(learner, block, parameters)
+        np.testing.assert_allclose(
+            analytic.ravel()[indices], numeric, rtol=1e-5, atol=1e-6, err_msg=block
+        )
+
+
+@pytest.mark.parametrize("name", learners.NAMES)
+@pytest.mark.parametrize("all_tasks", [True, False])
+def test_objective_gradients_on_wall(name: str, all_tasks: bool) -> None:
+    learner = learners.make(name, domains.make("wall"), seed=0)
+    teach(learner, seed=1, all_tasks=all_tasks)
+    randomise(learner, seed=2)
+    check_gradients(learner, seed=3)
+
+
+@pytest.mark.parametrize("name", learners.NAMES)
+@pytest.mark.parametrize("environment", ["two-fields", "flip"])
+def test_objective_gradients_on_farming_and_gravity(name: str, environment: str) -> None:
+    learner = learners.make(name, domains.make(environment), seed=0)
+    teach(learner, seed=4)
+    randomise(learner, seed=5)
+    check_gradients(learner, seed=6)
+
+
+@pytest.mark.parametrize("name", PLANNER_LEARNERS)
+def test_objective_without_teacher_data_is_dynamics_and_priors(name: str) -> None:
+    """Only idle transitions: the costs' gradient is the prior's alone."""
+    env = domains.make("wall")
+    learner: Any = learners.make(name, env, seed=0)
+    idle_transitions(learner, env, np.random.default_rng(7), count=15)
+    randomise(learner, seed=8)
+    _, gradients = learner.objective()
+    np.testing.assert_allclose(
+        gradients["costs"], -learner.costs / learner.settings["cost_prior_sd"] ** 2, rtol=1e-12
+    )
+    check_gradients(learner, seed=9)
+
+
+def test_bam_update_increases_equation_5() -> None:
+    env = domains.make("wall")
+    learner: Any = learners.make("bam", env, seed=0)
+    teach(learner, seed=10)
+    before, _ = learner.objective()
+    learner.update()
+    after, _ = learner.objective()
+    assert after > before + 1.0
+
+
+def test_cloning_update_increases_its_objective() -> None:
+    env = domains.make("wall")
+    learner: Any = learners.make("cloning", env, seed=0)
+    teach(learner, seed=11)
+    before, _ = cloning_objective(learner)
+    learner.update()
+    after, _ = cloning_objective(learner)
+    assert after > before + 1.0

@@ -1,0 +1,544 @@
+"""The planner: soft value iteration (equations (1)-(2)) and its reverse pass, hard-max value
+iteration and exact expected returns, checked against hand values, brute force and finite
+differences."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from server import domains
+from server.domains.base import SparseTransitions
+from server.learners.planning import (
+    TransitionOperator,
+    expected_return,
+    hard_value_iteration,
+    soft_plan,
+    soft_value_iteration,
+    soft_value_iteration_backward,
+)
+from tests.learners._support import H, central_difference
+
+# Perturbing one transition entry by h leaves its row summing to 1 +- h; the planner accepts
+# rows within 1e-8 of 1, so entry-wise differences use a smaller step (rounding error about
+# 1e-16 |L| / h stays far below the tolerance on these small problems).
+ENTRY_H = 2e-9
+
+
+def random_dense(rng: np.random.Generator, states: int, actions: int) -> np.ndarray:
+    transitions = rng.dirichlet(np.full(states, 0.7), size=(states, actions))
+    return transitions / transitions.sum(axis=2, keepdims=True)
+
+
+def random_sparse(
+    rng: np.random.Generator, states: int, actions: int, width: int
+) -> SparseTransitions:
+    next_states = rng.integers(0, states, size=(states, actions, width))
+    probabilities = rng.dirichlet(np.ones(width), size=(states, actions))
+    probabilities /= probabilities.sum(axis=2, keepdims=True)
+    return SparseTransitions(next_states.astype(np.int64), probabilities)
+
+
+def boltzmann_value(q: np.ndarray, beta: float) -> np.ndarray:
+    """V(s) = sum_a pi(a|s) Q(s, a), pi proportional to exp(beta Q): a Boltzmann expectation."""
+    z = np.exp(beta * (q - q.max(axis=-1, keepdims=True)))
+    return (z / z.sum(axis=-1, keepdims=True) * q).sum(axis=-1)
+
+
+def brute_force_soft_q(transitions: np.ndarray, reward: np.ndarray, beta: float, horizon: int):
+    """Equations (1)-(2) written out with dense arrays, for (K, S) rewards."""
+    q = np.repeat(reward[:, :, None], transitions.shape[1], axis=2)
+    for _ in range(horizon - 1):
+        q = reward[:, :, None] + np.einsum("sat,kt->ksa", transitions, boltzmann_value(q, beta))
+    return q
+
+
+# -- forward values --------------------------------------------------------------------------
+
+# Two states, two actions: action 0 stays, action 1 switches state; reward (0, 1).
+TWO_STATE = np.array([[[1.0, 0.0], [0.0, 1.0]], [[0.0, 1.0], [1.0, 0.0]]])
+TWO_STATE_REWARD = np.array([0.0, 1.0])
+
+
+@pytest.mark.parametrize("beta", [1.0, 2.0])
+def test_two_state_example_by_hand(beta: float) -> None:
+    q1 = soft_value_iteration(TWO_STATE, TWO_STATE_REWARD, beta, 1)
+    np.testing.assert_array_equal(q1, [[0.0, 0.0], [1.0, 1.0]])  # Q_1 = r
+    # V_1 = (0, 1) whatever the policy; Q_2(s, a) = r(s) + V_1(s').
+    q2 = soft_value_iteration(TWO_STATE, TWO_STATE_REWARD, beta, 2)
+    np.testing.assert_allclose(q2, [[0.0, 1.0], [2.0, 1.0]], rtol=0, atol=1e-14)
+    # V_2(0) = (0 + 1 e^b) / (1 + e^b), V_2(1) = (2 e^2b + 1 e^b) / (e^2b + e^b).
+    e = math.exp(beta)
+    v0 = e / (1 + e)
+    v1 = (2 * e * e + e) / (e * e + e)
+    q3 = soft_value_iteration(TWO_STATE, TWO_STATE_REWARD, beta, 3)
+    np.testing.assert_allclose(q3, [[v0, v1], [1 + v1, 1 + v0]], rtol=0, atol=1e-14)
+    # A Boltzmann expectation, not log-sum-exp: log(1 + e^b)/b would exceed the max.
+    assert v0 < 1.0
+
+
+def test_horizon_one_is_the_reward() -> None:
+    rng = np.random.default_rng(0)
+    transitions = random_dense(rng, 5, 3)
+    reward = rng.normal(size=(2, 5))
+    q = soft_value_iteration(transitions, reward, 1.0, 1)
+    np.testing.assert_array_equal(q, np.repeat(reward[:, :, None], 3, axis=2))
+
+
+@pytest.mark.parametrize("beta", [0.5, 1.0, 3.0])
+def test_backups_follow_equations_1_and_2(beta: float) -> None:
+    """Q_{h+1} = r + T V_h with V_h the Boltzmann expectation of Q_h, for every h."""
+    rng = np.random.default_rng(1)
+    transitions = random_dense(rng, 6, 4)
+    reward = rng.normal(size=(3, 6))
+    previous = soft_value_iteration(transitions, reward, beta, 1)
+    for horizon in range(2, 9):
+        q = soft_value_iteration(transitions, reward, beta, horizon)
+        expected = reward[:, :, None] + np.einsum(
+            "sat,kt->ksa", transitions, boltzmann_value(previous, beta)
+        )
+        np.testing.assert_allclose(q, expected, rtol=1e-12, atol=1e-12)
+        previous = q
+    np.testing.assert_allclose(
+        previous, brute_force_soft_q(transitions, reward, beta, 8), rtol=1e-12, atol=1e-12
+    )
+
+
+def test_several_tasks_equal_one_task_at_a_time() -> None:
+    rng = np.random.default_rng(2)
+    transitions = random_sparse(rng, 7, 5, 3)
+    reward = rng.normal(size=(3, 7))
+    q = soft_value_iteration(transitions, reward, 1.0, 6)
+    assert q.shape == (3, 7, 5)
+    for k in range(3):
+        single = soft_value_iteration(transitions, reward[k], 1.0, 6)
+        assert single.shape == (7, 5)
+        np.testing.assert_allclose(single, q[k], rtol=1e-13, atol=1e-13)
+
+
+def test_sparse_dense_and_operator_inputs_agree() -> None:
+    rng = np.random.default_rng(3)
+    sparse = random_sparse(rng, 8, 5, 3)
+    dense = sparse.dense()
+    reward = rng.normal(size=(2, 8))
+    q_dense = soft_value_iteration(dense, reward, 1.5, 7)
+    q_sparse = soft_value_iteration(sparse, reward, 1.5, 7)
+    q_operator = soft_value_iteration(TransitionOperator(sparse), reward, 1.5, 7)
+    np.testing.assert_allclose(q_sparse, q_dense, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(q_operator, q_dense, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        q_dense, brute_force_soft_q(dense, reward, 1.5, 7), rtol=1e-12, atol=1e-12
+    )
+
+
+def test_soft_values_never_exceed_hard_values() -> None:
+    """A Boltzmann expectation is at most the max, so soft Q <= hard Q, approaching it as
+    beta grows."""
+    rng = np.random.default_rng(4)
+    transitions = random_dense(rng, 6, 4)
+    reward = rng.uniform(size=(2, 6))
+    hard = hard_value_iteration(transitions, reward, 10)
+    gaps = []
+    for beta in (0.5, 2.0, 200.0):
+        soft = soft_value_iteration(transitions, reward, beta, 10)
+        assert np.all(soft <= hard + 1e-12)
+        gaps.append(np.abs(hard - soft).max())
+    assert gaps[0] > gaps[1] > gaps[2] and gaps[2] < 1e-2
+
+
+# -- the reverse pass ------------------------------------------------------------------------
+
+
+def sum_weighted_q(transitions, reward, beta, horizon, weights) -> float:
+    return float((weights * soft_value_iteration(transitions, reward, beta, horizon)).sum())
+
+
+def rebuild(template, probabilities: np.ndarray):
+    if isinstance(template, SparseTransitions):
+        return SparseTransitions(template.next_states, probabilities)
+    return probabilities
+
+
+def entries(transitions) -> np.ndarray:
+    return transitions.probabilities if isinstance(transitions, SparseTransitions) else transitions
+
+
+CASES = [
+    # (form, several tasks, beta)
+    ("dense", False, 1.0),
+    ("dense", True, 1.0),
+    ("dense", True, 2.5),
+    ("sparse", False, 1.0),
+    ("sparse", True, 0.5),
+    ("sparse", True, 2.5),
+]
+
+
+def make_problem(form: str, several: bool, seed: int):
+    rng = np.random.default_rng(seed)
+    states, actions = 5, 4
+    transitions = (
+        random_dense(rng, states, actions)
+        if form == "dense"
+        else random_sparse(rng, states, actions, 3)
+    )
+    reward = rng.normal(size=(3, states) if several else (states,))
+    weights = rng.normal(size=(*reward.shape, actions))
+    return transitions, reward, weights
+
+
+@pytest.mark.parametrize(("form", "several", "beta"), CASES)
+def test_reward_gradient_matches_finite_differences(form: str, several: bool, beta: float) -> None:
+    transitions, reward, weights = make_problem(form, several, seed=10)
+    horizon = 6
+    d_reward, _ = soft_plan(transitions, reward, beta, horizon).backward(weights)
+    assert d_reward.shape == reward.shape
+    numeric = central_difference(
+        lambda r: sum_weighted_q(transitions, r.reshape(reward.shape), beta, horizon, weights),
+        reward,
+    )
+    np.testing.assert_allclose(d_reward.ravel(), numeric, rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize(("form", "several", "beta"), CASES)
+def test_transition_gradient_matches_finite_differences(
+    form: str, several: bool, beta: float
+) -> None:
+    """dL/dT with every entry a free variable (the form of the input: dense (S, A, S) or the
+    sparse (S, A, M) probabilities)."""
+    transitions, reward, weights = make_problem(form, several, seed=11)
+    horizon = 6
+    _, d_transitions = soft_plan(transitions, reward, beta, horizon).backward(weights)
+    probabilities = entries(transitions)
+    assert d_transitions is not None and d_transitions.shape == probabilities.shape
+
+    def loss(p: np.ndarray) -> float:
+        return sum_weighted_q(
+            rebuild(transitions, p.reshape(probabilities.shape)), reward, beta, horizon, weights
+        )
+
+    numeric = central_difference(loss, probabilities, h=ENTRY_H)
+    np.testing.assert_allclose(d_transitions.ravel(), numeric, rtol=1e-4, atol=2e-5)
+
+
+@pytest.mark.parametrize(("form", "several", "beta"), CASES)
+def test_transition_gradient_along_valid_directions(form: str, several: bool, beta: float) -> None:
+    """Directional derivatives along perturbations that keep every row summing to 1 (the
+    ones a dynamics model can make), with the usual step h = 1e-6."""
+    transitions, reward, weights = make_problem(form, several, seed=12)
+    horizon = 7
+    _, d_transitions = soft_plan(transitions, reward, beta, horizon).backward(weights)
+    probabilities = entries(transitions)
+    rng = np.random.default_rng(13)
+    for _ in range(6):
+        direction = rng.normal(size=probabilities.shape)
+        direction -= direction.mean(axis=2, keepdims=True)
+        numeric = (
+            sum_weighted_q(
+                rebuild(transitions, probabilities + H * direction), reward, beta, horizon, weights
+            )
+            - sum_weighted_q(
+                rebuild(transitions, probabilities - H * direction), reward, beta, horizon, weights
+            )
+        ) / (2 * H)
+        assert float((d_transitions * direction).sum()) == pytest.approx(
+            numeric, rel=1e-6, abs=1e-7
+        )
+
+
+def test_several_tasks_gradients_are_sums_of_single_task_gradients() -> None:
+    transitions, reward, weights = make_problem("sparse", True, seed=14)
+    d_reward, d_transitions = soft_plan(transitions, reward, 1.0, 5).backward(weights)
+    total = np.zeros_like(d_transitions)
+    for k in range(len(reward)):
+        d_r, d_t = soft_plan(transitions, reward[k], 1.0, 5).backward(weights[k])
+        np.testing.assert_allclose(d_r, d_reward[k], rtol=1e-12, atol=1e-12)
+        total += d_t
+    np.testing.assert_allclose(d_transitions, total, rtol=1e-12, atol=1e-12)
+
+
+def test_sparse_gradient_is_the_dense_gradient_at_the_stored_entries() -> None:
+    rng = np.random.default_rng(15)
+    states, actions = 6, 3
+    # Distinct next states per row, so every sparse entry is one dense entry.
+    next_states = np.stack(
+        [
+            np.stack([rng.choice(states, size=3, replace=False) for _ in range(actions)])
+            for _ in range(states)
+        ]
+    )
+    sparse = SparseTransitions(next_states, rng.dirichlet(np.ones(3), size=(states, actions)))
+    reward = rng.normal(size=(2, states))
+    weights = rng.normal(size=(2, states, actions))
+    _, d_sparse = soft_plan(sparse, reward, 1.0, 5).backward(weights)
+    _, d_dense = soft_plan(sparse.dense(), reward, 1.0, 5).backward(weights)
+    np.testing.assert_allclose(
+        d_sparse, np.take_along_axis(d_dense, next_states, axis=2), rtol=1e-12, atol=1e-12
+    )
+
+
+def test_cost_only_reverse_pass_and_convenience_function() -> None:
+    transitions, reward, weights = make_problem("dense", True, seed=16)
+    full_reward, full_transitions = soft_plan(transitions, reward, 1.0, 5).backward(weights)
+    cost_only, nothing = soft_plan(transitions, reward, 1.0, 5).backward(
+        weights, need_transitions=False
+    )
+    assert nothing is None
+    np.testing.assert_allclose(cost_only, full_reward, rtol=1e-13, atol=1e-13)
+    d_reward, d_transitions = soft_value_iteration_backward(transitions, reward, 1.0, 5, weights)
+    np.testing.assert_allclose(d_reward, full_reward, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(d_transitions, full_transitions, rtol=1e-13, atol=1e-13)
+    # The plan's Q is the forward pass's Q.
+    np.testing.assert_array_equal(
+        soft_plan(transitions, reward, 1.0, 5).q, soft_value_iteration(transitions, reward, 1.0, 5)
+    )
+
+
+# (environment, planning horizon, scale of random dynamics parameters)
+MODEL_CASES = [
+    ("wall", None, 1.5),
+    ("doorway", None, 1.5),
+    ("two-fields", None, 1.0),
+    ("flip", 30, 1.0),
+]
+
+
+@pytest.mark.parametrize(("name", "horizon", "scale"), MODEL_CASES)
+def test_gradient_through_the_environment_model(
+    name: str, horizon: int | None, scale: float
+) -> None:
+    """d/dtheta sum(W * Q(T_theta)) from the reverse pass pulled back through env.model equals
+    finite differences in theta."""
+    env = domains.make(name)
+    horizon = horizon or env.horizon
+    rng = np.random.default_rng(20)
+    theta = env.model.initial_parameters() + rng.normal(0.0, scale, env.model.num_parameters)
+    reward = rng.normal(0.0, 0.3, size=(2, env.num_states))
+    weights = rng.normal(size=(2, env.num_states, env.num_actions)) / env.num_states
+
+    def loss(parameters: np.ndarray) -> float:
+        return sum_weighted_q(env.model.transitions(parameters), reward, 1.0, horizon, weights)
+
+    plan = soft_plan(env.model.transitions(theta), reward, 1.0, horizon)
+    _, d_probabilities = plan.backward(weights)
+    analytic = env.model.pullback(theta, d_probabilities)
+    numeric = central_difference(loss, theta)
+    assert np.abs(analytic).max() > 1e-3  # the check is not vacuous
+    np.testing.assert_allclose(analytic, numeric, rtol=1e-5, atol=1e-7)
+
+
+# -- hard-max value iteration and expected returns -------------------------------------------
+
+
+def chain() -> tuple[np.ndarray, np.ndarray]:
+    """States 0 - 1 - 2 in a row; actions STAY, LEFT, RIGHT (moves off the end stay put);
+    reward 1 at state 2."""
+    transitions = np.zeros((3, 3, 3))
+    for s in range(3):
+        transitions[s, 0, s] = 1.0
+        transitions[s, 1, max(s - 1, 0)] = 1.0
+        transitions[s, 2, min(s + 1, 2)] = 1.0
+    return transitions, np.array([0.0, 0.0, 1.0])
+
+
+def test_hard_value_iteration_on_a_chain_by_hand() -> None:
+    transitions, reward = chain()
+    # Q_H(s, a): the most reward collected in H steps (the current state's reward counts).
+    np.testing.assert_array_equal(
+        hard_value_iteration(transitions, reward, 1), [[0, 0, 0], [0, 0, 0], [1, 1, 1]]
+    )
+    q4 = hard_value_iteration(transitions, reward, 4)
+    # From 0: RIGHT reaches 1 then 2 at step 3 -> rewards 0, 0, 1, 1; STAY or LEFT waste a
+    # step -> 0, 0, 0, 1. From 1: RIGHT -> 0, 1, 1, 1; STAY -> 0, 0, 1, 1; LEFT -> 0, 0, 0, 1.
+    # From 2: STAY or RIGHT -> 4; LEFT -> 1 + (0, 1, 1) = 3.
+    np.testing.assert_array_equal(q4, [[1, 1, 2], [2, 1, 3], [4, 3, 4]])
+    several = hard_value_iteration(transitions, np.stack([reward, reward[::-1]]), 4)
+    np.testing.assert_array_equal(several[0], q4)
+    np.testing.assert_array_equal(several[1], q4[::-1][:, [0, 2, 1]])  # the mirrored chain
+
+
+def test_expected_return_of_deterministic_policies() -> None:
+    transitions, reward = chain()
+    start = np.array([1.0, 0.0, 0.0])
+    right = np.array([2, 2, 2])
+    assert expected_return(transitions, right, reward, start, 4) == pytest.approx(2.0, abs=1e-14)
+    assert expected_return(transitions, np.zeros(3, dtype=int), reward, start, 4) == 0.0
+    one_hot = np.eye(3)[right]
+    assert expected_return(transitions, one_hot, reward, start, 4) == pytest.approx(2.0, abs=1e-14)
+    # The optimal value from the hard planner is the return of the greedy policy here.
+    q = hard_value_iteration(transitions, reward, 4)
+    assert expected_return(transitions, right, reward, start, 4) == pytest.approx(
+        float(start @ q.max(axis=1))
+    )
+
+
+def test_expected_return_of_a_stochastic_policy_by_hand() -> None:
+    # Two states; in state 0 switch with probability 1/2, in state 1 stay. From state 0 the
+    # agent is in state 1 with probability 0, 1/2, 3/4 at steps 1, 2, 3: return 1.25.
+    policy = np.array([[0.5, 0.5], [1.0, 0.0]])
+    value = expected_return(TWO_STATE, policy, TWO_STATE_REWARD, np.array([1.0, 0.0]), 3)
+    assert value == pytest.approx(1.25, abs=1e-14)
+
+
+def brute_force_return(transitions, policy, reward, start, horizon) -> float:
+    p_pi = np.einsum("sa,sat->st", policy, transitions)
+    return float(sum(start @ np.linalg.matrix_power(p_pi, t) @ reward for t in range(horizon)))
+
+
+@pytest.mark.parametrize("stochastic", [False, True])
+def test_expected_return_matches_matrix_powers(stochastic: bool) -> None:
+    rng = np.random.default_rng(30)
+    states, actions = 9, 5
+    transitions = random_dense(rng, states, actions)
+    reward = rng.uniform(size=states)
+    start = rng.dirichlet(np.ones(states))
+    if stochastic:
+        policy = rng.dirichlet(np.ones(actions), size=states)
+    else:
+        policy = np.eye(actions)[rng.integers(actions, size=states)]
+    for horizon in (1, 2, 13):
+        expected = brute_force_return(transitions, policy, reward, start, horizon)
+        assert expected_return(transitions, policy, reward, start, horizon) == pytest.approx(
+            expected, rel=1e-12
+        )
+        sparse = SparseTransitions.from_dense(transitions)
+        assert expected_return(sparse, policy, reward, start, horizon) == pytest.approx(
+            expected, rel=1e-12
+        )
+    if not stochastic:
+        actions_only = policy.argmax(axis=1)
+        assert expected_return(transitions, actions_only, reward, start, 13) == pytest.approx(
+            brute_force_return(transitions, policy, reward, start, 13), rel=1e-12
+        )
+
+
+# -- bad input -------------------------------------------------------------------------------
+
+
+def good_problem():
+    rng = np.random.default_rng(40)
+    return random_dense(rng, 4, 3), rng.normal(size=4)
+
+
+@pytest.mark.parametrize(
+    ("transitions", "match"),
+    [
+        (np.full((4, 3), 0.25), "shape"),
+        (np.full((4, 3, 5), 0.2), "shape"),
+        (np.full((4, 3, 4, 1), 0.25), "shape"),
+    ],
+)
+def test_wrong_transition_shapes_are_rejected(transitions: np.ndarray, match: str) -> None:
+    _, reward = good_problem()
+    with pytest.raises(ValueError, match=match):
+        soft_value_iteration(transitions, reward, 1.0, 3)
+    with pytest.raises(ValueError, match=match):
+        hard_value_iteration(transitions, reward, 3)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_transitions_or_rewards_are_rejected(bad: float) -> None:
+    transitions, reward = good_problem()
+    broken = transitions.copy()
+    broken[1, 2, 3] = bad
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        soft_value_iteration(broken, reward, 1.0, 3)
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        hard_value_iteration(broken, reward, 3)
+    sparse = SparseTransitions.from_dense(transitions)
+    probabilities = sparse.probabilities.copy()
+    probabilities[0, 0, 0] = bad
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        soft_value_iteration(SparseTransitions(sparse.next_states, probabilities), reward, 1.0, 3)
+    bad_reward = reward.copy()
+    bad_reward[2] = bad
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        soft_value_iteration(transitions, bad_reward, 1.0, 3)
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        hard_value_iteration(transitions, bad_reward, 3)
+
+
+def test_rows_not_summing_to_one_are_rejected() -> None:
+    transitions, reward = good_problem()
+    for change in (1e-4, -1e-4):
+        broken = transitions.copy()
+        broken[2, 1, 0] += change
+        with pytest.raises(ValueError, match="sum"):
+            soft_value_iteration(broken, reward, 1.0, 3)
+        with pytest.raises(ValueError, match="sum"):
+            hard_value_iteration(broken, reward, 3)
+    negative = np.zeros((2, 1, 2))
+    negative[:, 0] = [1.5, -0.5]
+    with pytest.raises(ValueError, match="negative"):
+        soft_value_iteration(negative, np.zeros(2), 1.0, 3)
+
+
+def test_bad_sparse_tables_are_rejected() -> None:
+    transitions, reward = good_problem()
+    sparse = SparseTransitions.from_dense(transitions)
+    out_of_range = sparse.next_states.copy()
+    out_of_range[0, 0, 0] = 4
+    with pytest.raises(ValueError, match="range"):
+        soft_value_iteration(SparseTransitions(out_of_range, sparse.probabilities), reward, 1.0, 3)
+    with pytest.raises(ValueError, match="shape"):
+        soft_value_iteration(
+            SparseTransitions(sparse.next_states[:, :, :2], sparse.probabilities), reward, 1.0, 3
+        )
+
+
+@pytest.mark.parametrize("reward_shape", [(5,), (2, 5), (2, 4, 1), ()])
+def test_wrong_reward_shapes_are_rejected(reward_shape: tuple[int, ...]) -> None:
+    transitions, _ = good_problem()
+    with pytest.raises(ValueError, match="shape"):
+        soft_value_iteration(transitions, np.zeros(reward_shape), 1.0, 3)
+    with pytest.raises(ValueError, match="shape"):
+        hard_value_iteration(transitions, np.zeros(reward_shape), 3)
+
+
+@pytest.mark.parametrize("horizon", [0, -2, 2.5, "3", np.nan, np.inf])
+def test_bad_horizons_are_rejected(horizon: float) -> None:
+    transitions, reward = good_problem()
+    with pytest.raises(ValueError, match="horizon"):
+        soft_value_iteration(transitions, reward, 1.0, horizon)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="horizon"):
+        hard_value_iteration(transitions, reward, horizon)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("beta", [0.0, -1.0, np.nan, np.inf])
+def test_bad_betas_are_rejected(beta: float) -> None:
+    transitions, reward = good_problem()
+    with pytest.raises(ValueError, match="beta"):
+        soft_value_iteration(transitions, reward, beta, 3)
+
+
+def test_bad_reverse_pass_input_is_rejected() -> None:
+    transitions, reward = good_problem()
+    plan = soft_plan(transitions, reward, 1.0, 3)
+    for shape in [(4, 2), (1, 4, 3), (3, 4)]:
+        with pytest.raises(ValueError, match="shape"):
+            plan.backward(np.zeros(shape))
+    for bad in (np.nan, np.inf):
+        d_q = np.zeros((4, 3))
+        d_q[1, 1] = bad
+        with pytest.raises(ValueError, match="NaN or infinite"):
+            plan.backward(d_q)
+    several = soft_plan(transitions, np.stack([reward, reward]), 1.0, 3)
+    with pytest.raises(ValueError, match="shape"):
+        several.backward(np.zeros((4, 3)))
+
+
+def test_bad_policies_are_rejected_by_expected_return() -> None:
+    transitions, reward = chain()
+    start = np.array([1.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="range"):
+        expected_return(transitions, np.array([0, 3, 1]), reward, start, 4)
+    with pytest.raises(ValueError, match="range"):
+        expected_return(transitions, np.array([0, -1, 1]), reward, start, 4)
+    with pytest.raises(ValueError, match="shape"):
+        expected_return(transitions, np.zeros((3, 2)), reward, start, 4)
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        expected_return(transitions, np.full((3, 3), np.nan), reward, start, 4)
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        expected_return(transitions, np.array([0, 1, 2]), reward, np.array([np.nan, 0, 1]), 4)

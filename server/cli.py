@@ -17,6 +17,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "analysis.cli",
         "Turn a study's exported data into the paper's results tables, tests and plots.",
     ),
+    "simulate": (
+        "server.simulation.cli",
+        "Run the paper's simulated-teacher experiments and write curves, figures and a report.",
+    ),
 }
 
 

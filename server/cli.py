@@ -21,6 +21,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "server.simulation.cli",
         "Run the paper's simulated-teacher experiments and write curves, figures and a report.",
     ),
+    "serve": ("server.app.serve_cmd", "Run the study server (settings from BAM_* variables)."),
+    "db": ("server.app.db_cmd", "Create or upgrade the study database's schema (migrations)."),
+    "export": ("server.app.export_cmd", "Export the study's data as CSV files with a dictionary."),
+    "teach": ("server.app.teach_cli", "Run simulated participants against a study server."),
 }
 
 

@@ -1,0 +1,34 @@
+# The BAM Study server. It runs from the source tree (alembic.ini and migrations/ are found
+# there) and takes its settings from BAM_* variables; BAM_DATABASE_URL is a PostgreSQL URL, e.g.
+#   postgresql+psycopg://bam:PASSWORD@db:5432/bam
+# compose.yaml runs it with PostgreSQL beside it and applies the migrations first
+# (`bam-study db upgrade`); on its own, `serve` refuses an out-of-date schema.
+FROM python:3.11-slim
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    BAM_UPDATE_WORKERS=2
+
+WORKDIR /app
+
+# The dependencies first, in their own layer: it is rebuilt only when pyproject.toml changes.
+COPY pyproject.toml ./
+RUN python -c "import subprocess, sys, tomllib; \
+deps = tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies']; \
+subprocess.check_call([sys.executable, '-m', 'pip', 'install', *deps])"
+
+COPY . .
+RUN pip install --no-deps -e . \
+    && useradd --create-home --uid 10001 bam
+
+USER bam
+EXPOSE 8000
+
+HEALTHCHECK --interval=10s --timeout=5s --start-period=30s --retries=3 \
+    CMD python -c "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/api/health', timeout=4)"
+
+# Behind a TLS proxy (needed for MTurk's https iframe), set FORWARDED_ALLOW_IPS to the proxy's
+# address so that uvicorn trusts its X-Forwarded-* headers.
+CMD ["bam-study", "serve", "--host", "0.0.0.0", "--port", "8000"]

@@ -1,0 +1,211 @@
+"""The study configuration: which domains and environments are taught, in which order, by which
+learners, the tutorial, the texts shown to participants and how they complete.
+
+A TOML file (``BAM_STUDY_CONFIG``); the default, ``server/config/study.toml``, is the paper's
+study. ``load_study_config`` validates it against the environment and learner registries and
+reports every problem with its place in the file.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+from urllib.parse import urlsplit
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+DEFAULT_STUDY_CONFIG = Path(__file__).resolve().parent.parent / "config" / "study.toml"
+
+
+class StudyConfigError(ValueError):
+    """The study configuration file is missing, not TOML, or not a valid study."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Colour(_Strict):
+    """An agent's colour: a name participants can read and the colour to draw."""
+
+    name: str = Field(min_length=1, max_length=40)
+    hex: str = Field(pattern=r"^#[0-9A-Fa-f]{6}$")
+
+
+class Domain(_Strict):
+    name: str
+    environments: tuple[str, ...] = Field(min_length=1)
+    tutorial: str | None = Field(None, description="Defaults to the domain's tutorial environment.")
+
+    @model_validator(mode="after")
+    def _known(self) -> Domain:
+        from server import domains
+
+        if self.name not in domains.DOMAINS:
+            raise ValueError(f"unknown domain {self.name!r}; valid: {', '.join(domains.DOMAINS)}")
+        valid = domains.DOMAINS[self.name]
+        for environment in self.environments:
+            if environment not in valid:
+                raise ValueError(
+                    f"environment {environment!r} is not in domain {self.name!r}; "
+                    f"valid: {', '.join(valid)}"
+                )
+        if len(set(self.environments)) != len(self.environments):
+            raise ValueError(f"domain {self.name!r} lists an environment twice")
+        if self.tutorial is not None and domains.domain_of(self.tutorial) != self.name:
+            raise ValueError(f"tutorial {self.tutorial!r} is not an environment of {self.name!r}")
+        return self
+
+    @property
+    def tutorial_environment(self) -> str:
+        from server import domains
+
+        return self.tutorial or domains.TUTORIALS[self.name]
+
+
+class Tutorial(_Strict):
+    enabled: bool = True
+    learner: str = "cloning"
+    colour: Colour = Colour(name="black", hex="#000000")
+
+    @field_validator("learner")
+    @classmethod
+    def _known_learner(cls, value: str) -> str:
+        return _check_learner(value)
+
+
+class Completion(_Strict):
+    """How a participant finishes: MTurk's externalSubmit, Prolific's redirect, or a code page."""
+
+    mode: Literal["mturk", "prolific", "lab"]
+    prolific_code: str | None = Field(None, pattern=r"^[A-Za-z0-9_\-]{1,64}$")
+    prolific_url: str = "https://app.prolific.com/submissions/complete?cc={code}"
+
+    @model_validator(mode="after")
+    def _prolific_needs_code(self) -> Completion:
+        if self.mode == "prolific":
+            if self.prolific_code is None:
+                raise ValueError("completion mode 'prolific' needs prolific_code")
+            if urlsplit(self.prolific_url).scheme != "https" or "{code}" not in self.prolific_url:
+                raise ValueError("prolific_url must be an https URL containing '{code}'")
+        return self
+
+    def prolific_redirect(self) -> str:
+        return self.prolific_url.replace("{code}", self.prolific_code or "")
+
+
+class StudyConfig(_Strict):
+    title: str = Field(min_length=1, max_length=200)
+    consent: str = Field(min_length=1)
+    payment: str = Field(min_length=1)
+    completion: Completion
+    domains: tuple[Domain, ...] = Field(min_length=1)
+    learners: tuple[str, ...] = Field(min_length=1)
+    agents_per_environment: int | None = Field(
+        None, ge=1, le=12, description="Defaults to one agent per learner."
+    )
+    learner_settings: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    tutorial: Tutorial = Tutorial()
+    colours: tuple[Colour, ...] = Field(min_length=1)
+    allow_repeat_workers: bool = False
+    allow_anonymous: bool = Field(
+        False, description="Accept arrivals without platform ids (a lab participant)."
+    )
+    reveal_gravity: bool = Field(False, description="Show gravity directions to participants.")
+
+    @field_validator("learners")
+    @classmethod
+    def _known_learners(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        for name in value:
+            _check_learner(name)
+        return value
+
+    @model_validator(mode="after")
+    def _consistent(self) -> StudyConfig:
+        from server.learners import learner_class
+
+        names = [domain.name for domain in self.domains]
+        if len(set(names)) != len(names):
+            raise ValueError("a domain is listed twice")
+        for name, settings in self.learner_settings.items():
+            valid = learner_class(_check_learner(name)).default_settings
+            unknown = sorted(set(settings) - set(valid))
+            if unknown:
+                raise ValueError(
+                    f"learner_settings.{name}: unknown setting(s) {', '.join(unknown)}; "
+                    f"valid: {', '.join(sorted(valid))}"
+                )
+        colour_names = [colour.name for colour in self.colours]
+        if len(set(colour_names)) != len(colour_names):
+            raise ValueError("two colours have the same name")
+        most = max(len(domain.environments) for domain in self.domains) * self.agents
+        if len(self.colours) < most:
+            raise ValueError(
+                f"{len(self.colours)} colours for up to {most} agents: each agent needs its own"
+            )
+        return self
+
+    @property
+    def agents(self) -> int:
+        """Agents taught per environment."""
+        return self.agents_per_environment or len(self.learners)
+
+    def domain(self, name: str) -> Domain:
+        for domain in self.domains:
+            if domain.name == name:
+                return domain
+        raise KeyError(name)
+
+    def settings_of(self, learner: str) -> dict[str, Any]:
+        return dict(self.learner_settings.get(learner, {}))
+
+    def public(self) -> dict[str, Any]:
+        """What any visitor may read: texts and the shape of the study, no learner names."""
+        return {
+            "title": self.title,
+            "consent": self.consent,
+            "payment": self.payment,
+            "completion_mode": self.completion.mode,
+            "tutorial": self.tutorial.enabled,
+            "agents_per_environment": self.agents,
+            "reveal_gravity": self.reveal_gravity,
+        }
+
+
+def _check_learner(name: str) -> str:
+    from server import learners
+
+    if name not in learners.NAMES:
+        raise ValueError(f"unknown learner {name!r}; valid: {', '.join(learners.NAMES)}")
+    return name
+
+
+def _format_errors(error: ValidationError) -> str:
+    lines = []
+    for item in error.errors():
+        where = ".".join(str(part) for part in item["loc"]) or "(top level)"
+        message = item["msg"].removeprefix("Value error, ")
+        lines.append(f"  {where}: {message}")
+    return "\n".join(lines)
+
+
+def parse_study_config(data: dict[str, Any], source: str = "study configuration") -> StudyConfig:
+    try:
+        return StudyConfig.model_validate(data)
+    except ValidationError as error:
+        raise StudyConfigError(f"{source} is not a valid study:\n{_format_errors(error)}") from None
+
+
+def load_study_config(path: Path | str | None = None) -> StudyConfig:
+    """Read and validate a study configuration (the paper's study when ``path`` is None)."""
+    path = Path(path) if path is not None else DEFAULT_STUDY_CONFIG
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as error:
+        raise StudyConfigError(f"cannot read the study configuration {path}: {error}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise StudyConfigError(f"{path} is not valid TOML: {error}") from None
+    return parse_study_config(data, str(path))

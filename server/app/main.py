@@ -1,0 +1,174 @@
+"""The study server's FastAPI application (``create_app``)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import AsyncIterator
+from concurrent.futures import Executor
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
+from fastapi.staticfiles import StaticFiles
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from server.app import flow
+from server.app.config import StudyConfig, load_study_config
+from server.app.db import Database, SchemaError, current_revision, head_revision
+from server.app.errors import ApiError, TurnedAway
+from server.app.routers import (
+    admin,
+    arrivals,
+    pages,
+    participant,
+    sessions,
+    study,
+)
+from server.app.settings import Settings, get_settings
+from server.app.state import ServerState
+from server.app.updates import UpdateManager
+
+log = logging.getLogger("bam_study")
+STATIC_DIR = Path(__file__).resolve().parents[1] / "static"
+SWEEP_SECONDS = 60.0
+
+
+class BodyLimit:
+    """413 for request bodies over ``limit`` bytes, declared or streamed: the body is read
+    (it is small) before the app sees it."""
+
+    def __init__(self, app: ASGIApp, limit: int) -> None:
+        self.app = app
+        self.limit = limit
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        for name, value in scope["headers"]:
+            if name == b"content-length" and (not value.isdigit() or int(value) > self.limit):
+                await self._refuse(scope, send)
+                return
+        body = bytearray()
+        while True:
+            message = await receive()
+            if message["type"] != "http.request":
+                break
+            body += message.get("body", b"")
+            if len(body) > self.limit:
+                await self._refuse(scope, send)
+                return
+            if not message.get("more_body", False):
+                message = {"type": "http.request", "body": bytes(body), "more_body": False}
+                break
+        replayed = False
+
+        async def replay() -> Message:
+            nonlocal replayed
+            if not replayed:
+                replayed = True
+                return message
+            return await receive()
+
+        await self.app(scope, replay, send)
+
+    async def _refuse(self, scope: Scope, send: Send) -> None:
+        response = JSONResponse(
+            {"detail": f"request body too large (more than {self.limit} bytes)"}, status_code=413
+        )
+        await response(scope, _no_receive, send)
+
+
+async def _no_receive() -> Message:
+    return {"type": "http.disconnect"}
+
+
+def create_app(
+    settings: Settings | None = None,
+    study_config: StudyConfig | None = None,
+    db: Database | None = None,
+    executor: Executor | None = None,
+) -> FastAPI:
+    """The app for one study database. ``executor`` runs learner updates (a process pool of
+    ``BAM_UPDATE_WORKERS`` is made when None); the schema must be up to date (``bam-study db
+    upgrade``, which ``bam-study serve`` runs itself on SQLite)."""
+    settings = settings or get_settings()
+    study_config = study_config or load_study_config(settings.study_config)
+    own_db = db is None
+    if db is None:
+        db = Database.from_url(
+            settings.database_url, busy_timeout_ms=settings.sqlite_busy_timeout_ms
+        )
+    state = ServerState(db=db, study=study_config, settings=settings)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        head, current = head_revision(), current_revision(db.engine)
+        if current != head:
+            raise SchemaError(
+                f"the database schema is at {current or 'none'}, this server needs {head}: "
+                "run `bam-study db upgrade`"
+            )
+        manager = UpdateManager(
+            db,
+            state.policies,
+            study_config.settings_of,
+            workers=settings.update_workers,
+            niceness=settings.update_worker_niceness,
+            executor=executor,
+        )
+        state.updates = manager
+        await manager.start()
+        sweeper = asyncio.ensure_future(_sweep_forever(state))
+        try:
+            yield
+        finally:
+            sweeper.cancel()
+            await asyncio.gather(sweeper, return_exceptions=True)
+            await manager.stop()
+            state.updates = None
+            if own_db:
+                db.dispose()
+
+    app = FastAPI(
+        title="BAM Study",
+        summary="Participants teach learning agents in grid worlds; every event is stored.",
+        lifespan=lifespan,
+    )
+    app.state.server = state
+    app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
+
+    @app.exception_handler(ApiError)
+    async def api_error(request: Request, error: ApiError) -> JSONResponse:
+        content: dict[str, Any] = {"detail": error.message}
+        if isinstance(error, TurnedAway):
+            content["turned_away"] = True
+        return JSONResponse(content, status_code=error.status, headers=error.headers)
+
+    for router in (
+        study.router,
+        arrivals.router,
+        participant.router,
+        sessions.router,
+        admin.router,
+        pages.router,
+    ):
+        app.include_router(router)
+    if STATIC_DIR.is_dir():
+        app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    return app
+
+
+async def _sweep_forever(state: ServerState) -> None:
+    """Mark participants idle for too long as abandoned (they continue if they come back)."""
+    while True:
+        try:
+            marked = await asyncio.to_thread(flow.mark_abandoned, state.db, state.settings)
+            if marked:
+                log.info("%d participant(s) marked abandoned", marked)
+        except Exception:
+            log.exception("could not mark abandoned participants")
+        await asyncio.sleep(SWEEP_SECONDS)

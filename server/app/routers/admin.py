@@ -1,0 +1,299 @@
+"""The experimenter's endpoints, behind ``Authorization: Bearer $BAM_ADMIN_TOKEN``."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Query, Response
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from server.app import export, flow, teaching
+from server.app.deps import AdminDep, StateDep
+from server.app.errors import ApiError
+from server.app.models import (
+    Event,
+    LearnerUpdate,
+    LearningSession,
+    Participant,
+    StatusChange,
+    utcnow,
+)
+from server.app.schemas import (
+    AdminEvaluation,
+    AdminEvent,
+    AdminParticipant,
+    AdminParticipantDetail,
+    AdminSession,
+    ExclusionRequest,
+    StatusChangeView,
+)
+
+router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
+
+
+def _last_returns(s: Session, session_ids: list[int]) -> dict[int, float | None]:
+    if not session_ids:
+        return {}
+    latest = (
+        select(LearnerUpdate.session_id, func.max(LearnerUpdate.update_index).label("index"))
+        .where(LearnerUpdate.session_id.in_(session_ids), LearnerUpdate.status == "done")
+        .group_by(LearnerUpdate.session_id)
+        .subquery()
+    )
+    rows = s.execute(
+        select(LearnerUpdate.session_id, LearnerUpdate.normalized_return).join(
+            latest,
+            (LearnerUpdate.session_id == latest.c.session_id)
+            & (LearnerUpdate.update_index == latest.c.index),
+        )
+    )
+    return {session_id: value for session_id, value in rows}
+
+
+def _admin_sessions(s: Session, sessions: list[LearningSession]) -> list[AdminSession]:
+    returns = _last_returns(s, [x.id for x in sessions])
+    return [
+        AdminSession(
+            session_id=x.id,
+            participant_id=x.participant_id,
+            kind=x.kind,
+            position=x.position,
+            domain=x.domain,
+            environment=x.environment,
+            learner=x.learner,
+            colour=x.colour_name,
+            status=x.status,
+            mode=x.mode,
+            task=x.task,
+            started_at=x.started_at,
+            finished_at=x.finished_at,
+            completed=x.completed,
+            episodes=x.episodes,
+            actions=x.actions,
+            pending_updates=max(0, x.updates_requested - x.updates_processed),
+            last_normalized_return=returns.get(x.id),
+        )
+        for x in sessions
+    ]
+
+
+def _admin_participant(
+    p: Participant, sessions: list[LearningSession], completed_at: Any
+) -> AdminParticipant:
+    mine = [x for x in sessions if x.kind == "study"]
+    end = completed_at or p.last_seen_at
+    return AdminParticipant(
+        participant_id=p.id,
+        platform=p.platform,
+        worker_id=p.worker_id,
+        assignment_id=p.assignment_id,
+        hit_id=p.hit_id,
+        status=p.status,
+        domain=p.domain,
+        excluded=p.excluded_at is not None,
+        exclusion_reason=p.exclusion_reason,
+        created_at=p.created_at,
+        last_seen_at=p.last_seen_at,
+        minutes=round((end - p.created_at).total_seconds() / 60, 2),
+        agents_finished=sum(1 for x in mine if x.completed),
+        agents=len(mine),
+        completion_code=p.completion_code,
+    )
+
+
+def _completed_at(s: Session, participant_ids: list[int]) -> dict[int, Any]:
+    rows = s.execute(
+        select(StatusChange.participant_id, func.min(StatusChange.at))
+        .where(StatusChange.participant_id.in_(participant_ids), StatusChange.status == "completed")
+        .group_by(StatusChange.participant_id)
+    )
+    return {participant_id: at for participant_id, at in rows}
+
+
+@router.get("/participants", response_model=list[AdminParticipant])
+def list_participants(
+    state: StateDep,
+    status: Annotated[str | None, Query(description="Only this status.")] = None,
+) -> list[AdminParticipant]:
+    """Every participant with status, domain, progress and time spent."""
+    if status is not None and status not in flow.STATUSES:
+        raise ApiError(400, f"unknown status {status!r}; valid: {', '.join(flow.STATUSES)}")
+    with state.db.read() as s:
+        query = select(Participant).order_by(Participant.id)
+        if status is not None:
+            query = query.where(Participant.status == status)
+        participants = s.scalars(query).all()
+        ids = [p.id for p in participants]
+        sessions = s.scalars(
+            select(LearningSession).where(LearningSession.participant_id.in_(ids))
+        ).all()
+        completed = _completed_at(s, ids)
+    by_participant: dict[int, list[LearningSession]] = {}
+    for x in sessions:
+        by_participant.setdefault(x.participant_id, []).append(x)
+    return [
+        _admin_participant(p, by_participant.get(p.id, []), completed.get(p.id))
+        for p in participants
+    ]
+
+
+def _participant_detail(s: Session, participant_id: int) -> AdminParticipantDetail:
+    p = s.get(Participant, participant_id)
+    if p is None:
+        raise ApiError(404, f"no participant {participant_id}")
+    sessions = list(
+        s.scalars(
+            select(LearningSession)
+            .where(LearningSession.participant_id == p.id)
+            .order_by(LearningSession.ordinal)
+        )
+    )
+    changes = s.scalars(
+        select(StatusChange).where(StatusChange.participant_id == p.id).order_by(StatusChange.id)
+    ).all()
+    base = _admin_participant(p, sessions, _completed_at(s, [p.id]).get(p.id))
+    return AdminParticipantDetail(
+        **base.model_dump(),
+        status_changes=[StatusChangeView(status=c.status, at=c.at, note=c.note) for c in changes],
+        sessions=_admin_sessions(s, sessions),
+    )
+
+
+@router.get("/participants/{participant_id}", response_model=AdminParticipantDetail)
+def read_participant(participant_id: int, state: StateDep) -> AdminParticipantDetail:
+    """One participant: status history and learning sessions."""
+    with state.db.read() as s:
+        return _participant_detail(s, participant_id)
+
+
+@router.post("/participants/{participant_id}/exclusion", response_model=AdminParticipantDetail)
+def exclude(participant_id: int, body: ExclusionRequest, state: StateDep) -> AdminParticipantDetail:
+    """Exclude the participant from analysis (their flow goes on unchanged)."""
+    with state.db.write() as s:
+        p = s.get(Participant, participant_id)
+        if p is None:
+            raise ApiError(404, f"no participant {participant_id}")
+        if p.excluded_at is not None:
+            raise ApiError(409, f"participant {participant_id} is already excluded")
+        now = utcnow()
+        p.excluded_at = now
+        p.exclusion_reason = body.reason
+        s.add(StatusChange(participant_id=p.id, status="excluded", at=now, note=body.reason))
+    with state.db.read() as s:
+        return _participant_detail(s, participant_id)
+
+
+@router.delete("/participants/{participant_id}/exclusion", response_model=AdminParticipantDetail)
+def include(participant_id: int, state: StateDep) -> AdminParticipantDetail:
+    """Undo an exclusion."""
+    with state.db.write() as s:
+        p = s.get(Participant, participant_id)
+        if p is None:
+            raise ApiError(404, f"no participant {participant_id}")
+        if p.excluded_at is None:
+            raise ApiError(409, f"participant {participant_id} is not excluded")
+        p.excluded_at = None
+        p.exclusion_reason = None
+        s.add(StatusChange(participant_id=p.id, status="included", at=utcnow()))
+    with state.db.read() as s:
+        return _participant_detail(s, participant_id)
+
+
+@router.get("/sessions", response_model=list[AdminSession])
+def list_sessions(
+    state: StateDep,
+    live: Annotated[bool, Query(description="Only sessions being taught now.")] = False,
+) -> list[AdminSession]:
+    """Learning sessions with progress, pending updates and latest normalised return."""
+    with state.db.read() as s:
+        query = select(LearningSession).order_by(LearningSession.id)
+        if live:
+            query = query.join(Participant).where(
+                LearningSession.status == "active", Participant.status.in_(flow.IN_PROGRESS)
+            )
+        return _admin_sessions(s, list(s.scalars(query)))
+
+
+def _session(s: Session, session_id: int) -> LearningSession:
+    session = s.get(LearningSession, session_id)
+    if session is None:
+        raise ApiError(404, f"no learning session {session_id}")
+    return session
+
+
+@router.get("/sessions/{session_id}/evaluations", response_model=list[AdminEvaluation])
+def list_evaluations(session_id: int, state: StateDep) -> list[AdminEvaluation]:
+    """The session's learning curve: normalised return after each update."""
+    with state.db.read() as s:
+        _session(s, session_id)
+        rows = s.execute(
+            select(
+                LearnerUpdate.update_index,
+                LearnerUpdate.status,
+                LearnerUpdate.episodes,
+                LearnerUpdate.actions,
+                LearnerUpdate.normalized_return,
+                LearnerUpdate.seconds,
+                LearnerUpdate.queued_at,
+                LearnerUpdate.finished_at,
+            )
+            .where(LearnerUpdate.session_id == session_id)
+            .order_by(LearnerUpdate.update_index)
+        ).all()
+    return [AdminEvaluation(**row._asdict()) for row in rows]
+
+
+@router.get("/sessions/{session_id}/replay")
+def replay(session_id: int, state: StateDep) -> dict[str, Any]:
+    """What a replay needs: the grid, the first state and every event of the session."""
+    with state.db.read() as s:
+        session = _session(s, session_id)
+        events = s.scalars(
+            select(Event).where(Event.session_id == session_id).order_by(Event.id)
+        ).all()
+        summary = _admin_sessions(s, [session])[0]
+    return {
+        "session": summary.model_dump(mode="json"),
+        "environment": teaching.environment_description(session.environment, reveal_gravity=True),
+        "start_state": flow.initial_state(session) if session.started_at else None,
+        "events": [
+            AdminEvent(
+                event_id=e.id,
+                seq=e.seq,
+                kind=e.kind,
+                created_at=e.created_at,
+                task=e.task,
+                mode=e.mode,
+                state=e.state,
+                action=e.action,
+                next_state=e.next_state,
+                feedback=e.feedback,
+                episode_index=e.episode_index,
+                record=e.record,
+                stay_state=e.stay_state,
+                episode_end=e.episode_end,
+            ).model_dump(mode="json")
+            for e in events
+        ],
+    }
+
+
+@router.get(
+    "/export.zip",
+    response_class=Response,
+    responses={200: {"content": {"application/zip": {}}}},
+)
+def download_export(
+    state: StateDep,
+    pseudonymize: Annotated[bool, Query(description="Hash worker and assignment ids.")] = True,
+) -> Response:
+    """The export (CSV files and their data dictionary) as a zip."""
+    secret = state.settings.secret.get_secret_value() if state.settings.secret else None
+    tables = export.load_tables(state.db, pseudonymize=pseudonymize, secret=secret)
+    stamp = utcnow().strftime("%Y%m%dT%H%M%SZ")
+    return Response(
+        content=export.export_zip(tables),
+        media_type="application/zip",
+        headers={"Content-Disposition": f'attachment; filename="bam-study-export-{stamp}.zip"'},
+    )

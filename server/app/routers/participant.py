@@ -1,0 +1,114 @@
+"""The participant's own state and the steps of the flow outside teaching."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from fastapi import APIRouter, Response
+
+from server.app import flow
+from server.app.deps import StateDep, TokenDep
+from server.app.errors import ApiError
+from server.app.flow import Action
+from server.app.schemas import (
+    ActionResponse,
+    Completion,
+    ConsentRequest,
+    Outcome,
+    ParticipantState,
+    SeqRequest,
+)
+from server.app.state import ServerState
+
+router = APIRouter(prefix="/api/participant", tags=["participants"])
+
+
+def answer(state: ServerState, performed: flow.Performed) -> Response:
+    """The stored JSON of a performed request; its queued learner updates start now."""
+    if performed.queued and state.updates is not None:
+        state.updates.submit(performed.queued)
+    return Response(content=performed.response, media_type="application/json")
+
+
+async def perform(
+    state: ServerState,
+    token: str | None,
+    kind: str,
+    body: SeqRequest,
+    handler: Callable[[Action], ActionResponse],
+) -> Response:
+    return answer(
+        state, await state.run_db(lambda: flow.perform(state, token, kind, body, handler))
+    )
+
+
+def participant_response(action: Action) -> ActionResponse:
+    action.flush()
+    current = flow.current_session_id(action.c, action.participant)
+    return ActionResponse(
+        seq=action.seq,
+        kind=action.event["kind"],
+        outcome=Outcome(),
+        session=None,
+        participant=flow.brief(action.participant, action.study, current),
+    )
+
+
+@router.get("", response_model=ParticipantState)
+async def read_participant(state: StateDep, token: TokenDep) -> ParticipantState:
+    """Where the participant is: status, sessions, the current one, the next seq."""
+
+    def read() -> ParticipantState:
+        with state.db.connect() as c:
+            participant = flow.participant_for(c, token)
+            return flow.participant_state(c, participant, state.study)
+
+    return await state.run_db(read)
+
+
+@router.post("/consent", response_model=ActionResponse)
+async def consent(body: ConsentRequest, state: StateDep, token: TokenDep) -> Response:
+    """Agree (the domain is assigned, the sessions are created) or decline (the flow ends)."""
+
+    def handle(action: Action) -> ActionResponse:
+        flow.consent(action, body.agree)
+        return participant_response(action)
+
+    return await perform(state, token, "consent", body, handle)
+
+
+@router.post("/start", response_model=ActionResponse)
+async def start(body: SeqRequest, state: StateDep, token: TokenDep) -> Response:
+    """After the instructions: the tutorial (or the first agent) begins."""
+
+    def handle(action: Action) -> ActionResponse:
+        flow.start(action)
+        return participant_response(action)
+
+    return await perform(state, token, "start", body, handle)
+
+
+@router.get("/completion", response_model=Completion)
+async def read_completion(state: StateDep, token: TokenDep) -> Completion:
+    """The completion code, once the completion is committed (409 before)."""
+
+    def read() -> Completion:
+        with state.db.connect() as c:
+            participant = flow.participant_for(c, token)
+            completion = flow.completion(participant, state.study)
+        if completion is None:
+            raise ApiError(409, f"the study is not completed yet (status {participant.status})")
+        return completion
+
+    return await state.run_db(read)
+
+
+@router.post("/submission", response_model=ActionResponse)
+async def record_submission(body: SeqRequest, state: StateDep, token: TokenDep) -> Response:
+    """The page is sending the submission to the platform (MTurk's form, Prolific's redirect)."""
+
+    def handle(action: Action) -> ActionResponse:
+        flow.submission(action)
+        return participant_response(action)
+
+    return await perform(state, token, "submission", body, handle)

@@ -1,0 +1,191 @@
+"""Teaching one learning session (one agent). Every POST carries the participant's next ``seq``.
+
+The agent step is the one request that may wait: for its own learner's pending update (never
+for other participants' updates), up to ``BAM_AGENT_WAIT_SECONDS``, then 503 with Retry-After.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Response
+
+from server.app import flow, teaching
+from server.app.deps import StateDep, TokenDep
+from server.app.errors import ApiError, LearnerBusy
+from server.app.flow import Action
+from server.app.routers.participant import answer
+from server.app.schemas import (
+    ActionResponse,
+    FeedbackRequest,
+    Learning,
+    ModeRequest,
+    MoveRequest,
+    SeqRequest,
+    SessionView,
+    TaskRequest,
+)
+from server.app.state import ServerState
+
+router = APIRouter(prefix="/api/sessions", tags=["teaching"])
+
+
+async def teach(
+    state: ServerState,
+    token: str | None,
+    kind: str,
+    body: SeqRequest,
+    session_id: int,
+    handler: Callable[[Action], ActionResponse],
+) -> Response:
+    performed = await state.run_db(
+        lambda: flow.perform(state, token, kind, body, handler, session_id)
+    )
+    return answer(state, performed)
+
+
+@router.get("/{session_id}", response_model=SessionView)
+async def read_session(session_id: int, state: StateDep, token: TokenDep) -> SessionView:
+    """Everything to draw the session: the grid, the agent, the mode, the task, progress."""
+
+    def read() -> SessionView:
+        with state.db.connect() as c:
+            participant = flow.participant_for(c, token)
+            return teaching.session_view(c, participant, state.study, session_id)
+
+    return await state.run_db(read)
+
+
+@router.get("/{session_id}/learning", response_model=Learning)
+async def read_learning(
+    session_id: int,
+    state: StateDep,
+    token: TokenDep,
+    wait: Annotated[
+        float, Query(ge=0, le=60, description="Wait up to this long for the agent to learn.")
+    ] = 0.0,
+) -> Learning:
+    """Whether the agent is learning (pending updates), optionally waiting until it is done."""
+
+    def read() -> Learning:
+        with state.db.connect() as c:
+            participant = flow.participant_for(c, token)
+            return teaching.learning(teaching.own_session(c, participant, session_id))
+
+    learning = await state.run_db(read)
+    if learning.pending and wait > 0 and state.updates is not None:
+        target = learning.updates - 1 + learning.pending
+        await state.updates.wait(session_id, target, wait)
+        learning = await state.run_db(read)
+    return learning
+
+
+@router.post("/{session_id}/task", response_model=ActionResponse)
+async def select_task(
+    session_id: int, body: TaskRequest, state: StateDep, token: TokenDep
+) -> Response:
+    """Select the task that demonstrations and feedback belong to (ends an open episode)."""
+    return await teach(
+        state, token, "task", body, session_id,
+        lambda action: teaching.set_task(action, session_id, body.task),
+    )  # fmt: skip
+
+
+@router.post("/{session_id}/mode", response_model=ActionResponse)
+async def select_mode(
+    session_id: int, body: ModeRequest, state: StateDep, token: TokenDep
+) -> Response:
+    """Demonstrate, let the agent try, or idle (ends an open episode)."""
+    return await teach(
+        state, token, "mode", body, session_id,
+        lambda action: teaching.set_mode(action, session_id, body.mode),
+    )  # fmt: skip
+
+
+@router.post("/{session_id}/move", response_model=ActionResponse)
+async def move(session_id: int, body: MoveRequest, state: StateDep, token: TokenDep) -> Response:
+    """An arrow key: a demonstrated action, or in idle mode a move that is not one."""
+    return await teach(
+        state, token, "move", body, session_id,
+        lambda action: teaching.move(action, session_id, body.action),
+    )  # fmt: skip
+
+
+@router.post("/{session_id}/agent-step", response_model=ActionResponse)
+async def agent_step(
+    session_id: int, body: SeqRequest, state: StateDep, token: TokenDep
+) -> Response:
+    """One action of the agent, from its learner's greedy policy, under the true dynamics."""
+    waited: float | None = None
+
+    def handle(action: Action) -> ActionResponse:
+        response = teaching.agent_step(action, session_id)
+        response.outcome.learning_wait_seconds = waited
+        return response
+
+    try:
+        return await teach(state, token, "agent_step", body, session_id, handle)
+    except LearnerBusy as busy:
+        if state.updates is None:
+            raise ApiError(503, "learner updates are not running") from None
+        started = time.perf_counter()
+        done = await state.updates.wait(
+            busy.session_id, busy.target, state.settings.agent_wait_seconds
+        )
+        waited = round(time.perf_counter() - started, 4)
+        if not done:
+            raise ApiError(
+                503,
+                "the agent is still learning from the last episode; try again in a moment",
+                headers={"Retry-After": "2"},
+            ) from None
+    try:
+        return await teach(state, token, "agent_step", body, session_id, handle)
+    except LearnerBusy:
+        # Another episode ended meanwhile (another tab): the client tries again.
+        raise ApiError(
+            503, "the agent is still learning; try again in a moment", headers={"Retry-After": "1"}
+        ) from None
+
+
+@router.post("/{session_id}/feedback", response_model=ActionResponse)
+async def give_feedback(
+    session_id: int, body: FeedbackRequest, state: StateDep, token: TokenDep
+) -> Response:
+    """Positive (+1) or negative (-1) feedback on the agent's latest action."""
+    return await teach(
+        state, token, "feedback", body, session_id,
+        lambda action: teaching.feedback(action, session_id, body.feedback),
+    )  # fmt: skip
+
+
+@router.post("/{session_id}/reset", response_model=ActionResponse)
+async def reset(session_id: int, body: SeqRequest, state: StateDep, token: TokenDep) -> Response:
+    """Put the agent at a random start of the selected task (ends an open episode)."""
+    return await teach(
+        state, token, "reset", body, session_id,
+        lambda action: teaching.reset(action, session_id),
+    )  # fmt: skip
+
+
+@router.post("/{session_id}/end-episode", response_model=ActionResponse)
+async def end_episode(
+    session_id: int, body: SeqRequest, state: StateDep, token: TokenDep
+) -> Response:
+    """Stop: end the episode (a demonstration gets its synthetic STAY); the learner updates."""
+    return await teach(
+        state, token, "end_episode", body, session_id,
+        lambda action: teaching.finish_episode(action, session_id),
+    )  # fmt: skip
+
+
+@router.post("/{session_id}/finish", response_model=ActionResponse)
+async def finish(session_id: int, body: SeqRequest, state: StateDep, token: TokenDep) -> Response:
+    """Finish this agent and go on to the next (refused until every task has a demonstrated
+    action); after the last agent the completion is committed and its code returned."""
+    return await teach(
+        state, token, "finish", body, session_id,
+        lambda action: teaching.finish_session(action, session_id),
+    )  # fmt: skip

@@ -1,0 +1,263 @@
+"""Request and response bodies of the JSON API (Pydantic); the ORM models never leave the server.
+
+Every request that changes something carries ``seq``, the participant's next sequence number
+(``next_seq`` in every response): a retried request with the same ``seq`` and body is answered
+with the stored response, a request out of order gets 409.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+MAX_SEQ = 1_000_000_000
+ID_PATTERN = r"^[A-Za-z0-9_\-]{1,128}$"
+
+Mode = Literal["idle", "demonstrate", "agent"]
+Move = Literal["UP", "DOWN", "LEFT", "RIGHT"]
+
+
+class Body(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class SeqRequest(Body):
+    seq: int = Field(ge=1, le=MAX_SEQ, description="The participant's next sequence number.")
+
+
+class ConsentRequest(SeqRequest):
+    agree: bool
+
+
+class TaskRequest(SeqRequest):
+    task: int = Field(ge=0, le=1000, description="Index of the task in the environment.")
+
+
+class ModeRequest(SeqRequest):
+    mode: Mode
+
+
+class MoveRequest(SeqRequest):
+    action: Move = Field(description="The arrow pressed (STAY cannot be demonstrated).")
+
+
+class FeedbackRequest(SeqRequest):
+    feedback: Literal[1, -1] = Field(description="+1 (positive) or -1 (negative).")
+
+
+class ArrivalRequest(Body):
+    """The parameters the platform appends to the study URL (none for a lab participant)."""
+
+    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+
+    assignment_id: str | None = Field(None, alias="assignmentId", pattern=ID_PATTERN)
+    hit_id: str | None = Field(None, alias="hitId", pattern=ID_PATTERN)
+    worker_id: str | None = Field(None, alias="workerId", pattern=ID_PATTERN)
+    turk_submit_to: str | None = Field(None, alias="turkSubmitTo", max_length=512)
+    prolific_pid: str | None = Field(None, alias="PROLIFIC_PID", pattern=ID_PATTERN)
+    study_id: str | None = Field(None, alias="STUDY_ID", pattern=ID_PATTERN)
+    session_id: str | None = Field(None, alias="SESSION_ID", pattern=ID_PATTERN)
+
+
+# -- responses ------------------------------------------------------------------------------
+class Colour(BaseModel):
+    name: str
+    hex: str
+
+
+class Completion(BaseModel):
+    """How the participant finishes, issued once the completion is committed."""
+
+    code: str
+    mode: Literal["mturk", "prolific", "lab"]
+    submit_url: str | None = Field(None, description="MTurk: POST the fields here, from the top.")
+    submit_fields: dict[str, str] | None = None
+    redirect_url: str | None = Field(None, description="Prolific: send the participant here.")
+
+
+class ParticipantBrief(BaseModel):
+    status: str
+    current_session_id: int | None
+    next_seq: int
+    completion: Completion | None = None
+
+
+class SessionSummary(BaseModel):
+    session_id: int
+    kind: Literal["tutorial", "study"]
+    position: int | None = Field(description="0.. among the study's agents; None: tutorial.")
+    domain: str
+    environment: str
+    colour: Colour
+    status: Literal["pending", "active", "finished"]
+
+
+class Progress(BaseModel):
+    agent: int = Field(description="Study agents finished or being taught (1-based).")
+    of: int
+
+
+class ParticipantState(ParticipantBrief):
+    participant_id: int
+    platform: Literal["mturk", "prolific", "lab"]
+    domain: str | None
+    progress: Progress
+    sessions: list[SessionSummary]
+
+
+class ArrivalResponse(BaseModel):
+    preview: bool = False
+    token: str | None = Field(None, description="Also set as an HttpOnly cookie.")
+    resumed: bool = False
+    participant: ParticipantState | None = None
+
+
+class EpisodeState(BaseModel):
+    index: int
+    kind: Literal["demonstration", "agent"]
+    task: int
+    actions: int
+
+
+class Learning(BaseModel):
+    pending: int = Field(description="Updates queued or running: the agent is learning.")
+    updates: int = Field(description="Updates finished (done or failed), the first one included.")
+
+
+class TeachingState(BaseModel):
+    session_id: int
+    status: Literal["pending", "active", "finished"]
+    task: int
+    mode: Mode
+    agent: dict[str, Any] | None = Field(description="The agent's cell and feature.")
+    episode: EpisodeState | None
+    episodes: int
+    actions: int
+    demonstrated: list[int] = Field(description="Demonstrated actions per task.")
+    can_finish: bool
+    finish_blocked: str | None = Field(description="Why this agent cannot be finished yet.")
+    can_give_feedback: bool
+    learning: Learning
+
+
+class Outcome(BaseModel):
+    """What one request did."""
+
+    state: int | None = None
+    action: str | None = None
+    next_state: int | None = None
+    feedback: int | None = None
+    episode_ended: str | None = Field(None, description="Why an episode ended, if one did.")
+    goal_reached: bool = False
+    update_queued: int | None = None
+    learning_wait_seconds: float | None = None
+
+
+class ActionResponse(BaseModel):
+    seq: int
+    kind: str
+    outcome: Outcome
+    session: TeachingState | None
+    participant: ParticipantBrief
+
+
+class SessionView(BaseModel):
+    summary: SessionSummary
+    environment: dict[str, Any] = Field(description="Static drawing description of the grid.")
+    teaching: TeachingState
+    participant: ParticipantBrief
+
+
+class PublicStudy(BaseModel):
+    title: str
+    consent: str
+    payment: str
+    completion_mode: str
+    tutorial: bool
+    agents_per_environment: int
+    reveal_gravity: bool
+
+
+# -- admin ----------------------------------------------------------------------------------
+class ExclusionRequest(Body):
+    reason: str = Field(min_length=1, max_length=2000)
+
+
+class StatusChangeView(BaseModel):
+    status: str
+    at: datetime
+    note: str | None
+
+
+class AdminParticipant(BaseModel):
+    participant_id: int
+    platform: str
+    worker_id: str | None
+    assignment_id: str | None
+    hit_id: str | None
+    status: str
+    domain: str | None
+    excluded: bool
+    exclusion_reason: str | None
+    created_at: datetime
+    last_seen_at: datetime
+    minutes: float = Field(description="From arrival to completion, or to the last request.")
+    agents_finished: int
+    agents: int
+    completion_code: str | None
+
+
+class AdminSession(BaseModel):
+    session_id: int
+    participant_id: int
+    kind: str
+    position: int | None
+    domain: str
+    environment: str
+    learner: str
+    colour: str
+    status: str
+    mode: str
+    task: int
+    started_at: datetime | None
+    finished_at: datetime | None
+    completed: bool
+    episodes: int
+    actions: int
+    pending_updates: int
+    last_normalized_return: float | None
+
+
+class AdminParticipantDetail(AdminParticipant):
+    status_changes: list[StatusChangeView]
+    sessions: list[AdminSession]
+
+
+class AdminEvaluation(BaseModel):
+    update_index: int
+    status: str
+    episodes: int
+    actions: int
+    normalized_return: float | None
+    seconds: float | None
+    queued_at: datetime
+    finished_at: datetime | None
+
+
+class AdminEvent(BaseModel):
+    event_id: int
+    seq: int
+    kind: str
+    created_at: datetime
+    task: int | None
+    mode: str | None
+    state: int | None
+    action: int | None
+    next_state: int | None
+    feedback: int | None
+    episode_index: int | None
+    record: str | None
+    stay_state: int | None
+    episode_end: str | None

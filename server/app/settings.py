@@ -1,0 +1,94 @@
+"""The study server's deployment settings, read from the environment (prefix ``BAM_``).
+
+The study itself (domains, environments, learners, texts) is in the study configuration file
+(``config.py``); these settings say where and how the server runs.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, SecretStr, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+DEFAULT_DATABASE_URL = "sqlite:///bam-study.db"
+
+
+class Settings(BaseSettings):
+    """Every deployment setting, one environment variable each (``BAM_DATABASE_URL``, ...)."""
+
+    model_config = SettingsConfigDict(env_prefix="BAM_", extra="ignore")
+
+    database_url: str = Field(
+        DEFAULT_DATABASE_URL,
+        description="SQLAlchemy URL; the default is a SQLite file in the working folder.",
+    )
+    admin_token: SecretStr | None = Field(
+        None, description="Bearer token for the /api/admin endpoints; unset disables them."
+    )
+    study_config: Path | None = Field(
+        None, description="The study configuration (TOML); unset uses the paper's study."
+    )
+    secret: SecretStr | None = Field(
+        None,
+        description="Salt for pseudonymised worker ids in exports; unset uses the random salt "
+        "created with the database.",
+    )
+    update_workers: int = Field(2, ge=1, le=64, description="Processes for learner updates.")
+    update_worker_niceness: int = Field(
+        10, ge=0, le=19, description="Nice increment of update processes, so requests come first."
+    )
+    agent_wait_seconds: float = Field(
+        30.0, gt=0, le=600, description="How long an agent step waits for its learner's update."
+    )
+    active_minutes: float = Field(
+        30.0, gt=0, description="A participant idle for longer no longer counts for balancing."
+    )
+    abandon_minutes: float = Field(
+        120.0, gt=0, description="A participant idle for longer is marked abandoned."
+    )
+    max_body_bytes: int = Field(
+        4096, ge=256, le=1_048_576, description="Largest request body accepted."
+    )
+    cookie_name: str = Field("bam_participant", pattern=r"^[A-Za-z0-9_\-]+$")
+    cookie_samesite: Literal["lax", "strict", "none"] = Field(
+        "lax",
+        description="'none' (with BAM_COOKIE_SECURE) lets the cookie work inside the MTurk iframe.",
+    )
+    cookie_secure: bool = Field(False, description="Send the cookie over HTTPS only.")
+    mturk_submit_hosts: str = Field(
+        "www.mturk.com,workersandbox.mturk.com",
+        description="Hosts accepted in turkSubmitTo (comma-separated; the server's own host is "
+        "always accepted, for a local replica).",
+    )
+    sqlite_busy_timeout_ms: int = Field(10_000, ge=0)
+
+    @field_validator("database_url")
+    @classmethod
+    def _known_backend(cls, value: str) -> str:
+        if not value.startswith(("sqlite", "postgresql")):
+            raise ValueError("BAM_DATABASE_URL must be a sqlite:// or postgresql:// URL")
+        return value
+
+    @model_validator(mode="after")
+    def _secure_cross_site_cookie(self) -> Settings:
+        if self.cookie_samesite == "none" and not self.cookie_secure:
+            raise ValueError(
+                "BAM_COOKIE_SAMESITE=none needs BAM_COOKIE_SECURE=true (browsers drop it otherwise)"
+            )
+        return self
+
+    @property
+    def is_sqlite(self) -> bool:
+        return self.database_url.startswith("sqlite")
+
+    @property
+    def submit_hosts(self) -> frozenset[str]:
+        return frozenset(h.strip().lower() for h in self.mturk_submit_hosts.split(",") if h.strip())
+
+
+@lru_cache
+def get_settings() -> Settings:
+    return Settings()

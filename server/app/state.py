@@ -1,0 +1,38 @@
+"""What every request of one running server shares: the database, the study, the settings,
+the cache of agents' policies and the learner-update manager."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, TypeVar
+
+from starlette.concurrency import run_in_threadpool
+
+from server.app.config import StudyConfig
+from server.app.db import Database
+from server.app.policies import PolicyCache
+from server.app.settings import Settings
+
+if TYPE_CHECKING:
+    from server.app.updates import UpdateManager
+
+T = TypeVar("T")
+
+
+@dataclass
+class ServerState:
+    db: Database
+    study: StudyConfig
+    settings: Settings
+    policies: PolicyCache = field(default_factory=PolicyCache)
+    updates: UpdateManager | None = None
+
+    async def run_db(self, work: Callable[[], T]) -> T:
+        """Run a short database transaction for a request. On SQLite, in the event loop itself:
+        its writes are serialised anyway, and a thread handoff per request costs more (GIL
+        handoffs) than the transaction; on PostgreSQL, in the thread pool, so that the
+        transactions of different participants run in parallel."""
+        if self.db.is_sqlite:
+            return work()
+        return await run_in_threadpool(work)

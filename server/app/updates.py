@@ -1,0 +1,460 @@
+"""Learner updates, off the request path.
+
+An episode end commits its events and a pending ``learner_updates`` row, then hands the session
+to the ``UpdateManager``. The manager runs each session's pending updates in order, one at a time
+per session, in a pool of processes (``BAM_UPDATE_WORKERS``, at a lower CPU priority than the
+server so that moves stay fast): the worker restores the learner from the latest saved state
+(or builds a new one), replays the events since, updates it, stores its greedy policies and
+scores them (exact normalised return). The server then commits the new learner state with the
+evaluation, and an agent step waiting for that session's update goes on. Sessions with an agent
+step waiting go first; the others take turns. Pending updates are found again in the database
+when the server starts, so none is lost by a restart.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import multiprocessing
+import os
+import time
+import traceback
+from concurrent.futures import Executor, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from sqlalchemy import func, select
+
+from server.app.db import Database
+from server.app.models import Event, LearnerUpdate, LearningSession, utcnow
+from server.app.policies import PolicyCache, decode, encode
+from server.domains import make as make_environment
+from server.domains.base import STAY
+
+log = logging.getLogger("bam_study.updates")
+
+MAX_ATTEMPTS = 3  # a worker process dying this often on one update marks it failed
+RESCAN_SECONDS = 30.0
+
+
+# -- in the worker process ------------------------------------------------------------------
+def worker_init(niceness: int) -> None:
+    """Lower the worker's priority and import the learners once."""
+    if niceness and hasattr(os, "nice"):
+        os.nice(niceness)
+    import server.learners
+    import server.learners.evaluation  # noqa: F401
+
+
+def apply_records(learner: Any, records: list[tuple[Any, ...]]) -> None:
+    """Replay what the learner observed, in order."""
+    for record in records:
+        kind, *values = record
+        if kind == "demonstration":
+            learner.record_demonstration(*values)
+        elif kind == "agent_step":
+            learner.record_agent_step(*values)
+        elif kind == "transition":
+            learner.record_transition(*values)
+        elif kind == "feedback":
+            learner.record_feedback(*values)
+        else:
+            raise ValueError(f"unknown record {kind!r}")
+
+
+def run_update(job: dict[str, Any]) -> dict[str, Any]:
+    """Restore or build the learner, replay ``records``, update it (unless it is update 0),
+    and return its new state, greedy policies and evaluation."""
+    from server import domains, learners
+    from server.learners.evaluation import normalized_return
+
+    env = domains.make(job["environment"])
+    if job["base_state"] is not None:
+        learner = learners.restore(env, learners.loads(job["base_state"]))
+    else:
+        learner = learners.make(job["learner"], env, seed=job["seed"], **job["settings"])
+    apply_records(learner, job["records"])
+    result = learner.update() if job["fit"] else None
+    policy = np.stack([learner.greedy_policy(k) for k in range(len(env.tasks))])
+    started = time.perf_counter()
+    score = normalized_return(env, learner)
+    return {
+        "learner_state": learners.dumps(learner.state_dict()),
+        "greedy_policy": encode(policy),
+        "seconds": result.seconds if result else 0.0,
+        "objective": result.objective if result else None,
+        "steps": result.steps if result else 0,
+        "normalized_return": float(score),
+        "evaluation_seconds": time.perf_counter() - started,
+    }
+
+
+# -- in the server process ------------------------------------------------------------------
+@dataclass
+class Job:
+    update_id: int
+    session_id: int
+    update_index: int
+    environment: str
+    payload: dict[str, Any]
+
+
+def records_of(rows: Any) -> list[tuple[Any, ...]]:
+    """Learner observations from event rows (record, task, state, action, next_state,
+    feedback, stay_state)."""
+    records: list[tuple[Any, ...]] = []
+    for row in rows:
+        if row.record == "demonstration":
+            records.append(("demonstration", row.task, row.state, row.action, row.next_state))
+        elif row.record == "agent_step":
+            records.append(("agent_step", row.task, row.state, row.action, row.next_state, 0))
+        elif row.record == "transition":
+            records.append(("transition", row.state, row.action, row.next_state))
+        elif row.record == "feedback":
+            records.append(("feedback", row.feedback))
+        if row.stay_state is not None:
+            records.append(("demonstration", row.task, row.next_state, STAY, row.stay_state))
+    return records
+
+
+def new_executor(workers: int, niceness: int) -> ProcessPoolExecutor:
+    # Spawned, not forked: the server process has threads.
+    return ProcessPoolExecutor(
+        max_workers=workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=worker_init,
+        initargs=(niceness,),
+    )
+
+
+class UpdateManager:
+    """Runs the sessions' pending learner updates (see the module docstring)."""
+
+    def __init__(
+        self,
+        db: Database,
+        policies: PolicyCache,
+        learner_settings: Any,
+        workers: int = 2,
+        niceness: int = 10,
+        executor: Executor | None = None,
+    ) -> None:
+        self.db = db
+        self.policies = policies
+        self.learner_settings = learner_settings  # learner name -> settings dict
+        self.workers = workers
+        self.niceness = niceness
+        self._executor = executor
+        self._own_executor = executor is None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._ready: dict[int, int] = {}  # session -> turn
+        self._turn = 0
+        self._running: set[int] = set()
+        self._again: set[int] = set()
+        self._urgent: dict[int, int] = {}
+        self._processed: dict[int, int] = {}
+        self._waiters: dict[int, list[asyncio.Future[None]]] = {}
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._wake: asyncio.Event | None = None
+        self._slots: asyncio.Semaphore | None = None
+        self.completed = 0
+        self.failed = 0
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    async def start(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._wake = asyncio.Event()
+        self._slots = asyncio.Semaphore(self.workers)
+        if self._executor is None:
+            self._executor = new_executor(self.workers, self.niceness)
+        self._spawn(self._dispatch())
+        self._spawn(self._rescan_forever())
+
+    async def stop(self) -> None:
+        for task in list(self._tasks):
+            task.cancel()
+        for task in list(self._tasks):
+            try:
+                await task
+            except (asyncio.CancelledError, Exception):
+                pass
+        for futures in self._waiters.values():
+            for future in futures:
+                future.cancel()
+        if self._own_executor and self._executor is not None:
+            # Updates in flight stay pending in the database and run after the next start.
+            self._executor.shutdown(wait=False, cancel_futures=True)
+            self._executor = None
+
+    def _spawn(self, coroutine: Any) -> asyncio.Task[Any]:
+        task = asyncio.ensure_future(coroutine)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return task
+
+    # -- queueing ----------------------------------------------------------------------------
+    def submit(self, session_ids: list[int]) -> None:
+        """Thread-safe: these sessions have new pending updates."""
+        if not session_ids or self._loop is None:
+            return
+        self._loop.call_soon_threadsafe(self._enqueue_many, list(session_ids))
+
+    def _enqueue_many(self, session_ids: list[int]) -> None:
+        for session_id in session_ids:
+            self._enqueue(session_id)
+
+    def _enqueue(self, session_id: int) -> None:
+        if session_id in self._running:
+            self._again.add(session_id)
+            return
+        if session_id not in self._ready:
+            self._turn += 1
+            self._ready[session_id] = self._turn
+        assert self._wake is not None
+        self._wake.set()
+
+    @property
+    def backlog(self) -> int:
+        """Sessions waiting for a worker or being updated."""
+        return len(self._ready) + len(self._running)
+
+    async def wait(self, session_id: int, target: int, timeout: float) -> bool:
+        """Wait until the session's update ``target`` is processed; False on timeout. Callable
+        from any event loop (the manager's state lives on its own)."""
+        assert self._loop is not None
+        if asyncio.get_running_loop() is not self._loop:
+            waiting = asyncio.run_coroutine_threadsafe(
+                self._wait(session_id, target, timeout), self._loop
+            )
+            return await asyncio.wrap_future(waiting)
+        return await self._wait(session_id, target, timeout)
+
+    async def _wait(self, session_id: int, target: int, timeout: float) -> bool:
+        assert self._loop is not None
+        deadline = self._loop.time() + timeout
+        self._urgent[session_id] = self._urgent.get(session_id, 0) + 1
+        self._enqueue(session_id)
+        try:
+            while True:
+                if self._processed.get(session_id, -1) >= target:
+                    return True
+                remaining = deadline - self._loop.time()
+                if remaining <= 0:
+                    return False
+                future: asyncio.Future[None] = self._loop.create_future()
+                self._waiters.setdefault(session_id, []).append(future)
+                try:
+                    await asyncio.wait_for(future, min(remaining, 1.0))
+                except TimeoutError:
+                    # Also look in the database, in case another process did the update.
+                    processed = await asyncio.to_thread(self._processed_in_db, session_id)
+                    self._processed[session_id] = max(
+                        self._processed.get(session_id, -1), processed
+                    )
+                finally:
+                    waiters = self._waiters.get(session_id, [])
+                    if future in waiters:
+                        waiters.remove(future)
+                    if not waiters:
+                        self._waiters.pop(session_id, None)
+        finally:
+            self._urgent[session_id] -= 1
+            if self._urgent[session_id] <= 0:
+                del self._urgent[session_id]
+
+    def _notify(self, session_id: int, index: int) -> None:
+        self._processed[session_id] = max(self._processed.get(session_id, -1), index)
+        for future in self._waiters.get(session_id, []):
+            if not future.done():
+                future.set_result(None)
+
+    # -- dispatching -------------------------------------------------------------------------
+    async def _dispatch(self) -> None:
+        assert self._slots is not None and self._wake is not None
+        while True:
+            await self._slots.acquire()
+            try:
+                while not self._ready:
+                    self._wake.clear()
+                    await self._wake.wait()
+            except BaseException:
+                self._slots.release()
+                raise
+            session_id = min(
+                self._ready, key=lambda k: (0 if k in self._urgent else 1, self._ready[k])
+            )
+            del self._ready[session_id]
+            self._running.add(session_id)
+            self._spawn(self._process(session_id))
+
+    async def _process(self, session_id: int) -> None:
+        assert self._slots is not None
+        more = False
+        try:
+            job = await asyncio.to_thread(self._load, session_id)
+            if job is None:
+                return
+            executor = self._executor
+            assert executor is not None
+            try:
+                outcome = await asyncio.wrap_future(executor.submit(run_update, job.payload))
+            except BrokenProcessPool:
+                log.error(
+                    "an update process died during update %s of session %s",
+                    job.update_index,
+                    session_id,
+                )
+                self._replace_executor(executor)
+                more = await asyncio.to_thread(self._fail, job, "the update process died", True)
+            except Exception:
+                error = traceback.format_exc()
+                log.error(
+                    "update %s of session %s failed:\n%s", job.update_index, session_id, error
+                )
+                more = await asyncio.to_thread(self._fail, job, error, False)
+                self.failed += 1
+            else:
+                policy = decode(outcome["greedy_policy"], make_environment(job.environment))
+                more = await asyncio.to_thread(self._commit, job, outcome)
+                self.policies.put(session_id, job.update_index, policy)
+                self.completed += 1
+            processed = await asyncio.to_thread(self._processed_in_db, session_id)
+            self._notify(session_id, processed)
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            # The database failed us: try this session again a little later.
+            log.exception("learner updates of session %s could not be run; retrying", session_id)
+            assert self._loop is not None
+            self._loop.call_later(5.0, self._enqueue, session_id)
+        finally:
+            self._running.discard(session_id)
+            self._slots.release()
+            if more or session_id in self._again:
+                self._again.discard(session_id)
+                self._enqueue(session_id)
+
+    def _replace_executor(self, broken: Executor) -> None:
+        if self._executor is broken:
+            self._own_executor = True
+            self._executor = new_executor(self.workers, self.niceness)
+            broken.shutdown(wait=False, cancel_futures=True)
+
+    async def _rescan_forever(self) -> None:
+        while True:
+            try:
+                pending = await asyncio.to_thread(self._pending_sessions)
+            except Exception:
+                log.exception("could not look for pending learner updates")
+                pending = []
+            self._enqueue_many(pending)
+            await asyncio.sleep(RESCAN_SECONDS)
+
+    # -- database work (in threads) ----------------------------------------------------------
+    def _pending_sessions(self) -> list[int]:
+        with self.db.read() as s:
+            return list(
+                s.scalars(
+                    select(LearnerUpdate.session_id)
+                    .where(LearnerUpdate.status == "pending")
+                    .group_by(LearnerUpdate.session_id)
+                    .order_by(func.min(LearnerUpdate.queued_at))
+                )
+            )
+
+    def _processed_in_db(self, session_id: int) -> int:
+        with self.db.read() as s:
+            value = s.scalar(
+                select(LearningSession.updates_processed).where(LearningSession.id == session_id)
+            )
+        return -1 if value is None else int(value)
+
+    def _load(self, session_id: int) -> Job | None:
+        with self.db.read() as s:
+            update = s.scalar(
+                select(LearnerUpdate)
+                .where(LearnerUpdate.session_id == session_id, LearnerUpdate.status == "pending")
+                .order_by(LearnerUpdate.update_index)
+                .limit(1)
+            )
+            if update is None:
+                return None
+            session = s.get(LearningSession, session_id)
+            assert session is not None
+            base = s.execute(
+                select(LearnerUpdate.through_event_id, LearnerUpdate.learner_state)
+                .where(
+                    LearnerUpdate.session_id == session_id,
+                    LearnerUpdate.status == "done",
+                    LearnerUpdate.learner_state.is_not(None),
+                    LearnerUpdate.update_index < update.update_index,
+                )
+                .order_by(LearnerUpdate.update_index.desc())
+                .limit(1)
+            ).first()
+            since = base.through_event_id if base is not None else 0
+            rows = s.execute(
+                select(
+                    Event.record,
+                    Event.task,
+                    Event.state,
+                    Event.action,
+                    Event.next_state,
+                    Event.feedback,
+                    Event.stay_state,
+                )
+                .where(
+                    Event.session_id == session_id,
+                    Event.id > since,
+                    Event.id <= update.through_event_id,
+                )
+                .order_by(Event.id)
+            ).all()
+            payload = {
+                "environment": session.environment,
+                "learner": session.learner,
+                "settings": self.learner_settings(session.learner),
+                "seed": int(session.seed),
+                "base_state": base.learner_state if base is not None else None,
+                "records": records_of(rows),
+                "fit": update.update_index > 0,
+            }
+            return Job(update.id, session_id, update.update_index, session.environment, payload)
+
+    def _commit(self, job: Job, outcome: dict[str, Any]) -> bool:
+        with self.db.write() as s:
+            update = s.get(LearnerUpdate, job.update_id)
+            session = s.get(LearningSession, job.session_id)
+            assert update is not None and session is not None
+            update.status = "done"
+            update.finished_at = utcnow()
+            update.attempts += 1
+            for name in (
+                "learner_state",
+                "greedy_policy",
+                "seconds",
+                "objective",
+                "steps",
+                "normalized_return",
+                "evaluation_seconds",
+            ):
+                setattr(update, name, outcome[name])
+            session.updates_processed = max(session.updates_processed, job.update_index)
+            session.policy_update = max(session.policy_update or 0, job.update_index)
+            return session.updates_requested > session.updates_processed
+
+    def _fail(self, job: Job, error: str, retry: bool) -> bool:
+        with self.db.write() as s:
+            update = s.get(LearnerUpdate, job.update_id)
+            session = s.get(LearningSession, job.session_id)
+            assert update is not None and session is not None
+            update.attempts += 1
+            update.error = error
+            if retry and update.attempts < MAX_ATTEMPTS:
+                return True
+            update.status = "failed"
+            update.finished_at = utcnow()
+            session.updates_processed = max(session.updates_processed, job.update_index)
+            return session.updates_requested > session.updates_processed

@@ -1,0 +1,282 @@
+// The participant's page: asks the server where the participant is and shows that step
+// (consent, instructions, the tutorial, an agent, completion), so that a reload continues there.
+
+import { ApiError, Sequencer, getJSON } from "./api.js";
+import { environmentTitle, h, paragraphs } from "./dom.js";
+import { robotIcon, svg } from "./grid.js";
+import { Teacher } from "./teach.js";
+import { Tutorial } from "./tutorial.js";
+
+const study = JSON.parse(document.getElementById("study-data").textContent);
+const app = document.getElementById("app");
+let seq = null;
+let participant = null;
+let teacher = null;
+
+const offline = h("div", { class: "offline", role: "alert", hidden: true },
+  h("span", { class: "spinner", "aria-hidden": "true" }), " The connection to the study server was lost; retrying…");
+document.body.appendChild(offline);
+const connection = {
+  down: () => { offline.hidden = false; },
+  up: () => { offline.hidden = true; },
+};
+
+function show(...children) {
+  teacher?.close();
+  teacher = null;
+  app.replaceChildren(...children);
+  const heading = app.querySelector("h1");
+  if (heading) {
+    heading.setAttribute("tabindex", "-1");
+    heading.focus({ preventScroll: true });
+  }
+  window.scrollTo(0, 0);
+}
+
+function sheet(...children) {
+  return h("main", { class: "sheet" }, h("img", { class: "sheet-logo", src: "/static/img/robot.svg", alt: "", width: 56, height: 56 }), ...children);
+}
+
+/** A sheet whose own picture of a robot stands in for the logo. */
+function plainSheet(...children) {
+  return h("main", { class: "sheet" }, ...children);
+}
+
+function failure(error) {
+  if (error instanceof ApiError && error.status === 401) {
+    show(sheet(
+      h("h1", {}, "Your place in the study could not be found"),
+      h("p", {}, "Your browser did not keep the study's cookie. Please open the study again from its link; you will continue where you were."),
+      h("button", { class: "btn primary", type: "button", onclick: () => window.location.reload() }, "Reload")));
+    return;
+  }
+  console.warn(error);
+  show(sheet(
+    h("h1", {}, "Something went wrong"),
+    h("p", {}, error instanceof ApiError ? error.detail : "The page could not reach the study server."),
+    h("p", {}, "Your progress is saved. Reload the page to continue."),
+    h("button", { class: "btn primary", type: "button", onclick: () => window.location.reload() }, "Reload")));
+}
+
+async function refresh() {
+  participant = await getJSON("/api/participant", { onRetry: connection.down });
+  connection.up();
+  if (seq) seq.nextSeq = participant.next_seq;
+  else seq = new Sequencer(participant.next_seq, connection);
+  return participant;
+}
+
+async function route() {
+  switch (participant.status) {
+    case "arrived":
+      return consentPage();
+    case "declined":
+      return declinedPage();
+    case "consented":
+      return instructionsPage();
+    case "completed":
+    case "submitted":
+      return completionPage();
+    default:
+      if (participant.current_session_id !== null) return teach(participant.current_session_id);
+      return failure(new ApiError(409, `Unexpected status ${participant.status}.`));
+  }
+}
+
+async function post(url, body = {}) {
+  try {
+    return await seq.post(url, body);
+  } catch (error) {
+    failure(error);
+    return null;
+  }
+}
+
+// -- consent and instructions ---------------------------------------------------------------
+function consentPage() {
+  const agree = h("button", { class: "btn primary big", type: "button", "data-action": "agree" }, "I agree to take part");
+  const decline = h("button", { class: "btn big", type: "button", "data-action": "decline" }, "I do not agree");
+  const answer = async (yes) => {
+    agree.disabled = decline.disabled = true;
+    if (await post("/api/participant/consent", { agree: yes })) {
+      await refresh();
+      route();
+    }
+  };
+  agree.addEventListener("click", () => answer(true));
+  decline.addEventListener("click", () => answer(false));
+  show(sheet(
+    h("h1", {}, study.title),
+    h("p", { class: "lead" }, study.payment),
+    h("h2", {}, "Consent to take part"),
+    h("div", { class: "consent-text" }, paragraphs(study.consent)),
+    h("div", { class: "actions" }, agree, decline)));
+}
+
+function declinedPage() {
+  show(sheet(
+    h("h1", {}, "Thank you"),
+    h("p", {}, "You chose not to take part, and nothing more will be recorded. You may close this page."),
+    participant.platform === "mturk" ? h("p", {}, "Please return the HIT so that someone else can take it.") : null));
+}
+
+function instructionsPage() {
+  const agents = participant.progress.of;
+  const start = h("button", { class: "btn primary big", type: "button", "data-action": "start" },
+    study.tutorial ? "Start the tutorial" : "Start teaching");
+  start.addEventListener("click", async () => {
+    start.disabled = true;
+    if (await post("/api/participant/start")) {
+      await refresh();
+      route();
+    }
+  });
+  const icon = svg("svg", { viewBox: "0 0 100 100", class: "intro-robot", "aria-hidden": "true" });
+  robotIcon(icon, "#56B4E9");
+  show(plainSheet(
+    h("h1", {}, "How it works"),
+    h("div", { class: "intro" }, icon,
+      h("div", {},
+        h("p", {}, agents === 1
+          ? `You will teach an agent (a small simulated robot) to do a few tasks in a ${participant.domain ?? "grid"} world. It starts knowing nothing, and learns only from you.`
+          : `You will teach ${agents} agents (small simulated robots), one at a time, to do a few tasks in a ${participant.domain ?? "grid"} world. Each starts knowing nothing, and learns only from you.`),
+        h("ul", { class: "intro-list" },
+          h("li", {}, h("strong", {}, "Demonstrate"), " (", h("kbd", {}, "D"), "): move the agent to the task's goal with the arrow keys."),
+          h("li", {}, h("strong", {}, "Let the agent try"), " (", h("kbd", {}, "T"), "): watch it act on its own, and press ", h("kbd", {}, "G"), " for a good move or ", h("kbd", {}, "B"), " for a bad one."),
+          h("li", {}, "Switch tasks, ", h("strong", {}, "Stop"), " (", h("kbd", {}, "S"), ") and ", h("strong", {}, "Reset"), " (", h("kbd", {}, "R"), ") whenever you like."),
+          h("li", {}, "When an agent has been shown every task and does them well, go on with ", h("strong", {}, "Next agent"), " (", h("kbd", {}, "N"), ")."),
+        ),
+        study.tutorial ? h("p", {}, "A short tutorial shows you each of these first.") : null,
+        h("p", { class: "muted" }, "Your progress is saved as you go: if the page reloads, you continue where you were."))),
+    h("div", { class: "actions" }, start)));
+  start.focus();
+}
+
+// -- teaching ---------------------------------------------------------------------------------
+async function teach(sessionId) {
+  show();
+  teacher = new Teacher({
+    root: app,
+    study,
+    seq,
+    participant,
+    sessionId,
+    tutorial: (t) => new Tutorial(t),
+    onFinished: (response) => finished(response),
+    onLost: (error) => failure(error),
+  });
+  try {
+    await teacher.start();
+  } catch (error) {
+    failure(error);
+  }
+}
+
+async function finished(response) {
+  teacher = null;
+  await refresh();
+  if (participant.status === "completed" || participant.status === "submitted") return completionPage();
+  const current = participant.sessions.find((s) => s.session_id === participant.current_session_id);
+  if (!current) return route();
+  const previous = participant.sessions.find((s) => s.session_id === response.session?.session_id);
+  const icon = svg("svg", { viewBox: "0 0 100 100", class: "intro-robot", "aria-hidden": "true" });
+  robotIcon(icon, current.colour.hex);
+  const go = h("button", { class: "btn primary big", type: "button", "data-action": "begin-agent" }, h("kbd", {}, "Enter"), "Start teaching");
+  go.addEventListener("click", () => teach(current.session_id));
+  const newPlace = previous && previous.environment !== current.environment;
+  show(plainSheet(
+    h("p", { class: "eyebrow" }, `Agent ${current.position + 1} of ${participant.progress.of}`),
+    h("h1", {}, `Meet the ${current.colour.name} agent`),
+    h("div", { class: "intro" }, icon,
+      h("div", {},
+        previous?.kind === "tutorial" ? h("p", {}, "The tutorial is done. Now the study begins.") : null,
+        h("p", {}, "This is a new agent: it has not seen anything you showed the others. Teach it every task, as well as you can."),
+        newPlace || previous?.kind === "tutorial"
+          ? h("p", {}, "It lives in a world called ", h("strong", {}, environmentTitle(current.environment)), newPlace && previous?.kind !== "tutorial" ? ", a new place." : ".")
+          : null)),
+    h("div", { class: "actions" }, go)));
+  go.focus();
+}
+
+// -- completion -------------------------------------------------------------------------------
+async function completionPage() {
+  let completion;
+  try {
+    completion = await getJSON("/api/participant/completion", { onRetry: connection.down });
+  } catch (error) {
+    return failure(error);
+  }
+  const code = h("p", { class: "code", "data-testid": "completion-code" }, completion.code);
+  const copy = h("button", { class: "btn quiet", type: "button" }, "Copy the code");
+  copy.addEventListener("click", async () => {
+    try {
+      await navigator.clipboard.writeText(completion.code);
+      copy.textContent = "Copied";
+    } catch {
+      const range = document.createRange();
+      range.selectNodeContents(code);
+      window.getSelection().removeAllRanges();
+      window.getSelection().addRange(range);
+      copy.textContent = "Selected: press Ctrl+C to copy";
+    }
+  });
+  const parts = [
+    h("h1", {}, "Thank you: you have finished"),
+    h("p", {}, "Your completion code:"),
+    h("div", { class: "code-row" }, code, copy),
+  ];
+  if (completion.mode === "mturk") {
+    const form = h("form", { method: "POST", action: completion.submit_url, target: "_top", class: "submit-form" },
+      Object.entries(completion.submit_fields).map(([name, value]) => h("input", { type: "hidden", name, value })),
+      h("button", { class: "btn primary big", type: "submit", "data-action": "submit-hit" }, "Submit the HIT"));
+    form.addEventListener("submit", async (event) => {
+      event.preventDefault();
+      form.querySelector("button").disabled = true;
+      await recordSubmission();
+      form.submit();
+    });
+    parts.push(h("p", {}, "Press the button to submit your work to Mechanical Turk. The code is sent with it."), form);
+  } else if (completion.mode === "prolific") {
+    const link = h("a", { class: "btn primary big", href: completion.redirect_url, target: "_top", "data-action": "return-prolific" }, "Return to Prolific");
+    link.addEventListener("click", async (event) => {
+      event.preventDefault();
+      await recordSubmission();
+      window.open(completion.redirect_url, "_top");
+    });
+    parts.push(h("p", {}, "Press the button to go back to Prolific, which records that you completed the study."), link);
+  } else {
+    parts.push(h("p", {}, "Please give this code to the experimenter. You may close this page."));
+  }
+  show(sheet(...parts));
+}
+
+async function recordSubmission() {
+  await refresh();
+  if (participant.status !== "completed") return; // recorded already
+  try {
+    await seq.post("/api/participant/submission");
+  } catch (error) {
+    console.warn("could not record the submission", error);
+  }
+}
+
+// -- start ------------------------------------------------------------------------------------
+document.addEventListener("keydown", (event) => {
+  // Enter on a page whose single main action is focused works natively; this is for the
+  // between-agents page, where Enter starts teaching wherever the focus is.
+  if (event.key === "Enter" && !teacher) {
+    const begin = app.querySelector('[data-action="begin-agent"]');
+    if (begin && document.activeElement !== begin) {
+      event.preventDefault();
+      begin.click();
+    }
+  }
+});
+
+try {
+  await refresh();
+  await route();
+} catch (error) {
+  failure(error);
+}
+

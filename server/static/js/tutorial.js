@@ -1,0 +1,154 @@
+// The interactive tutorial: steps over the teaching page of the tutorial's agent, each done only
+// when the participant has done it. The step reached is kept in localStorage, so a reload
+// continues at the same step.
+
+import { h } from "./dom.js";
+
+function count(counters, name) {
+  counters[name] = (counters[name] ?? 0) + 1;
+  return counters[name];
+}
+
+function steps(teacher) {
+  const { env } = teacher;
+  const [first, second] = env.tasks.map((task) => `“${task.name}”`);
+  const agents = teacher.participant.progress.of;
+  const domainHint = {
+    navigation: "Walls (dark, hatched) block the way.",
+    farming: "Soil can only be entered with the plow: drive over the plow first.",
+    gravity: "The arrow on the agent is its gravity: it cannot move against it. Coloured cells change it.",
+  }[env.domain] ?? "";
+  const placeHint = env.domain === "farming" ? " Driving over a machine picks it up." : "";
+  return [
+    {
+      id: "move",
+      title: "Move the agent",
+      text: `This is your practice agent. Press the arrow keys to move it (3 moves). No mode is on, so these moves teach it nothing.${placeHint}`,
+      done: (e, n) => e.kind === "move" && e.modeBefore === "idle" && count(n, "moves") >= 3,
+    },
+    {
+      id: "demonstrate",
+      title: "Show it a task",
+      text: `The selected task is ${first} (★). Press Demonstrate (D), then walk the agent to its goal with the arrow keys; reaching it ends the demonstration. ${domainHint}`,
+      done: (e) => Boolean(e.outcome.episode_ended) && e.modeBefore === "demonstrate" && e.taskBefore === 0,
+    },
+    {
+      id: "try",
+      title: "Let the agent try",
+      text: "Press Let the agent try (T). The agent acts on its own, a step every half second, with what it has learned so far. Watch a few steps.",
+      done: (e, n) => e.kind === "agent-step" && (count(n, "steps") >= 3 || Boolean(e.outcome.episode_ended)),
+    },
+    {
+      id: "feedback",
+      title: "Tell it how it is doing",
+      text: "While the agent moves, press G after a good move and B after a bad one: give at least one of each. If the agent has stopped, press T again.",
+      done: (e, n) => {
+        if (e.kind !== "feedback") return false;
+        if (e.outcome.feedback > 0) n.good = true;
+        if (e.outcome.feedback < 0) n.bad = true;
+        return Boolean(n.good && n.bad);
+      },
+    },
+    {
+      id: "stop",
+      title: "Take back control",
+      text: "Press Stop (S): the agent stops and no mode is on.",
+      already: (t) => t.mode === "idle",
+      done: (e) => e.state.mode === "idle",
+    },
+    {
+      id: "switch",
+      title: "Switch tasks",
+      text: `Select the task ${second} with its button or the key 2. Demonstrations and feedback always belong to the selected task.`,
+      done: (e) => e.kind === "task" && e.state.task === 1,
+    },
+    {
+      id: "reset",
+      title: "Start again",
+      text: "Press Reset (R): the agent jumps to a random start for the selected task. Do this whenever a task is done.",
+      done: (e) => e.kind === "reset",
+    },
+    {
+      id: "place",
+      title: "Choose where to start",
+      text: "You can also choose where a lesson starts: with no mode on, the arrow keys move the agent without teaching it. Move it 3 steps.",
+      done: (e, n) => e.kind === "move" && e.modeBefore === "idle" && count(n, "moves") >= 3,
+    },
+    {
+      id: "demonstrate-second",
+      title: "Demonstrate the other task",
+      text: `Now demonstrate ${second}: press D and walk the agent to its goal. Each agent needs a demonstration of every task before you can go on.`,
+      done: (e) => Boolean(e.outcome.episode_ended) && e.modeBefore === "demonstrate" && e.taskBefore === 1,
+    },
+    {
+      id: "ready",
+      title: "You are ready",
+      text: `That is all. In the study you teach ${agents} agent${agents === 1 ? "" : "s"} like this, one at a time, and cannot go back to an earlier one. Teach each one as well as you can, then press Next (N). Press N now to begin.`,
+      done: () => false,
+    },
+  ];
+}
+
+export class Tutorial {
+  constructor(teacher) {
+    this.teacher = teacher;
+    this.steps = steps(teacher);
+    this.key = `bam-tutorial:${teacher.participant.participant_id}:${teacher.sessionId}`;
+    this.index = Math.min(this.load(), this.steps.length - 1);
+    this.counters = {};
+    this.skipSatisfied();
+    teacher.on((event) => this.observe(event));
+    teacher.tutorialCard.hidden = false;
+  }
+
+  get complete() {
+    return this.index >= this.steps.length - 1;
+  }
+
+  load() {
+    try {
+      return Number(window.localStorage.getItem(this.key) ?? 0) || 0;
+    } catch {
+      return 0; // storage blocked (some iframes): the tutorial starts at its first step
+    }
+  }
+
+  save() {
+    try {
+      window.localStorage.setItem(this.key, String(this.index));
+    } catch {
+      // nothing to do: see load()
+    }
+  }
+
+  skipSatisfied() {
+    while (!this.complete && this.steps[this.index].already?.(this.teacher.t)) this.index += 1;
+  }
+
+  observe(event) {
+    if (this.complete) return;
+    const step = this.steps[this.index];
+    if (step.done(event, this.counters)) {
+      this.index += 1;
+      this.counters = {};
+      this.skipSatisfied();
+      this.save();
+      this.teacher.update();
+      this.card?.classList.add("advanced");
+    }
+  }
+
+  render() {
+    const step = this.steps[this.index];
+    const total = this.steps.length;
+    const bar = h("div", { class: "tutorial-bar", "aria-hidden": "true" },
+      h("div", { class: "tutorial-bar-fill", style: `width: ${Math.round((100 * this.index) / (total - 1))}%` }));
+    this.card = this.teacher.tutorialCard;
+    this.card.dataset.step = step.id;
+    this.card.replaceChildren(
+      h("p", { class: "tutorial-count" }, `Tutorial step ${this.index + 1} of ${total}`),
+      bar,
+      h("h2", {}, step.title),
+      h("p", {}, step.text));
+  }
+}

@@ -1,0 +1,214 @@
+"""Fixtures of the study server's tests: a fresh database per test on SQLite and on PostgreSQL
+(built by the Alembic migrations), the app with a shared pool of update processes, and a small
+client that keeps the participant's sequence number."""
+
+from __future__ import annotations
+
+import os
+import time
+import uuid
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import create_engine, func, select, text
+from sqlalchemy.engine import make_url
+
+from server.app.config import DEFAULT_STUDY_CONFIG, StudyConfig, parse_study_config
+from server.app.db import Database, upgrade
+from server.app.flow import TOKEN_HEADER
+from server.app.main import create_app
+from server.app.models import Event, LearnerUpdate
+from server.app.settings import Settings
+from server.app.updates import new_executor
+
+POSTGRES_URL = os.environ.get(
+    "BAM_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test"
+)
+ADMIN_TOKEN = "test-admin-token"
+MTURK = "https://workersandbox.mturk.com"
+
+# Learner settings that keep updates to a fraction of a second (the real learners, fewer steps).
+FAST_LEARNERS = {
+    "bam": {"alternations": 1, "cost_steps": 4, "dynamics_steps": 4},
+    "model-based": {"dynamics_steps": 6, "cost_steps": 6},
+    "cloning": {"steps": 20},
+}
+
+
+def study_config(**changes: Any) -> StudyConfig:
+    """The paper's study with fast learner settings, and ``changes`` on top."""
+    import tomllib
+
+    data = tomllib.loads(DEFAULT_STUDY_CONFIG.read_text())
+    data["learner_settings"] = FAST_LEARNERS
+    for key, value in changes.items():
+        if isinstance(value, dict) and isinstance(data.get(key), dict):
+            data[key] = {**data[key], **value}
+        else:
+            data[key] = value
+    return parse_study_config(data, "test study")
+
+
+@pytest.fixture(scope="session")
+def executor() -> Iterator[ProcessPoolExecutor]:
+    pool = new_executor(2, 0)
+    yield pool
+    pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _postgres_schema_url(schema: str) -> str:
+    url = make_url(POSTGRES_URL).update_query_dict({"options": f"-csearch_path={schema}"})
+    return url.render_as_string(hide_password=False)
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def database_url(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[str]:
+    """An empty database: a SQLite file, or a new PostgreSQL schema dropped afterwards."""
+    if request.param == "sqlite":
+        yield f"sqlite:///{tmp_path / 'study.db'}"
+        return
+    schema = f"test_{uuid.uuid4().hex[:12]}"
+    admin = create_engine(POSTGRES_URL)
+    try:
+        with admin.begin() as connection:
+            connection.execute(text(f'CREATE SCHEMA "{schema}"'))
+    except Exception as error:  # pragma: no cover - the environment is broken
+        admin.dispose()
+        pytest.fail(
+            f"PostgreSQL at {POSTGRES_URL} is not available ({error}); start it with "
+            "pg_ctlcluster --skip-systemctl-redirect $(ls /etc/postgresql) main start"
+        )
+    try:
+        yield _postgres_schema_url(schema)
+    finally:
+        with admin.begin() as connection:
+            connection.execute(text(f'DROP SCHEMA "{schema}" CASCADE'))
+        admin.dispose()
+
+
+@pytest.fixture
+def db(database_url: str) -> Iterator[Database]:
+    """The fresh database, migrated to the latest schema."""
+    database = Database.from_url(database_url)
+    upgrade(database.engine)
+    yield database
+    database.dispose()
+
+
+def make_settings(database_url: str, **changes: Any) -> Settings:
+    return Settings(database_url=database_url, admin_token=ADMIN_TOKEN, **changes)
+
+
+@pytest.fixture
+def study() -> StudyConfig:
+    return study_config()
+
+
+@pytest.fixture
+def settings(db: Database) -> Settings:
+    return make_settings(db.engine.url.render_as_string(hide_password=False))
+
+
+@pytest.fixture
+def client(
+    db: Database, settings: Settings, study: StudyConfig, executor: ProcessPoolExecutor
+) -> Iterator[TestClient]:
+    app = create_app(settings, study, db=db, executor=executor)
+    with TestClient(app) as test_client:
+        yield test_client
+
+
+class Participant:
+    """A participant talking to the API: keeps the token and the next sequence number."""
+
+    def __init__(self, client: TestClient, token: str, next_seq: int = 1) -> None:
+        self.client = client
+        self.token = token
+        self.seq = next_seq
+
+    @property
+    def headers(self) -> dict[str, str]:
+        return {TOKEN_HEADER: self.token}
+
+    def get(self, path: str) -> Any:
+        response = self.client.get(path, headers=self.headers)
+        assert response.status_code == 200, response.text
+        return response.json()
+
+    def post(self, path: str, **body: Any) -> Any:
+        """A raw POST with the next seq (not checked, not advanced)."""
+        return self.client.post(path, json={"seq": self.seq, **body}, headers=self.headers)
+
+    def act(self, path: str, **body: Any) -> Any:
+        response = self.post(path, **body)
+        assert response.status_code == 200, response.text
+        data = response.json()
+        self.seq = data["participant"]["next_seq"]
+        return data
+
+    def session(self, session_id: int) -> str:
+        return f"/api/sessions/{session_id}"
+
+
+def arrive(client: TestClient, worker: str = "W1", assignment: str = "A1", **extra: Any) -> Any:
+    params = {
+        "assignmentId": assignment,
+        "hitId": "H1",
+        "workerId": worker,
+        "turkSubmitTo": MTURK,
+        **extra,
+    }
+    return client.post("/api/arrivals", json=params)
+
+
+def new_participant(client: TestClient, worker: str = "W1", assignment: str = "A1") -> Participant:
+    response = arrive(client, worker, assignment)
+    assert response.status_code == 201, response.text
+    return Participant(client, response.json()["token"])
+
+
+def teaching_participant(
+    client: TestClient, worker: str = "W1", assignment: str = "A1"
+) -> tuple[Participant, int]:
+    """A participant past consent and start: returns it and its current (tutorial) session."""
+    participant = new_participant(client, worker, assignment)
+    participant.act("/api/participant/consent", agree=True)
+    data = participant.act("/api/participant/start")
+    return participant, data["participant"]["current_session_id"]
+
+
+def count_events(db: Database) -> int:
+    with db.read() as s:
+        return int(s.scalar(select(func.count()).select_from(Event)) or 0)
+
+
+def wait_for_updates(db: Database, timeout: float = 120.0) -> None:
+    """Until no learner update is pending."""
+    deadline = time.monotonic() + timeout
+    while True:
+        with db.read() as s:
+            pending = s.scalar(
+                select(func.count())
+                .select_from(LearnerUpdate)
+                .where(LearnerUpdate.status == "pending")
+            )
+        if not pending:
+            return
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{pending} learner updates still pending after {timeout} s")
+        time.sleep(0.05)
+
+
+def demonstrate_each_task(participant: Participant, session_id: int) -> None:
+    """One demonstrated action per task (enough to finish the agent)."""
+    base = participant.session(session_id)
+    view = participant.get(base)
+    participant.act(f"{base}/mode", mode="demonstrate")
+    for task in range(len(view["environment"]["tasks"])):
+        participant.act(f"{base}/task", task=task)
+        if participant.get(base)["teaching"]["mode"] != "demonstrate":
+            participant.act(f"{base}/mode", mode="demonstrate")
+        participant.act(f"{base}/move", action="RIGHT" if task % 2 else "LEFT")

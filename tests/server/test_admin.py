@@ -1,0 +1,122 @@
+"""The experimenter's endpoints behind the admin token."""
+
+from __future__ import annotations
+
+from concurrent.futures import ProcessPoolExecutor
+
+from fastapi.testclient import TestClient
+
+from server.app.db import Database
+from server.app.main import create_app
+from server.app.settings import Settings
+from tests.server.conftest import (
+    ADMIN_TOKEN,
+    demonstrate_each_task,
+    study_config,
+    teaching_participant,
+    wait_for_updates,
+)
+
+ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+
+
+def test_the_admin_api_needs_the_token(
+    client: TestClient, db: Database, executor: ProcessPoolExecutor
+) -> None:
+    for path in ["/api/admin/participants", "/api/admin/sessions", "/api/admin/export.zip"]:
+        assert client.get(path).status_code == 401
+        assert client.get(path, headers={"Authorization": "Bearer wrong"}).status_code == 401
+        assert client.get(path, headers={"Authorization": ADMIN_TOKEN}).status_code == 401
+        assert client.get(path, headers=ADMIN).status_code == 200
+    # A participant's token is no admin token.
+    participant, _ = teaching_participant(client)
+    assert (
+        client.get(
+            "/api/admin/participants", headers={"Authorization": f"Bearer {participant.token}"}
+        ).status_code
+        == 401
+    )
+    # Without BAM_ADMIN_TOKEN the admin API is off.
+    settings = Settings(database_url=db.engine.url.render_as_string(hide_password=False))
+    with TestClient(create_app(settings, study_config(), db=db, executor=executor)) as other:
+        response = other.get("/api/admin/participants", headers=ADMIN)
+        assert response.status_code == 503 and "BAM_ADMIN_TOKEN" in response.text
+
+
+def test_participants_sessions_exclusion_and_replay(client: TestClient, db: Database) -> None:
+    participant, tutorial = teaching_participant(client)
+    demonstrate_each_task(participant, tutorial)
+    current = participant.act(f"/api/sessions/{tutorial}/finish")["participant"][
+        "current_session_id"
+    ]
+    teaching_participant(TestClient(client.app), "W2", "A2")
+    wait_for_updates(db)
+    listing = client.get("/api/admin/participants", headers=ADMIN).json()
+    assert [p["participant_id"] for p in listing] == [1, 2]
+    first = listing[0]
+    assert first["worker_id"] == "W1" and first["status"] == "teaching" and first["agents"] == 6
+    assert first["agents_finished"] == 0 and first["excluded"] is False and first["minutes"] >= 0
+    assert (
+        client.get("/api/admin/participants?status=tutorial", headers=ADMIN).json()[0][
+            "participant_id"
+        ]
+        == 2
+    )
+    assert client.get("/api/admin/participants?status=nonsense", headers=ADMIN).status_code == 400
+    detail = client.get("/api/admin/participants/1", headers=ADMIN).json()
+    assert [c["status"] for c in detail["status_changes"]] == [
+        "arrived",
+        "consented",
+        "tutorial",
+        "teaching",
+    ]
+    assert [s["kind"] for s in detail["sessions"]] == ["tutorial"] + ["study"] * 6
+    assert detail["sessions"][0]["learner"] == "cloning"
+    assert client.get("/api/admin/participants/99", headers=ADMIN).status_code == 404
+    # Live sessions: the ones being taught.
+    live = client.get("/api/admin/sessions?live=true", headers=ADMIN).json()
+    assert sorted(s["session_id"] for s in live) == sorted([current, _active(client, 2)])
+    # The learning curve and the replay of the tutorial.
+    curve = client.get(f"/api/admin/sessions/{tutorial}/evaluations", headers=ADMIN).json()
+    assert [point["update_index"] for point in curve] == list(range(len(curve)))
+    assert all(point["normalized_return"] is not None for point in curve)
+    replay = client.get(f"/api/admin/sessions/{tutorial}/replay", headers=ADMIN).json()
+    assert replay["start_state"] is not None and replay["environment"]["tasks"]
+    assert [e["seq"] for e in replay["events"]] == sorted(e["seq"] for e in replay["events"])
+    assert replay["events"][-1]["kind"] == "finish"
+    assert client.get("/api/admin/sessions/999/replay", headers=ADMIN).status_code == 404
+    # Exclusion: marked with a reason and undone; the flow goes on.
+    excluded = client.post(
+        "/api/admin/participants/1/exclusion", json={"reason": "bot"}, headers=ADMIN
+    )
+    assert excluded.status_code == 200
+    assert excluded.json()["excluded"] is True and excluded.json()["exclusion_reason"] == "bot"
+    assert excluded.json()["status"] == "teaching"
+    assert (
+        client.post(
+            "/api/admin/participants/1/exclusion", json={"reason": "bot"}, headers=ADMIN
+        ).status_code
+        == 409
+    )
+    assert (
+        client.post("/api/admin/participants/1/exclusion", json={}, headers=ADMIN).status_code
+        == 422
+    )
+    participant.act(f"/api/sessions/{current}/move", action="UP")
+    included = client.delete("/api/admin/participants/1/exclusion", headers=ADMIN)
+    assert included.json()["excluded"] is False
+    assert [c["status"] for c in included.json()["status_changes"]][-2:] == ["excluded", "included"]
+    assert client.delete("/api/admin/participants/1/exclusion", headers=ADMIN).status_code == 409
+
+
+def _active(client: TestClient, participant_id: int) -> int:
+    detail = client.get(f"/api/admin/participants/{participant_id}", headers=ADMIN).json()
+    return next(s["session_id"] for s in detail["sessions"] if s["status"] == "active")
+
+
+def test_public_study_information_and_health(client: TestClient) -> None:
+    study = client.get("/api/study").json()
+    assert study["completion_mode"] == "mturk" and "3.00 USD" in study["payment"]
+    assert "bam" not in str(study).lower()
+    health = client.get("/api/health").json()
+    assert health["status"] == "ok" and health["update_backlog"] >= 0

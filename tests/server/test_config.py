@@ -1,0 +1,107 @@
+"""The study configuration: the shipped paper's study, and clear errors for bad files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from pydantic import ValidationError
+
+from server.app.config import DEFAULT_STUDY_CONFIG, StudyConfigError, load_study_config
+from server.app.settings import Settings
+from server.cli import main
+
+PAPER = DEFAULT_STUDY_CONFIG.read_text()
+
+
+def test_the_default_is_the_papers_study() -> None:
+    study = load_study_config()
+    assert [(d.name, d.environments) for d in study.domains] == [
+        ("navigation", ("two-rooms", "doorway")),
+        ("farming", ("two-fields", "three-fields")),
+    ]
+    assert study.learners == ("bam", "model-based", "cloning") and study.agents == 3
+    assert study.completion.mode == "mturk" and "3.00 USD" in study.payment
+    assert study.tutorial.enabled and study.domains[0].tutorial_environment == "navigation-tutorial"
+    assert not study.allow_repeat_workers
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (
+            ('environments = ["two-rooms", "doorway"]', 'environments = ["two-rooms", "flip"]'),
+            "'flip' is not in domain 'navigation'",
+        ),
+        (('name = "farming"', 'name = "cooking"'), "unknown domain 'cooking'"),
+        (
+            ('learners = ["bam", "model-based", "cloning"]', 'learners = ["bam", "magic"]'),
+            "unknown learner 'magic'",
+        ),
+        (('mode = "mturk"', 'mode = "prolific"'), "needs prolific_code"),
+        (('mode = "mturk"', 'mode = "email"'), "completion.mode"),
+        (('title = "Teach a robot"', 'title = ""'), "title"),
+        (('title = "Teach a robot"', 'title = "x"\nsurprise = 1'), "surprise: Extra inputs"),
+        (
+            ("# [learner_settings.bam]", "learner_settings = { bam = { speed = 2 } }"),
+            "learner_settings.bam: unknown setting(s) speed",
+        ),
+        (('hex = "#CC79A7"', 'hex = "purple"'), "colours.5.hex"),
+        (
+            ("allow_anonymous = false", "allow_anonymous = false\nagents_per_environment = 4"),
+            "6 colours for up to 8 agents",
+        ),
+    ],
+)
+def test_bad_studies_are_refused_with_the_place_of_the_problem(
+    tmp_path: Path, change: tuple[str, str], message: str
+) -> None:
+    old, new = change
+    assert old in PAPER
+    path = tmp_path / "study.toml"
+    path.write_text(PAPER.replace(old, new, 1))
+    with pytest.raises(StudyConfigError) as error:
+        load_study_config(path)
+    assert str(path) in str(error.value)
+    assert message in str(error.value)
+
+
+def test_unreadable_and_malformed_files(tmp_path: Path) -> None:
+    with pytest.raises(StudyConfigError, match="cannot read"):
+        load_study_config(tmp_path / "missing.toml")
+    path = tmp_path / "broken.toml"
+    path.write_text("title = ")
+    with pytest.raises(StudyConfigError, match="not valid TOML"):
+        load_study_config(path)
+
+
+def test_settings_come_from_the_environment(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    monkeypatch.setenv("BAM_DATABASE_URL", f"sqlite:///{tmp_path / 'x.db'}")
+    monkeypatch.setenv("BAM_ADMIN_TOKEN", "hunter2")
+    monkeypatch.setenv("BAM_UPDATE_WORKERS", "3")
+    settings = Settings()
+    assert settings.is_sqlite and settings.update_workers == 3
+    assert settings.admin_token is not None and settings.admin_token.get_secret_value() == "hunter2"
+    assert "hunter2" not in repr(settings)
+    monkeypatch.setenv("BAM_COOKIE_SAMESITE", "none")
+    with pytest.raises(ValidationError, match="BAM_COOKIE_SECURE"):
+        Settings()
+    monkeypatch.delenv("BAM_COOKIE_SAMESITE")
+    monkeypatch.setenv("BAM_UPDATE_WORKERS", "0")
+    with pytest.raises(ValidationError):
+        Settings()
+
+
+def test_serve_refuses_a_bad_study(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "study.toml"
+    path.write_text(
+        PAPER.replace('learners = ["bam", "model-based", "cloning"]', 'learners = ["nobody"]')
+    )
+    monkeypatch.setenv("BAM_STUDY_CONFIG", str(path))
+    assert main(["serve", "--database-url", f"sqlite:///{tmp_path / 'x.db'}"]) == 2
+    assert "unknown learner 'nobody'" in capsys.readouterr().err
+    assert not (tmp_path / "x.db").exists()

@@ -1,0 +1,144 @@
+"""The export: CSV files with the documented columns, a data dictionary describing every column,
+one evaluation per update, pseudonymised worker ids unless asked otherwise."""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import func, select
+
+from server.app.db import Database
+from server.app.export import DICTIONARY, load_tables
+from server.app.models import Event, LearnerUpdate, LearningSession
+from server.app.simulated import SimulatedParticipant, TeachingPlan
+from server.cli import main
+from tests.server.conftest import ADMIN_TOKEN, wait_for_updates
+
+EVALUATION_COLUMNS = [
+    "session_id", "participant_id", "domain", "environment", "learner", "position",
+    "update_index", "episodes", "actions", "normalized_return",
+]  # fmt: skip
+SESSION_COLUMNS = [
+    "session_id", "participant_id", "domain", "environment", "learner", "position",
+    "started_at", "finished_at", "completed",
+]  # fmt: skip
+PLAN = TeachingPlan(min_rounds=1, max_rounds=1, agent_try_probability=0.3, max_agent_steps=8)
+
+
+@pytest.fixture
+def study_run(client: TestClient, db: Database) -> list:
+    runs = [
+        SimulatedParticipant(
+            "http://testserver", index, 7, PLAN, client=TestClient(client.app)
+        ).take_part()
+        for index in range(2)
+    ]
+    assert [run.error for run in runs] == [None, None]
+    wait_for_updates(db)
+    return runs
+
+
+def export(database_url: str, out: Path, *flags: str) -> dict[str, pd.DataFrame]:
+    assert main(["export", "--database-url", database_url, "--out", str(out), *flags]) == 0
+    return {path.stem: pd.read_csv(path) for path in out.glob("*.csv")}
+
+
+def test_the_export_has_the_documented_columns(
+    study_run: list, db: Database, tmp_path: Path
+) -> None:
+    url = db.engine.url.render_as_string(hide_password=False)
+    tables = export(url, tmp_path / "out")
+    assert set(tables) == {*DICTIONARY, "data_dictionary"}
+    for name, columns in DICTIONARY.items():
+        assert list(tables[name].columns) == list(columns), name
+    assert list(tables["evaluations"].columns[: len(EVALUATION_COLUMNS)]) == EVALUATION_COLUMNS
+    assert list(tables["sessions"].columns[: len(SESSION_COLUMNS)]) == SESSION_COLUMNS
+    dictionary = tables["data_dictionary"]
+    described = set(zip(dictionary["file"], dictionary["column"].fillna(""), strict=True))
+    for name, frame in tables.items():
+        if name != "data_dictionary":
+            for column in frame.columns:
+                assert (f"{name}.csv", column) in described
+    sessions = tables["sessions"]
+    assert len(sessions) == 12 and sessions["completed"].all()
+    assert sorted(sessions["position"].unique()) == list(range(6))
+    assert len(tables["tutorial_sessions"]) == 2
+    assert (tables["participants"]["status"] == "submitted").all()
+    check_pseudonyms(study_run, url, tmp_path)
+
+
+def test_one_evaluation_per_update(study_run: list, client: TestClient, db: Database) -> None:
+    tables = load_tables(db.engine.url.render_as_string(hide_password=False))
+    evaluations = tables["evaluations"]
+    with db.read() as s:
+        expected = s.scalar(
+            select(func.count())
+            .select_from(LearnerUpdate)
+            .join(LearningSession)
+            .where(LearningSession.kind == "study")
+        )
+        episodes = {
+            x.id: x.episodes
+            for x in s.scalars(select(LearningSession).where(LearningSession.kind == "study"))
+        }
+    assert len(evaluations) == expected
+    for session_id, group in evaluations.groupby("session_id"):
+        assert list(group["update_index"]) == list(range(episodes[session_id] + 1))
+        assert list(group["episodes"]) == list(range(episodes[session_id] + 1))
+        assert group["actions"].is_monotonic_increasing
+        assert group["normalized_return"].between(0, 1 + 1e-9).all()
+    assert (evaluations["status"] == "done").all()
+    # Episodes and events agree with the sessions.
+    sessions = tables["sessions"].set_index("session_id")
+    ended = tables["episodes"].dropna(subset=["ended_at"]).groupby("session_id").size()
+    assert (ended.reindex(sessions.index) == sessions["episodes"]).all()
+    with db.read() as s:
+        assert len(tables["events"]) == s.scalar(select(func.count()).select_from(Event))
+    assert sum(run.acknowledged for run in study_run) == len(tables["events"])
+    check_admin_zip(client, evaluations)
+
+
+def check_pseudonyms(study_run: list, url: str, tmp_path: Path) -> None:
+    """Worker ids are pseudonymised (stably) unless asked otherwise."""
+    hidden = export(url, tmp_path / "hidden")["participants"]
+    again = export(url, tmp_path / "again")["participants"]
+    shown = export(url, tmp_path / "shown", "--no-pseudonymize")["participants"]
+    workers = {run.worker_id for run in study_run}
+    assert set(shown["worker_id"]) == workers
+    assert not set(hidden["worker_id"]) & workers
+    assert hidden["worker_id"].str.match(r"^w_[0-9a-f]{16}$").all()
+    assert list(hidden["worker_id"]) == list(again["worker_id"])  # stable for one database
+    assert hidden["completion_code"].isna().all()
+    assert set(shown["completion_code"]) == {run.completion_code for run in study_run}
+    for text in (tmp_path / "hidden").glob("*.csv"):
+        for worker in workers:
+            assert worker not in text.read_text()
+
+
+def check_admin_zip(client: TestClient, evaluations: pd.DataFrame) -> None:
+    """The admin download is the same export, zipped."""
+    response = client.get(
+        "/api/admin/export.zip", headers={"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    )
+    assert response.status_code == 200
+    assert response.headers["content-type"] == "application/zip"
+    assert "attachment" in response.headers["content-disposition"]
+    archive = zipfile.ZipFile(io.BytesIO(response.content))
+    assert set(archive.namelist()) == {f"{name}.csv" for name in DICTIONARY} | {
+        "data_dictionary.csv"
+    }
+    assert pd.read_csv(archive.open("evaluations.csv")).shape == evaluations.shape
+
+
+def test_exporting_a_database_without_the_schema_fails_clearly(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    url = f"sqlite:///{tmp_path / 'empty.db'}"
+    assert main(["export", "--database-url", url, "--out", str(tmp_path / "out")]) == 1
+    assert "db upgrade" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

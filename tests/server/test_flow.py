@@ -1,0 +1,181 @@
+"""The participant flow: consent, balanced domains, the order of agents, statuses with
+timestamps, completion codes issued only after the completion is committed."""
+
+from __future__ import annotations
+
+from collections import Counter
+from datetime import timedelta
+from itertools import pairwise
+
+from fastapi.testclient import TestClient
+from sqlalchemy import select, update
+
+from server.app.db import Database
+from server.app.flow import mark_abandoned
+from server.app.models import LearningSession, StatusChange, utcnow
+from server.app.models import Participant as ParticipantRow
+from server.app.settings import Settings
+from tests.server.conftest import (
+    ADMIN_TOKEN,
+    demonstrate_each_task,
+    new_participant,
+    teaching_participant,
+)
+
+
+def test_declining_consent_ends_the_flow(client: TestClient, db: Database) -> None:
+    participant = new_participant(client)
+    data = participant.act("/api/participant/consent", agree=False)
+    assert data["participant"]["status"] == "declined"
+    state = participant.get("/api/participant")
+    assert state["domain"] is None and state["sessions"] == []
+    assert participant.post("/api/participant/start").status_code == 409
+
+
+def test_consent_assigns_a_domain_and_orders_the_agents(client: TestClient, db: Database) -> None:
+    participant = new_participant(client)
+    participant.act("/api/participant/consent", agree=True)
+    state = participant.get("/api/participant")
+    assert state["status"] == "consented" and state["domain"] in ("navigation", "farming")
+    sessions = state["sessions"]
+    assert [s["kind"] for s in sessions] == ["tutorial"] + ["study"] * 6
+    assert sessions[0]["environment"] == f"{state['domain']}-tutorial"
+    expected = {"navigation": ["two-rooms", "doorway"], "farming": ["two-fields", "three-fields"]}
+    assert [s["environment"] for s in sessions[1:]] == [
+        e for e in expected[state["domain"]] for _ in range(3)
+    ]
+    assert [s["position"] for s in sessions[1:]] == list(range(6))
+    assert len({s["colour"]["name"] for s in sessions[1:]}) == 6
+    assert all("learner" not in s for s in sessions)  # participants are blind to the learner
+    with db.read() as s:
+        rows = s.scalars(
+            select(LearningSession)
+            .where(LearningSession.kind == "study")
+            .order_by(LearningSession.position)
+        ).all()
+    for environment in range(2):
+        learners = [row.learner for row in rows[3 * environment : 3 * environment + 3]]
+        assert sorted(learners) == ["bam", "cloning", "model-based"]
+    assert state["progress"] == {"agent": 0, "of": 6}
+
+
+def test_learner_orders_are_randomised(client: TestClient, db: Database) -> None:
+    for index in range(12):
+        participant = new_participant(TestClient(client.app), f"W{index}", f"A{index}")
+        participant.act("/api/participant/consent", agree=True)
+    with db.read() as s:
+        rows = s.scalars(select(LearningSession).where(LearningSession.position == 0)).all()
+    assert len({row.learner for row in rows}) > 1
+
+
+def test_domains_are_balanced_counting_only_active_and_completed(
+    client: TestClient, db: Database
+) -> None:
+    domains = []
+    for index in range(8):
+        participant = new_participant(TestClient(client.app), f"W{index}", f"A{index}")
+        participant.act("/api/participant/consent", agree=True)
+        domains.append(participant.get("/api/participant")["domain"])
+    assert Counter(domains) == {"navigation": 4, "farming": 4}
+    # The navigation participants go idle: they no longer hold places, so navigation is the
+    # least filled domain and the next arrivals go there.
+    with db.write() as s:
+        s.execute(
+            update(ParticipantRow)
+            .where(ParticipantRow.domain == "navigation")
+            .values(last_seen_at=utcnow() - timedelta(hours=1))
+        )
+    following = []
+    for index in range(8, 12):
+        participant = new_participant(TestClient(client.app), f"W{index}", f"A{index}")
+        participant.act("/api/participant/consent", agree=True)
+        following.append(participant.get("/api/participant")["domain"])
+    assert following == ["navigation"] * 4
+    # Excluded participants do not count either.
+    admin = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    with db.read() as s:
+        farming = s.scalars(
+            select(ParticipantRow.id).where(ParticipantRow.domain == "farming")
+        ).all()
+    for participant_id in farming:
+        assert (
+            client.post(
+                f"/api/admin/participants/{participant_id}/exclusion",
+                json={"reason": "test"},
+                headers=admin,
+            ).status_code
+            == 200
+        )
+    participant = new_participant(TestClient(client.app), "W99", "A99")
+    participant.act("/api/participant/consent", agree=True)
+    assert participant.get("/api/participant")["domain"] == "farming"
+
+
+def test_idle_participants_are_marked_abandoned_and_continue_if_they_return(
+    client: TestClient, db: Database, settings: Settings
+) -> None:
+    participant, session_id = teaching_participant(client)
+    with db.write() as s:
+        s.execute(update(ParticipantRow).values(last_seen_at=utcnow() - timedelta(hours=5)))
+    assert mark_abandoned(db, settings) == 1
+    assert participant.get("/api/participant")["status"] == "abandoned"
+    data = participant.act(f"{participant.session(session_id)}/move", action="UP")
+    assert data["participant"]["status"] == "tutorial"
+    with db.read() as s:
+        statuses = s.scalars(select(StatusChange.status).order_by(StatusChange.id)).all()
+    assert statuses == ["arrived", "consented", "tutorial", "abandoned", "tutorial"]
+
+
+def test_a_whole_run_to_completion_and_submission(client: TestClient, db: Database) -> None:
+    participant, session_id = teaching_participant(client)
+    assert (
+        participant.client.get(
+            "/api/participant/completion", headers=participant.headers
+        ).status_code
+        == 409
+    )
+    statuses = []
+    finish = None
+    while session_id is not None:
+        view = participant.get(participant.session(session_id))
+        statuses.append(view["participant"]["status"])
+        demonstrate_each_task(participant, session_id)
+        finish = participant.act(f"{participant.session(session_id)}/finish")
+        session_id = finish["participant"]["current_session_id"]
+        if session_id is not None:
+            # Not readable before the end, neither in a response nor on its own.
+            assert finish["participant"]["completion"] is None
+            response = participant.client.get(
+                "/api/participant/completion", headers=participant.headers
+            )
+            assert response.status_code == 409
+    assert statuses == ["tutorial"] + ["teaching"] * 6
+    completion = finish["participant"]["completion"]
+    assert finish["participant"]["status"] == "completed"
+    assert len(completion["code"]) == 10
+    assert completion["submit_url"] == "https://workersandbox.mturk.com/mturk/externalSubmit"
+    assert completion["submit_fields"] == {
+        "assignmentId": "A1",
+        "completionCode": completion["code"],
+    }
+    with db.read() as s:
+        assert s.scalar(select(ParticipantRow.completion_code)) == completion["code"]
+    # Shown again, identically, on refresh.
+    assert participant.get("/api/participant/completion") == completion
+    assert participant.get("/api/participant")["completion"] == completion
+    assert participant.get("/api/participant")["progress"] == {"agent": 6, "of": 6}
+    submitted = participant.act("/api/participant/submission")
+    assert submitted["participant"]["status"] == "submitted"
+    assert participant.post("/api/participant/submission").status_code == 409
+    assert participant.get("/api/participant/completion") == completion
+    with db.read() as s:
+        changes = s.scalars(select(StatusChange).order_by(StatusChange.id)).all()
+    assert [c.status for c in changes] == [
+        "arrived",
+        "consented",
+        "tutorial",
+        "teaching",
+        "completed",
+        "submitted",
+    ]
+    assert all(a.at <= b.at for a, b in pairwise(changes))

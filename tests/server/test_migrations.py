@@ -1,0 +1,97 @@
+"""The schema comes from the Alembic migrations only; `serve` migrates SQLite itself and refuses
+an out-of-date PostgreSQL schema with a clear message."""
+
+from __future__ import annotations
+
+from concurrent.futures import ProcessPoolExecutor
+
+import pytest
+from alembic.autogenerate import compare_metadata
+from alembic.runtime.migration import MigrationContext
+from fastapi.testclient import TestClient
+from sqlalchemy import inspect, select
+
+from server.app.db import (
+    Database,
+    SchemaError,
+    current_revision,
+    downgrade,
+    head_revision,
+    prepare_schema,
+    upgrade,
+)
+from server.app.main import create_app
+from server.app.models import Base, Installation
+from server.cli import main
+from tests.server.conftest import make_settings, study_config
+
+
+def test_the_migrations_build_exactly_the_models(database_url: str) -> None:
+    db = Database.from_url(database_url)
+    try:
+        assert current_revision(db.engine) is None
+        upgrade(db.engine)
+        assert current_revision(db.engine) == head_revision()
+        with db.engine.connect() as connection:
+            context = MigrationContext.configure(connection, opts={"compare_type": True})
+            assert compare_metadata(context, Base.metadata) == []
+        with db.read() as s:
+            secret = s.scalar(select(Installation.secret))
+        assert secret is not None and len(secret) == 64
+        downgrade(db.engine, "base")
+        assert set(inspect(db.engine).get_table_names()) <= {"alembic_version"}
+        upgrade(db.engine)
+        assert current_revision(db.engine) == head_revision()
+    finally:
+        db.dispose()
+
+
+def test_prepare_schema_migrates_sqlite_and_refuses_postgresql(database_url: str) -> None:
+    db = Database.from_url(database_url)
+    try:
+        if db.is_sqlite:
+            assert "upgraded" in prepare_schema(db.engine)
+            assert "up to date" in prepare_schema(db.engine)
+        else:
+            with pytest.raises(SchemaError, match="bam-study db upgrade"):
+                prepare_schema(db.engine)
+            upgrade(db.engine)
+            assert "up to date" in prepare_schema(db.engine)
+    finally:
+        db.dispose()
+
+
+def test_the_app_does_not_start_on_an_old_schema(
+    database_url: str, executor: ProcessPoolExecutor
+) -> None:
+    db = Database.from_url(database_url)
+    try:
+        app = create_app(make_settings(database_url), study_config(), db=db, executor=executor)
+        with pytest.raises(SchemaError, match="db upgrade"), TestClient(app):
+            pass
+    finally:
+        db.dispose()
+
+
+def test_the_db_and_serve_commands(database_url: str, capsys: pytest.CaptureFixture[str]) -> None:
+    postgres = database_url.startswith("postgresql")
+    assert main(["db", "check", "--database-url", database_url]) == 1
+    assert "bam-study db upgrade" in capsys.readouterr().out
+    if postgres:
+        assert main(["serve", "--database-url", database_url]) == 1
+        error = capsys.readouterr().err
+        assert "this server needs" in error and "bam-study db upgrade" in error
+    assert main(["db", "upgrade", "--database-url", database_url]) == 0
+    assert "upgraded from none" in capsys.readouterr().out
+    assert main(["db", "current", "--database-url", database_url]) == 0
+    assert head_revision() in capsys.readouterr().out
+    assert main(["db", "check", "--database-url", database_url]) == 0
+
+
+def test_commands_report_bad_settings(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["db", "check", "--database-url", "mysql://x/y"]) == 2
+    assert "sqlite:// or postgresql://" in capsys.readouterr().err
+    assert (
+        main(["db", "check", "--database-url", "postgresql+psycopg://nobody@127.0.0.1:1/none"]) == 1
+    )
+    assert "bam-study db:" in capsys.readouterr().err

@@ -1,0 +1,322 @@
+"""The teaching API of one learning session: every route, what it records, and every bad input
+answered with a 4xx that changes nothing."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import select
+
+from server.app.db import Database
+from server.app.models import Episode, Event, LearnerUpdate, LearningSession
+from server.domains import make
+from server.domains.base import ACTIONS, STAY
+from tests.server.conftest import (
+    Participant,
+    count_events,
+    demonstrate_each_task,
+    teaching_participant,
+    wait_for_updates,
+)
+
+
+def snapshot(db: Database) -> tuple[Any, ...]:
+    """Everything a request could change."""
+    with db.read() as s:
+        sessions = [
+            (
+                x.id,
+                x.status,
+                x.task,
+                x.mode,
+                x.state,
+                x.open_episode,
+                x.episodes,
+                x.actions,
+                tuple(x.demonstrated),
+                x.updates_requested,
+                x.last_action,
+            )
+            for x in s.scalars(select(LearningSession).order_by(LearningSession.id))
+        ]
+        updates = len(s.scalars(select(LearnerUpdate)).all())
+        episodes = len(s.scalars(select(Episode)).all())
+    return count_events(db), tuple(sessions), updates, episodes
+
+
+def first_study_session(participant: Participant, tutorial: int) -> int:
+    demonstrate_each_task(participant, tutorial)
+    data = participant.act(f"/api/sessions/{tutorial}/finish")
+    return data["participant"]["current_session_id"]
+
+
+def test_a_demonstration_reaching_the_goal_ends_with_a_synthetic_stay(
+    client: TestClient, db: Database
+) -> None:
+    participant, session_id = teaching_participant(client)
+    base = participant.session(session_id)
+    view = participant.get(base)
+    env = make(view["summary"]["environment"])
+    from server.teacher import Teacher
+
+    teacher = Teacher(env, seed=0)
+    state = view["teaching"]["agent"]["state"]
+    assert view["teaching"]["mode"] == "idle" and view["teaching"]["task"] == 0
+    participant.act(f"{base}/mode", mode="demonstrate")
+    moves = 0
+    while True:
+        data = participant.act(f"{base}/move", action=ACTIONS[teacher.next_action(0, state)])
+        moves += 1
+        assert data["outcome"]["state"] == state
+        state = data["session"]["agent"]["state"]
+        if data["outcome"]["episode_ended"]:
+            break
+        assert data["session"]["episode"] == {
+            "index": 0,
+            "kind": "demonstration",
+            "task": 0,
+            "actions": moves,
+        }
+    assert data["outcome"]["goal_reached"] and data["outcome"]["episode_ended"] == "goal"
+    assert data["outcome"]["update_queued"] == 1
+    teaching = data["session"]
+    assert teaching["mode"] == "idle" and teaching["episode"] is None
+    assert teaching["episodes"] == 1 and teaching["actions"] == moves
+    assert teaching["demonstrated"][0] == moves
+    with db.read() as s:
+        last = s.scalars(select(Event).order_by(Event.id.desc())).first()
+        assert last.record == "demonstration" and last.episode_end == "goal"
+        assert last.stay_state == env.step(last.next_state, STAY, None)  # STAY stays
+        episode = s.scalars(select(Episode)).one()
+        assert (episode.kind, episode.actions, episode.end_reason, episode.update_index) == (
+            "demonstration",
+            moves,
+            "goal",
+            1,
+        )
+        update = s.scalars(select(LearnerUpdate).where(LearnerUpdate.update_index == 1)).one()
+        assert (update.episodes, update.actions, update.through_event_id) == (1, moves, last.id)
+
+
+def test_idle_moves_agent_steps_feedback_reset_and_task_switches(
+    client: TestClient, db: Database
+) -> None:
+    participant, tutorial = teaching_participant(client)
+    session_id = first_study_session(participant, tutorial)
+    base = participant.session(session_id)
+    view = participant.get(base)
+    assert view["summary"]["kind"] == "study" and view["summary"]["position"] == 0
+    assert view["teaching"]["can_finish"] is False
+    assert "not yet" in view["teaching"]["finish_blocked"]
+    # Idle: the agent moves, nothing is demonstrated, the transition is recorded.
+    idle = participant.act(f"{base}/move", action="UP")
+    assert (
+        idle["session"]["episode"] is None
+        and idle["session"]["demonstrated"] == view["teaching"]["demonstrated"]
+    )
+    # Demonstrate one move, then switch task: the episode ends without a STAY and updates.
+    participant.act(f"{base}/mode", mode="demonstrate")
+    participant.act(f"{base}/move", action="DOWN")
+    switched = participant.act(f"{base}/task", task=1)
+    assert (
+        switched["outcome"]["episode_ended"] == "task" and switched["outcome"]["update_queued"] == 1
+    )
+    assert switched["session"]["task"] == 1 and switched["session"]["mode"] == "demonstrate"
+    # Reset ends an open episode too and draws a start of the selected task.
+    participant.act(f"{base}/move", action="LEFT")
+    reset = participant.act(f"{base}/reset")
+    assert reset["outcome"]["episode_ended"] == "reset" and reset["outcome"]["update_queued"] == 2
+    # Let the agent try: it acts on its greedy policy; feedback on its latest action.
+    participant.act(f"{base}/mode", mode="agent")
+    step = participant.act(f"{base}/agent-step")
+    assert step["outcome"]["action"] in ACTIONS
+    assert step["session"]["can_give_feedback"] is True
+    feedback = participant.act(f"{base}/feedback", feedback=-1)
+    assert feedback["outcome"]["feedback"] == -1
+    # Stop: the agent episode ends (no STAY for agent episodes) and updates.
+    stop = participant.act(f"{base}/end-episode")
+    assert stop["outcome"]["episode_ended"] == "end" and stop["session"]["mode"] == "idle"
+    wait_for_updates(db)
+    with db.read() as s:
+        events = s.scalars(
+            select(Event).where(Event.session_id == session_id).order_by(Event.id)
+        ).all()
+        records = [(e.kind, e.record, e.episode_end, e.stay_state) for e in events]
+    assert records == [
+        ("move", "transition", None, None),
+        ("mode", None, None, None),
+        ("move", "demonstration", None, None),
+        ("task", None, "task", None),
+        ("move", "demonstration", None, None),
+        ("reset", None, "reset", None),
+        ("mode", None, None, None),
+        ("agent_step", "agent_step", None, None),
+        ("feedback", "feedback", None, None),
+        ("end_episode", None, "end", None),
+    ]
+    learning = participant.get(f"{base}/learning")
+    assert learning == {"pending": 0, "updates": 4}
+
+
+def test_the_agent_episode_ends_at_the_horizon(client: TestClient, db: Database) -> None:
+    participant, session_id = teaching_participant(client)
+    base = participant.session(session_id)
+    env = make(participant.get(base)["summary"]["environment"])
+    participant.act(f"{base}/mode", mode="agent")
+    # The untrained agent does not reach the goal: it acts until the horizon.
+    for step in range(env.horizon):  # noqa: B007 (used after the loop)
+        data = participant.act(f"{base}/agent-step")
+        if data["outcome"]["episode_ended"]:
+            break
+    assert data["outcome"]["episode_ended"] in ("horizon", "goal")
+    if data["outcome"]["episode_ended"] == "horizon":
+        assert step == env.horizon - 1
+    assert data["session"]["mode"] == "idle"
+    assert participant.post(f"{base}/agent-step").status_code == 409
+
+
+def test_bad_requests_get_clear_4xx_and_change_nothing(client: TestClient, db: Database) -> None:
+    participant, tutorial = teaching_participant(client)
+    other, other_session = teaching_participant(TestClient(client.app), "W2", "A2")
+    base = participant.session(tutorial)
+    with db.read() as s:
+        pending_session = s.scalars(
+            select(LearningSession.id).where(
+                LearningSession.participant_id == 1, LearningSession.status == "pending"
+            )
+        ).first()
+    before = snapshot(db)
+    cases: list[tuple[str, Any, int, str]] = [
+        (f"{base}/move", {"seq": participant.seq, "action": "STAY"}, 422, "UP"),
+        (f"{base}/move", {"seq": participant.seq, "action": "JUMP"}, 422, "UP"),
+        (f"{base}/move", {"seq": participant.seq}, 422, "action"),
+        (f"{base}/move", {"action": "UP"}, 422, "seq"),
+        (f"{base}/move", {"seq": 0, "action": "UP"}, 422, "seq"),
+        (f"{base}/move", {"seq": participant.seq, "action": "UP", "extra": 1}, 422, "extra"),
+        (f"{base}/task", {"seq": participant.seq, "task": 99}, 400, "does not exist"),
+        (f"{base}/task", {"seq": participant.seq, "task": -1}, 422, "task"),
+        (f"{base}/task", {"seq": participant.seq, "task": "one"}, 422, "task"),
+        (f"{base}/mode", {"seq": participant.seq, "mode": "fly"}, 422, "mode"),
+        (f"{base}/feedback", {"seq": participant.seq, "feedback": 2}, 422, "feedback"),
+        (f"{base}/feedback", {"seq": participant.seq, "feedback": 1}, 409, "no agent action"),
+        (f"{base}/agent-step", {"seq": participant.seq}, 409, "mode agent"),
+        (f"{base}/end-episode", {"seq": participant.seq}, 409, "no episode"),
+        (
+            f"/api/sessions/{other_session}/move",
+            {"seq": participant.seq, "action": "UP"},
+            404,
+            "no learning session",
+        ),
+        (
+            "/api/sessions/999999/move",
+            {"seq": participant.seq, "action": "UP"},
+            404,
+            "no learning session",
+        ),
+        (
+            f"/api/sessions/{pending_session}/move",
+            {"seq": participant.seq, "action": "UP"},
+            409,
+            "not come yet",
+        ),
+        ("/api/sessions/abc/move", {"seq": participant.seq, "action": "UP"}, 422, "session_id"),
+        (f"{base}/move", {"seq": participant.seq + 1, "action": "UP"}, 409, "out of order"),
+        (
+            "/api/participant/consent",
+            {"seq": participant.seq, "agree": True},
+            409,
+            "already answered",
+        ),
+        ("/api/participant/start", {"seq": participant.seq}, 409, "cannot start"),
+        ("/api/participant/submission", {"seq": participant.seq}, 409, "not completed"),
+    ]
+    for path, body, status, words in cases:
+        response = client.post(path, json=body, headers=participant.headers)
+        assert response.status_code == status, (path, body, response.text)
+        assert words in response.text, (path, body, response.text)
+    # Not JSON, too large, no token, a wrong token, another participant's session to read.
+    assert (
+        client.post(
+            f"{base}/move",
+            content=b"UP",
+            headers={**participant.headers, "content-type": "application/json"},
+        ).status_code
+        == 422
+    )
+    huge = client.post(
+        f"{base}/move",
+        content=b"{" + b" " * 10_000 + b"}",
+        headers={**participant.headers, "content-type": "application/json"},
+    )
+    assert huge.status_code == 413 and "too large" in huge.text
+
+    def chunks():
+        for _ in range(10):
+            yield b" " * 1000
+
+    streamed = client.post(
+        f"{base}/move",
+        content=chunks(),
+        headers={**participant.headers, "content-type": "application/json"},
+    )
+    assert streamed.status_code == 413
+    anonymous = TestClient(client.app)
+    assert (
+        anonymous.post(f"{base}/move", json={"seq": participant.seq, "action": "UP"}).status_code
+        == 401
+    )
+    forged = anonymous.post(
+        f"{base}/move",
+        json={"seq": participant.seq, "action": "UP"},
+        headers={"X-Participant-Token": "forged"},
+    )
+    assert forged.status_code == 401 and "unknown participant" in forged.text
+    assert (
+        client.get(f"/api/sessions/{other_session}", headers=participant.headers).status_code == 404
+    )
+    assert client.get(f"/api/sessions/{tutorial}", headers=other.headers).status_code == 404
+    assert (
+        client.get(f"/api/sessions/{tutorial}/learning", headers=other.headers).status_code == 404
+    )
+    assert anonymous.get("/api/participant").status_code == 401
+    assert snapshot(db) == before
+    assert participant.get("/api/participant")["next_seq"] == participant.seq
+
+
+def test_finishing_is_refused_until_every_task_has_a_demonstration(
+    client: TestClient, db: Database
+) -> None:
+    participant, tutorial = teaching_participant(client)
+    session_id = first_study_session(participant, tutorial)
+    base = participant.session(session_id)
+    view = participant.get(base)
+    tasks = [t["name"] for t in view["environment"]["tasks"]]
+    participant.act(f"{base}/mode", mode="demonstrate")
+    participant.act(f"{base}/move", action="UP")
+    refused = participant.post(f"{base}/finish")
+    assert refused.status_code == 409
+    assert ", ".join(tasks[1:]) in refused.json()["detail"]
+    demonstrate_each_task(participant, session_id)
+    finished = participant.act(f"{base}/finish")
+    assert finished["session"]["status"] == "finished"
+    following = finished["participant"]["current_session_id"]
+    assert following != session_id
+    assert participant.post(f"{base}/move", action="UP").status_code == 409  # finished agent
+    assert participant.get(participant.session(following))["summary"]["position"] == 1
+
+
+@pytest.mark.parametrize("mode", ["demonstrate", "idle"])
+def test_moves_follow_the_true_dynamics(client: TestClient, db: Database, mode: str) -> None:
+    participant, session_id = teaching_participant(client)
+    base = participant.session(session_id)
+    env = make(participant.get(base)["summary"]["environment"])
+    participant.act(f"{base}/mode", mode=mode)
+    for name in ["UP", "LEFT", "LEFT", "DOWN", "RIGHT"]:
+        data = participant.act(f"{base}/move", action=name)
+        outcome = data["outcome"]
+        probabilities = env.transition_probabilities()[outcome["state"], ACTIONS.index(name)]
+        assert probabilities[outcome["next_state"]] > 0
+        if data["outcome"]["episode_ended"]:
+            break

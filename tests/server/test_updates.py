@@ -1,0 +1,239 @@
+"""Learner updates off the request path: one evaluation per update, in order, an agent step
+waiting only for its own learner, pending updates surviving a restart, failures recorded."""
+
+from __future__ import annotations
+
+import time
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from itertools import pairwise
+from typing import Any
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import select, update
+
+from server import learners
+from server.app.db import Database
+from server.app.main import create_app
+from server.app.models import Event, LearnerUpdate, LearningSession
+from server.app.settings import Settings
+from server.domains import make
+from server.domains.base import ACTIONS
+from server.teacher import Teacher
+from tests.server.conftest import (
+    Participant,
+    study_config,
+    teaching_participant,
+    wait_for_updates,
+)
+
+# One environment, one BAM agent with its reference settings: updates take about two seconds.
+SLOW_STUDY = {
+    "domains": [{"name": "navigation", "environments": ["two-rooms"]}],
+    "learners": ["bam"],
+    "learner_settings": {"bam": {}},
+    "tutorial": {"enabled": False},
+}
+
+
+def demonstrate(
+    participant: Participant, session_id: int, task: int, seed: int = 0
+) -> dict[str, Any]:
+    """A full demonstration by the simulated teacher from a random start of ``task``."""
+    base = participant.session(session_id)
+    view = participant.get(base)
+    env = make(view["summary"]["environment"])
+    teacher = Teacher(env, seed=seed)
+    if view["teaching"]["task"] != task:
+        participant.act(f"{base}/task", task=task)
+    state = participant.act(f"{base}/reset")["session"]["agent"]["state"]
+    while env.is_goal(task, state):
+        state = participant.act(f"{base}/reset")["session"]["agent"]["state"]
+    participant.act(f"{base}/mode", mode="demonstrate")
+    for _ in range(env.horizon):
+        data = participant.act(f"{base}/move", action=ACTIONS[teacher.next_action(task, state)])
+        state = data["session"]["agent"]["state"]
+        if data["outcome"]["episode_ended"]:
+            return data
+    return participant.act(f"{base}/end-episode")
+
+
+def updates_of(db: Database, session_id: int) -> list[LearnerUpdate]:
+    with db.read() as s:
+        return list(
+            s.scalars(
+                select(LearnerUpdate)
+                .where(LearnerUpdate.session_id == session_id)
+                .order_by(LearnerUpdate.update_index)
+            )
+        )
+
+
+def test_one_evaluation_per_update_in_order(client: TestClient, db: Database) -> None:
+    participant, tutorial = teaching_participant(client)
+    demonstrate_all = participant.get(participant.session(tutorial))
+    tasks = len(demonstrate_all["environment"]["tasks"])
+    for round_ in range(2):
+        for task in range(tasks):
+            demonstrate(participant, tutorial, task, seed=round_)
+    wait_for_updates(db)
+    rows = updates_of(db, tutorial)
+    assert [row.update_index for row in rows] == list(range(2 * tasks + 1))
+    assert all(row.status == "done" for row in rows)
+    assert [row.episodes for row in rows] == list(range(2 * tasks + 1))
+    assert all(a.actions < b.actions for a, b in pairwise(rows))
+    assert all(0.0 <= row.normalized_return <= 1.0 + 1e-9 for row in rows)
+    assert all(a.finished_at <= b.finished_at for a, b in pairwise(rows))
+    assert rows[0].objective is None and rows[-1].objective is not None
+    # The last learner state holds exactly what the events say the learner observed.
+    env = make(demonstrate_all["summary"]["environment"])
+    learner = learners.restore(env, learners.loads(rows[-1].learner_state))
+    assert learner.updates == 2 * tasks
+    with db.read() as s:
+        events = s.scalars(select(Event).where(Event.session_id == tutorial)).all()
+    demonstrated = sum(e.record == "demonstration" for e in events) + sum(
+        e.stay_state is not None for e in events
+    )
+    assert len(learner.data.demonstrations) == demonstrated
+    assert len(learner.data.transitions_alone) == sum(e.record == "transition" for e in events)
+    policy = np.frombuffer(rows[-1].greedy_policy, dtype=np.int8).reshape(tasks, env.num_states)
+    assert policy.min() >= 0 and policy.max() < len(ACTIONS)
+
+
+@pytest.fixture
+def slow_client(db: Database, settings: Settings, executor: ProcessPoolExecutor) -> Any:
+    app = create_app(settings, study_config(**SLOW_STUDY), db=db, executor=executor)
+    with TestClient(app) as client:
+        yield client
+
+
+def test_an_agent_step_waits_for_its_own_update_only(slow_client: TestClient, db: Database) -> None:
+    client = slow_client
+    participant, session_id = teaching_participant(client)
+    other, other_session = teaching_participant(TestClient(client.app), "W2", "A2")
+    wait_for_updates(db)
+    base = participant.session(session_id)
+    ended = demonstrate(participant, session_id, 0)
+    assert ended["session"]["learning"]["pending"] == 1
+    participant.act(f"{base}/reset")  # away from the goal the demonstration ended on
+    participant.act(f"{base}/mode", mode="agent")
+    with ThreadPoolExecutor(1) as pool:
+        waiting = pool.submit(participant.act, f"{base}/agent-step")
+        # While the agent waits for its update, the other participant's moves go on.
+        started = time.perf_counter()
+        for name in ["UP", "DOWN", "LEFT", "RIGHT"] * 3:
+            other.act(f"{other.session(other_session)}/move", action=name)
+        moves = time.perf_counter() - started
+        step = waiting.result()
+    rows = updates_of(db, session_id)
+    assert rows[1].status == "done"
+    assert step["outcome"]["learning_wait_seconds"] > 0
+    assert step["session"]["learning"] == {"pending": 0, "updates": 2}
+    assert moves < step["outcome"]["learning_wait_seconds"]
+    env = make("two-rooms")
+    policy = np.frombuffer(rows[1].greedy_policy, dtype=np.int8).reshape(
+        len(env.tasks), env.num_states
+    )
+    assert ACTIONS.index(step["outcome"]["action"]) == policy[0, step["outcome"]["state"]]
+
+
+def test_pending_updates_survive_a_restart(
+    db: Database, settings: Settings, executor: ProcessPoolExecutor
+) -> None:
+    study = study_config(**SLOW_STUDY)
+    with TestClient(create_app(settings, study, db=db, executor=executor)) as client:
+        participant, session_id = teaching_participant(client)
+        for task in range(3):
+            demonstrate(participant, session_id, task)
+        token, seq = participant.token, participant.seq
+    rows = updates_of(db, session_id)
+    assert any(row.status == "pending" for row in rows), "the updates finished before the stop"
+    with TestClient(create_app(settings, study, db=db, executor=executor)) as client:
+        wait_for_updates(db)
+        participant = Participant(client, token, seq)
+        participant.act(f"{participant.session(session_id)}/reset")
+        participant.act(f"{participant.session(session_id)}/mode", mode="agent")
+        participant.act(f"{participant.session(session_id)}/agent-step")
+    rows = updates_of(db, session_id)
+    assert [row.update_index for row in rows] == [0, 1, 2, 3]
+    assert all(row.status == "done" for row in rows)
+    assert all(a.finished_at <= b.finished_at for a, b in pairwise(rows))
+
+
+def test_a_failed_update_is_recorded_and_the_session_goes_on(
+    client: TestClient, db: Database
+) -> None:
+    participant, session_id = teaching_participant(client)
+    wait_for_updates(db)
+    # Corrupt data: feedback on an agent step that never happened makes the learner refuse.
+    with db.write() as s:
+        s.add(
+            Event(
+                participant_id=1,
+                session_id=session_id,
+                seq=10_000,
+                kind="feedback",
+                record="feedback",
+                feedback=1,
+                request_hash="x",
+                response="{}",
+            )
+        )
+    demonstrate(participant, session_id, 0)
+    wait_for_updates(db)
+    rows = updates_of(db, session_id)
+    assert rows[1].status == "failed" and "feedback" in rows[1].error
+    assert participant.get(participant.session(session_id))["teaching"]["learning"]["pending"] == 0
+    with db.write() as s:
+        s.execute(update(Event).where(Event.seq == 10_000).values(record=None))
+    demonstrate(participant, session_id, 1)
+    wait_for_updates(db)
+    rows = updates_of(db, session_id)
+    assert rows[2].status == "done"
+    participant.act(f"{participant.session(session_id)}/reset")
+    participant.act(f"{participant.session(session_id)}/mode", mode="agent")
+    assert (
+        participant.act(f"{participant.session(session_id)}/agent-step")["session"]["learning"][
+            "updates"
+        ]
+        == 3
+    )
+
+
+def test_a_learner_is_rebuilt_from_the_events_when_no_state_is_saved(
+    client: TestClient, db: Database
+) -> None:
+    participant, session_id = teaching_participant(client)
+    demonstrate(participant, session_id, 0)
+    demonstrate(participant, session_id, 1)
+    wait_for_updates(db)
+    with db.write() as s:
+        s.execute(update(LearnerUpdate).values(learner_state=None))
+    demonstrate(participant, session_id, 0, seed=3)
+    wait_for_updates(db)
+    rows = updates_of(db, session_id)
+    assert rows[3].status == "done"
+    env = make(participant.get(participant.session(session_id))["summary"]["environment"])
+    learner = learners.restore(env, learners.loads(rows[3].learner_state))
+    with db.read() as s:
+        events = s.scalars(select(Event).where(Event.session_id == session_id)).all()
+    assert len(learner.data.demonstrations) == sum(
+        e.record == "demonstration" for e in events
+    ) + sum(e.stay_state is not None for e in events)
+
+
+def test_the_learning_state_can_be_awaited(slow_client: TestClient, db: Database) -> None:
+    participant, session_id = teaching_participant(slow_client)
+    demonstrate(participant, session_id, 0)
+    learning = participant.get(f"{participant.session(session_id)}/learning")
+    assert learning["pending"] >= 1
+    learning = participant.get(f"{participant.session(session_id)}/learning?wait=30")
+    assert learning == {"pending": 0, "updates": 2}
+    with db.read() as s:
+        session = s.get(LearningSession, session_id)
+        assert session.policy_update == 1
+    response = slow_client.get(
+        f"{participant.session(session_id)}/learning?wait=99", headers=participant.headers
+    )
+    assert response.status_code == 422

@@ -7,6 +7,7 @@ from alembic import context
 from sqlalchemy import Connection
 from sqlalchemy.pool import NullPool
 
+import server.app.replica_models  # noqa: F401  (its tables are in Base.metadata too)
 from server.app.db import create_db_engine
 from server.app.models import Base
 from server.app.settings import Settings

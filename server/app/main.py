@@ -22,6 +22,8 @@ from server.app.errors import ApiError, TurnedAway
 from server.app.routers import (
     admin,
     arrivals,
+    dashboard,
+    mturk,
     pages,
     participant,
     sessions,
@@ -155,6 +157,9 @@ def create_app(
         sessions.router,
         admin.router,
         pages.router,
+        dashboard.pages,
+        dashboard.api,
+        mturk.router,
     ):
         app.include_router(router)
     if STATIC_DIR.is_dir():

@@ -1,0 +1,238 @@
+// The experimenter's dashboard: participants, each learning session's curve of normalised
+// return against episodes, the replica's MTurk submissions, and a replay of any session's
+// recorded events on the participants' grid drawing.
+
+import { getJSON } from "./api.js";
+import { environmentTitle, h } from "./dom.js";
+import { GridView, decodeState, svg } from "./grid.js";
+
+const API = "/dashboard/api";
+const REFRESH_MS = 10000;
+const ACTIONS = ["STAY", "UP", "DOWN", "LEFT", "RIGHT"];
+const $ = (selector) => document.querySelector(selector);
+let selected = null;
+let replayTimer = null;
+
+function time(iso) {
+  return iso ? new Date(iso).toLocaleString() : "";
+}
+
+function badge(status) {
+  return h("span", { class: `badge ${status}` }, status);
+}
+
+async function loadParticipants() {
+  const participants = await getJSON(`${API}/participants`);
+  const body = $("#participants tbody");
+  body.replaceChildren(...participants.map((p) => {
+    const row = h("tr", { class: `clickable ${p.participant_id === selected ? "selected" : ""}`, tabindex: 0, "data-participant": p.participant_id, "data-status": p.status },
+      h("td", {}, p.participant_id),
+      h("td", {}, p.platform),
+      h("td", { class: "mono" }, p.worker_id ?? ""),
+      h("td", { class: "mono" }, p.assignment_id ?? ""),
+      h("td", {}, badge(p.status), p.excluded ? [" ", badge("excluded")] : null),
+      h("td", {}, p.domain ?? ""),
+      h("td", {}, `${p.agents_finished} / ${p.agents}`),
+      h("td", {}, p.minutes.toFixed(1)),
+      h("td", { class: "mono" }, p.completion_code ?? ""));
+    const open = () => showParticipant(p.participant_id);
+    row.addEventListener("click", open);
+    row.addEventListener("keydown", (event) => event.key === "Enter" && open());
+    return row;
+  }));
+  const counts = {};
+  for (const p of participants) {
+    counts[p.status] = (counts[p.status] ?? 0) + 1;
+    if (p.domain) counts[p.domain] = (counts[p.domain] ?? 0) + 1;
+  }
+  $("#summary").replaceChildren(
+    h("span", { class: "badge" }, `${participants.length} participants`),
+    ...Object.entries(counts).map(([name, n]) => h("span", { class: `badge ${name}` }, `${name}: ${n}`)));
+  $("#refreshed").textContent = `updated ${new Date().toLocaleTimeString()}`;
+}
+
+async function loadSubmissions() {
+  const { submissions } = await getJSON(`${API}/mturk`);
+  $("#mturk-submissions tbody").replaceChildren(...(submissions.length
+    ? submissions.map((x) => h("tr", { "data-assignment": x.assignment_id },
+        h("td", {}, time(x.submitted_at)),
+        h("td", { class: "mono" }, x.assignment_id),
+        h("td", { class: "mono" }, x.worker_id),
+        h("td", {}, Object.entries(x.fields).map(([k, v]) => h("span", { class: "mono field" }, `${k}=${v}`)))))
+    : [h("tr", {}, h("td", { colspan: 4, class: "muted" }, "Nothing submitted to the replica yet."))]));
+}
+
+async function showParticipant(id) {
+  selected = id;
+  for (const row of document.querySelectorAll("#participants tr[data-participant]")) {
+    row.classList.toggle("selected", Number(row.dataset.participant) === id);
+  }
+  const p = await getJSON(`${API}/participants/${id}`);
+  const detail = $("#detail");
+  const sessions = h("div", { class: "sessions" });
+  detail.replaceChildren(
+    h("div", { class: "card-head" }, h("h2", {}, `Participant ${p.participant_id}`), badge(p.status)),
+    h("div", { class: "detail-grid" },
+      h("div", {},
+        h("p", {}, h("strong", {}, "Worker "), h("span", { class: "mono" }, p.worker_id ?? "(none)")),
+        h("p", {}, h("strong", {}, "Assignment "), h("span", { class: "mono" }, p.assignment_id ?? "(none)")),
+        h("p", {}, h("strong", {}, "Domain "), p.domain ?? "(not yet)", h("strong", {}, "  Time "), `${p.minutes.toFixed(1)} min`),
+        h("h3", {}, "Status history"),
+        h("ol", { class: "history" }, p.status_changes.map((c) => h("li", {}, badge(c.status), " ", time(c.at), c.note ? ` (${c.note})` : "")))),
+      sessions));
+  detail.hidden = false;
+  for (const session of p.sessions) {
+    const card = h("div", { class: "session-card", "data-session": session.session_id },
+      h("h3", {}, h("span", { class: "colour-dot", title: session.colour, style: `background: ${session.colour_hex}` }),
+        session.kind === "tutorial" ? "Tutorial" : `Agent ${session.position + 1} · ${environmentTitle(session.environment)}`),
+      h("p", {}, `${session.learner} · ${session.colour} · `, badge(session.status)),
+      h("p", { class: "muted" }, `${session.episodes} episodes, ${session.actions} actions`,
+        session.last_normalized_return !== null ? `, return ${(100 * session.last_normalized_return).toFixed(0)}%` : ""),
+      h("div", { class: "curve-box" }, h("p", { class: "muted" }, "Loading the curve…")),
+      h("button", { class: "btn quiet", type: "button", "data-action": "replay", onclick: () => showReplay(session.session_id) }, "Replay"));
+    sessions.appendChild(card);
+    getJSON(`${API}/sessions/${session.session_id}/evaluations`).then((evaluations) => {
+      card.querySelector(".curve-box").replaceChildren(curve(evaluations));
+    });
+  }
+}
+
+/** Normalised return (0..1) after each update, against the episodes so far. */
+function curve(evaluations) {
+  const done = evaluations.filter((e) => e.status === "done" && e.normalized_return !== null);
+  const W = 260, H = 130, L = 30, R = 8, T = 8, B = 22;
+  const root = svg("svg", { viewBox: `0 0 ${W} ${H}`, class: "curve", role: "img", "data-points": done.length,
+    "aria-label": `Normalised return after ${done.length} updates` });
+  const maxEpisodes = Math.max(1, ...done.map((e) => e.episodes));
+  const x = (episodes) => L + ((W - L - R) * episodes) / maxEpisodes;
+  const y = (value) => T + (H - T - B) * (1 - Math.max(0, Math.min(1, value)));
+  svg("line", { x1: L, y1: y(0), x2: W - R, y2: y(0), class: "axis" }, root);
+  svg("line", { x1: L, y1: y(0), x2: L, y2: y(1), class: "axis" }, root);
+  for (const level of [0.5, 0.8, 1]) {
+    svg("line", { x1: L, y1: y(level), x2: W - R, y2: y(level), class: "ref" }, root);
+    svg("text", { x: L - 4, y: y(level) + 3, "text-anchor": "end" }, root).textContent = `${level * 100}%`;
+  }
+  svg("text", { x: L - 4, y: y(0) + 3, "text-anchor": "end" }, root).textContent = "0";
+  svg("text", { x: (L + W - R) / 2, y: H - 4, "text-anchor": "middle" }, root).textContent = `episodes (0 to ${maxEpisodes})`;
+  if (done.length) {
+    svg("path", { d: done.map((e, i) => `${i ? "L" : "M"}${x(e.episodes).toFixed(1)} ${y(e.normalized_return).toFixed(1)}`).join(" "), class: "line" }, root);
+    for (const e of done) {
+      const point = svg("circle", { cx: x(e.episodes), cy: y(e.normalized_return), r: 3.5, class: "point" }, root);
+      svg("title", {}, point).textContent = `update ${e.update_index}: ${e.episodes} episodes, ${e.actions} actions, ${(100 * e.normalized_return).toFixed(1)}%`;
+    }
+  }
+  return root;
+}
+
+// -- replay -----------------------------------------------------------------------------------
+function describe(event, env) {
+  const task = event.task !== null ? env.tasks[event.task]?.name : null;
+  const action = event.action !== null ? ACTIONS[event.action] : null;
+  const parts = [event.kind.replace("_", " ")];
+  if (event.kind === "mode") parts.push(`→ ${event.mode}`);
+  if (event.kind === "task") parts.push(`→ ${task}`);
+  if (action) parts.push(action);
+  if (event.record === "demonstration") parts.push(`(demonstration of ${task})`);
+  if (event.record === "transition") parts.push("(idle move)");
+  if (event.kind === "feedback") parts.push(event.feedback > 0 ? "+ good" : "− bad");
+  if (event.stay_state !== null) parts.push("+ STAY");
+  if (event.episode_end) parts.push(`[episode ${event.episode_index} ends: ${event.episode_end}]`);
+  return parts.join(" ");
+}
+
+async function showReplay(sessionId) {
+  clearInterval(replayTimer);
+  const data = await getJSON(`${API}/sessions/${sessionId}/replay`);
+  const env = data.environment;
+  const box = $("#replay");
+  box.hidden = false;
+  if (data.start_state === null) {
+    box.replaceChildren(h("h2", {}, `Replay of session ${sessionId}`), h("p", { class: "muted" }, "This session has not started."));
+    return;
+  }
+  // One frame per event: where the agent is, which task and mode, after it.
+  const frames = [{ state: data.start_state, task: 0, mode: "idle", text: "start" }];
+  for (const event of data.events) {
+    const last = frames[frames.length - 1];
+    frames.push({
+      state: event.stay_state ?? event.next_state ?? last.state,
+      task: event.task ?? last.task,
+      mode: event.episode_end ? "idle" : event.mode ?? last.mode,
+      text: `#${event.seq} ${describe(event, env)}`,
+    });
+  }
+  const board = h("div", { class: "grid-box" });
+  const frame = h("div", { class: "replay-board" }, board);
+  const label = h("p", { class: "replay-event", role: "status" });
+  const slider = h("input", { type: "range", min: 0, max: frames.length - 1, value: 0, "aria-label": "Event" });
+  const log = h("ol", { start: 0 }, frames.map((f) => h("li", {}, f.text)));
+  const play = h("button", { class: "btn", type: "button", "data-action": "play" }, "▶ Play");
+  const button = (text, action, go) => h("button", { class: "btn quiet", type: "button", "data-action": action, onclick: go }, text);
+  box.replaceChildren(
+    h("div", { class: "card-head" }, h("h2", {}, `Replay: session ${sessionId}, ${environmentTitle(env.name)}, ${data.session.learner}`),
+      h("span", { class: "muted" }, `${data.events.length} events`)),
+    h("div", { class: "replay-layout" },
+      h("div", {}, frame,
+        h("div", { class: "replay-controls" },
+          button("◀◀ First", "first", () => go(0)),
+          button("◀ Back", "back", () => go(index - 1)),
+          play,
+          button("Next ▶", "forward", () => go(index + 1)),
+          button("Last ▶▶", "last", () => go(frames.length - 1)),
+          slider),
+        label),
+      h("div", { class: "replay-log" }, log)));
+  const view = new GridView(board, env, { reveal: true, label: `Replay of session ${sessionId}` });
+  const fit = () => {
+    const ratio = env.width / env.height;
+    const size = Math.min(frame.clientWidth, frame.clientHeight * ratio);
+    board.style.width = `${Math.floor(size)}px`;
+    board.style.height = `${Math.floor(size / ratio)}px`;
+  };
+  new ResizeObserver(fit).observe(frame);
+  let index = 0;
+  const go = (i) => {
+    index = Math.max(0, Math.min(frames.length - 1, i));
+    const f = frames[index];
+    view.setTask(f.task);
+    view.setAgent(decodeState(env, f.state), data.colour_hex ?? "#888888");
+    board.dataset.frame = index;
+    board.dataset.state = f.state;
+    slider.value = index;
+    label.textContent = `Event ${index} of ${frames.length - 1}: ${f.text} · task ${env.tasks[f.task]?.name} · ${f.mode}`;
+    log.querySelectorAll("li").forEach((li, k) => li.classList.toggle("current", k === index));
+    log.children[index]?.scrollIntoView({ block: "nearest" });
+  };
+  slider.addEventListener("input", () => go(Number(slider.value)));
+  play.addEventListener("click", () => {
+    if (replayTimer) {
+      clearInterval(replayTimer);
+      replayTimer = null;
+      play.textContent = "▶ Play";
+      return;
+    }
+    play.textContent = "⏸ Pause";
+    replayTimer = setInterval(() => {
+      if (index >= frames.length - 1) {
+        clearInterval(replayTimer);
+        replayTimer = null;
+        play.textContent = "▶ Play";
+        return;
+      }
+      go(index + 1);
+    }, 300);
+  });
+  go(0);
+  box.scrollIntoView({ behavior: "smooth", block: "start" });
+}
+
+async function refresh() {
+  try {
+    await Promise.all([loadParticipants(), loadSubmissions()]);
+  } catch (error) {
+    $("#refreshed").textContent = `could not update: ${error.message}`;
+  }
+}
+
+await refresh();
+setInterval(refresh, REFRESH_MS);

@@ -38,13 +38,19 @@ def _argument(parse: Callable[[str], T]) -> Callable[[str], T]:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument(
         "--data",
-        required=True,
         type=Path,
         metavar="EXPORT_DIR",
         help="folder written by `bam-study export` (sessions.csv, evaluations.csv, "
         "participants.csv)",
+    )
+    source.add_argument(
+        "--database-url",
+        metavar="URL",
+        help="read the study database directly, e.g. sqlite:///study.sqlite or "
+        "postgresql+psycopg://user@host/db",
     )
     parser.add_argument(
         "--out", required=True, type=Path, metavar="DIR", help="folder to write the results to"
@@ -71,21 +77,26 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--exclude-excluded",
         action="store_true",
-        help="drop the sessions of participants whose status in participants.csv is excluded",
+        help="drop the sessions of participants the experimenter marked excluded",
     )
 
 
 def run(args: argparse.Namespace) -> int:
-    from analysis.data import load_tables
+    from analysis.data import load_database, load_tables
     from analysis.report import write_outputs
     from analysis.results import analyze
     from analysis.tables import table1_markdown
 
     notes: list[str] = []
     try:
-        sessions, evaluations = load_tables(
-            args.data, exclude_excluded=args.exclude_excluded, notes=notes
-        )
+        if args.database_url is not None:
+            sessions, evaluations = load_database(
+                args.database_url, exclude_excluded=args.exclude_excluded, notes=notes
+            )
+        else:
+            sessions, evaluations = load_tables(
+                args.data, exclude_excluded=args.exclude_excluded, notes=notes
+            )
         analysis = analyze(
             sessions,
             evaluations,

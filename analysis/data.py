@@ -96,6 +96,67 @@ def load_tables(
     )
 
 
+def load_database(
+    url: str,
+    *,
+    exclude_excluded: bool = False,
+    notes: list[str] | None = None,
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Read and validate a study database directly: the tables ``bam-study export`` would
+    write, taken from the database at ``url`` (SQLite or PostgreSQL). See ``load_tables``."""
+    from urllib.parse import quote
+
+    from sqlalchemy import create_engine
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import ArgumentError, SQLAlchemyError
+
+    from server.app.db import Database, current_revision, head_revision
+    from server.app.export import load_tables as read_database
+
+    try:
+        parsed = make_url(url)
+    except ArgumentError as error:
+        raise InputError(f"--database-url {url!r} is not a database URL: {error}") from None
+    shown = parsed.render_as_string(hide_password=True)
+    try:
+        if parsed.get_backend_name() == "sqlite":
+            # SQLite would create an empty database for a path that does not exist; and the
+            # analysis never writes to (or changes the journal mode of) a study: read-only.
+            if not parsed.database or parsed.database == ":memory:":
+                raise InputError(f"--database-url {shown}: a SQLite URL needs the database file")
+            file = Path(parsed.database)
+            if not file.is_file():
+                raise InputError(f"--database-url {shown}: no database file {file}")
+            path = quote(file.resolve().as_posix())
+            db = Database(create_engine(f"sqlite:///file:{path}?mode=ro&uri=true"))
+        else:
+            db = Database.from_url(url)
+    except (ArgumentError, ImportError) as error:
+        raise InputError(f"--database-url {shown}: {error}") from None
+    try:
+        current, head = current_revision(db.engine), head_revision()
+        if current != head:
+            raise InputError(
+                f"--database-url {shown}: the schema is at revision {current or 'none'}, not "
+                f"{head}: not a study database, or one that `bam-study db upgrade` must bring "
+                "up to date first"
+            )
+        tables = read_database(db, pseudonymize=False)
+    except SQLAlchemyError as error:
+        message = str(error).strip().splitlines()[0]
+        raise InputError(f"--database-url {shown}: cannot read the database: {message}") from None
+    finally:
+        db.dispose()
+    return validate_tables(
+        tables["sessions"],
+        tables["evaluations"],
+        participants=tables["participants"],
+        exclude_excluded=exclude_excluded,
+        notes=notes,
+        sources=("the sessions table", "the evaluations table", "the participants table"),
+    )
+
+
 def read_csv(path: Path) -> pd.DataFrame:
     """A CSV file with a header as a table of strings (nothing converted yet)."""
     if not path.exists():
@@ -132,7 +193,7 @@ def validate_tables(
     notes = notes if notes is not None else []
     sessions = _validate_sessions(sessions.reset_index(drop=True), sessions_source)
     evaluations = _validate_evaluations(
-        evaluations.reset_index(drop=True), evaluations_source, sessions, sessions_source
+        evaluations.reset_index(drop=True), evaluations_source, sessions, sessions_source, notes
     )
     excluded = _excluded_participants(participants, participants_source, exclude_excluded)
     if excluded is not None:
@@ -193,9 +254,21 @@ def _validate_sessions(frame: pd.DataFrame, source: str) -> pd.DataFrame:
 
 
 def _validate_evaluations(
-    frame: pd.DataFrame, source: str, sessions: pd.DataFrame, sessions_source: str
+    frame: pd.DataFrame,
+    source: str,
+    sessions: pd.DataFrame,
+    sessions_source: str,
+    notes: list[str],
 ) -> pd.DataFrame:
     _require_columns(frame, EVALUATION_COLUMNS, source)
+    # The study server exports failed learner updates too (status "failed", no return):
+    # they are checked like the others but have no evaluation to analyse.
+    failed = pd.Series(False, index=frame.index)
+    if "status" in frame.columns:
+        failed = frame["status"].astype(str).str.strip().str.lower().eq("failed")
+        if failed.any():
+            frame = frame.copy()
+            frame.loc[failed, "normalized_return"] = "0"
     out = pd.DataFrame(index=frame.index)
     for column in ("session_id", "participant_id", "environment", "learner"):
         out[column] = _text(frame, column, source)
@@ -274,29 +347,39 @@ def _validate_evaluations(
                 f"update {int(previous_update[row])} (cumulative counts cannot decrease)",
                 int(decreasing.sum()),
             )
-    return out[list(EVALUATION_COLUMNS)]
+    if failed.any():
+        notes.append(
+            f"{_count(int(failed.sum()), 'failed learner update')} in {source} left out "
+            "(no evaluation; the server's log says why)"
+        )
+    return out.loc[~failed, list(EVALUATION_COLUMNS)].reset_index(drop=True)
 
 
 def _excluded_participants(
     participants: pd.DataFrame | None, source: str, required: bool
 ) -> set[str] | None:
-    """Ids of participants whose status is ``excluded``; None when that is unknown (an
-    error instead when ``required``)."""
+    """Ids of participants marked excluded (an ``excluded`` column that is true, as the study
+    server exports it, or a ``status`` of ``excluded``); None when that is unknown (an error
+    instead when ``required``)."""
     if participants is None:
         if required:
             raise InputError(f"--exclude-excluded needs {source}, which was not given")
         return None
-    missing = [c for c in ("participant_id", "status") if c not in participants.columns]
-    if missing:
+    markers = [c for c in ("excluded", "status") if c in participants.columns]
+    if "participant_id" not in participants.columns or not markers:
         if required:
+            needed = "'participant_id' and 'excluded' (or 'status')"
             raise InputError(
-                f"{source}: --exclude-excluded needs the column(s) "
-                f"{', '.join(repr(c) for c in missing)}, which the file does not have "
-                f"(found: {', '.join(repr(str(c)) for c in participants.columns)})"
+                f"{source}: --exclude-excluded needs the columns {needed}, which the file "
+                f"does not have (found: {', '.join(repr(str(c)) for c in participants.columns)})"
             )
         return None
-    status = participants["status"].astype(str).str.strip().str.lower()
-    return set(participants.loc[status == "excluded", "participant_id"].astype(str).str.strip())
+    marked = pd.Series(False, index=participants.index)
+    if "excluded" in participants.columns:
+        marked |= participants["excluded"].astype(str).str.strip().str.lower().isin(_TRUE)
+    if "status" in participants.columns:
+        marked |= participants["status"].astype(str).str.strip().str.lower() == "excluded"
+    return set(participants.loc[marked, "participant_id"].astype(str).str.strip())
 
 
 def _require_columns(frame: pd.DataFrame, columns: tuple[str, ...], source: str) -> None:

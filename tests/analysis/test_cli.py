@@ -405,7 +405,8 @@ def test_a_baseline_absent_from_the_data(
         (None, "--exclude-excluded needs participants.csv, which is not in"),
         (
             "participant_id,state\np1,excluded\n",
-            "participants.csv: --exclude-excluded needs the column(s) 'status'",
+            "participants.csv: --exclude-excluded needs the columns 'participant_id' and "
+            "'excluded' (or 'status')",
         ),
     ],
 )

@@ -13,9 +13,13 @@ from collections.abc import Sequence
 
 # name -> (module, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "demo": (
+        "server.app.demo",
+        "Run a whole study end to end: server, simulated participants, export, Table 1.",
+    ),
     "analyze": (
         "analysis.cli",
-        "Turn a study's exported data into the paper's results tables, tests and plots.",
+        "Turn a study's data (export or database) into the paper's tables and plots.",
     ),
     "simulate": (
         "server.simulation.cli",

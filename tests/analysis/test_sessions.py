@@ -8,6 +8,7 @@ import pandas as pd
 import pytest
 
 from analysis.data import EVALUATION_COLUMNS, load_tables
+from analysis.options import InputError
 from analysis.stats import session_measures
 
 from .conftest import write_csv, write_export
@@ -125,3 +126,29 @@ def test_exclude_excluded_drops_the_sessions_of_excluded_participants(tmp_path: 
         "2 learning sessions of participants marked excluded in participants.csv are included "
         "(--exclude-excluded drops them)"
     ]
+
+
+def test_failed_learner_updates_are_left_out_with_a_note(tmp_path: Path) -> None:
+    """The server exports failed updates (status ``failed``, no return): they have no
+    evaluation; a missing return on a row that did not fail is still an error."""
+    curve = [(0, 0, 0.0), (1, 10, 0.3), (2, 20, 0.9), (3, 30, 0.95)]
+    folder = write_export(tmp_path / "export", [("a", "p1", "two-rooms", "bam", 0, curve)])
+    path = folder / "evaluations.csv"
+    frame = pd.read_csv(path, dtype=str, keep_default_na=False)
+    frame["status"] = ["done", "done", "failed", "done"]
+    frame.loc[2, "normalized_return"] = ""
+    frame.to_csv(path, index=False)
+    notes: list[str] = []
+    sessions, evaluations = load_tables(folder, notes=notes)
+    assert evaluations["update_index"].tolist() == [0, 1, 3]
+    assert notes == [
+        "1 failed learner update in evaluations.csv left out (no evaluation; the server's log "
+        "says why)"
+    ]
+    row = session_measures(sessions, evaluations, (0.8,)).set_index("session_id").loc["a"]
+    assert (row["episodes_80"], row["actions_80"]) == (3, 30)  # not the failed update's
+
+    frame.loc[2, "status"] = "done"
+    frame.to_csv(path, index=False)
+    with pytest.raises(InputError, match=r"row 3 \(line 4\), column 'normalized_return'"):
+        load_tables(folder)

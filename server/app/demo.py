@@ -108,6 +108,14 @@ def run(args: argparse.Namespace) -> int:
     print(f"  {options.out / 'study.sqlite'}   the database (`bam-study serve` can reopen it)")
     print(f"  {options.out / 'export'}/         the CSV export with its data dictionary")
     print(f"  {options.out / 'analysis'}/       Table 1, the appendix tables, comparisons, plots")
+    print()
+    print("To look at the participants, learning curves and replays in the dashboard:")
+    print(
+        f"  BAM_DATABASE_URL=sqlite:///{options.out.resolve() / 'study.sqlite'} "
+        f"BAM_STUDY_CONFIG={options.out.resolve() / 'study.toml'} "
+        "BAM_ADMIN_TOKEN=choose-a-token bam-study serve"
+    )
+    print("  then open http://127.0.0.1:8000/dashboard and sign in with that token.")
     return 0
 
 

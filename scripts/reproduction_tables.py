@@ -4,9 +4,18 @@
 
 For each experiment folder (holding `curves.csv` from `bam-study simulate`): per environment,
 each learner's percent of the optimal total return at rounds 1, 3, 5 and 10 (mean and standard
-error over agents); BAM minus each other learner, averaged over the rounds (the area between
-the curves) and at the last round, with the standard error of a difference of two independent
-means; and the share of agents still below 50% at the last round.
+error over agents); BAM minus each other learner (and model-based IRL with a global cost minus
+model-based IRL, where both ran), averaged over the rounds (the area between the curves) and at
+the last round, with the standard error of a difference of two independent means; and the share
+of agents still below 50% at the last round.
+
+    python scripts/reproduction_tables.py --versus docs/reproduction/demonstrations \
+        docs/reproduction/feedback
+
+compares two experiments over the agents they share (the same seed gives the same agents): per
+environment and learner, the second experiment's percent of the optimal total return minus the
+first's, averaged over the rounds and at the last round (mean ± s.e. of the paired differences),
+and for BAM against each other learner how the gap changed.
 """
 
 from __future__ import annotations
@@ -53,33 +62,34 @@ def experiment_tables(folder: Path) -> str:
             lines.append(
                 f"| {ENVIRONMENTS[environment]} | {LEARNERS[learner]} | " + " | ".join(cells) + " |"
             )
-    others = [name for name in learners if name != "bam"]
-    if "bam" not in learners or not others:
+    pairs = [("bam", name) for name in learners if name != "bam" and "bam" in learners]
+    if "global-cost" in learners and "model-based" in learners:
+        pairs.append(("global-cost", "model-based"))
+    if not pairs:
         return "\n".join(lines) + "\n"
     lines += [
         "",
-        f"### {experiment}: BAM against each other learner",
+        f"### {experiment}: differences between learners",
         "",
-        f"BAM minus the other learner in percentage points (mean ± s.e. of the difference): "
-        f"averaged over rounds 1-{last} (the area between the curves, per round), and at "
-        f"round {last}. Positive: BAM is ahead.",
+        f"The first learner minus the second in percentage points (mean ± s.e. of the "
+        f"difference): averaged over rounds 1-{last} (the area between the curves, per round), "
+        f"and at round {last}. Positive: the first learner is ahead.",
         "",
         "| Environment | "
         + " | ".join(
-            f"vs {LEARNERS[o]}, rounds 1-{last} | vs {LEARNERS[o]}, round {last}" for o in others
+            f"{LEARNERS[a]} − {LEARNERS[b]}, rounds 1-{last} | {LEARNERS[a]} − {LEARNERS[b]}, "
+            f"round {last}"
+            for a, b in pairs
         )
         + " |",
-        "|---|" + "---:|" * (2 * len(others)),
+        "|---|" + "---:|" * (2 * len(pairs)),
     ]
     for environment in environments:
-        rows = curves[(curves["environment"] == environment) & (curves["round"] >= 1)]
-        per_agent = rows.groupby(["learner", "agent"])["normalized_return"].mean() * 100
-        final = rows[rows["round"] == last].set_index(["learner", "agent"])["normalized_return"]
-        final = final * 100
+        per_agent, final = _per_agent(curves[curves["environment"] == environment], last)
         cells = []
-        for other in others:
-            cells.append(_difference(per_agent["bam"], per_agent[other]))
-            cells.append(_difference(final["bam"], final[other]))
+        for a, b in pairs:
+            cells.append(_difference(per_agent[a], per_agent[b]))
+            cells.append(_difference(final[a], final[b]))
         lines.append(f"| {ENVIRONMENTS[environment]} | " + " | ".join(cells) + " |")
     lines += [
         "",
@@ -101,6 +111,83 @@ def experiment_tables(folder: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _per_agent(curves: pd.DataFrame, last: int) -> tuple[pd.Series, pd.Series]:
+    """Percent of optimal per (learner, agent): mean over rounds 1..last, and at round last."""
+    rows = curves[curves["round"] >= 1]
+    per_agent = rows.groupby(["learner", "agent"])["normalized_return"].mean() * 100
+    final = rows[rows["round"] == last].set_index(["learner", "agent"])["normalized_return"] * 100
+    return per_agent, final
+
+
+def versus_tables(first_folder: Path, second_folder: Path) -> str:
+    """The second experiment minus the first, over the agents both ran (paired by agent)."""
+    first = pd.read_csv(first_folder / "curves.csv")
+    second = pd.read_csv(second_folder / "curves.csv")
+    names = (str(first["experiment"].iloc[0]), str(second["experiment"].iloc[0]))
+    agents = set(first["agent"]) & set(second["agent"])
+    first = first[first["agent"].isin(agents)]
+    second = second[second["agent"].isin(agents)]
+    last = int(min(first["round"].max(), second["round"].max()))
+    learners = [name for name in LEARNERS if name in set(first["learner"]) & set(second["learner"])]
+    environments = [
+        name
+        for name in ENVIRONMENTS
+        if name in set(first["environment"]) & set(second["environment"])
+    ]
+    lines = [
+        f"### {names[1]} minus {names[0]}, paired by agent ({len(agents)} agents)",
+        "",
+        f"Percentage points (mean ± s.e. of the paired differences), averaged over rounds "
+        f"1-{last} and at round {last}. Positive: the agent did better in {names[1]}.",
+        "",
+        "| Environment | "
+        + " | ".join(
+            f"{LEARNERS[n]}, rounds 1-{last} | {LEARNERS[n]}, round {last}" for n in learners
+        )
+        + " |",
+        "|---|" + "---:|" * (2 * len(learners)),
+    ]
+    gaps = []
+    for environment in environments:
+        a_mean, a_last = _per_agent(first[first["environment"] == environment], last)
+        b_mean, b_last = _per_agent(second[second["environment"] == environment], last)
+        cells = []
+        for learner in learners:
+            cells.append(_paired(b_mean[learner], a_mean[learner]))
+            cells.append(_paired(b_last[learner], a_last[learner]))
+        lines.append(f"| {ENVIRONMENTS[environment]} | " + " | ".join(cells) + " |")
+        if "bam" in learners:
+            row = []
+            for other in (n for n in learners if n != "bam"):
+                gap_a = _paired(a_mean["bam"], a_mean[other])
+                gap_b = _paired(b_mean["bam"], b_mean[other])
+                row.append(f"{gap_a} | {gap_b}")
+            gaps.append(f"| {ENVIRONMENTS[environment]} | " + " | ".join(row) + " |")
+    if gaps:
+        others = [n for n in learners if n != "bam"]
+        lines += [
+            "",
+            f"BAM minus each other learner, rounds 1-{last}, over the same agents in both "
+            f"experiments (paired by agent).",
+            "",
+            "| Environment | "
+            + " | ".join(
+                f"vs {LEARNERS[o]}, {names[0]} | vs {LEARNERS[o]}, {names[1]}" for o in others
+            )
+            + " |",
+            "|---|" + "---:|" * (2 * len(others)),
+            *gaps,
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def _paired(after: pd.Series, before: pd.Series) -> str:
+    common = after.index.intersection(before.index)
+    differences = (after[common] - before[common]).to_numpy(dtype=float)
+    se = differences.std(ddof=1) / np.sqrt(len(differences))
+    return f"{differences.mean():+.1f} ± {se:.1f}"
+
+
 def _difference(bam: pd.Series, other: pd.Series) -> str:
     difference = bam.mean() - other.mean()
     se = np.sqrt(bam.var(ddof=1) / len(bam) + other.var(ddof=1) / len(other))
@@ -111,6 +198,12 @@ def main(argv: list[str]) -> int:
     if not argv:
         print(__doc__, file=sys.stderr)
         return 2
+    if argv[0] == "--versus":
+        if len(argv) != 3:
+            print("--versus takes two experiment folders", file=sys.stderr)
+            return 2
+        print(versus_tables(Path(argv[1]), Path(argv[2])))
+        return 0
     for folder in argv:
         print(experiment_tables(Path(folder)))
     return 0

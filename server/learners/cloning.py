@@ -21,6 +21,10 @@ from server.learners.objective import (
 )
 
 
+# Q values this close (relative) to a state's best count as tied for best.
+TIE_TOLERANCE = 1e-9
+
+
 class BehavioralCloning(Learner):
     name = "cloning"
     default_settings = {
@@ -65,18 +69,28 @@ class BehavioralCloning(Learner):
         probabilities = np.full(
             (self.env.num_states, self.env.num_actions), 1.0 / self.env.num_actions
         )
-        greedy = np.argmax(self.table[task], axis=1)
-        probabilities[visited] = 0.0
-        probabilities[visited, greedy[visited]] = 1.0
+        # Where there is data: the table's best action, or an even split between the actions
+        # tied for best. Ties are the rule, not an accident: feedback on one action moves the
+        # other actions of its state identically, so a state whose only data is "-" on one
+        # action has the other actions exactly tied, and picking the first of them would make
+        # the agent STAY there for ever.
+        rows = self.table[task][visited]
+        best = rows.max(axis=1, keepdims=True)
+        tied = rows >= best - TIE_TOLERANCE * np.maximum(1.0, np.abs(best))
+        probabilities[visited] = tied / tied.sum(axis=1, keepdims=True)
         return probabilities
 
     def greedy_policy(self, task: int) -> np.ndarray:
-        """An action per state: the table's argmax where there is data, a random action (drawn
-        from the learner's seeded generator) elsewhere."""
+        """An action per state: the table's best action where there is data (one of the tied
+        best at random), a random action elsewhere, drawn from the learner's seeded
+        generator."""
         probabilities = self.policy(task)
         actions = np.argmax(probabilities, axis=1)
-        unseen = probabilities.max(axis=1) < 1.0
+        undecided = probabilities.max(axis=1) < 1.0
+        unseen = undecided & (probabilities.min(axis=1) > 0.0)
         actions[unseen] = self.rng.integers(0, self.env.num_actions, size=int(unseen.sum()))
+        for state in np.flatnonzero(undecided & ~unseen):
+            actions[state] = self.rng.choice(np.flatnonzero(probabilities[state] > 0.0))
         return actions.astype(np.int64)
 
     def _parameters_state(self) -> dict[str, np.ndarray]:

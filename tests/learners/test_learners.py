@@ -137,6 +137,26 @@ def test_cloning_acts_at_random_where_it_has_no_data() -> None:
                 assert policy[state, action] == 1.0
 
 
+def test_cloning_splits_evenly_between_actions_tied_for_best() -> None:
+    """A state whose only data is "-" on one action leaves the other four exactly tied: the
+    agent must try them, not take the first (STAY) for ever."""
+    env = domains.make("wall")
+    up, left = 1, 3
+    state, other = 30, 31
+    learner = learners.make("cloning", env, seed=0)
+    learner.record_agent_step(0, state, up, env.step(state, up, np.random.default_rng(0)), -1)
+    learner.record_agent_step(0, other, left, env.step(other, left, np.random.default_rng(0)), 1)
+    learner.update()
+    policy = learner.policy(0)
+    expected = np.full(env.num_actions, 0.25)
+    expected[up] = 0.0
+    np.testing.assert_allclose(policy[state], expected)
+    assert policy[other, left] == 1.0
+    chosen = {int(learner.greedy_policy(0)[state]) for _ in range(60)}
+    assert chosen == set(range(env.num_actions)) - {up}
+    assert {int(learner.greedy_policy(0)[other]) for _ in range(10)} == {left}
+
+
 # -- recording and bad input ----------------------------------------------------------------------
 
 

@@ -77,11 +77,12 @@ def test_model_based_irl_cannot_learn_unobserved_walls() -> None:
 
 
 @pytest.mark.slow
-def test_default_optimiser_reaches_the_reference_schedules_likelihood() -> None:
-    """The default optimiser reaches at least the value of equation (5) that the reference
-    schedule (momentum gradient ascent) reaches on the same data."""
-    if "optimizer" not in learners.learner_class("bam").default_settings:
-        pytest.skip("a single optimiser")
-    reference, _ = taught("bam", optimizer="momentum")
+def test_default_optimiser_reaches_at_least_the_alternatives_likelihood() -> None:
+    """The default optimiser reaches at least the value of equation (5) that the other
+    shipped optimiser reaches on the same data: the measured reason it is the default (on
+    doorway, momentum about -165.3 against L-BFGS-B capped at 40 evaluations about -169.8)."""
+    default_name = learners.learner_class("bam").default_settings["optimizer"]
+    other_name = {"momentum": "lbfgs", "lbfgs": "momentum"}[default_name]
     default, _ = taught("bam")
-    assert default.objective()[0] >= reference.objective()[0] - 1e-6 * abs(reference.objective()[0])
+    other, _ = taught("bam", optimizer=other_name)
+    assert default.objective()[0] >= other.objective()[0] - 1e-6 * abs(other.objective()[0])

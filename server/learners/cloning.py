@@ -20,7 +20,6 @@ from server.learners.objective import (
     teacher_log_likelihood,
 )
 
-
 # Q values this close (relative) to a state's best count as tied for best.
 TIE_TOLERANCE = 1e-9
 

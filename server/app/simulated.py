@@ -6,7 +6,8 @@ of suboptimal moves) from a random start, sometimes after moving the agent in id
 sometimes an agent try with A-SABL feedback; the number of rounds varies per agent. It then
 finishes, checks its completion code and records the submission. Requests are retried with the
 same sequence number through connection losses and server restarts, so every request is
-acknowledged exactly once; ``ParticipantRun`` counts them and times them.
+acknowledged exactly once; ``ParticipantRun`` counts them and times them, each from its first
+attempt (what a participant would wait), and counts the requests that needed a retry.
 """
 
 from __future__ import annotations
@@ -62,7 +63,9 @@ class ParticipantRun:
     assignment_id: str
     participant_id: int | None = None
     acknowledged: int = 0  # requests with a seq answered 2xx, each counted once
-    retries: int = 0
+    retries: int = 0  # attempts sent again, over all requests
+    # Latencies (from the first attempt) of the requests that needed at least one retry.
+    retried_latencies: list[float] = field(default_factory=list)
     completed: bool = False
     stopped: bool = False
     completion_code: str | None = None
@@ -71,6 +74,10 @@ class ParticipantRun:
     latencies: dict[str, list[float]] = field(default_factory=dict)
     update_waits: list[float] = field(default_factory=list)
     error: str | None = None
+
+    @property
+    def retried_requests(self) -> int:
+        return len(self.retried_latencies)
 
 
 RETRY_STATUSES = {500, 502, 503, 504}
@@ -176,10 +183,9 @@ class SimulatedParticipant:
         headers = {TOKEN_HEADER: self.token} if self.token else {}
         deadline = time.monotonic() + self.plan.retry_seconds
         delay = 0.05
-        first_sent = time.perf_counter()
+        first_sent = time.perf_counter()  # latency counts every attempt, as a person waits
         retries = self.run.retries
         while True:
-            started = time.perf_counter()
             try:
                 response = self.client.request(method, path, json=body, headers=headers)
             except TRANSPORT_ERRORS as error:
@@ -198,15 +204,18 @@ class SimulatedParticipant:
             self.run.retries += 1
             time.sleep(delay)
             delay = min(delay * 2, 2.0)
-        elapsed = time.perf_counter() - started
+        elapsed = time.perf_counter() - first_sent
+        retried = self.run.retries > retries
+        if retried:
+            self.run.retried_latencies.append(elapsed)
         if response.status_code >= 400:
             raise StudyClientError(f"{method} {path} -> {response.status_code}: {response.text}")
         data = response.json()
         if kind == "agent_step" and (
-            data["outcome"]["learning_wait_seconds"] is not None or self.run.retries > retries
+            data["outcome"]["learning_wait_seconds"] is not None or retried
         ):
             # The agent waited for its learner's update: timed apart from plain steps.
-            self.run.update_waits.append(time.perf_counter() - first_sent)
+            self.run.update_waits.append(elapsed)
             return data
         self.run.latencies.setdefault(kind, []).append(elapsed)
         return data
@@ -364,6 +373,10 @@ class StudyRun:
     def completed(self) -> int:
         return sum(p.completed for p in self.participants)
 
+    @property
+    def retried_latencies(self) -> list[float]:
+        return [x for p in self.participants for x in p.retried_latencies]
+
     def latencies(self, kind: str) -> list[float]:
         return [x for p in self.participants for x in p.latencies.get(kind, [])]
 
@@ -410,7 +423,8 @@ def percentile(values: list[float], q: float) -> float:
 
 
 def summary_table(run: StudyRun, kinds: tuple[str, ...] | None = None) -> str:
-    """Latency percentiles per request kind (milliseconds)."""
+    """Latency percentiles per request kind (milliseconds, from each request's first attempt),
+    then the waits for learner updates and the requests that needed a retry."""
     if kinds is None:
         kinds = tuple(sorted({k for p in run.participants for k in p.latencies}))
     lines = [f"{'request':<18}{'count':>8}{'p50 ms':>10}{'p95 ms':>10}{'max ms':>10}"]
@@ -422,10 +436,10 @@ def summary_table(run: StudyRun, kinds: tuple[str, ...] | None = None) -> str:
             f"{kind:<18}{len(values):>8}{percentile(values, 50) * 1000:>10.1f}"
             f"{percentile(values, 95) * 1000:>10.1f}{max(values) * 1000:>10.1f}"
         )
-    waits = run.update_waits
-    if waits:
-        lines.append(
-            f"{'update wait':<18}{len(waits):>8}{percentile(waits, 50) * 1000:>10.1f}"
-            f"{percentile(waits, 95) * 1000:>10.1f}{max(waits) * 1000:>10.1f}"
-        )
+    for label, values in (("update wait", run.update_waits), ("retried", run.retried_latencies)):
+        if values:
+            lines.append(
+                f"{label:<18}{len(values):>8}{percentile(values, 50) * 1000:>10.1f}"
+                f"{percentile(values, 95) * 1000:>10.1f}{max(values) * 1000:>10.1f}"
+            )
     return "\n".join(lines)

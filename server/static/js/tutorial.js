@@ -9,6 +9,16 @@ function count(counters, name) {
   return counters[name];
 }
 
+/**
+ * A demonstration of ``task`` that reached its goal: the server says so in the answer to the
+ * move that got there (a demonstration stopped with S, or by switching task or resetting, ends
+ * too, but teaches the task only partly).
+ */
+function demonstratedToGoal(event, task) {
+  return event.kind === "move" && event.modeBefore === "demonstrate" && event.taskBefore === task
+    && event.outcome.goal_reached && event.outcome.episode_ended === "goal";
+}
+
 function steps(teacher) {
   const { env } = teacher;
   const [first, second] = env.tasks.map((task) => `“${task.name}”`);
@@ -29,8 +39,8 @@ function steps(teacher) {
     {
       id: "demonstrate",
       title: "Show it a task",
-      text: `The selected task is ${first} (★). Press Demonstrate (D), then walk the agent to its goal with the arrow keys; reaching it ends the demonstration. ${domainHint}`,
-      done: (e) => Boolean(e.outcome.episode_ended) && e.modeBefore === "demonstrate" && e.taskBefore === 0,
+      text: `The selected task is ${first} (★). Press Demonstrate (D), then walk the agent to its goal with the arrow keys; reaching it ends the demonstration (stopping before the goal does not count here). ${domainHint}`,
+      done: (e) => demonstratedToGoal(e, 0),
     },
     {
       id: "try",
@@ -78,7 +88,7 @@ function steps(teacher) {
       id: "demonstrate-second",
       title: "Demonstrate the other task",
       text: `Now demonstrate ${second}: press D and walk the agent to its goal. Each agent needs a demonstration of every task before you can go on.`,
-      done: (e) => Boolean(e.outcome.episode_ended) && e.modeBefore === "demonstrate" && e.taskBefore === 1,
+      done: (e) => demonstratedToGoal(e, 1),
     },
     {
       id: "ready",

@@ -1,0 +1,146 @@
+"""The tutorial advances only when the participant has done what its step asks: part of a step
+(one move of three, only the good key, a demonstration stopped before the goal or cut short by
+switching task) leaves the step where it is and "Finish the tutorial" disabled."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import pytest
+from playwright.sync_api import Page, expect
+
+from tests.browser.conftest import (
+    WAIT_MS,
+    LiveServer,
+    Study,
+    Watch,
+    run_live_server,
+    study_toml,
+)
+
+pytestmark = pytest.mark.browser
+
+NAVIGATION = """
+[[domains]]
+name = "navigation"
+environments = ["wall"]
+"""
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+    config = study_toml(
+        mode="lab", domains_toml=NAVIGATION, learners='["cloning"]', agents=1, allow_anonymous=True
+    )
+    yield from run_live_server(tmp_path_factory.mktemp("tutorial-study"), config)
+
+
+class Tutorial:
+    def __init__(self, page: Page) -> None:
+        self.page = page
+        self.card = page.locator(".tutorial-card")
+        self.next = page.locator('[data-action="next"]')
+
+    def at(self, step: str) -> None:
+        expect(self.card).to_have_attribute("data-step", step, timeout=WAIT_MS)
+
+    def stays_at(self, step: str) -> None:
+        """The page has answered and shown what the last key did: the step has not moved."""
+        self.at(step)
+        expect(self.next).to_be_disabled()
+
+
+def stop_demonstration_early(study: Study, task: int, how: str) -> None:
+    """Demonstrate ``task`` for one move, then end it before its goal: with Stop (S), or by
+    selecting the other task."""
+    study.keep_away_from_goal(task, 3)
+    study.press("d")
+    study.wait_for("mode", "demonstrate")
+    episodes = int(study.data("episodes"))
+    assert study.walk_to_goal(task, limit=1) == 1
+    if how == "stop":
+        study.press("s")
+        study.wait_for("mode", "idle")
+    else:
+        other = 1 - task
+        study.press(str(other + 1))
+        study.wait_for("task", other)
+        study.press("s")
+        study.wait_for("mode", "idle")
+        study.select_task(task)
+    # The demonstration ended (an episode stored), without reaching the goal.
+    study.wait_for("episodes", episodes + 1)
+    assert int(study.data("task")) == task
+
+
+def demonstrate_to_goal(study: Study, task: int) -> None:
+    study.keep_away_from_goal(task, 2)
+    study.press("d")
+    study.wait_for("mode", "demonstrate")
+    study.walk_to_goal(task)
+    study.wait_for("mode", "idle")
+
+
+def test_each_step_needs_all_it_asks(page: Page, server: LiveServer) -> None:
+    watch = Watch(server.url).attach(page)
+    page.goto(f"{server.url}/study")
+    page.click('[data-action="agree"]')
+    page.click('[data-action="start"]')
+    study = Study(page)
+    tutorial = Tutorial(page)
+    expect(study.teach).to_have_attribute("data-kind", "tutorial", timeout=WAIT_MS)
+    study.focus()
+
+    # Three moves asked: one is not enough, three are.
+    tutorial.stays_at("move")
+    study.idle_move()
+    tutorial.stays_at("move")
+    study.idle_move()
+    study.idle_move()
+    tutorial.at("demonstrate")
+
+    # A demonstration stopped with S, or cut short by switching task, does not count.
+    stop_demonstration_early(study, 0, "stop")
+    tutorial.stays_at("demonstrate")
+    stop_demonstration_early(study, 0, "switch task")
+    tutorial.stays_at("demonstrate")
+    demonstrate_to_goal(study, 0)
+    tutorial.at("try")
+
+    # Both feedback keys asked: G alone is not enough.
+    study.press("t")
+    tutorial.at("feedback")
+    expect(page.locator('[data-action="good"]')).to_be_enabled(timeout=WAIT_MS)
+    study.press("g")
+    expect(page.locator(".flash.good.on")).to_have_count(1, timeout=5000)
+    tutorial.stays_at("feedback")
+    study.press("g")
+    expect(page.locator(".flash.good.on")).to_have_count(1, timeout=5000)
+    tutorial.stays_at("feedback")
+    study.press("b")
+    expect(page.locator(".flash.bad.on")).to_have_count(1, timeout=5000)
+    expect(tutorial.card).not_to_have_attribute("data-step", "feedback", timeout=WAIT_MS)
+
+    if study.data("mode") != "idle":
+        tutorial.at("stop")
+        study.press("s")
+    tutorial.at("switch")
+    study.press("2")
+    tutorial.at("reset")
+    study.press("r")
+    tutorial.at("place")
+    study.idle_move()
+    tutorial.stays_at("place")
+    study.idle_move()
+    study.idle_move()
+    tutorial.at("demonstrate-second")
+
+    # The second task's demonstration too must reach its goal.
+    stop_demonstration_early(study, 1, "stop")
+    tutorial.stays_at("demonstrate-second")
+    stop_demonstration_early(study, 1, "switch task")
+    tutorial.stays_at("demonstrate-second")
+    demonstrate_to_goal(study, 1)
+    tutorial.at("ready")
+    expect(tutorial.next).to_be_enabled()
+    watch.check()

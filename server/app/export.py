@@ -1,7 +1,7 @@
 """The study's data as tables: CSV files with a data dictionary, a zip, or pandas DataFrames.
 
-``load_tables`` reads a study database (the analysis can use it directly); ``write_export``
-writes the CSVs and ``data_dictionary.csv``. Worker and assignment ids are pseudonymised with a
+``open_study_database`` opens a study database for reading only (it never creates one);
+``load_tables`` reads it (the analysis can use it directly); ``write_export`` writes the CSVs and ``data_dictionary.csv``. Worker and assignment ids are pseudonymised with a
 salted hash (HMAC-SHA256 with ``BAM_SECRET``, or the random secret created with the database)
 and completion codes left out, unless ``pseudonymize=False``.
 """
@@ -17,7 +17,8 @@ from pathlib import Path
 from typing import Any
 
 import pandas as pd
-from sqlalchemy import select
+from sqlalchemy import create_engine, select
+from sqlalchemy.engine import make_url
 
 from server.app.db import Database
 from server.app.models import (
@@ -208,6 +209,33 @@ def pseudonym(secret: str, value: str | None, prefix: str) -> str | None:
     return f"{prefix}_{digest[:16]}"
 
 
+def open_study_database(url: str) -> Database:
+    """The study database at ``url``, to read from (the export, the analysis).
+
+    A SQLite file is opened read-only: SQLite would create an empty database for a path that
+    does not exist, and a reader never writes to (or changes the journal mode of) a study.
+    Raises ``FileNotFoundError`` or ``ValueError`` (a bad URL) with a message that names no
+    password.
+    """
+    from urllib.parse import quote
+
+    from sqlalchemy.exc import ArgumentError
+
+    try:
+        parsed = make_url(url)
+    except ArgumentError as error:
+        raise ValueError(f"{url!r} is not a database URL: {error}") from None
+    if parsed.get_backend_name() != "sqlite":
+        return Database.from_url(url)
+    if not parsed.database or parsed.database == ":memory:":
+        raise ValueError("a SQLite URL needs the database file")
+    file = Path(parsed.database)
+    if not file.is_file():
+        raise FileNotFoundError(f"no database file {file}")
+    path = quote(file.resolve().as_posix())
+    return Database(create_engine(f"sqlite:///file:{path}?mode=ro&uri=true"))
+
+
 def database_secret(db: Database) -> str:
     with db.read() as s:
         secret = s.scalar(select(Installation.secret).where(Installation.id == 1))
@@ -230,7 +258,7 @@ def load_tables(
     """Every export table as a DataFrame (columns as in ``DICTIONARY``; times as ISO strings),
     from a study database or its URL."""
     if isinstance(db, str):
-        database = Database.from_url(db)
+        database = open_study_database(db)
         try:
             return load_tables(database, pseudonymize, secret)
         finally:

@@ -22,7 +22,7 @@ def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from server.app import db as database
-    from server.app.export import load_tables, write_export
+    from server.app.export import load_tables, open_study_database, write_export
     from server.app.settings import Settings
 
     try:
@@ -30,7 +30,11 @@ def run(args: argparse.Namespace) -> int:
     except ValidationError as error:
         print(f"bam-study export: {error}", file=sys.stderr)
         return 2
-    db = database.Database.from_url(settings.database_url)
+    try:
+        db = open_study_database(settings.database_url)  # read-only: never creates a database
+    except (OSError, ValueError, ImportError) as error:
+        print(f"bam-study export: {error}", file=sys.stderr)
+        return 1
     try:
         current, head = database.current_revision(db.engine), database.head_revision()
         if current != head:

@@ -4,6 +4,7 @@ one evaluation per update, pseudonymised worker ids unless asked otherwise."""
 from __future__ import annotations
 
 import io
+import sqlite3
 import zipfile
 from pathlib import Path
 
@@ -138,7 +139,19 @@ def check_admin_zip(client: TestClient, evaluations: pd.DataFrame) -> None:
 def test_exporting_a_database_without_the_schema_fails_clearly(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    url = f"sqlite:///{tmp_path / 'empty.db'}"
+    empty = tmp_path / "empty.db"
+    sqlite3.connect(empty).close()  # a SQLite database with no tables
+    url = f"sqlite:///{empty}"
     assert main(["export", "--database-url", url, "--out", str(tmp_path / "out")]) == 1
     assert "db upgrade" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_exporting_a_missing_sqlite_file_fails_clearly_and_creates_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    missing = tmp_path / "missing.db"
+    url = f"sqlite:///{missing}"
+    assert main(["export", "--database-url", url, "--out", str(tmp_path / "out")]) == 1
+    assert f"no database file {missing}" in capsys.readouterr().err
+    assert sorted(tmp_path.iterdir()) == []  # no empty missing.db (nor -wal, -shm, out/)

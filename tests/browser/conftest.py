@@ -15,6 +15,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Iterator
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -76,6 +77,8 @@ def study_toml(
     learners: str = '["bam", "cloning"]',
     agents: int = 2,
     allow_anonymous: bool = False,
+    reveal_gravity: bool = False,
+    tutorial: bool = True,
 ) -> str:
     """A small study: the paper's shape (tutorial, agents in random order) with fewer agents."""
     return f"""
@@ -84,7 +87,7 @@ learners = {learners}
 agents_per_environment = {agents}
 allow_repeat_workers = false
 allow_anonymous = {str(allow_anonymous).lower()}
-reveal_gravity = false
+reveal_gravity = {str(reveal_gravity).lower()}
 payment = "You will be paid 3.00 USD for completing this study, which takes about 30 minutes."
 consent = \"\"\"
 This study is part of a research project on how people teach learning agents (simple simulated
@@ -99,7 +102,7 @@ By choosing "I agree" you confirm that you are at least 18 years old and agree t
 mode = "{mode}"
 
 [tutorial]
-enabled = true
+enabled = {str(tutorial).lower()}
 learner = "cloning"
 colour = {{ name = "black", hex = "#000000" }}
 {domains_toml}
@@ -161,9 +164,12 @@ class LiveServer:
             engine.dispose()
 
 
-def run_live_server(tmp: Path, config: str) -> Iterator[LiveServer]:
+def run_live_server(
+    tmp: Path, config: str, executor: Executor | None = None
+) -> Iterator[LiveServer]:
     """A study server on a free port: settings from the BAM_* environment variables, a fresh
-    SQLite database migrated by ``server.app.db.upgrade``, learner updates in a process."""
+    SQLite database migrated by ``server.app.db.upgrade``, learner updates in a process (or in
+    ``executor``)."""
     config_path = tmp / "study.toml"
     config_path.write_text(config, encoding="utf-8")
     database_url = f"sqlite:///{tmp / 'study.db'}"
@@ -177,7 +183,7 @@ def run_live_server(tmp: Path, config: str) -> Iterator[LiveServer]:
         mp.setenv("BAM_UPDATE_WORKERS", "1")
         mp.setenv("BAM_UPDATE_WORKER_NICENESS", "0")
         mp.setenv("BAM_AGENT_WAIT_SECONDS", "120")
-        app = create_app(Settings())
+        app = create_app(Settings(), executor=executor)
     port = free_port()
     server = uvicorn.Server(
         uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", access_log=False)

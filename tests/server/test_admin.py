@@ -109,6 +109,21 @@ def test_participants_sessions_exclusion_and_replay(client: TestClient, db: Data
     assert client.delete("/api/admin/participants/1/exclusion", headers=ADMIN).status_code == 409
 
 
+def test_the_evaluations_of_an_unknown_session_are_not_found(
+    client: TestClient, db: Database
+) -> None:
+    """404 with the reason, not an empty learning curve."""
+    _, tutorial = teaching_participant(client)
+    assert (
+        client.get(f"/api/admin/sessions/{tutorial}/evaluations", headers=ADMIN).status_code == 200
+    )
+    unknown = tutorial + 1000
+    response = client.get(f"/api/admin/sessions/{unknown}/evaluations", headers=ADMIN)
+    assert response.status_code == 404
+    assert f"no learning session {unknown}" in response.text
+    assert client.get(f"/api/admin/sessions/{unknown}/evaluations").status_code == 401
+
+
 def _active(client: TestClient, participant_id: int) -> int:
     detail = client.get(f"/api/admin/participants/{participant_id}", headers=ADMIN).json()
     return next(s["session_id"] for s in detail["sessions"] if s["status"] == "active")

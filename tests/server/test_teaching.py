@@ -9,6 +9,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
+from server import learners
 from server.app.db import Database
 from server.app.models import Episode, Event, LearnerUpdate, LearningSession
 from server.domains import make
@@ -98,6 +99,76 @@ def test_a_demonstration_reaching_the_goal_ends_with_a_synthetic_stay(
         )
         update = s.scalars(select(LearnerUpdate).where(LearnerUpdate.update_index == 1)).one()
         assert (update.episodes, update.actions, update.through_event_id) == (1, moves, last.id)
+
+
+def test_a_demonstration_ended_by_the_participant_gets_a_synthetic_stay(
+    client: TestClient, db: Database
+) -> None:
+    participant, session_id = teaching_participant(client)
+    base = participant.session(session_id)
+    env = make(participant.get(base)["summary"]["environment"])
+    participant.act(f"{base}/mode", mode="demonstrate")
+    # One demonstrated move that does not reach the goal (start again if it did).
+    for _ in range(20):
+        start = participant.act(f"{base}/reset")["session"]["agent"]["state"]
+        if env.is_goal(0, start):
+            continue
+        moved = participant.act(f"{base}/move", action="UP")
+        if not moved["outcome"]["episode_ended"]:
+            break
+    else:
+        pytest.fail("every move reached the goal")
+    assert moved["session"]["mode"] == "demonstrate"
+    state, at = moved["outcome"]["state"], moved["session"]["agent"]["state"]
+    ended = participant.act(f"{base}/end-episode")
+    assert ended["outcome"]["episode_ended"] == "end" and not ended["outcome"]["goal_reached"]
+    assert ended["session"]["mode"] == "idle" and ended["session"]["episode"] is None
+    stay_state = env.step(at, STAY, None)
+    assert ended["session"]["agent"]["state"] == stay_state
+    assert ended["session"]["actions"] == 1  # the STAY is the learner's, not a demonstrated move
+    with db.read() as s:
+        last = s.scalars(select(Event).order_by(Event.id.desc())).first()
+        assert (last.kind, last.record, last.episode_end) == ("end_episode", None, "end")
+        assert (last.task, last.next_state, last.stay_state) == (0, at, stay_state)
+        episode = s.scalars(
+            select(Episode).where(Episode.session_id == session_id).order_by(Episode.id.desc())
+        ).first()
+        assert (episode.kind, episode.end_reason, episode.actions) == ("demonstration", "end", 1)
+    # The learner's data: the demonstrated move, then the STAY where the participant stopped.
+    update_index = ended["outcome"]["update_queued"]
+    wait_for_updates(db)
+    with db.read() as s:
+        saved = s.scalars(
+            select(LearnerUpdate.learner_state).where(
+                LearnerUpdate.session_id == session_id,
+                LearnerUpdate.update_index == update_index,
+            )
+        ).one()
+    learner = learners.restore(env, learners.loads(saved))
+    assert learner.data.demonstrations.tolist()[-2:] == [
+        [0, state, ACTIONS.index("UP"), at],
+        [0, at, STAY, stay_state],
+    ]
+
+
+def test_a_move_while_the_agent_tries_is_refused_and_stores_nothing(
+    client: TestClient, db: Database
+) -> None:
+    participant, session_id = teaching_participant(client)
+    base = participant.session(session_id)
+    participant.act(f"{base}/mode", mode="agent")
+    participant.act(f"{base}/agent-step")
+    before = snapshot(db)
+    for action in ("UP", "LEFT"):
+        response = participant.post(f"{base}/move", action=action)
+        assert response.status_code == 409, response.text
+        assert "the agent is acting on its own: stop it before moving it" in response.text
+    assert snapshot(db) == before
+    # The refused request used up no sequence number: the same seq is free for the next one.
+    assert participant.get("/api/participant")["next_seq"] == participant.seq
+    stopped = participant.act(f"{base}/mode", mode="idle")
+    assert stopped["outcome"]["episode_ended"] == "mode"
+    assert participant.act(f"{base}/move", action="UP")["session"]["mode"] == "idle"
 
 
 def test_idle_moves_agent_steps_feedback_reset_and_task_switches(

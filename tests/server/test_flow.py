@@ -5,11 +5,12 @@ from __future__ import annotations
 
 from collections import Counter
 from datetime import timedelta
-from itertools import pairwise
+from itertools import groupby, pairwise
 
 from fastapi.testclient import TestClient
 from sqlalchemy import select, update
 
+from server.app.config import StudyConfig
 from server.app.db import Database
 from server.app.flow import mark_abandoned
 from server.app.models import LearningSession, StatusChange, utcnow
@@ -59,13 +60,33 @@ def test_consent_assigns_a_domain_and_orders_the_agents(client: TestClient, db: 
     assert state["progress"] == {"agent": 0, "of": 6}
 
 
-def test_learner_orders_are_randomised(client: TestClient, db: Database) -> None:
+def test_learner_orders_are_randomised(
+    client: TestClient, db: Database, study: StudyConfig
+) -> None:
+    """Per participant and environment: each environment's agents are the configured learners
+    in an order drawn for that environment alone."""
     for index in range(12):
         participant = new_participant(TestClient(client.app), f"W{index}", f"A{index}")
         participant.act("/api/participant/consent", agree=True)
+    orders: dict[int, list[tuple[str, ...]]] = {}
     with db.read() as s:
-        rows = s.scalars(select(LearningSession).where(LearningSession.position == 0)).all()
-    assert len({row.learner for row in rows}) > 1
+        rows = s.scalars(
+            select(LearningSession)
+            .where(LearningSession.kind == "study")
+            .order_by(LearningSession.participant_id, LearningSession.position)
+        ).all()
+    for participant_id, sessions in groupby(rows, key=lambda row: row.participant_id):
+        by_environment: dict[str, list[str]] = {}
+        for row in sessions:
+            by_environment.setdefault(row.environment, []).append(row.learner)
+        orders[participant_id] = [tuple(learners) for learners in by_environment.values()]
+    assert len(orders) == 12
+    for first, second in orders.values():
+        assert sorted(first) == sorted(second) == sorted(study.learners)
+    # Not one order for everybody, and not one order per participant for both environments.
+    # (By chance the last fails about once in 6**12 runs.)
+    assert len({order for both in orders.values() for order in both}) > 1
+    assert any(first != second for first, second in orders.values())
 
 
 def test_domains_are_balanced_counting_only_active_and_completed(

@@ -67,6 +67,12 @@ _random = secrets.SystemRandom()
 # Prepared: every request looks its participant up by token.
 _BY_TOKEN = select(PARTICIPANTS).where(PARTICIPANTS.c.token_hash == bindparam("token_hash"))
 _BY_TOKEN_LOCKED = _BY_TOKEN.with_for_update()
+# PostgreSQL advisory lock key of domain assignment: the study's own constant (the first 8 bytes
+# of sha256("bam-study domain assignment")).
+DOMAIN_LOCK_KEY = int.from_bytes(
+    hashlib.sha256(b"bam-study domain assignment").digest()[:8], "big", signed=True
+)
+_LOCK_DOMAIN_ASSIGNMENT = select(func.pg_advisory_xact_lock(DOMAIN_LOCK_KEY))
 _STORED_EVENT = select(EVENTS.c.request_hash, EVENTS.c.response).where(
     EVENTS.c.participant_id == bindparam("participant_id"), EVENTS.c.seq == bindparam("seq")
 )
@@ -498,10 +504,27 @@ def consent(action: Action, agree: bool) -> None:
     create_sessions(action.c, participant, action.study)
 
 
+def lock_domain_assignment(c: Connection) -> None:
+    """Make the rest of this transaction the only domain assignment in progress, so that
+    participants consenting at the same moment each count the others.
+
+    PostgreSQL: a transaction-level advisory lock, released at commit; the participant row
+    locks of ``perform`` do not span participants. Under READ COMMITTED the count that follows
+    sees every assignment committed before the lock was granted. SQLite: a write transaction
+    opened with BEGIN IMMEDIATE (``Database.transaction``) already excludes every other writer
+    from its first statement, in this process and in any other.
+    """
+    if c.dialect.name == "postgresql":
+        c.execute(_LOCK_DOMAIN_ASSIGNMENT)
+    elif c.dialect.name == "sqlite" and not c.get_execution_options().get("sqlite_immediate"):
+        raise RuntimeError("domains are assigned in a write transaction (Database.transaction)")
+
+
 def choose_domain(c: Connection, study: StudyConfig, now: datetime, active_minutes: float) -> str:
     """The least-filled domain, counting participants who completed and those in progress who
     were active in the last ``active_minutes`` (abandoned or excluded ones do not hold a place);
-    ties at random."""
+    ties at random. Holds the domain assignment until the transaction ends."""
+    lock_domain_assignment(c)
     since = now - timedelta(minutes=active_minutes)
     names = [domain.name for domain in study.domains]
     counts = dict.fromkeys(names, 0)

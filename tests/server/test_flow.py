@@ -3,13 +3,19 @@ timestamps, completion codes issued only after the completion is committed."""
 
 from __future__ import annotations
 
+import threading
+import time
 from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
 from datetime import timedelta
 from itertools import groupby, pairwise
+from typing import Any
 
+import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import select, update
+from sqlalchemy import func, select, update
 
+from server.app import flow
 from server.app.config import StudyConfig
 from server.app.db import Database
 from server.app.flow import mark_abandoned
@@ -18,6 +24,7 @@ from server.app.models import Participant as ParticipantRow
 from server.app.settings import Settings
 from tests.server.conftest import (
     ADMIN_TOKEN,
+    Participant,
     demonstrate_each_task,
     new_participant,
     teaching_participant,
@@ -87,6 +94,53 @@ def test_learner_orders_are_randomised(
     # (By chance the last fails about once in 6**12 runs.)
     assert len({order for both in orders.values() for order in both}) > 1
     assert any(first != second for first, second in orders.values())
+
+
+def test_simultaneous_consents_are_balanced(
+    client: TestClient, db: Database, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Participants who consent at the same moment each count the others' domains: the
+    domains differ by at most one. To make a race show every time, ties go to the first domain
+    and each consent waits between choosing its domain and committing."""
+    participants = [
+        new_participant(TestClient(client.app), f"W{index}", f"A{index}") for index in range(8)
+    ]
+    create_sessions = flow.create_sessions
+
+    def slow_create_sessions(*args: Any) -> None:
+        time.sleep(0.1)
+        create_sessions(*args)
+
+    monkeypatch.setattr(flow, "create_sessions", slow_create_sessions)
+    monkeypatch.setattr(flow._random, "choice", lambda names: names[0])
+    ready = threading.Barrier(len(participants))
+
+    def consent(participant: Participant) -> str:
+        ready.wait()
+        participant.act("/api/participant/consent", agree=True)
+        return str(participant.get("/api/participant")["domain"])
+
+    with ThreadPoolExecutor(len(participants)) as pool:
+        counts = Counter(pool.map(consent, participants))
+    assert set(counts) == {"navigation", "farming"}
+    assert max(counts.values()) - min(counts.values()) <= 1, counts
+
+
+def test_domain_assignment_holds_its_lock_until_the_transaction_ends(db: Database) -> None:
+    if db.is_sqlite:
+        # Only a write transaction (BEGIN IMMEDIATE) keeps other writers out while counting.
+        with db.connect() as c, pytest.raises(RuntimeError, match="write transaction"):
+            flow.lock_domain_assignment(c)
+        with db.transaction() as c:
+            flow.lock_domain_assignment(c)
+        return
+    try_lock = select(func.pg_try_advisory_xact_lock(flow.DOMAIN_LOCK_KEY))
+    with db.transaction() as c:
+        flow.lock_domain_assignment(c)
+        with db.transaction() as other:
+            assert other.scalar(try_lock) is False
+    with db.transaction() as other:
+        assert other.scalar(try_lock) is True
 
 
 def test_domains_are_balanced_counting_only_active_and_completed(

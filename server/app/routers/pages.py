@@ -2,7 +2,8 @@
 
 A preview gets the preview page and creates nothing; an arrival the study refuses gets a page
 that says why; an arrival sets the participant's cookie and gets the study page, which then
-works through the JSON API.
+works through the JSON API (with the participant's new token in the page, for a browser that
+keeps no cookie in the platform's iframe).
 """
 
 from __future__ import annotations
@@ -52,8 +53,14 @@ def study_page(request: Request, state: StateDep) -> Response:
         return notice(request, "This study link is not valid", error.message, error.status)
     if arrival.preview:
         return templates.TemplateResponse(request, "preview.html", {"study": state.study.public()})
+    # A new token is also given to the page itself, which sends it in the X-Participant-Token
+    # header: in the platform's cross-site iframe the browser may keep no cookie. The page is
+    # this participant's alone, so no cache may keep it.
     page = templates.TemplateResponse(
-        request, "study.html", {"study": state.study.public(), "participant": arrival.participant}
+        request,
+        "study.html",
+        {"study": state.study.public(), "participant": arrival.participant, "token": arrival.token},
+        headers={"Cache-Control": "no-store"},
     )
     for key, value in response.headers.items():
         if key == "set-cookie":

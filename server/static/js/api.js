@@ -14,12 +14,27 @@ export class ApiError extends Error {
 
 const sleep = (ms) => new Promise((resolve) => setTimeout(resolve, ms));
 
+// The participant's token when the server gave it to this page: sent in a header, since the
+// cookie may be blocked (a cross-site iframe, as on Mechanical Turk). Kept in memory only.
+let participantToken = null;
+
+export function useParticipantToken(token) {
+  participantToken = typeof token === "string" && token ? token : null;
+}
+
+function headersFor(body) {
+  const headers = { Accept: "application/json" };
+  if (body !== undefined) headers["Content-Type"] = "application/json";
+  if (participantToken) headers["X-Participant-Token"] = participantToken;
+  return headers;
+}
+
 async function request(method, url, body) {
   const response = await fetch(url, {
     method,
     credentials: "same-origin",
     cache: "no-store",
-    headers: body === undefined ? { Accept: "application/json" } : { "Content-Type": "application/json", Accept: "application/json" },
+    headers: headersFor(body),
     body: body === undefined ? undefined : JSON.stringify(body),
   });
   let data = null;

@@ -1,13 +1,19 @@
 // The participant's page: asks the server where the participant is and shows that step
 // (consent, instructions, the tutorial, an agent, completion), so that a reload continues there.
 
-import { ApiError, Sequencer, getJSON } from "./api.js";
+import { ApiError, Sequencer, getJSON, useParticipantToken } from "./api.js";
 import { environmentTitle, h, paragraphs } from "./dom.js";
 import { robotIcon, svg } from "./grid.js";
 import { Teacher } from "./teach.js";
 import { Tutorial } from "./tutorial.js";
 
 const study = JSON.parse(document.getElementById("study-data").textContent);
+// A token in the page (a new one, given when this load arrived without a valid cookie).
+const tokenData = document.getElementById("participant-token");
+if (tokenData) {
+  useParticipantToken(JSON.parse(tokenData.textContent));
+  tokenData.remove();
+}
 const app = document.getElementById("app");
 let seq = null;
 let participant = null;

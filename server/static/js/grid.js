@@ -208,9 +208,14 @@ export class GridView {
     for (let c = 1; c < env.width; c++) lines.push(`M${c * C} 0 V${env.height * C}`);
     svg("path", { d: lines.join(" "), stroke: "rgba(31,35,40,0.14)", "stroke-width": 2, fill: "none" }, layer);
     for (const { row, column, colour } of env.colours ?? []) {
-      const g = svg("g", { transform: `translate(${column * C} ${row * C})`, class: `gravity-cell gravity-${colour}` }, layer);
-      svg("rect", { x: 4, y: 4, width: C - 8, height: C - 8, rx: 10, fill: `url(#${prefix}-${colour})`, stroke: "#1f2328", "stroke-width": 4 }, g);
       const direction = this.reveal ? env.gravity_of_colour[colour] : null;
+      const g = svg("g", {
+        transform: `translate(${column * C} ${row * C})`,
+        class: `gravity-cell gravity-${colour}`,
+        "data-direction": direction,
+      }, layer);
+      svg("title", {}, g).textContent = `${colour} cell${direction ? `: sets the gravity ${direction}` : ""}`;
+      svg("rect", { x: 4, y: 4, width: C - 8, height: C - 8, rx: 10, fill: `url(#${prefix}-${colour})`, stroke: "#1f2328", "stroke-width": 4 }, g);
       if (direction) {
         arrow(g, direction, { transform: `translate(20 20) scale(0.6) rotate(${ARROW_ANGLE[direction]} 50 50)` });
       } else {

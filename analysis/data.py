@@ -104,34 +104,21 @@ def load_database(
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Read and validate a study database directly: the tables ``bam-study export`` would
     write, taken from the database at ``url`` (SQLite or PostgreSQL). See ``load_tables``."""
-    from urllib.parse import quote
-
-    from sqlalchemy import create_engine
     from sqlalchemy.engine import make_url
     from sqlalchemy.exc import ArgumentError, SQLAlchemyError
 
-    from server.app.db import Database, current_revision, head_revision
+    from server.app.db import current_revision, head_revision
     from server.app.export import load_tables as read_database
+    from server.app.export import open_study_database
 
     try:
-        parsed = make_url(url)
+        shown = make_url(url).render_as_string(hide_password=True)
     except ArgumentError as error:
         raise InputError(f"--database-url {url!r} is not a database URL: {error}") from None
-    shown = parsed.render_as_string(hide_password=True)
     try:
-        if parsed.get_backend_name() == "sqlite":
-            # SQLite would create an empty database for a path that does not exist; and the
-            # analysis never writes to (or changes the journal mode of) a study: read-only.
-            if not parsed.database or parsed.database == ":memory:":
-                raise InputError(f"--database-url {shown}: a SQLite URL needs the database file")
-            file = Path(parsed.database)
-            if not file.is_file():
-                raise InputError(f"--database-url {shown}: no database file {file}")
-            path = quote(file.resolve().as_posix())
-            db = Database(create_engine(f"sqlite:///file:{path}?mode=ro&uri=true"))
-        else:
-            db = Database.from_url(url)
-    except (ArgumentError, ImportError) as error:
+        # Read-only for SQLite: no empty database left for a wrong path, no journal change.
+        db = open_study_database(url)
+    except (FileNotFoundError, ValueError, ArgumentError, ImportError) as error:
         raise InputError(f"--database-url {shown}: {error}") from None
     try:
         current, head = current_revision(db.engine), head_revision()

@@ -15,6 +15,7 @@ import argparse
 import time
 
 from server import domains, learners
+from server.learners.objective import OPTIMIZERS
 from server.simulation.protocols import Job, demonstration_streams, evaluate, give_demonstrations
 
 
@@ -22,7 +23,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("environment", choices=domains.NAMES)
     parser.add_argument("agent", type=int)
-    parser.add_argument("--optimizer", choices=("momentum", "lbfgs"), default="momentum")
+    parser.add_argument("--optimizer", choices=OPTIMIZERS, default="momentum")
     parser.add_argument("--max-evaluations", type=int, help="L-BFGS evaluations per update")
     parser.add_argument("--rounds", type=int, default=10)
     parser.add_argument("--extra-updates", type=int, default=6)

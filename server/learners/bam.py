@@ -25,8 +25,9 @@ class BAM(PlannerLearner):
     def _fit(self) -> tuple[float, int]:
         data = TeacherData.from_log(self.data)
         observed = self.data.observed_transitions()
-        if self.settings["optimizer"] == "lbfgs":
-            return self._fit_lbfgs(data, observed)
+        optimizer, evaluations = self.schedule(data)
+        if optimizer == "lbfgs":
+            return self._fit_lbfgs(data, observed, evaluations)
         steps = 0
         objective = float("nan")
         for _ in range(int(self.settings["alternations"])):
@@ -40,10 +41,12 @@ class BAM(PlannerLearner):
                 steps += 1
         return objective, steps
 
-    def _fit_lbfgs(self, data: TeacherData, observed: np.ndarray) -> tuple[float, int]:
+    def _fit_lbfgs(
+        self, data: TeacherData, observed: np.ndarray, evaluations: int
+    ) -> tuple[float, int]:
         """Equation (5) over theta and the informed costs jointly with L-BFGS-B."""
         if data.empty:
-            return self.fit_theta_lbfgs(observed)
+            return self.fit_theta_lbfgs(observed, evaluations)
         num_theta = self.env.model.num_parameters
 
         def objective(vector: np.ndarray) -> tuple[float, np.ndarray]:
@@ -60,12 +63,10 @@ class BAM(PlannerLearner):
 
         start = np.concatenate([self.theta, self.cost_vector(data)])
         bounds = [(None, None)] * num_theta + self.cost_bounds(data)
-        best, value, evaluations = maximize_lbfgs(
-            objective, start, bounds, int(self.settings["max_evaluations"])
-        )
+        best, value, used = maximize_lbfgs(objective, start, bounds, evaluations)
         self.theta = best[:num_theta].copy()
         self.set_cost_vector(data, best[num_theta:])
-        return value, evaluations
+        return value, used
 
     def _dynamics_step(self, data: TeacherData, observed: Any) -> float:
         """One momentum step on theta for the whole of equation (5); returns it before."""

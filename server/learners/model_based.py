@@ -18,18 +18,24 @@ class ModelBasedIRL(PlannerLearner):
 
     def _fit(self) -> tuple[float, int]:
         observed = self.data.observed_transitions()
+        data = TeacherData.from_log(self.data)
+        optimizer, evaluations = self.schedule(data)
         if self.settings["optimizer"] == "lbfgs":
-            dynamics_objective, dynamics_evaluations = self.fit_theta_lbfgs(observed)
-            data = TeacherData.from_log(self.data)
+            dynamics_objective, dynamics_evaluations = self.fit_theta_lbfgs(observed, evaluations)
+        else:
+            # The dynamics fit never runs the planner: the momentum schedule costs little.
+            dynamics_objective = 0.0
+            for _ in range(int(self.settings["dynamics_steps"])):
+                dynamics_objective, grad = self.transition_objective(self.theta, observed)
+                self.theta = self.theta_optimizer.step(self.theta, grad)
+            dynamics_evaluations = int(self.settings["dynamics_steps"])
+        if optimizer == "lbfgs":
             if data.empty:
                 return dynamics_objective, dynamics_evaluations
-            teacher_objective, cost_evaluations = self.fit_costs_lbfgs(self.operator(), data)
+            teacher_objective, cost_evaluations = self.fit_costs_lbfgs(
+                self.operator(), data, evaluations
+            )
             return dynamics_objective + teacher_objective, dynamics_evaluations + cost_evaluations
-        dynamics_objective = 0.0
-        for _ in range(int(self.settings["dynamics_steps"])):
-            dynamics_objective, grad = self.transition_objective(self.theta, observed)
-            self.theta = self.theta_optimizer.step(self.theta, grad)
-        data = TeacherData.from_log(self.data)
         teacher_objective = 0.0
         if not data.empty:
             operator = self.operator()

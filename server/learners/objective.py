@@ -39,13 +39,20 @@ COST_SETTINGS: dict[str, Any] = {
     "dynamics_learning_rate": 1.0,
     # m(theta): a weak Gaussian prior centred on the model's initialisation.
     "dynamics_prior_sd": 3.0,
-    # "momentum": the reference schedule of fixed momentum steps (the default: measured to reach
-    # a higher likelihood than L-BFGS-B capped at 40 evaluations on two-fields and flip);
-    # "lbfgs": L-BFGS-B over all parameter blocks at once, 2.5-3x faster, stopping at
-    # convergence or after `max_evaluations` objective evaluations.
+    # "momentum": the reference schedule of fixed momentum steps on every update;
+    # "lbfgs": L-BFGS-B over the parameter blocks on every update, stopping at convergence or
+    # after `max_evaluations` objective evaluations;
+    # "warm-lbfgs": the reference momentum schedule when a task is fitted for the first time
+    # (from its zero costs the small clipped momentum steps reach a higher likelihood than
+    # L-BFGS-B), L-BFGS-B from the warm start on every later update, capped at
+    # `warm_evaluations` (measured to reach at least the momentum schedule's likelihood there
+    # at a tenth of its cost; see docs/reproduction.md, "Speed").
     "optimizer": "momentum",
     "max_evaluations": 40,
+    "warm_evaluations": 20,
 }
+
+OPTIMIZERS = ("momentum", "lbfgs", "warm-lbfgs")
 
 
 @dataclass(frozen=True)

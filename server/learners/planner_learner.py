@@ -13,6 +13,7 @@ from server.learners.likelihoods import gaussian_log_prior
 from server.learners.objective import (
     COMMON_SETTINGS,
     COST_SETTINGS,
+    OPTIMIZERS,
     MomentumAscent,
     TeacherData,
     cell_gradient,
@@ -31,10 +32,15 @@ class PlannerLearner(Learner):
 
     def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
         super().__init__(env, seed, **settings)
-        if self.settings["optimizer"] not in ("lbfgs", "momentum"):
+        if self.settings["optimizer"] not in OPTIMIZERS:
             raise ValueError(
-                f"optimizer must be 'lbfgs' or 'momentum', got {self.settings['optimizer']!r}"
+                f"optimizer must be one of {', '.join(repr(o) for o in OPTIMIZERS)}, "
+                f"got {self.settings['optimizer']!r}"
             )
+        for name in ("max_evaluations", "warm_evaluations"):
+            value = self.settings[name]
+            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
         self.theta = env.model.initial_parameters()
         self.costs = np.zeros((len(env.tasks), env.num_cells))
         self.theta_optimizer = MomentumAscent(
@@ -49,7 +55,24 @@ class PlannerLearner(Learner):
             self.settings["momentum"],
             self.settings["max_step"],
         )
+        # Tasks whose costs an update has fitted (a task's first fit is a cold start).
+        self.fitted_tasks = np.zeros(len(env.tasks), dtype=bool)
         self._policies: np.ndarray | None = None
+
+    # -- the optimiser schedule -------------------------------------------------------------
+    def schedule(self, data: TeacherData) -> tuple[str, int]:
+        """This update's optimiser, "momentum" or "lbfgs", and its L-BFGS-B evaluation cap."""
+        optimizer = self.settings["optimizer"]
+        if optimizer == "lbfgs":
+            return "lbfgs", int(self.settings["max_evaluations"])
+        if optimizer == "warm-lbfgs":
+            if np.all(self.fitted_tasks[data.tasks]) and self.updates > 0:
+                return "lbfgs", int(self.settings["warm_evaluations"])
+            # A cold start: the momentum schedule from rest (the velocity of an earlier
+            # momentum update is stale after L-BFGS-B updates).
+            self.theta_optimizer.velocity[:] = 0.0
+            self.cost_optimizer.velocity[:] = 0.0
+        return "momentum", 0
 
     # -- the model ------------------------------------------------------------------------
     def rewards(self) -> np.ndarray:
@@ -149,7 +172,9 @@ class PlannerLearner(Learner):
         prior, prior_grad = self.cost_prior(self.costs[data.tasks])
         return prior, (cell_gradient(self.env, d_rewards) + prior_grad).ravel()
 
-    def fit_costs_lbfgs(self, operator: TransitionOperator, data: TeacherData) -> tuple[float, int]:
+    def fit_costs_lbfgs(
+        self, operator: TransitionOperator, data: TeacherData, evaluations: int
+    ) -> tuple[float, int]:
         """Costs by L-BFGS-B under a fixed dynamics model; returns (objective, evaluations)."""
 
         def objective(vector: np.ndarray) -> tuple[float, np.ndarray]:
@@ -162,18 +187,18 @@ class PlannerLearner(Learner):
             objective,
             self.cost_vector(data),
             self.cost_bounds(data),
-            int(self.settings["max_evaluations"]),
+            evaluations,
         )
         self.set_cost_vector(data, best)
         return value, evaluations
 
-    def fit_theta_lbfgs(self, observed: np.ndarray) -> tuple[float, int]:
+    def fit_theta_lbfgs(self, observed: np.ndarray, evaluations: int) -> tuple[float, int]:
         """Dynamics by L-BFGS-B on the observed transitions and the prior alone."""
         best, value, evaluations = maximize_lbfgs(
             lambda theta: self.transition_objective(theta, observed),
             self.theta.copy(),
             None,
-            int(self.settings["max_evaluations"]),
+            evaluations,
         )
         self.theta = best
         return value, evaluations
@@ -210,6 +235,7 @@ class PlannerLearner(Learner):
             "costs": self.costs.copy(),
             "theta_velocity": self.theta_optimizer.velocity.copy(),
             "cost_velocity": self.cost_optimizer.velocity.copy(),
+            "fitted_tasks": self.fitted_tasks.copy(),
         }
 
     def _load_parameters_state(self, state: dict[str, Any]) -> None:
@@ -222,8 +248,19 @@ class PlannerLearner(Learner):
             "theta velocity", state["theta_velocity"]
         ).copy()
         self.cost_optimizer.velocity = check_finite("cost velocity", state["cost_velocity"]).copy()
+        if "fitted_tasks" in state:
+            fitted = np.asarray(state["fitted_tasks"], dtype=bool)
+            if fitted.shape != self.fitted_tasks.shape:
+                raise ValueError(f"fitted tasks must have shape {self.fitted_tasks.shape}")
+        else:  # saved before the schedule existed: every task with data was fitted
+            fitted = np.zeros_like(self.fitted_tasks)
+            if self.updates > 0:
+                fitted[TeacherData.from_log(self.data).tasks] = True
+        self.fitted_tasks = fitted.copy()
         self._policies = None
 
     def update(self):  # type: ignore[override]
         self._policies = None
-        return super().update()
+        result = super().update()
+        self.fitted_tasks[TeacherData.from_log(self.data).tasks] = True
+        return result

@@ -46,7 +46,7 @@ BAD_ARGUMENTS = {
     ),
     "setting the learner rejects": (
         ("--learner-setting", "optimizer=adam"),
-        "optimizer must be 'lbfgs' or 'momentum'",
+        "optimizer must be one of 'momentum', 'lbfgs', 'warm-lbfgs'",
     ),
 }
 

@@ -15,6 +15,11 @@ import argparse
 import statistics
 import sys
 import time
+from pathlib import Path
+
+# Run as a script, this folder comes first on sys.path, and benchmarks/server.py would
+# shadow the ``server`` package.
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
 import numpy as np
 
@@ -57,8 +62,10 @@ def time_planner(env, repeats: int) -> tuple[float, float]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--environments", nargs="+", default=list(domains.ENVIRONMENTS))
-    parser.add_argument("--learners", nargs="+", default=list(NAMES))
+    parser.add_argument(
+        "--environments", nargs="+", choices=domains.NAMES, default=list(domains.ENVIRONMENTS)
+    )
+    parser.add_argument("--learners", nargs="+", choices=NAMES, default=list(NAMES))
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(

@@ -32,13 +32,13 @@ from pathlib import Path
 # would shadow the ``server`` package.
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
-from sqlalchemy import func, select  # noqa: E402
+from sqlalchemy import func, select
 
-from server.app.config import DEFAULT_STUDY_CONFIG  # noqa: E402
-from server.app.db import Database, upgrade  # noqa: E402
-from server.app.live import LiveServer  # noqa: E402
-from server.app.models import Event, LearnerUpdate  # noqa: E402
-from server.app.simulated import (  # noqa: E402
+from server.app.config import DEFAULT_STUDY_CONFIG
+from server.app.db import Database, upgrade
+from server.app.live import LiveServer
+from server.app.models import Event, LearnerUpdate
+from server.app.simulated import (
     StudyRun,
     TeachingPlan,
     percentile,

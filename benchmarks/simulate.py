@@ -24,6 +24,10 @@ import tempfile
 import time
 from pathlib import Path
 
+# Run as a script, this folder comes first on sys.path, and benchmarks/server.py would
+# shadow the ``server`` package.
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+
 import numpy as np
 
 from server import domains

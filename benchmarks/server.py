@@ -21,6 +21,7 @@ p95 move latency at most 50 ms, nothing lost.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import tempfile
@@ -44,17 +45,29 @@ from server.app.simulated import (
     percentile,
     run_participants,
 )
+from server.learners.objective import OPTIMIZERS
 
-FAST_LEARNERS = """
-[learner_settings.bam]
-alternations = 2
-cost_steps = 10
-dynamics_steps = 10
+FAST_LEARNERS: dict[str, dict[str, object]] = {
+    "bam": {"alternations": 2, "cost_steps": 10, "dynamics_steps": 10},
+    "model-based": {"dynamics_steps": 20, "cost_steps": 20},
+}
+PLANNER_LEARNERS = ("bam", "model-based")  # those of the paper's study
 
-[learner_settings."model-based"]
-dynamics_steps = 20
-cost_steps = 20
-"""
+
+def learner_settings_toml(fast: bool, optimizer: str | None) -> str:
+    """The study file's [learner_settings] tables for --fast-learners and --optimizer."""
+    tables: dict[str, dict[str, object]] = {}
+    if fast:
+        for name, settings in FAST_LEARNERS.items():
+            tables.setdefault(name, {}).update(settings)
+    if optimizer is not None:
+        for name in PLANNER_LEARNERS:
+            tables.setdefault(name, {})["optimizer"] = optimizer
+    lines = []
+    for name, settings in tables.items():
+        lines.append(f'\n[learner_settings."{name}"]')
+        lines += [f"{key} = {json.dumps(value)}" for key, value in settings.items()]
+    return "\n".join(lines) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -68,6 +81,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--database-url", help="default: a new SQLite file in a temporary folder")
     parser.add_argument("--workers", type=int, default=2, help="learner-update processes")
     parser.add_argument("--fast-learners", action="store_true", help="few optimisation steps")
+    parser.add_argument(
+        "--optimizer",
+        choices=OPTIMIZERS,
+        help="the planner learners' optimiser (default: the study file's, the reference)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
 
@@ -79,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
         events_before = int(s.scalar(select(func.count()).select_from(Event)) or 0)
     study = folder / "study.toml"
     study.write_text(
-        DEFAULT_STUDY_CONFIG.read_text() + (FAST_LEARNERS if args.fast_learners else "")
+        DEFAULT_STUDY_CONFIG.read_text() + learner_settings_toml(args.fast_learners, args.optimizer)
     )
     environment = {
         "BAM_DATABASE_URL": url,

@@ -17,6 +17,7 @@ import asyncio
 import logging
 import multiprocessing
 import os
+import threading
 import time
 import traceback
 from concurrent.futures import Executor, ProcessPoolExecutor
@@ -40,10 +41,24 @@ RESCAN_SECONDS = 30.0
 
 
 # -- in the worker process ------------------------------------------------------------------
+PARENT_CHECK_SECONDS = 1.0
+
+
 def worker_init(niceness: int) -> None:
-    """Lower the worker's priority and import the learners once."""
+    """Lower the worker's priority, leave with the server, import the learners once."""
     if niceness and hasattr(os, "nice"):
         os.nice(niceness)
+    # A server that dies without shutting its pool down (killed, or stopped while it was
+    # replacing workers that a SIGTERM to its process group had killed) leaves its workers
+    # waiting on a queue no one writes to: they must notice and go.
+    parent = os.getppid()
+
+    def leave_with_parent() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_CHECK_SECONDS)
+        os._exit(0)
+
+    threading.Thread(target=leave_with_parent, name="leave-with-server", daemon=True).start()
     import server.learners
     import server.learners.evaluation  # noqa: F401
 
@@ -161,9 +176,11 @@ class UpdateManager:
         self._slots: asyncio.Semaphore | None = None
         self.completed = 0
         self.failed = 0
+        self._stopping = False
 
     # -- lifecycle ---------------------------------------------------------------------------
     async def start(self) -> None:
+        self._stopping = False
         self._loop = asyncio.get_running_loop()
         self._wake = asyncio.Event()
         self._slots = asyncio.Semaphore(self.workers)
@@ -173,6 +190,7 @@ class UpdateManager:
         self._spawn(self._rescan_forever())
 
     async def stop(self) -> None:
+        self._stopping = True
         for task in list(self._tasks):
             task.cancel()
         for task in list(self._tasks):
@@ -337,6 +355,8 @@ class UpdateManager:
                 self._enqueue(session_id)
 
     def _replace_executor(self, broken: Executor) -> None:
+        if self._stopping:  # no new workers while shutting down: they would outlive the server
+            return
         if self._executor is broken:
             self._own_executor = True
             self._executor = new_executor(self.workers, self.niceness)

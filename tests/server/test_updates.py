@@ -3,9 +3,13 @@ waiting only for its own learner, pending updates surviving a restart, failures 
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from itertools import pairwise
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -18,6 +22,7 @@ from server.app.db import Database
 from server.app.main import create_app
 from server.app.models import Event, LearnerUpdate, LearningSession
 from server.app.settings import Settings
+from server.app.updates import PARENT_CHECK_SECONDS
 from server.domains import make
 from server.domains.base import ACTIONS
 from server.teacher import Teacher
@@ -237,3 +242,48 @@ def test_the_learning_state_can_be_awaited(slow_client: TestClient, db: Database
         f"{participant.session(session_id)}/learning?wait=99", headers=participant.headers
     )
     assert response.status_code == 422
+
+
+# A server process that makes its update pool, starts its workers, then dies without shutting
+# the pool down (as SIGKILL, or a SIGTERM that reached the workers first and made it start new
+# ones on its way out, leave them).
+_DYING_SERVER = """
+import os, time
+from server.app.updates import new_executor
+
+if __name__ == "__main__":
+    pool = new_executor(2, 0)
+    for job in [pool.submit(time.sleep, 0.5) for _ in range(2)]:
+        job.result()
+    print(" ".join(str(pid) for pid in pool._processes), flush=True)
+    os._exit(0)
+"""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    with open(f"/proc/{pid}/stat") as stat:  # a zombie is gone for our purpose
+        return stat.read().split(")")[-1].split()[0] != "Z"
+
+
+@pytest.mark.skipif(not Path("/proc").exists(), reason="reads /proc (Linux)")
+def test_update_workers_leave_when_their_server_dies(tmp_path: Path) -> None:
+    script = tmp_path / "dying_server.py"
+    script.write_text(_DYING_SERVER)
+    result = subprocess.run(
+        [sys.executable, str(script)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        timeout=60,  # stdout stays open until the workers, which inherit it, are gone
+    )
+    assert result.returncode == 0, result.stderr
+    workers = [int(pid) for pid in result.stdout.split()]
+    assert len(workers) == 2 and all(pid != os.getpid() for pid in workers)
+    deadline = time.monotonic() + 10 * PARENT_CHECK_SECONDS
+    while any(_alive(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(pid) for pid in workers), "update workers outlived their server"

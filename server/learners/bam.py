@@ -62,7 +62,7 @@ class BAM(PlannerLearner):
             return value + teacher + prior, np.concatenate([d_theta, d_costs])
 
         start = np.concatenate([self.theta, self.cost_vector(data)])
-        bounds = [(None, None)] * num_theta + self.cost_bounds(data)
+        bounds = self.theta_bounds() + self.cost_bounds(data)
         best, value, used = maximize_lbfgs(objective, start, bounds, evaluations)
         self.theta = best[:num_theta].copy()
         self.set_cost_vector(data, best[num_theta:])

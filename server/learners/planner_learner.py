@@ -23,6 +23,8 @@ from server.learners.objective import (
 )
 from server.learners.planning import TransitionOperator, soft_plan
 
+THETA_BOUND = 30.0
+
 
 class PlannerLearner(Learner):
     """Learned dynamics parameters theta (the environment's model space) and per-cell reward
@@ -161,6 +163,14 @@ class PlannerLearner(Learner):
         )
         self.costs = costs
 
+    def theta_bounds(self) -> list[tuple[float | None, float | None]]:
+        """L-BFGS-B's box for the dynamics parameters: its line search may try points far
+        out, where a logit saturates and an observed transition gets probability 0 (log -inf;
+        seen in three-rooms with feedback). Within +-30 every probability of the model space
+        stays above 1e-13; the momentum schedule's clipped steps never get near."""
+        bound = THETA_BOUND
+        return [(-bound, bound)] * self.env.model.num_parameters
+
     def cost_bounds(self, data: TeacherData) -> list[tuple[float | None, float | None]]:
         bound = float(self.settings["cost_bound"])
         return [(-bound, bound)] * len(self.cost_vector(data))
@@ -197,7 +207,7 @@ class PlannerLearner(Learner):
         best, value, evaluations = maximize_lbfgs(
             lambda theta: self.transition_objective(theta, observed),
             self.theta.copy(),
-            None,
+            self.theta_bounds(),
             evaluations,
         )
         self.theta = best

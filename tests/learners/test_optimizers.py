@@ -109,3 +109,22 @@ def test_a_state_saved_before_the_schedule_existed_counts_its_tasks_as_fitted() 
 def test_bad_optimiser_settings_are_refused(settings: dict[str, Any], message: str) -> None:
     with pytest.raises(ValueError, match=message):
         learners.make("bam", domains.make("wall"), **settings)
+
+
+def test_lbfgs_keeps_the_dynamics_parameters_where_observations_stay_possible() -> None:
+    """Unbounded, L-BFGS-B's line search drove a wall cell's failure logit of three-rooms past
+    -37, where its sigmoid is exactly 0; the agent then bumped into that wall and the next
+    update failed ("observed transition ... is impossible"). This run of the feedback
+    experiment crashed so in round 7."""
+    from server.learners.planner_learner import THETA_BOUND
+    from server.simulation.protocols import Job, run_agent
+
+    job = Job("feedback", "three-rooms", "bam", 7, 10, 0, (("optimizer", "warm-lbfgs"),))
+    result = run_agent(job)
+    assert [row["round"] for row in result.rows] == list(range(11))
+    env = domains.make("three-rooms")
+    learner = learners.make("bam", env, optimizer="lbfgs")
+    learner.theta = np.full(env.model.num_parameters, -1000.0)  # as if saturated already
+    learner.record_transition(122, 4, 122)  # (9, 5) RIGHT into the wall at (9, 6): it fails
+    learner.update()
+    assert np.all(np.abs(learner.theta) <= THETA_BOUND)

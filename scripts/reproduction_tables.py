@@ -124,6 +124,8 @@ def versus_tables(first_folder: Path, second_folder: Path) -> str:
     first = pd.read_csv(first_folder / "curves.csv")
     second = pd.read_csv(second_folder / "curves.csv")
     names = (str(first["experiment"].iloc[0]), str(second["experiment"].iloc[0]))
+    if names[0] == names[1]:  # two runs of one experiment (other settings): name the folders
+        names = (first_folder.name, second_folder.name)
     agents = set(first["agent"]) & set(second["agent"])
     first = first[first["agent"].isin(agents)]
     second = second[second["agent"].isin(agents)]

@@ -23,7 +23,7 @@ from server.learners.objective import (
 )
 from server.learners.planning import TransitionOperator, soft_plan
 
-THETA_BOUND = 30.0
+THETA_BOUND = 15.0
 
 
 class PlannerLearner(Learner):
@@ -166,8 +166,10 @@ class PlannerLearner(Learner):
     def theta_bounds(self) -> list[tuple[float | None, float | None]]:
         """L-BFGS-B's box for the dynamics parameters: its line search may try points far
         out, where a logit saturates and an observed transition gets probability 0 (log -inf;
-        seen in three-rooms with feedback). Within +-30 every probability of the model space
-        stays above 1e-13; the momentum schedule's clipped steps never get near."""
+        seen in three-rooms and three-fields with feedback). Within +-15 every probability of
+        the model space, and one minus it (a move that fails when a machine works with
+        probability p), stays above 1e-13; the momentum schedule's clipped steps never get
+        near."""
         bound = THETA_BOUND
         return [(-bound, bound)] * self.env.model.num_parameters
 

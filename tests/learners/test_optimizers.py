@@ -111,15 +111,19 @@ def test_bad_optimiser_settings_are_refused(settings: dict[str, Any], message: s
         learners.make("bam", domains.make("wall"), **settings)
 
 
-def test_lbfgs_keeps_the_dynamics_parameters_where_observations_stay_possible() -> None:
+@pytest.mark.parametrize(("environment", "agent"), [("three-rooms", 7), ("three-fields", 1)])
+def test_lbfgs_keeps_the_dynamics_parameters_where_observations_stay_possible(
+    environment: str, agent: int
+) -> None:
     """Unbounded, L-BFGS-B's line search drove a wall cell's failure logit of three-rooms past
     -37, where its sigmoid is exactly 0; the agent then bumped into that wall and the next
-    update failed ("observed transition ... is impossible"). This run of the feedback
-    experiment crashed so in round 7."""
+    update failed ("observed transition ... is impossible"). Bounded at +-30, a machine's
+    softmax in three-fields still worked with probability 1 - 1e-26, which is 1, so a failed
+    move was impossible again. These runs of the feedback experiment crashed so."""
     from server.learners.planner_learner import THETA_BOUND
     from server.simulation.protocols import Job, run_agent
 
-    job = Job("feedback", "three-rooms", "bam", 7, 10, 0, (("optimizer", "warm-lbfgs"),))
+    job = Job("feedback", environment, "bam", agent, 10, 0, (("optimizer", "warm-lbfgs"),))
     result = run_agent(job)
     assert [row["round"] for row in result.rows] == list(range(11))
     env = domains.make("three-rooms")

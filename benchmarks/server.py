@@ -42,6 +42,7 @@ from server.app.models import Event, LearnerUpdate
 from server.app.simulated import (
     StudyRun,
     TeachingPlan,
+    latency_row,
     percentile,
     run_participants,
 )
@@ -172,13 +173,8 @@ def main(argv: list[str] | None = None) -> int:
         # above, as here, runs from the first attempt.
         ("retried requests", run.retried_latencies),
     ):
-        if values:
-            print(
-                f"{label:<26}{len(values):>8}{percentile(values, 50) * 1000:>10.1f}"
-                f"{percentile(values, 95) * 1000:>10.1f}{max(values) * 1000:>10.1f}"
-            )
-        elif label == "retried requests":
-            print(f"{label:<26}{0:>8}")
+        if values or label == "retried requests":  # none retried is worth saying
+            print(latency_row(label, values, 26))
     print()
     print(
         f"requests answered          {requests} ({requests / elapsed:.0f}/s over {elapsed:.0f} s)"

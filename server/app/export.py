@@ -1,9 +1,10 @@
 """The study's data as tables: CSV files with a data dictionary, a zip, or pandas DataFrames.
 
 ``open_study_database`` opens a study database for reading only (it never creates one);
-``load_tables`` reads it (the analysis can use it directly); ``write_export`` writes the CSVs and ``data_dictionary.csv``. Worker and assignment ids are pseudonymised with a
-salted hash (HMAC-SHA256 with ``BAM_SECRET``, or the random secret created with the database)
-and completion codes left out, unless ``pseudonymize=False``.
+``load_tables`` reads it (the analysis can use it directly); ``write_export`` writes the CSVs
+and ``data_dictionary.csv``. Worker and assignment ids are pseudonymised with a salted hash
+(HMAC-SHA256 with ``BAM_SECRET``, or the random secret created with the database) and
+completion codes left out, unless ``pseudonymize=False``.
 """
 
 from __future__ import annotations

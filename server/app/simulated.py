@@ -422,24 +422,24 @@ def percentile(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float("nan")
 
 
+def latency_row(label: str, values: list[float], width: int) -> str:
+    """A table row: the label, the count, then p50, p95 and max in milliseconds (the count
+    alone when there are no values)."""
+    if not values:
+        return f"{label:<{width}}{0:>8}"
+    return (
+        f"{label:<{width}}{len(values):>8}{percentile(values, 50) * 1000:>10.1f}"
+        f"{percentile(values, 95) * 1000:>10.1f}{max(values) * 1000:>10.1f}"
+    )
+
+
 def summary_table(run: StudyRun, kinds: tuple[str, ...] | None = None) -> str:
     """Latency percentiles per request kind (milliseconds, from each request's first attempt),
     then the waits for learner updates and the requests that needed a retry."""
     if kinds is None:
         kinds = tuple(sorted({k for p in run.participants for k in p.latencies}))
     lines = [f"{'request':<18}{'count':>8}{'p50 ms':>10}{'p95 ms':>10}{'max ms':>10}"]
-    for kind in kinds:
-        values = run.latencies(kind)
-        if not values:
-            continue
-        lines.append(
-            f"{kind:<18}{len(values):>8}{percentile(values, 50) * 1000:>10.1f}"
-            f"{percentile(values, 95) * 1000:>10.1f}{max(values) * 1000:>10.1f}"
-        )
-    for label, values in (("update wait", run.update_waits), ("retried", run.retried_latencies)):
-        if values:
-            lines.append(
-                f"{label:<18}{len(values):>8}{percentile(values, 50) * 1000:>10.1f}"
-                f"{percentile(values, 95) * 1000:>10.1f}{max(values) * 1000:>10.1f}"
-            )
+    rows = [(kind, run.latencies(kind)) for kind in kinds]
+    rows += [("update wait", run.update_waits), ("retried", run.retried_latencies)]
+    lines += [latency_row(label, values, 18) for label, values in rows if values]
     return "\n".join(lines)

@@ -55,6 +55,11 @@ COST_SETTINGS: dict[str, Any] = {
 OPTIMIZERS = ("momentum", "lbfgs", "warm-lbfgs")
 
 
+def taught_tasks(log: DataLog) -> np.ndarray:
+    """The tasks that have demonstrations or agent steps in ``log``, sorted."""
+    return np.unique(np.concatenate([log.demonstrations[:, 0], log.agent_steps[:, 0]]))
+
+
 @dataclass(frozen=True)
 class TeacherData:
     """Demonstrated actions and agent steps with feedback, restricted to the tasks that have

@@ -20,6 +20,7 @@ from server.learners.objective import (
     cell_rewards,
     maximize_lbfgs,
     planned_teacher_log_likelihood,
+    taught_tasks,
 )
 from server.learners.planning import TransitionOperator, soft_plan
 
@@ -170,8 +171,7 @@ class PlannerLearner(Learner):
         the model space, and one minus it (a move that fails when a machine works with
         probability p), stays above 1e-13; the momentum schedule's clipped steps never get
         near."""
-        bound = THETA_BOUND
-        return [(-bound, bound)] * self.env.model.num_parameters
+        return [(-THETA_BOUND, THETA_BOUND)] * self.env.model.num_parameters
 
     def cost_bounds(self, data: TeacherData) -> list[tuple[float | None, float | None]]:
         bound = float(self.settings["cost_bound"])
@@ -267,12 +267,12 @@ class PlannerLearner(Learner):
         else:  # saved before the schedule existed: every task with data was fitted
             fitted = np.zeros_like(self.fitted_tasks)
             if self.updates > 0:
-                fitted[TeacherData.from_log(self.data).tasks] = True
+                fitted[taught_tasks(self.data)] = True
         self.fitted_tasks = fitted.copy()
         self._policies = None
 
     def update(self):  # type: ignore[override]
         self._policies = None
         result = super().update()
-        self.fitted_tasks[TeacherData.from_log(self.data).tasks] = True
+        self.fitted_tasks[taught_tasks(self.data)] = True
         return result

@@ -4,12 +4,55 @@ The transitions are the padded sparse layout of ``SparseTransitions`` flattened 
 ``s * A + a`` with ``width`` entries each. Written as plain loops for numba: the NumPy version
 spent most of its time in call overhead on small arrays (about 100 us per backup on flip); these
 loops do the same arithmetic without it.
+
+The Boltzmann weights of a backup are computed for all (state, action) rows at once by
+``exp_nonpositive``, a polynomial exp that the compiler turns into SIMD code: the scalar ``exp``
+call per weight was more than half of the forward pass (flip: 4.7 ms per pass before, 2.6 after).
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+# exp(x) = 2^k exp(r) with k = round(x / ln 2) and r = x - k ln 2 (ln 2 split in two parts so
+# that r is exact to double precision; the constants are fdlibm's).
+LN2_HI = 6.93147180369123816490e-01
+LN2_LO = 1.90821492927058770002e-10
+LOG2E = 1.4426950408889634
+
+
+@njit(cache=True, fastmath=False)
+def exp_nonpositive(x: np.ndarray, out: np.ndarray, bits: np.ndarray) -> None:
+    """out[i] = exp(x[i]) for x[i] <= 0, within 4e-16 relative of ``np.exp`` (x below -708,
+    where exp underflows to subnormals, is taken as -708: a weight of 3e-308 instead of less).
+    ``bits`` is int64 scratch of the same length. exp(0) is exactly 1.
+
+    Branch-free so that the loop vectorises: |r| <= ln(2) / 2, where the degree-13 Taylor
+    polynomial's error is below 1e-17, and 2^k is built from its IEEE-754 bits.
+    """
+    scale = bits.view(np.float64)
+    for i in range(x.shape[0]):
+        v = max(x[i], -708.0)
+        k = np.floor(v * LOG2E + 0.5)
+        r = (v - k * LN2_HI) - k * LN2_LO
+        p = 1.0 / 479001600.0
+        p = p * r + 1.0 / 39916800.0
+        p = p * r + 1.0 / 3628800.0
+        p = p * r + 1.0 / 362880.0
+        p = p * r + 1.0 / 40320.0
+        p = p * r + 1.0 / 5040.0
+        p = p * r + 1.0 / 720.0
+        p = p * r + 1.0 / 120.0
+        p = p * r + 1.0 / 24.0
+        p = p * r + 1.0 / 6.0
+        p = p * r + 0.5
+        p = p * r + 1.0
+        p = p * r + 1.0
+        out[i] = p
+        bits[i] = (np.int64(k) + 1023) << 52
+    for i in range(x.shape[0]):
+        out[i] *= scale[i]
 
 
 @njit(cache=True, fastmath=False)
@@ -24,53 +67,61 @@ def soft_forward(
     keep_trace: bool,
 ):
     num_tasks, num_states = rewards.shape
+    n = num_states * num_actions
     q = np.empty((num_tasks, num_states, num_actions))
     trace_len = horizon if keep_trace else 0
     values = np.empty((trace_len, num_tasks, num_states))
     jacobians = np.empty((trace_len, num_tasks, num_states, num_actions))
     previous = np.zeros(num_states)
-    current = np.zeros(num_states)
-    row = np.empty(num_actions)
-    weights = np.empty(num_actions)
+    rows = np.empty(n)
+    shifted = np.empty(n)
+    weights = np.empty(n)
+    bits = np.empty(n, dtype=np.int64)
     for k in range(num_tasks):
+        for s in range(num_states):
+            previous[s] = 0.0
         for t in range(horizon):
-            last = t == horizon - 1
             for s in range(num_states):
                 r = rewards[k, s]
-                best = -np.inf
                 for a in range(num_actions):
                     acc = r
                     if t > 0:
                         base = (s * num_actions + a) * width
                         for m in range(width):
                             acc += probs_flat[base + m] * previous[next_flat[base + m]]
-                    row[a] = acc
-                    if acc > best:
-                        best = acc
-                if last:
-                    # Q_horizon is the output; its Boltzmann value is never used.
+                    rows[s * num_actions + a] = acc
+            if t == horizon - 1:
+                # Q_horizon is the output; its Boltzmann value is never used.
+                for s in range(num_states):
                     for a in range(num_actions):
-                        q[k, s, a] = row[a]
-                    continue
+                        q[k, s, a] = rows[s * num_actions + a]
+                break
+            for s in range(num_states):
+                i = s * num_actions
+                best = rows[i]
+                for a in range(1, num_actions):
+                    if rows[i + a] > best:
+                        best = rows[i + a]
+                for a in range(num_actions):
+                    shifted[i + a] = beta * (rows[i + a] - best)
+            # Shifted by each state's best Q: every exponent <= 0 and the best weighs 1.
+            exp_nonpositive(shifted, weights, bits)
+            for s in range(num_states):
+                i = s * num_actions
                 total = 0.0
                 for a in range(num_actions):
-                    # exp(0) = 1 for the best action(s): skip the call.
-                    w = 1.0 if row[a] == best else np.exp(beta * (row[a] - best))
-                    weights[a] = w
-                    total += w
+                    total += weights[i + a]
                 value = 0.0
                 for a in range(num_actions):
-                    weights[a] /= total
-                    value += weights[a] * row[a]
-                current[s] = value
+                    weights[i + a] /= total
+                    value += weights[i + a] * rows[i + a]
+                previous[s] = value
                 if keep_trace:
                     values[t, k, s] = value
                     for a in range(num_actions):
-                        jacobians[t, k, s, a] = weights[a] * (1.0 + beta * (row[a] - value))
-            for s in range(num_states):
-                previous[s] = current[s]
-        for s in range(num_states):
-            previous[s] = 0.0
+                        jacobians[t, k, s, a] = weights[i + a] * (
+                            1.0 + beta * (rows[i + a] - value)
+                        )
     return q, values, jacobians
 
 
@@ -86,39 +137,49 @@ def soft_backward(
     need_transitions: bool,
 ):
     num_tasks, num_states, num_actions = d_q.shape
+    n = num_states * num_actions
     d_reward = np.zeros((num_tasks, num_states))
     d_probs = np.zeros(next_flat.shape[0] if need_transitions else 0)
-    g = np.empty((num_states, num_actions))
+    g = np.empty(n)
     g_v = np.empty(num_states)
     for k in range(num_tasks):
         for s in range(num_states):
             for a in range(num_actions):
-                g[s, a] = d_q[k, s, a]
+                g[s * num_actions + a] = d_q[k, s, a]
         for t in range(horizon, 0, -1):
             for s in range(num_states):
                 acc = 0.0
                 for a in range(num_actions):
-                    acc += g[s, a]
+                    acc += g[s * num_actions + a]
                 d_reward[k, s] += acc
             if t == 1:
                 break
-            for s in range(num_states):
-                g_v[s] = 0.0
-            for s in range(num_states):
-                for a in range(num_actions):
-                    gsa = g[s, a]
+            g_v[:] = 0.0
+            if need_transitions:
+                v = values[t - 2, k]
+                for i in range(n):
+                    gsa = g[i]
                     if gsa == 0.0:
                         continue
-                    base = (s * num_actions + a) * width
+                    base = i * width
                     for m in range(width):
                         j = base + m
                         nxt = next_flat[j]
                         g_v[nxt] += probs_flat[j] * gsa
-                        if need_transitions:
-                            d_probs[j] += gsa * values[t - 2, k, nxt]
+                        d_probs[j] += gsa * v[nxt]
+            else:
+                for i in range(n):
+                    gsa = g[i]
+                    if gsa == 0.0:
+                        continue
+                    base = i * width
+                    for m in range(width):
+                        g_v[next_flat[base + m]] += probs_flat[base + m] * gsa
+            jac = jacobians[t - 2, k]
             for s in range(num_states):
+                gs = g_v[s]
                 for a in range(num_actions):
-                    g[s, a] = g_v[s] * jacobians[t - 2, k, s, a]
+                    g[s * num_actions + a] = gs * jac[s, a]
     return d_reward, d_probs
 
 

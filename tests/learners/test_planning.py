@@ -542,3 +542,26 @@ def test_bad_policies_are_rejected_by_expected_return() -> None:
         expected_return(transitions, np.full((3, 3), np.nan), reward, start, 4)
     with pytest.raises(ValueError, match="NaN or infinite"):
         expected_return(transitions, np.array([0, 1, 2]), reward, np.array([np.nan, 0, 1]), 4)
+
+
+def test_compiled_exp_matches_numpy_on_the_weights_range() -> None:
+    from server.learners._kernels import exp_nonpositive
+
+    rng = np.random.default_rng(0)
+    x = np.concatenate(
+        [
+            [0.0, -0.0, -1e-300, -0.5 * math.log(2), -math.log(2), -700.0, -708.0],
+            -rng.exponential(5.0, size=4000),
+            -rng.uniform(0.0, 1e-6, size=100),
+            -rng.uniform(0.0, 708.0, size=1000),
+        ]
+    )
+    out = np.empty_like(x)
+    exp_nonpositive(x, out, np.empty(len(x), dtype=np.int64))
+    assert out[0] == 1.0 and out[1] == 1.0  # the best action weighs exactly 1
+    np.testing.assert_allclose(out, np.exp(x), rtol=4e-16, atol=0.0)
+    # Below -708 the weight stays a tiny positive number, never a NaN or a negative one.
+    deep = np.array([-709.0, -1e4, -np.inf])
+    out = np.empty_like(deep)
+    exp_nonpositive(deep, out, np.empty(3, dtype=np.int64))
+    assert np.all((out >= 0.0) & (out <= 3.4e-308))

@@ -125,6 +125,31 @@ def soft_forward(
     return q, values, jacobians
 
 
+@njit(cache=True)
+def incoming(
+    next_flat: np.ndarray, probs_flat: np.ndarray, width: int, num_states: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The non-zero entries grouped by next state (the transpose of the table): for next state
+    s', rows ``sources[indptr[s']:indptr[s' + 1]]`` (``s * A + a``) reach it with
+    ``probabilities[...]``."""
+    indptr = np.zeros(num_states + 1, dtype=np.int64)
+    for j in range(next_flat.shape[0]):
+        if probs_flat[j] != 0.0:
+            indptr[next_flat[j] + 1] += 1
+    for s in range(num_states):
+        indptr[s + 1] += indptr[s]
+    fill = indptr[:-1].copy()
+    sources = np.empty(indptr[num_states], dtype=np.int64)
+    probabilities = np.empty(indptr[num_states])
+    for j in range(next_flat.shape[0]):
+        if probs_flat[j] != 0.0:
+            s = next_flat[j]
+            sources[fill[s]] = j // width
+            probabilities[fill[s]] = probs_flat[j]
+            fill[s] += 1
+    return indptr, sources, probabilities
+
+
 @njit(cache=True, fastmath=False)
 def soft_backward(
     next_flat: np.ndarray,
@@ -138,6 +163,8 @@ def soft_backward(
 ):
     num_tasks, num_states, num_actions = d_q.shape
     n = num_states * num_actions
+    # dL/dV_{t-1}(s') gathers over the rows that reach s' (no scattered writes).
+    indptr, sources, probabilities = incoming(next_flat, probs_flat, width, num_states)
     d_reward = np.zeros((num_tasks, num_states))
     d_probs = np.zeros(next_flat.shape[0] if need_transitions else 0)
     g = np.empty(n)
@@ -154,27 +181,18 @@ def soft_backward(
                 d_reward[k, s] += acc
             if t == 1:
                 break
-            g_v[:] = 0.0
             if need_transitions:
                 v = values[t - 2, k]
                 for i in range(n):
-                    gsa = g[i]
-                    if gsa == 0.0:
-                        continue
+                    gi = g[i]
                     base = i * width
                     for m in range(width):
-                        j = base + m
-                        nxt = next_flat[j]
-                        g_v[nxt] += probs_flat[j] * gsa
-                        d_probs[j] += gsa * v[nxt]
-            else:
-                for i in range(n):
-                    gsa = g[i]
-                    if gsa == 0.0:
-                        continue
-                    base = i * width
-                    for m in range(width):
-                        g_v[next_flat[base + m]] += probs_flat[base + m] * gsa
+                        d_probs[base + m] += gi * v[next_flat[base + m]]
+            for s in range(num_states):
+                acc = 0.0
+                for e in range(indptr[s], indptr[s + 1]):
+                    acc += probabilities[e] * g[sources[e]]
+                g_v[s] = acc
             jac = jacobians[t - 2, k]
             for s in range(num_states):
                 gs = g_v[s]

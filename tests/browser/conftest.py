@@ -70,6 +70,12 @@ hex = "#D55E00"
 """
 
 
+def domain_toml(name: str, *environments: str) -> str:
+    """A study file's ``[[domains]]`` table teaching ``environments`` of domain ``name``."""
+    listed = ", ".join(f'"{e}"' for e in environments)
+    return f'\n[[domains]]\nname = "{name}"\nenvironments = [{listed}]\n'
+
+
 def study_toml(
     *,
     mode: str,

@@ -17,6 +17,7 @@ from tests.browser.conftest import (
     LiveServer,
     Study,
     admin_login,
+    domain_toml,
     next_state,
     run_live_server,
     study_toml,
@@ -24,11 +25,7 @@ from tests.browser.conftest import (
 
 pytestmark = pytest.mark.browser
 
-NAVIGATION = """
-[[domains]]
-name = "navigation"
-environments = ["wall"]
-"""
+NAVIGATION = domain_toml("navigation", "wall")
 HEADER = "x-participant-token"
 
 

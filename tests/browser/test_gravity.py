@@ -10,15 +10,19 @@ import pytest
 from playwright.sync_api import Page, expect
 
 from server import domains
-from tests.browser.conftest import WAIT_MS, LiveServer, Study, Watch, run_live_server, study_toml
+from tests.browser.conftest import (
+    WAIT_MS,
+    LiveServer,
+    Study,
+    Watch,
+    domain_toml,
+    run_live_server,
+    study_toml,
+)
 
 pytestmark = pytest.mark.browser
 
-GRAVITY = """
-[[domains]]
-name = "gravity"
-environments = ["choices"]
-"""
+GRAVITY = domain_toml("gravity", "choices")
 DIRECTIONS = ("north", "south", "east", "west")
 ANGLE = {"north": 0, "east": 90, "south": 180, "west": 270}
 

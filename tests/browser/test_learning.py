@@ -20,6 +20,7 @@ from tests.browser.conftest import (
     LiveServer,
     Study,
     Watch,
+    domain_toml,
     next_state,
     run_live_server,
     shortest_path,
@@ -28,11 +29,7 @@ from tests.browser.conftest import (
 
 pytestmark = pytest.mark.browser
 
-NAVIGATION = """
-[[domains]]
-name = "navigation"
-environments = ["wall"]
-"""
+NAVIGATION = domain_toml("navigation", "wall")
 
 
 class HeldUpdates(ThreadPoolExecutor):

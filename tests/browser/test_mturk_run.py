@@ -23,6 +23,7 @@ from tests.browser.conftest import (
     Study,
     Watch,
     admin_login,
+    domain_toml,
     run_live_server,
     study_frame,
     study_toml,
@@ -30,15 +31,7 @@ from tests.browser.conftest import (
 
 pytestmark = pytest.mark.browser
 
-DOMAINS = """
-[[domains]]
-name = "navigation"
-environments = ["two-rooms"]
-
-[[domains]]
-name = "farming"
-environments = ["two-fields"]
-"""
+DOMAINS = domain_toml("navigation", "two-rooms") + domain_toml("farming", "two-fields")
 
 
 @pytest.fixture(scope="module")

@@ -15,17 +15,14 @@ from tests.browser.conftest import (
     LiveServer,
     Study,
     Watch,
+    domain_toml,
     run_live_server,
     study_toml,
 )
 
 pytestmark = pytest.mark.browser
 
-GRAVITY = """
-[[domains]]
-name = "gravity"
-environments = ["choices"]
-"""
+GRAVITY = domain_toml("gravity", "choices")
 
 
 @pytest.fixture(scope="module")

@@ -8,16 +8,20 @@ from collections.abc import Iterator
 import pytest
 from playwright.sync_api import Page, Route, expect
 
-from tests.browser.conftest import WAIT_MS, LiveServer, Study, Watch, run_live_server, study_toml
+from tests.browser.conftest import (
+    WAIT_MS,
+    LiveServer,
+    Study,
+    Watch,
+    domain_toml,
+    run_live_server,
+    study_toml,
+)
 
 pytestmark = pytest.mark.browser
 
 CODE = "C1A2B3C4"
-NAVIGATION = """
-[[domains]]
-name = "navigation"
-environments = ["wall"]
-"""
+NAVIGATION = domain_toml("navigation", "wall")
 
 
 @pytest.fixture(scope="module")

@@ -14,17 +14,14 @@ from tests.browser.conftest import (
     LiveServer,
     Study,
     Watch,
+    domain_toml,
     run_live_server,
     study_toml,
 )
 
 pytestmark = pytest.mark.browser
 
-NAVIGATION = """
-[[domains]]
-name = "navigation"
-environments = ["wall"]
-"""
+NAVIGATION = domain_toml("navigation", "wall")
 
 
 @pytest.fixture(scope="module")

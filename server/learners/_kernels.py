@@ -111,12 +111,12 @@ def soft_forward(
             for s in range(num_states):
                 r = rewards[k, s]
                 for a in range(num_actions):
+                    i = s * num_actions + a
                     acc = r
                     if t > 0:
-                        i = s * num_actions + a
                         for e in range(row_start[i], row_start[i + 1]):
                             acc += entries[e] * previous[columns[e]]
-                    rows[s * num_actions + a] = acc
+                    rows[i] = acc
             if t == horizon - 1:
                 # Q_horizon is the output; its Boltzmann value is never used.
                 for s in range(num_states):

@@ -124,6 +124,11 @@ class TransitionModel:
         self.num_states, self.num_actions, self.width = self.next_states.shape
         self._parametric = self.coef != 0.0
 
+    @property
+    def parametric_entries(self) -> np.ndarray:
+        """(S, A, M) mask of the entries that depend on theta: ``pullback`` reads only these."""
+        return self._parametric
+
     # -- primitives, defined by subclasses -------------------------------------------------
     @property
     def num_primitives(self) -> int:

@@ -8,6 +8,9 @@ loops do the same arithmetic without it.
 The Boltzmann weights of a backup are computed for all (state, action) rows at once by
 ``exp_nonpositive``, a polynomial exp that the compiler turns into SIMD code: the scalar ``exp``
 call per weight was more than half of the forward pass (flip: 4.7 ms per pass before, 2.6 after).
+
+The reverse pass computes dL/dT only at the entries it is asked for: the learners ask for those
+their model space moves (flip: 216 of 8000), the rest of the table being fixed or padding.
 """
 
 from __future__ import annotations
@@ -20,6 +23,11 @@ from numba import njit
 LN2_HI = 6.93147180369123816490e-01
 LN2_LO = 1.90821492927058770002e-10
 LOG2E = 1.4426950408889634
+
+# Every environment has five actions (STAY, UP, DOWN, LEFT, RIGHT); the passes are compiled
+# once more for exactly five, which lets the compiler unroll the per-state action loops
+# (about 15% of a pass). Other counts (small test problems) take the general code.
+FIVE_ACTIONS = 5
 
 
 @njit(cache=True, fastmath=False)
@@ -90,13 +98,36 @@ def soft_forward(
     num_actions: int,
     keep_trace: bool,
 ):
+    """Q after ``horizon`` backups (tasks, S, A) and, with ``keep_trace``, the values V_t and
+    value Jacobians dV_t/dQ_t of t = 1 .. horizon - 1 that the reverse pass needs."""
+    if num_actions == FIVE_ACTIONS:
+        return _soft_forward(
+            next_flat, probs_flat, width, rewards, beta, horizon, FIVE_ACTIONS, keep_trace
+        )
+    return _soft_forward(
+        next_flat, probs_flat, width, rewards, beta, horizon, num_actions, keep_trace
+    )
+
+
+@njit(inline="always", fastmath=False)
+def _soft_forward(
+    next_flat: np.ndarray,
+    probs_flat: np.ndarray,
+    width: int,
+    rewards: np.ndarray,
+    beta: float,
+    horizon: int,
+    num_actions: int,
+    keep_trace: bool,
+):
     num_tasks, num_states = rewards.shape
     n = num_states * num_actions
     # The rows' non-zero entries only (padding is most of the table in gravity and farming:
     # 73% of flip's entries are zero).
     row_start, columns, entries = nonzero_rows(next_flat, probs_flat, width, n)
     q = np.empty((num_tasks, num_states, num_actions))
-    trace_len = horizon if keep_trace else 0
+    # V_horizon and its Jacobian are never used (Q_horizon is the output).
+    trace_len = horizon - 1 if keep_trace else 0
     values = np.empty((trace_len, num_tasks, num_states))
     jacobians = np.empty((trace_len, num_tasks, num_states, num_actions))
     previous = np.zeros(num_states)
@@ -186,13 +217,56 @@ def soft_backward(
     jacobians: np.ndarray,
     d_q: np.ndarray,
     horizon: int,
-    need_transitions: bool,
+    gradient_entries: np.ndarray,
 ):
-    num_tasks, num_states, num_actions = d_q.shape
+    """dL/dreward (tasks, S) and dL/d(table entries) from dL/dQ, the latter only at the flat
+    entry indices ``gradient_entries`` (0 elsewhere; empty: no transition gradient)."""
+    num_actions = d_q.shape[2]
+    if num_actions == FIVE_ACTIONS:
+        return _soft_backward(
+            next_flat,
+            probs_flat,
+            width,
+            values,
+            jacobians,
+            d_q,
+            horizon,
+            gradient_entries,
+            FIVE_ACTIONS,
+        )
+    return _soft_backward(
+        next_flat,
+        probs_flat,
+        width,
+        values,
+        jacobians,
+        d_q,
+        horizon,
+        gradient_entries,
+        num_actions,
+    )
+
+
+@njit(inline="always", fastmath=False)
+def _soft_backward(
+    next_flat: np.ndarray,
+    probs_flat: np.ndarray,
+    width: int,
+    values: np.ndarray,
+    jacobians: np.ndarray,
+    d_q: np.ndarray,
+    horizon: int,
+    gradient_entries: np.ndarray,
+    num_actions: int,
+):
+    num_tasks, num_states = d_q.shape[0], d_q.shape[1]
     n = num_states * num_actions
     # dL/dV_{t-1}(s') gathers over the rows that reach s' (no scattered writes).
     indptr, sources, probabilities = incoming(next_flat, probs_flat, width, num_states)
     d_reward = np.zeros((num_tasks, num_states))
+    need_transitions = gradient_entries.shape[0] > 0
+    every_entry = gradient_entries.shape[0] == next_flat.shape[0]  # (the entries in order)
+    entry_rows = gradient_entries // width  # the row (s * A + a) of each entry
     d_probs = np.zeros(next_flat.shape[0] if need_transitions else 0)
     g = np.empty(n)
     g_v = np.empty(num_states)
@@ -210,11 +284,16 @@ def soft_backward(
                 break
             if need_transitions:
                 v = values[t - 2, k]
-                for i in range(n):
-                    gi = g[i]
-                    base = i * width
-                    for m in range(width):
-                        d_probs[base + m] += gi * v[next_flat[base + m]]
+                if every_entry:
+                    for i in range(n):
+                        gi = g[i]
+                        base = i * width
+                        for m in range(width):
+                            d_probs[base + m] += gi * v[next_flat[base + m]]
+                else:
+                    for e in range(gradient_entries.shape[0]):
+                        j = gradient_entries[e]
+                        d_probs[j] += g[entry_rows[e]] * v[next_flat[j]]
             for s in range(num_states):
                 acc = 0.0
                 for e in range(indptr[s], indptr[s + 1]):

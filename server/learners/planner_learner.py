@@ -83,7 +83,10 @@ class PlannerLearner(Learner):
         return cell_rewards(self.env, self.costs)
 
     def operator(self) -> TransitionOperator:
-        return TransitionOperator.build(self.env.model.transitions(self.theta))
+        # dL/dT is only ever pulled back to theta, which reads the entries theta moves.
+        return TransitionOperator.build(self.env.model.transitions(self.theta)).only_gradients_at(
+            self.env.model.parametric_entries
+        )
 
     def q_values(self) -> np.ndarray:
         """Soft Q (tasks, S, A) under the learned model and rewards."""

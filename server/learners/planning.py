@@ -70,11 +70,27 @@ class TransitionOperator:
         self.width = int(next_states.shape[2])
         self.next_flat = np.ascontiguousarray(next_states, dtype=np.int64).reshape(-1)
         self.probs_flat = np.ascontiguousarray(probabilities, dtype=np.float64).reshape(-1)
+        # The flat entries (``(s * A + a) * width + m``) whose gradient the reverse pass computes;
+        # all of them unless narrowed with ``only_gradients_at``.
+        self.gradient_entries = np.arange(self.probs_flat.shape[0], dtype=np.int64)
         self._matrix: sp.csr_matrix | None = None
 
     @classmethod
     def build(cls, transitions: np.ndarray | SparseTransitions) -> TransitionOperator:
         return cls(transitions)
+
+    def only_gradients_at(self, mask: np.ndarray) -> TransitionOperator:
+        """Have reverse passes compute dL/dT only where ``mask`` (the table's shape) is true
+        and return 0 elsewhere. A learner whose model space moves only some entries (flip:
+        216 of 8000) skips the rest; the gradient at the kept entries is unchanged."""
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != (self.num_states, self.num_actions, self.width):
+            raise ValueError(
+                f"gradient mask must have shape {(self.num_states, self.num_actions, self.width)}"
+                f", got {mask.shape}"
+            )
+        self.gradient_entries = np.flatnonzero(mask.reshape(-1)).astype(np.int64)
+        return self
 
     @property
     def matrix(self) -> sp.csr_matrix:
@@ -96,9 +112,10 @@ class SoftPlan:
     operator: TransitionOperator
     beta: float
     horizon: int
-    values: np.ndarray  # (horizon, K, S): V_1 .. V_horizon
-    value_jacobians: np.ndarray  # (horizon, K, S, A): dV_t/dQ_t = pi (1 + beta (Q - V))
+    values: np.ndarray  # (horizon - 1, K, S): V_1 .. V_{horizon-1}
+    value_jacobians: np.ndarray  # (horizon - 1, K, S, A): dV_t/dQ_t = pi (1 + beta (Q - V))
     single_task: bool
+    has_trace: bool  # the values and Jacobians were kept (keep_trace)
 
     @property
     def q(self) -> np.ndarray:
@@ -121,7 +138,7 @@ class SoftPlan:
             raise ValueError(f"dL/dQ must have shape {expected}, got {d_q.shape}")
         check_finite("dL/dQ", d_q)
         g_q = d_q[None] if self.single_task else d_q
-        if self.values.shape[0] != self.horizon:
+        if not self.has_trace:
             raise ValueError("this plan was computed without keep_trace; it has no reverse pass")
         d_reward, d_probs = _kernels.soft_backward(
             op.next_flat,
@@ -131,7 +148,7 @@ class SoftPlan:
             self.value_jacobians,
             np.ascontiguousarray(g_q),
             self.horizon,
-            need_transitions,
+            op.gradient_entries if need_transitions else np.empty(0, dtype=np.int64),
         )
         if self.single_task:
             d_reward = d_reward[0]
@@ -194,6 +211,7 @@ def soft_plan(
         values=values,
         value_jacobians=jacobians,
         single_task=single_task,
+        has_trace=bool(keep_trace),
     )
 
 

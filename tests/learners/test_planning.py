@@ -565,3 +565,81 @@ def test_compiled_exp_matches_numpy_on_the_weights_range() -> None:
     out = np.empty_like(deep)
     exp_nonpositive(deep, out, np.empty(3, dtype=np.int64))
     assert np.all((out >= 0.0) & (out <= 3.4e-308))
+
+
+@pytest.mark.parametrize("actions", [5, 3])
+def test_the_trace_holds_every_backups_value_and_jacobian(actions: int) -> None:
+    """The reverse pass's trace: V_t is the Boltzmann value of Q_t and dV_t/dQ_t is
+    pi_t (1 + beta (Q_t - V_t)) for t = 1 .. horizon - 1, nothing left unset (five actions take
+    the compiled five-action code, three the general code)."""
+    rng = np.random.default_rng(30)
+    transitions = random_sparse(rng, 9, actions, 3)
+    reward = rng.normal(size=(2, 9))
+    beta, horizon = 1.5, 7
+    plan = soft_plan(transitions, reward, beta, horizon)
+    assert plan.values.shape == (horizon - 1, 2, 9)
+    assert plan.value_jacobians.shape == (horizon - 1, 2, 9, actions)
+    for t in range(1, horizon):
+        q_t = soft_value_iteration(transitions, reward, beta, t)
+        v_t = boltzmann_value(q_t, beta)
+        np.testing.assert_allclose(plan.values[t - 1], v_t, rtol=1e-13, atol=1e-13)
+        z = np.exp(beta * (q_t - q_t.max(axis=-1, keepdims=True)))
+        pi = z / z.sum(axis=-1, keepdims=True)
+        np.testing.assert_allclose(
+            plan.value_jacobians[t - 1],
+            pi * (1.0 + beta * (q_t - v_t[..., None])),
+            rtol=1e-12,
+            atol=1e-13,
+        )
+    again = soft_plan(transitions, reward, beta, horizon)
+    np.testing.assert_array_equal(again.values, plan.values)
+    np.testing.assert_array_equal(again.value_jacobians, plan.value_jacobians)
+
+
+def test_five_action_code_computes_what_the_general_code_does() -> None:
+    """The passes compiled for exactly five actions give the general code's numbers, bit for
+    bit (the general code is called directly, with the action count as a run-time value)."""
+    from server.learners import _kernels
+
+    env = domains.make("doorway")
+    rng = np.random.default_rng(31)
+    theta = env.model.initial_parameters() + rng.normal(size=env.model.num_parameters)
+    op = TransitionOperator.build(env.model.transitions(theta))
+    rewards = rng.normal(size=(len(env.tasks), env.num_states))
+    args = (op.next_flat, op.probs_flat, op.width, rewards, 1.0, env.horizon, 5, True)
+    special = _kernels.soft_forward(*args)
+    general = _kernels._soft_forward(*args)
+    for a, b in zip(special, general, strict=True):
+        np.testing.assert_array_equal(a, b)
+    d_q = rng.normal(size=special[0].shape)
+    trace = (op.next_flat, op.probs_flat, op.width, special[1], special[2], d_q, env.horizon)
+    special_back = _kernels.soft_backward(*trace, op.gradient_entries)
+    general_back = _kernels._soft_backward(*trace, op.gradient_entries, 5)
+    for a, b in zip(special_back, general_back, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_transition_gradient_only_where_asked() -> None:
+    """``only_gradients_at`` (what the learners use: the entries theta moves) returns the full
+    reverse pass's dL/dT exactly at those entries and 0 elsewhere, so the gradient in theta is
+    unchanged; a mask of the wrong shape is refused."""
+    env = domains.make("flip")
+    rng = np.random.default_rng(32)
+    theta = env.model.initial_parameters() + rng.normal(size=env.model.num_parameters)
+    reward = rng.normal(0.0, 0.3, size=(2, env.num_states))
+    d_q = rng.normal(size=(2, env.num_states, env.num_actions))
+    full_op = TransitionOperator.build(env.model.transitions(theta))
+    mask = env.model.parametric_entries
+    narrow_op = TransitionOperator.build(env.model.transitions(theta)).only_gradients_at(mask)
+    assert 0 < len(narrow_op.gradient_entries) < mask.size / 10  # flip: 216 of 8000
+    full_reward, full = soft_plan(full_op, reward, 1.0, 30).backward(d_q)
+    narrow_reward, narrow = soft_plan(narrow_op, reward, 1.0, 30).backward(d_q)
+    assert full is not None and narrow is not None
+    np.testing.assert_array_equal(narrow_reward, full_reward)
+    np.testing.assert_array_equal(narrow[mask], full[mask])
+    assert np.all(narrow[~mask] == 0.0) and np.any(full[~mask] != 0.0)
+    np.testing.assert_array_equal(
+        env.model.pullback(theta, narrow), env.model.pullback(theta, full)
+    )
+    with pytest.raises(ValueError, match="gradient mask must have shape"):
+        full_op.only_gradients_at(np.ones((3, 3), dtype=bool))

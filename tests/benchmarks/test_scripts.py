@@ -13,7 +13,7 @@ import pytest
 BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 
 
-@pytest.mark.parametrize("script", ["learners.py", "simulate.py", "server.py"])
+@pytest.mark.parametrize("script", ["learners.py", "simulate.py", "server.py", "compare.py"])
 def test_a_benchmark_script_starts_as_the_readme_runs_it(script: str, tmp_path: Path) -> None:
     result = subprocess.run(
         [sys.executable, str(BENCHMARKS / script), "--help"],
@@ -37,3 +37,55 @@ def test_a_bad_benchmark_argument_exits_non_zero_with_a_message(tmp_path: Path) 
     assert result.returncode == 2
     assert "invalid choice: 'nowhere'" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_compare_refuses_a_revision_that_is_not_a_commit(tmp_path: Path) -> None:
+    result = subprocess.run(
+        [sys.executable, str(BENCHMARKS / "compare.py"), "--against", "no-such-revision"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 2
+    assert "'no-such-revision' is not a commit" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+@pytest.mark.slow
+def test_compare_times_both_versions_of_the_same_update(tmp_path: Path) -> None:
+    """Against HEAD itself (the same code twice): one row per environment, both versions
+    timed, and the temporary worktree gone afterwards."""
+    root = BENCHMARKS.parent
+    result = subprocess.run(
+        [
+            sys.executable,
+            str(BENCHMARKS / "compare.py"),
+            "--against",
+            "HEAD",
+            "--environments",
+            "wall",
+            "--learner",
+            "model-based",
+            "--rounds",
+            "1",
+            "--repeats",
+            "1",
+            "--cycles",
+            "1",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr
+    rows = [line.split() for line in result.stdout.splitlines() if line.startswith("wall ")]
+    assert len(rows) == 1
+    before, after = float(rows[0][1].removesuffix("ms")), float(rows[0][2].removesuffix("ms"))
+    assert before > 0 and after > 0
+    assert float(rows[0][5]) == pytest.approx(after / before, abs=0.01)
+    worktrees = subprocess.run(
+        ["git", "worktree", "list"], cwd=root, capture_output=True, text=True, check=True
+    )
+    assert "bam-compare-" not in worktrees.stdout

@@ -13,42 +13,38 @@ import pytest
 BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 
 
-@pytest.mark.parametrize("script", ["learners.py", "simulate.py", "server.py", "compare.py"])
-def test_a_benchmark_script_starts_as_the_readme_runs_it(script: str, tmp_path: Path) -> None:
-    result = subprocess.run(
-        [sys.executable, str(BENCHMARKS / script), "--help"],
-        cwd=tmp_path,
+def run_script(script: str, *arguments: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    """A benchmark script run as the README runs it, from another folder."""
+    return subprocess.run(
+        [sys.executable, str(BENCHMARKS / script), *arguments],
+        cwd=cwd,
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=600,
     )
+
+
+@pytest.mark.parametrize("script", ["learners.py", "simulate.py", "server.py", "compare.py"])
+def test_a_benchmark_script_starts_as_the_readme_runs_it(script: str, tmp_path: Path) -> None:
+    result = run_script(script, "--help", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith("usage:")
 
 
-def test_a_bad_benchmark_argument_exits_non_zero_with_a_message(tmp_path: Path) -> None:
-    result = subprocess.run(
-        [sys.executable, str(BENCHMARKS / "learners.py"), "--environments", "nowhere"],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+@pytest.mark.parametrize(
+    ("script", "arguments", "message"),
+    [
+        ("learners.py", ["--environments", "nowhere"], "invalid choice: 'nowhere'"),
+        ("compare.py", ["--against", "no-such-revision"], "'no-such-revision' is not a commit"),
+        ("compare.py", ["--against", "HEAD", "--cycles", "0"], "--cycles must be at least 1"),
+    ],
+)
+def test_a_bad_benchmark_argument_exits_non_zero_with_a_message(
+    script: str, arguments: list[str], message: str, tmp_path: Path
+) -> None:
+    result = run_script(script, *arguments, cwd=tmp_path)
     assert result.returncode == 2
-    assert "invalid choice: 'nowhere'" in result.stderr
-    assert "Traceback" not in result.stderr
-
-
-def test_compare_refuses_a_revision_that_is_not_a_commit(tmp_path: Path) -> None:
-    result = subprocess.run(
-        [sys.executable, str(BENCHMARKS / "compare.py"), "--against", "no-such-revision"],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert result.returncode == 2
-    assert "'no-such-revision' is not a commit" in result.stderr
+    assert message in result.stderr
     assert "Traceback" not in result.stderr
 
 
@@ -57,27 +53,11 @@ def test_compare_times_both_versions_of_the_same_update(tmp_path: Path) -> None:
     """Against HEAD itself (the same code twice): one row per environment, both versions
     timed, and the temporary worktree gone afterwards."""
     root = BENCHMARKS.parent
-    result = subprocess.run(
-        [
-            sys.executable,
-            str(BENCHMARKS / "compare.py"),
-            "--against",
-            "HEAD",
-            "--environments",
-            "wall",
-            "--learner",
-            "model-based",
-            "--rounds",
-            "1",
-            "--repeats",
-            "1",
-            "--cycles",
-            "1",
-        ],
+    result = run_script(
+        "compare.py",
+        *("--against", "HEAD", "--environments", "wall", "--learner", "model-based"),
+        *("--rounds", "1", "--repeats", "1", "--cycles", "1"),
         cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=600,
     )
     assert result.returncode == 0, result.stderr
     rows = [line.split() for line in result.stdout.splitlines() if line.startswith("wall ")]

@@ -84,7 +84,7 @@ def test_the_build_context_keeps_data_out_and_the_server_in() -> None:
     for path in (
         "bam-study.db",
         "bam-study.db-wal",
-        "bam-demo/bam-study.db",
+        "bam-demo/study.sqlite",
         "bam-demo/export/events.csv",
         ".venv/bin/python",
         ".git/config",

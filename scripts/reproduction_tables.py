@@ -20,6 +20,7 @@ and for BAM against each other learner how the gap changed.
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -196,18 +197,35 @@ def _difference(bam: pd.Series, other: pd.Series) -> str:
     return f"{difference:+.1f} ± {se:.1f}"
 
 
+def experiment_folder(text: str) -> Path:
+    """An argument naming a folder that holds a simulation's curves.csv."""
+    folder = Path(text)
+    if not (folder / "curves.csv").is_file():
+        raise argparse.ArgumentTypeError(
+            f"{text!r} holds no curves.csv (give the --out folder of `bam-study simulate`)"
+        )
+    return folder
+
+
 def main(argv: list[str]) -> int:
-    if not argv:
-        print(__doc__, file=sys.stderr)
-        return 2
-    if argv[0] == "--versus":
-        if len(argv) != 3:
-            print("--versus takes two experiment folders", file=sys.stderr)
-            return 2
-        print(versus_tables(Path(argv[1]), Path(argv[2])))
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0],
+        epilog="Tables in Markdown on standard output.",
+    )
+    parser.add_argument("folders", nargs="+", type=experiment_folder, metavar="FOLDER")
+    parser.add_argument(
+        "--versus",
+        action="store_true",
+        help="compare two experiment folders over the agents they share (paired by agent)",
+    )
+    args = parser.parse_args(argv)
+    if args.versus:
+        if len(args.folders) != 2:
+            parser.error("--versus takes exactly two experiment folders")
+        print(versus_tables(*args.folders))
         return 0
-    for folder in argv:
-        print(experiment_tables(Path(folder)))
+    for folder in args.folders:
+        print(experiment_tables(folder))
     return 0
 
 

@@ -1,0 +1,79 @@
+"""scripts/reproduction_tables.py, which makes docs/reproduction.md's tables from the committed
+curves: its arguments, and the paired comparison on the committed runs."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+SCRIPT = ROOT / "scripts" / "reproduction_tables.py"
+DEMONSTRATIONS = ROOT / "docs" / "reproduction" / "demonstrations"
+
+
+def paired_rows(output: str) -> list[list[str]]:
+    """The cells of the first table (the paired differences), one list per environment."""
+    first = output.split("BAM minus each other learner")[0]
+    lines = [line for line in first.splitlines() if line.startswith("| ")]
+    return [[cell.strip() for cell in line.strip("|").split("|")] for line in lines]
+
+
+def run(*arguments: str, cwd: Path = ROOT) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, str(SCRIPT), *arguments],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+def test_help_describes_the_script() -> None:
+    result = run("--help")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("usage:")
+    assert "--versus" in result.stdout
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        ([], "the following arguments are required: FOLDER"),
+        (["no-such-folder"], "'no-such-folder' holds no curves.csv"),
+        (["--versus", str(DEMONSTRATIONS)], "--versus takes exactly two experiment folders"),
+    ],
+)
+def test_bad_arguments_exit_non_zero_with_a_message(arguments: list[str], message: str) -> None:
+    result = run(*arguments)
+    assert result.returncode == 2
+    assert message in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_an_experiment_against_itself_differs_by_nothing() -> None:
+    """Paired by agent, a run minus itself is +0.0 ± 0.0 in every cell, over all 50 agents."""
+    result = run("--versus", str(DEMONSTRATIONS), str(DEMONSTRATIONS))
+    assert result.returncode == 0, result.stderr
+    assert "paired by agent (50 agents)" in result.stdout
+    header, *rows = paired_rows(result.stdout)
+    assert header[1] == "BAM, rounds 1-10"
+    assert len(rows) == 8
+    for row in rows:
+        assert all(re.fullmatch(r"[+-]0\.0 ± 0\.0", cell) for cell in row[1:]), row
+
+
+def test_the_committed_rerun_matches_what_the_report_says() -> None:
+    """docs/reproduction.md: the rerun with the current code moves BAM's mean over rounds
+    1-10 by at most 1.8 points in every environment."""
+    current = ROOT / "docs" / "reproduction" / "demonstrations-current"
+    result = run("--versus", str(DEMONSTRATIONS), str(current))
+    assert result.returncode == 0, result.stderr
+    header, *rows = paired_rows(result.stdout)
+    column = header.index("BAM, rounds 1-10")
+    assert len(rows) == 8
+    for row in rows:
+        assert abs(float(row[column].split(" ± ")[0])) <= 1.8, row

@@ -159,7 +159,7 @@ def versus_tables(first_folder: Path, second_folder: Path) -> str:
             cells.append(_paired(b_mean[learner], a_mean[learner]))
             cells.append(_paired(b_last[learner], a_last[learner]))
         lines.append(f"| {ENVIRONMENTS[environment]} | " + " | ".join(cells) + " |")
-        if "bam" in learners:
+        if "bam" in learners and len(learners) > 1:
             row = []
             for other in (n for n in learners if n != "bam"):
                 gap_a = _paired(a_mean["bam"], a_mean[other])

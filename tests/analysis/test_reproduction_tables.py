@@ -77,3 +77,20 @@ def test_the_committed_rerun_matches_what_the_report_says() -> None:
     assert len(rows) == 8
     for row in rows:
         assert abs(float(row[column].split(" ± ")[0])) <= 1.8, row
+
+
+def test_a_run_of_bam_alone_gets_no_empty_gap_table(tmp_path: Path) -> None:
+    """With one learner there is no gap to another: the comparison has the paired table only."""
+    curves = (DEMONSTRATIONS / "curves.csv").read_text().splitlines()
+    bam_only = tmp_path / "bam-only"
+    bam_only.mkdir()
+    kept = [curves[0], *(line for line in curves[1:] if line.split(",")[2] == "bam")]
+    (bam_only / "curves.csv").write_text("\n".join(kept) + "\n")
+    result = run("--versus", str(DEMONSTRATIONS), str(bam_only))
+    assert result.returncode == 0, result.stderr
+    assert "BAM minus each other learner" not in result.stdout
+    header, *rows = paired_rows(result.stdout)
+    assert header == ["Environment", "BAM, rounds 1-10", "BAM, round 10"]
+    assert len(rows) == 8
+    for row in rows:
+        assert all(re.fullmatch(r"[+-]0\.0 ± 0\.0", cell) for cell in row[1:]), row

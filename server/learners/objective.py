@@ -45,8 +45,10 @@ COST_SETTINGS: dict[str, Any] = {
     # "warm-lbfgs": the reference momentum schedule when a task is fitted for the first time
     # (from its zero costs the small clipped momentum steps reach a higher likelihood than
     # L-BFGS-B), L-BFGS-B from the warm start on every later update, capped at
-    # `warm_evaluations` (measured to reach at least the momentum schedule's likelihood there
-    # at a tenth of its cost; see docs/reproduction.md, "Speed").
+    # `warm_evaluations`. One such update reaches at least the value of one momentum update
+    # from the same start at a twentieth of its passes, but over whole runs L-BFGS-B alone
+    # ends lower; BAM's `warm_alternations` runs part of the momentum schedule first (see
+    # docs/reproduction.md, "A faster optimiser").
     "optimizer": "momentum",
     "max_evaluations": 40,
     "warm_evaluations": 20,

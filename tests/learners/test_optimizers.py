@@ -1,6 +1,7 @@
 """The optimiser schedules of the planner learners: "momentum" (the reference, every update),
 "lbfgs" (every update) and "warm-lbfgs" (the reference momentum schedule for a task's first fit,
-L-BFGS-B from the warm start afterwards)."""
+L-BFGS-B from the warm start afterwards, after ``warm_alternations`` of the momentum schedule in
+BAM)."""
 
 from __future__ import annotations
 
@@ -72,6 +73,46 @@ def test_warm_lbfgs_reaches_at_least_the_momentum_likelihood_from_a_warm_start()
     assert warm.objective()[0] >= momentum.objective()[0]
 
 
+def test_warm_alternations_run_momentum_alternations_from_rest_then_lbfgs() -> None:
+    """A warm update with ``warm_alternations = 2``: two alternations of the momentum schedule
+    from rest (the same parameters as a two-alternation momentum update whose velocity was
+    zeroed), then L-BFGS-B, which only ever keeps a point at least as good; a first fit is the
+    whole reference schedule as before."""
+    env = domains.make("two-rooms")
+    learner = learners.make("bam", env, seed=0, optimizer="warm-lbfgs", warm_alternations=2)
+    teacher, rng = Teacher(env, seed=0), np.random.default_rng(0)
+    demonstrate_round(learner, env, teacher, rng)
+    assert learner.update().steps == reference_passes(learner)
+    demonstrate_round(learner, env, teacher, rng)
+    state = learner.state_dict()
+    momentum_state = {
+        **state,
+        "settings": {**state["settings"], "optimizer": "momentum", "alternations": 2},
+        "parameters": {
+            **state["parameters"],
+            "theta_velocity": np.zeros_like(state["parameters"]["theta_velocity"]),
+            "cost_velocity": np.zeros_like(state["parameters"]["cost_velocity"]),
+        },
+    }
+    momentum = learners.restore(env, momentum_state)
+    momentum_steps = momentum.update().steps
+    assert momentum_steps == 2 * (20 + 20)
+    result = learner.update()
+    evaluations = result.steps - momentum_steps
+    assert 1 <= evaluations <= int(learner.settings["warm_evaluations"]) + 2
+    assert learner.objective()[0] > momentum.objective()[0]
+    # Without the L-BFGS-B part, exactly the momentum steps from rest; with the saved velocity
+    # kept they would differ.
+    stopped = learners.restore(env, state)
+    stopped._fit_lbfgs = lambda data, observed, evaluations: (0.0, 0)  # type: ignore[method-assign]
+    stopped.update()
+    np.testing.assert_array_equal(stopped.theta, momentum.theta)
+    np.testing.assert_array_equal(stopped.costs, momentum.costs)
+    kept = learners.restore(env, {**momentum_state, "parameters": state["parameters"]})
+    kept.update()
+    assert np.abs(kept.theta - momentum.theta).max() > 1e-3
+
+
 def test_warm_lbfgs_state_round_trips_with_its_fitted_tasks() -> None:
     env = domains.make("wall")
     original = learners.make("bam", env, seed=1, optimizer="warm-lbfgs")
@@ -104,6 +145,8 @@ def test_a_state_saved_before_the_schedule_existed_counts_its_tasks_as_fitted() 
         ({"optimizer": "adam"}, "optimizer must be one of 'momentum', 'lbfgs', 'warm-lbfgs'"),
         ({"warm_evaluations": 0}, "warm_evaluations must be a positive integer"),
         ({"max_evaluations": 2.5}, "max_evaluations must be a positive integer"),
+        ({"warm_alternations": -1}, "warm_alternations must be a non-negative integer"),
+        ({"warm_alternations": True}, "warm_alternations must be a non-negative integer"),
     ],
 )
 def test_bad_optimiser_settings_are_refused(settings: dict[str, Any], message: str) -> None:

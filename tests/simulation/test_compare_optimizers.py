@@ -1,0 +1,81 @@
+"""scripts/compare_optimizers.py: optimiser settings against the reference schedule on the
+demonstrations experiment's agents, by equation (5) after each update and by return."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+SCRIPT = ROOT / "scripts" / "compare_optimizers.py"
+
+
+def load_script():  # type: ignore[no-untyped-def]
+    spec = importlib.util.spec_from_file_location("compare_optimizers", SCRIPT)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def run(*arguments: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, str(SCRIPT), *arguments],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+def test_the_reference_agent_is_the_simulation_s_agent() -> None:
+    """Same seeds as `bam-study simulate`: the reference run of agent 3 in wall returns what
+    the committed full run (docs/reproduction/demonstrations-current) recorded."""
+    script = load_script()
+    _, _, _, rows = script.run_agent("wall", "bam", 3, 2, 0, script.Variant("reference", ()))
+    with open(ROOT / "docs/reproduction/demonstrations-current/curves.csv") as file:
+        recorded = {
+            int(row["round"]): float(row["normalized_return"])
+            for row in csv.DictReader(file)
+            if row["environment"] == "wall" and row["learner"] == "bam" and row["agent"] == "3"
+        }
+    assert rows[:, 1] == pytest.approx([recorded[1], recorded[2]], abs=1e-12)
+
+
+def test_the_reference_settings_as_a_variant_differ_by_nothing() -> None:
+    result = run(
+        *("--environments", "wall", "--agents", "1", "--rounds", "3", "--jobs", "1"),
+        *("--variant", "same=optimizer=momentum", "--variant", "fast=optimizer=warm-lbfgs"),
+    )
+    assert result.returncode == 0, result.stderr
+    rows = {line.split()[1]: line.split()[2:] for line in result.stdout.splitlines()[3:]}
+    assert set(rows) == {"reference", "same", "fast"}
+    assert rows["same"] == rows["reference"][:4] + rows["same"][4:]
+    assert rows["same"][2:4] == ["0.00", "1.00"]
+    # L-BFGS-B from the warm start: far fewer passes than the reference's 400.
+    assert float(rows["fast"][4]) < float(rows["reference"][4])
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--variant", "x=optimizer=adam"], "optimizer must be one of"),
+        (["--variant", "x=nope=1"], "unknown learner setting(s): nope"),
+        (["--variant", "reference=alpha=2"], "'reference' names the default settings"),
+        (["--variant", "x"], "--variant expects NAME=SETTING=VALUE"),
+        (["--variant", "x=alpha=2", "--variant", "x=alpha=3"], "--variant names must differ"),
+        (["--variant", "x=alpha=2", "--agents", "0"], "--agents must be at least 1"),
+        (["--variant", "x=warm_alternations=1", "--learner", "model-based"], "applies to none"),
+    ],
+)
+def test_bad_arguments_exit_non_zero_with_a_message(arguments: list[str], message: str) -> None:
+    result = run(*arguments)
+    assert result.returncode == 2
+    assert message in result.stderr
+    assert "Traceback" not in result.stderr

@@ -55,8 +55,11 @@ FAST_LEARNERS: dict[str, dict[str, object]] = {
 PLANNER_LEARNERS = ("bam", "model-based")  # those of the paper's study
 
 
-def learner_settings_toml(fast: bool, optimizer: str | None) -> str:
-    """The study file's [learner_settings] tables for --fast-learners and --optimizer."""
+def learner_settings_toml(
+    fast: bool, optimizer: str | None, warm_alternations: int | None = None
+) -> str:
+    """The study file's [learner_settings] tables for --fast-learners, --optimizer and
+    --warm-alternations."""
     tables: dict[str, dict[str, object]] = {}
     if fast:
         for name, settings in FAST_LEARNERS.items():
@@ -64,6 +67,8 @@ def learner_settings_toml(fast: bool, optimizer: str | None) -> str:
     if optimizer is not None:
         for name in PLANNER_LEARNERS:
             tables.setdefault(name, {})["optimizer"] = optimizer
+    if warm_alternations is not None:
+        tables.setdefault("bam", {})["warm_alternations"] = warm_alternations
     lines = []
     for name, settings in tables.items():
         lines.append(f'\n[learner_settings."{name}"]')
@@ -87,8 +92,19 @@ def main(argv: list[str] | None = None) -> int:
         choices=OPTIMIZERS,
         help="the planner learners' optimiser (default: the study file's, the reference)",
     )
+    parser.add_argument(
+        "--warm-alternations",
+        type=int,
+        metavar="N",
+        help="BAM's momentum alternations before L-BFGS-B (with --optimizer warm-lbfgs)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
+    if args.warm_alternations is not None:
+        if args.warm_alternations < 0:
+            parser.error("--warm-alternations must be at least 0")
+        if args.optimizer != "warm-lbfgs":
+            parser.error("--warm-alternations needs --optimizer warm-lbfgs")
 
     folder = Path(tempfile.mkdtemp(prefix="bam-bench-"))
     url = args.database_url or f"sqlite:///{folder / 'study.db'}"
@@ -98,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
         events_before = int(s.scalar(select(func.count()).select_from(Event)) or 0)
     study = folder / "study.toml"
     study.write_text(
-        DEFAULT_STUDY_CONFIG.read_text() + learner_settings_toml(args.fast_learners, args.optimizer)
+        DEFAULT_STUDY_CONFIG.read_text()
+        + learner_settings_toml(args.fast_learners, args.optimizer, args.warm_alternations)
     )
     environment = {
         "BAM_DATABASE_URL": url,

@@ -37,6 +37,12 @@ def test_a_benchmark_script_starts_as_the_readme_runs_it(script: str, tmp_path: 
         ("learners.py", ["--environments", "nowhere"], "invalid choice: 'nowhere'"),
         ("compare.py", ["--against", "no-such-revision"], "'no-such-revision' is not a commit"),
         ("compare.py", ["--against", "HEAD", "--cycles", "0"], "--cycles must be at least 1"),
+        ("server.py", ["--warm-alternations", "2"], "--warm-alternations needs --optimizer"),
+        (
+            "server.py",
+            ["--optimizer", "warm-lbfgs", "--warm-alternations", "-1"],
+            "--warm-alternations must be at least 0",
+        ),
     ],
 )
 def test_a_bad_benchmark_argument_exits_non_zero_with_a_message(
@@ -69,3 +75,30 @@ def test_compare_times_both_versions_of_the_same_update(tmp_path: Path) -> None:
         ["git", "worktree", "list"], cwd=root, capture_output=True, text=True, check=True
     )
     assert "bam-compare-" not in worktrees.stdout
+
+
+def test_the_server_benchmark_s_learner_settings_are_a_valid_study_file(tmp_path: Path) -> None:
+    """--fast-learners, --optimizer and --warm-alternations become [learner_settings] tables
+    that the study file loader accepts, each for the learners that have the setting."""
+    import importlib.util
+
+    from server.app.config import DEFAULT_STUDY_CONFIG, load_study_config
+
+    spec = importlib.util.spec_from_file_location("server_benchmark", BENCHMARKS / "server.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    study = tmp_path / "study.toml"
+    study.write_text(
+        DEFAULT_STUDY_CONFIG.read_text() + module.learner_settings_toml(True, "warm-lbfgs", 2)
+    )
+    config = load_study_config(study)
+    assert config.learner_settings["bam"] == {
+        **module.FAST_LEARNERS["bam"],
+        "optimizer": "warm-lbfgs",
+        "warm_alternations": 2,
+    }
+    assert config.learner_settings["model-based"] == {
+        **module.FAST_LEARNERS["model-based"],
+        "optimizer": "warm-lbfgs",
+    }

@@ -38,6 +38,10 @@ log = logging.getLogger("bam_study.updates")
 
 MAX_ATTEMPTS = 3  # a worker process dying this often on one update marks it failed
 RESCAN_SECONDS = 30.0
+# A waiting agent step is woken at once by an update this process commits; it looks in the
+# database this often for one another process committed (a thread hop and a query each: at
+# 200 participants, once a second per waiter was a measurable share of the server's CPU).
+DB_POLL_SECONDS = 5.0
 
 
 # -- in the worker process ------------------------------------------------------------------
@@ -264,7 +268,7 @@ class UpdateManager:
                 future: asyncio.Future[None] = self._loop.create_future()
                 self._waiters.setdefault(session_id, []).append(future)
                 try:
-                    await asyncio.wait_for(future, min(remaining, 1.0))
+                    await asyncio.wait_for(future, min(remaining, DB_POLL_SECONDS))
                 except TimeoutError:
                     # Also look in the database, in case another process did the update.
                     processed = await asyncio.to_thread(self._processed_in_db, session_id)

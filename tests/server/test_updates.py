@@ -287,3 +287,51 @@ def test_update_workers_leave_when_their_server_dies(tmp_path: Path) -> None:
     while any(_alive(pid) for pid in workers) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not any(_alive(pid) for pid in workers), "update workers outlived their server"
+
+
+def test_a_waiter_wakes_on_its_own_update_at_once_and_polls_for_other_processes(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """An update this process commits wakes the waiter at once, however long the database poll
+    interval; one that another process committed (no notification here) is found by the
+    poll; and a wait with neither ends False at its timeout."""
+    import asyncio
+
+    from server.app import updates as updates_module
+    from server.app.policies import PolicyCache
+
+    class FakeDb:
+        processed = -1
+
+    def manager_on(loop: asyncio.AbstractEventLoop) -> updates_module.UpdateManager:
+        db: Any = FakeDb()
+        manager = updates_module.UpdateManager(db, PolicyCache(), lambda name: {})
+        manager._loop = loop
+        manager._wake = asyncio.Event()
+        manager._processed_in_db = lambda session_id: FakeDb.processed  # type: ignore
+        return manager
+
+    async def scenario() -> tuple[bool, float, bool, float, bool, float]:
+        loop = asyncio.get_running_loop()
+        manager = manager_on(loop)
+        monkeypatch.setattr(updates_module, "DB_POLL_SECONDS", 60.0)
+        started = loop.time()
+        loop.call_later(0.2, manager._notify, 7, 1)
+        woken = await manager.wait(7, 1, timeout=10.0)
+        notified_after = loop.time() - started
+
+        monkeypatch.setattr(updates_module, "DB_POLL_SECONDS", 0.2)
+        started = loop.time()
+        loop.call_later(0.3, setattr, FakeDb, "processed", 2)
+        found = await manager.wait(8, 2, timeout=10.0)
+        polled_after = loop.time() - started
+
+        started = loop.time()
+        timed_out = await manager.wait(9, 5, timeout=0.5)
+        waited = loop.time() - started
+        return woken, notified_after, found, polled_after, timed_out, waited
+
+    woken, notified_after, found, polled_after, timed_out, waited = asyncio.run(scenario())
+    assert woken and notified_after < 1.0  # not the 60 s poll interval
+    assert found and 0.3 <= polled_after < 2.0  # the commit at 0.3 s, polls every 0.2 s
+    assert not timed_out and 0.4 < waited < 2.0

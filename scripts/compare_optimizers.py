@@ -44,6 +44,9 @@ class Variant:
     settings: tuple[tuple[str, Any], ...]
 
 
+REFERENCE_VARIANT = Variant(REFERENCE, ())  # the learner's default settings
+
+
 def parse_variant(text: str, learner: str) -> Variant:
     """NAME=SETTING=VALUE[,SETTING=VALUE...] -> a variant of the learner's settings."""
     name, sep, assignments = text.partition("=")
@@ -88,7 +91,7 @@ def table(results: list[tuple[str, str, int, np.ndarray]], variants: list[Varian
     lines = [header, "-" * len(header)]
     for env in environments:
         agents = sorted({key[2] for key in runs if key[0] == env})
-        for variant in [Variant(REFERENCE, ()), *variants]:
+        for variant in [REFERENCE_VARIANT, *variants]:
             mine = [runs[(env, variant.name, a)] for a in agents]
             ref = [runs[(env, REFERENCE, a)] for a in agents]
             later = np.concatenate([m[1:, 2] - r[1:, 2] for m, r in zip(mine, ref, strict=True)])
@@ -142,7 +145,7 @@ def main(argv: list[str]) -> int:
         (env, args.learner, agent, args.rounds, args.seed, variant)
         for env in args.environments
         for agent in range(args.agents)
-        for variant in [Variant(REFERENCE, ()), *variants]
+        for variant in [REFERENCE_VARIANT, *variants]
     ]
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         results = list(pool.map(run_agent, *zip(*work, strict=True)))

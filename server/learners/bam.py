@@ -11,7 +11,7 @@ import numpy as np
 
 from server.domains.base import Environment
 from server.learners.objective import TeacherData, maximize_lbfgs
-from server.learners.planner_learner import PlannerLearner
+from server.learners.planner_learner import PlannerLearner, check_count
 
 
 class BAM(PlannerLearner):
@@ -30,9 +30,7 @@ class BAM(PlannerLearner):
 
     def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
         super().__init__(env, seed, **settings)
-        value = self.settings["warm_alternations"]
-        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
-            raise ValueError(f"warm_alternations must be a non-negative integer, got {value!r}")
+        check_count("warm_alternations", self.settings["warm_alternations"], minimum=0)
 
     def _fit(self) -> tuple[float, int]:
         data = TeacherData.from_log(self.data)
@@ -42,9 +40,7 @@ class BAM(PlannerLearner):
             return self._fit_momentum(data, observed, int(self.settings["alternations"]))
         steps = 0
         if self.settings["optimizer"] == "warm-lbfgs" and self.settings["warm_alternations"]:
-            # From rest: the velocity of the last momentum steps is stale after L-BFGS-B.
-            self.theta_optimizer.velocity[:] = 0.0
-            self.cost_optimizer.velocity[:] = 0.0
+            self.stop_momentum()
             _, steps = self._fit_momentum(data, observed, int(self.settings["warm_alternations"]))
         objective, evaluations = self._fit_lbfgs(data, observed, evaluations)
         return objective, steps + evaluations

@@ -27,6 +27,13 @@ from server.learners.planning import TransitionOperator, soft_plan
 THETA_BOUND = 15.0
 
 
+def check_count(name: str, value: Any, minimum: int) -> None:
+    """A whole-number setting of at least ``minimum`` (0 or 1); bools are refused."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < minimum:
+        kind = "positive" if minimum == 1 else "non-negative"
+        raise ValueError(f"{name} must be a {kind} integer, got {value!r}")
+
+
 class PlannerLearner(Learner):
     """Learned dynamics parameters theta (the environment's model space) and per-cell reward
     parameters per task (the paper's cost C = -reward), acting greedily on soft Q."""
@@ -41,9 +48,7 @@ class PlannerLearner(Learner):
                 f"got {self.settings['optimizer']!r}"
             )
         for name in ("max_evaluations", "warm_evaluations"):
-            value = self.settings[name]
-            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+            check_count(name, self.settings[name], minimum=1)
         self.theta = env.model.initial_parameters()
         self.costs = np.zeros((len(env.tasks), env.num_cells))
         self.theta_optimizer = MomentumAscent(
@@ -71,11 +76,15 @@ class PlannerLearner(Learner):
         if optimizer == "warm-lbfgs":
             if np.all(self.fitted_tasks[data.tasks]) and self.updates > 0:
                 return "lbfgs", int(self.settings["warm_evaluations"])
-            # A cold start: the momentum schedule from rest (the velocity of an earlier
-            # momentum update is stale after L-BFGS-B updates).
-            self.theta_optimizer.velocity[:] = 0.0
-            self.cost_optimizer.velocity[:] = 0.0
+            # A cold start: the momentum schedule from rest.
+            self.stop_momentum()
         return "momentum", 0
+
+    def stop_momentum(self) -> None:
+        """Momentum steps from rest next: the velocity of earlier momentum steps is stale
+        after L-BFGS-B has moved the parameters."""
+        self.theta_optimizer.velocity[:] = 0.0
+        self.cost_optimizer.velocity[:] = 0.0
 
     # -- the model ------------------------------------------------------------------------
     def rewards(self) -> np.ndarray:

@@ -126,24 +126,27 @@ def run_agent(job: Job) -> JobResult:
         raise RuntimeError(f"job {job.key} failed: {type(error).__name__}: {error}") from error
 
 
-def agent_streams(job: Job, env: Environment) -> tuple[Learner, Teacher, np.random.Generator]:
-    """The job's learner, the teacher that gives feedback on its episodes and the generator of
-    those episodes: from (seed, environment, agent, learner)."""
+def agent_streams(
+    job: Job, env: Environment
+) -> tuple[Learner, Teacher | None, np.random.Generator]:
+    """The job's learner, the teacher that gives feedback on its episodes (feedback
+    experiment only, else None) and the generator of those episodes: from (seed, environment,
+    agent, learner)."""
     own_learner, own_teacher, own_episodes = np.random.SeedSequence(
         _entropy(job, _OWN_STREAM, learners.NAMES.index(job.learner))
     ).spawn(3)
     learner = learners.make(job.learner, env, seed=_seed(own_learner), **dict(job.settings))
-    return learner, Teacher(env, seed=_seed(own_teacher)), np.random.default_rng(own_episodes)
+    # The feedback teacher has its own generator: its draws depend on the learner's actions
+    # and must not shift the demonstrations of later rounds.
+    critic = Teacher(env, seed=_seed(own_teacher)) if job.experiment == "feedback" else None
+    return learner, critic, np.random.default_rng(own_episodes)
 
 
 def _run_agent(job: Job) -> JobResult:
     started = time.perf_counter()
     env = domains.make(job.environment)
     demonstrator, demonstration_rng = demonstration_streams(job, env)
-    learner, feedback_teacher, episode_rng = agent_streams(job, env)
-    # The feedback teacher has its own generator: its draws depend on the learner's actions
-    # and must not shift the demonstrations of later rounds.
-    critic = feedback_teacher if job.experiment == "feedback" else None
+    learner, critic, episode_rng = agent_streams(job, env)
 
     def row(round_: int, update_seconds: float) -> dict[str, Any]:
         normalized, total, optimal = evaluate(env, learner)

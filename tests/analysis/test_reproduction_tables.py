@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import re
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
+from tests.script_support import ROOT, run_script
+
 SCRIPT = ROOT / "scripts" / "reproduction_tables.py"
 DEMONSTRATIONS = ROOT / "docs" / "reproduction" / "demonstrations"
 
@@ -22,14 +22,8 @@ def paired_rows(output: str) -> list[list[str]]:
     return [[cell.strip() for cell in line.strip("|").split("|")] for line in lines]
 
 
-def run(*arguments: str, cwd: Path = ROOT) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, str(SCRIPT), *arguments],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+def run(*arguments: str) -> subprocess.CompletedProcess[str]:
+    return run_script(SCRIPT, *arguments, timeout=300)
 
 
 def test_help_describes_the_script() -> None:

@@ -5,28 +5,23 @@ the script's folder comes first on sys.path, where benchmarks/server.py would sh
 from __future__ import annotations
 
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
+from tests.script_support import ROOT, load_script, run_script
+
+BENCHMARKS = ROOT / "benchmarks"
 
 
-def run_script(script: str, *arguments: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+def run_benchmark(script: str, *arguments: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     """A benchmark script run as the README runs it, from another folder."""
-    return subprocess.run(
-        [sys.executable, str(BENCHMARKS / script), *arguments],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    return run_script(BENCHMARKS / script, *arguments, cwd=cwd)
 
 
 @pytest.mark.parametrize("script", ["learners.py", "simulate.py", "server.py", "compare.py"])
 def test_a_benchmark_script_starts_as_the_readme_runs_it(script: str, tmp_path: Path) -> None:
-    result = run_script(script, "--help", cwd=tmp_path)
+    result = run_benchmark(script, "--help", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith("usage:")
 
@@ -48,7 +43,7 @@ def test_a_benchmark_script_starts_as_the_readme_runs_it(script: str, tmp_path: 
 def test_a_bad_benchmark_argument_exits_non_zero_with_a_message(
     script: str, arguments: list[str], message: str, tmp_path: Path
 ) -> None:
-    result = run_script(script, *arguments, cwd=tmp_path)
+    result = run_benchmark(script, *arguments, cwd=tmp_path)
     assert result.returncode == 2
     assert message in result.stderr
     assert "Traceback" not in result.stderr
@@ -58,8 +53,7 @@ def test_a_bad_benchmark_argument_exits_non_zero_with_a_message(
 def test_compare_times_both_versions_of_the_same_update(tmp_path: Path) -> None:
     """Against HEAD itself (the same code twice): one row per environment, both versions
     timed, and the temporary worktree gone afterwards."""
-    root = BENCHMARKS.parent
-    result = run_script(
+    result = run_benchmark(
         "compare.py",
         *("--against", "HEAD", "--environments", "wall", "--learner", "model-based"),
         *("--rounds", "1", "--repeats", "1", "--cycles", "1"),
@@ -72,7 +66,7 @@ def test_compare_times_both_versions_of_the_same_update(tmp_path: Path) -> None:
     assert before > 0 and after > 0
     assert float(rows[0][5]) == pytest.approx(after / before, abs=0.01)
     worktrees = subprocess.run(
-        ["git", "worktree", "list"], cwd=root, capture_output=True, text=True, check=True
+        ["git", "worktree", "list"], cwd=ROOT, capture_output=True, text=True, check=True
     )
     assert "bam-compare-" not in worktrees.stdout
 
@@ -80,14 +74,9 @@ def test_compare_times_both_versions_of_the_same_update(tmp_path: Path) -> None:
 def test_the_server_benchmark_s_learner_settings_are_a_valid_study_file(tmp_path: Path) -> None:
     """--fast-learners, --optimizer and --warm-alternations become [learner_settings] tables
     that the study file loader accepts, each for the learners that have the setting."""
-    import importlib.util
-
     from server.app.config import DEFAULT_STUDY_CONFIG, load_study_config
 
-    spec = importlib.util.spec_from_file_location("server_benchmark", BENCHMARKS / "server.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_script(BENCHMARKS / "server.py", "server_benchmark")
     study = tmp_path / "study.toml"
     study.write_text(
         DEFAULT_STUDY_CONFIG.read_text() + module.learner_settings_toml(True, "warm-lbfgs", 2)

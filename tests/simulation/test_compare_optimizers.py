@@ -4,40 +4,23 @@ demonstrations experiment's agents, by equation (5) after each update and by ret
 from __future__ import annotations
 
 import csv
-import importlib.util
 import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
+from tests.script_support import ROOT, load_script, run_script
+
 SCRIPT = ROOT / "scripts" / "compare_optimizers.py"
 
 
-def load_script():  # type: ignore[no-untyped-def]
-    spec = importlib.util.spec_from_file_location("compare_optimizers", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
-
-
 def run(*arguments: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, str(SCRIPT), *arguments],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    return run_script(SCRIPT, *arguments)
 
 
 def test_the_reference_agent_is_the_simulation_s_agent() -> None:
     """Same seeds as `bam-study simulate`: the reference run of agent 3 in wall returns what
     the committed full run (docs/reproduction/demonstrations-current) recorded."""
-    script = load_script()
+    script = load_script(SCRIPT, "compare_optimizers")
     _, _, _, rows = script.run_agent("wall", "bam", 3, 2, 0, script.Variant("reference", ()))
     with open(ROOT / "docs/reproduction/demonstrations-current/curves.csv") as file:
         recorded = {

@@ -113,34 +113,39 @@ def slow_client(db: Database, settings: Settings, executor: ProcessPoolExecutor)
         yield client
 
 
-def test_an_agent_step_waits_for_its_own_update_only(slow_client: TestClient, db: Database) -> None:
-    client = slow_client
-    participant, session_id = teaching_participant(client)
-    other, other_session = teaching_participant(TestClient(client.app), "W2", "A2")
-    wait_for_updates(db)
-    base = participant.session(session_id)
-    ended = demonstrate(participant, session_id, 0)
-    assert ended["session"]["learning"]["pending"] == 1
-    participant.act(f"{base}/reset")  # away from the goal the demonstration ended on
-    participant.act(f"{base}/mode", mode="agent")
-    with ThreadPoolExecutor(1) as pool:
-        waiting = pool.submit(participant.act, f"{base}/agent-step")
-        # While the agent waits for its update, the other participant's moves go on.
-        started = time.perf_counter()
-        for name in ["UP", "DOWN", "LEFT", "RIGHT"] * 3:
-            other.act(f"{other.session(other_session)}/move", action=name)
-        moves = time.perf_counter() - started
-        step = waiting.result()
-    rows = updates_of(db, session_id)
-    assert rows[1].status == "done"
-    assert step["outcome"]["learning_wait_seconds"] > 0
-    assert step["session"]["learning"] == {"pending": 0, "updates": 2}
-    assert moves < step["outcome"]["learning_wait_seconds"]
-    env = make("two-rooms")
-    policy = np.frombuffer(rows[1].greedy_policy, dtype=np.int8).reshape(
-        len(env.tasks), env.num_states
-    )
-    assert ACTIONS.index(step["outcome"]["action"]) == policy[0, step["outcome"]["state"]]
+def test_an_agent_step_waits_for_its_own_update_only(
+    db: Database, settings: Settings, executor: ProcessPoolExecutor
+) -> None:
+    # Four times the reference alternations: the first update (one task's data) otherwise
+    # took 0.65 s on a slow machine, less than the other participant's twelve moves there.
+    study = study_config(**{**SLOW_STUDY, "learner_settings": {"bam": {"alternations": 40}}})
+    with TestClient(create_app(settings, study, db=db, executor=executor)) as client:
+        participant, session_id = teaching_participant(client)
+        other, other_session = teaching_participant(TestClient(client.app), "W2", "A2")
+        wait_for_updates(db)
+        base = participant.session(session_id)
+        ended = demonstrate(participant, session_id, 0)
+        assert ended["session"]["learning"]["pending"] == 1
+        participant.act(f"{base}/reset")  # away from the goal the demonstration ended on
+        participant.act(f"{base}/mode", mode="agent")
+        with ThreadPoolExecutor(1) as pool:
+            waiting = pool.submit(participant.act, f"{base}/agent-step")
+            # While the agent waits for its update, the other participant's moves go on.
+            started = time.perf_counter()
+            for name in ["UP", "DOWN", "LEFT", "RIGHT"] * 3:
+                other.act(f"{other.session(other_session)}/move", action=name)
+            moves = time.perf_counter() - started
+            step = waiting.result()
+        rows = updates_of(db, session_id)
+        assert rows[1].status == "done"
+        assert step["outcome"]["learning_wait_seconds"] > 0
+        assert step["session"]["learning"] == {"pending": 0, "updates": 2}
+        assert moves < step["outcome"]["learning_wait_seconds"]
+        env = make("two-rooms")
+        policy = np.frombuffer(rows[1].greedy_policy, dtype=np.int8).reshape(
+            len(env.tasks), env.num_states
+        )
+        assert ACTIONS.index(step["outcome"]["action"]) == policy[0, step["outcome"]["state"]]
 
 
 def test_pending_updates_survive_a_restart(

@@ -14,8 +14,7 @@ from server.learners.base import DataLog
 from server.learners.likelihoods import (
     ActionModel,
     FeedbackModel,
-    demonstration_log_likelihood,
-    feedback_log_likelihood,
+    data_log_likelihood,
 )
 from server.learners.planning import TransitionOperator, soft_plan
 
@@ -88,15 +87,18 @@ class TeacherData:
         def local(column: np.ndarray) -> np.ndarray:
             return np.array([remap[int(t)] for t in column], dtype=np.int64)
 
+        def column(values: np.ndarray) -> np.ndarray:
+            return np.ascontiguousarray(values, dtype=np.int64)
+
         return cls(
             tasks=tasks,
             demo_tasks=local(demos[:, 0]),
-            demo_states=demos[:, 1],
-            demo_actions=demos[:, 2],
+            demo_states=column(demos[:, 1]),
+            demo_actions=column(demos[:, 2]),
             step_tasks=local(steps[:, 0]),
-            step_states=steps[:, 1],
-            step_actions=steps[:, 2],
-            step_feedback=steps[:, 4],
+            step_states=column(steps[:, 1]),
+            step_actions=column(steps[:, 2]),
+            step_feedback=column(steps[:, 4]),
         )
 
     @property
@@ -130,13 +132,18 @@ def teacher_log_likelihood(
     q: np.ndarray, data: TeacherData, actions: ActionModel, feedback: FeedbackModel
 ) -> tuple[float, np.ndarray]:
     """ln p(D_T | Q) over every task with data, and dL/dQ; q is (tasks with data, S, A)."""
-    value_d, d_q = demonstration_log_likelihood(
-        q, data.demo_tasks, data.demo_states, data.demo_actions, actions
+    return data_log_likelihood(
+        q,
+        data.demo_tasks,
+        data.demo_states,
+        data.demo_actions,
+        actions,
+        data.step_tasks,
+        data.step_states,
+        data.step_actions,
+        data.step_feedback,
+        feedback,
     )
-    value_f, d_q_f = feedback_log_likelihood(
-        q, data.step_tasks, data.step_states, data.step_actions, data.step_feedback, feedback
-    )
-    return value_d + value_f, d_q + d_q_f
 
 
 def planned_teacher_log_likelihood(

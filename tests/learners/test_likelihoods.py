@@ -12,6 +12,7 @@ import pytest
 from server.learners.likelihoods import (
     ActionModel,
     FeedbackModel,
+    data_log_likelihood,
     demonstration_log_likelihood,
     feedback_log_likelihood,
     gaussian_log_prior,
@@ -308,3 +309,60 @@ def test_bad_action_model_beta_is_rejected(beta: float) -> None:
 def test_bad_prior_sd_is_rejected(sd: float) -> None:
     with pytest.raises(ValueError, match="standard deviation"):
         gaussian_log_prior(np.zeros(3), 0.0, sd)
+
+
+# -- demonstrations and feedback in one compiled pass (what the learners' updates call) --------
+
+
+def rows(*values: list[int]) -> list[np.ndarray]:
+    return [np.array(v, dtype=np.int64) for v in values]
+
+
+@pytest.mark.parametrize("normalized", [False, True])
+def test_one_pass_is_the_sum_of_the_two_likelihoods(normalized: bool) -> None:
+    rng = np.random.default_rng(3)
+    q = rng.normal(size=(2, 6, 5)) * 4.0
+    demo = rows(rng.integers(0, 2, 30), rng.integers(0, 6, 30), rng.integers(0, 5, 30))
+    steps = rows(
+        rng.integers(0, 2, 25),
+        rng.integers(0, 6, 25),
+        rng.integers(0, 5, 25),
+        rng.integers(-1, 2, 25),
+    )
+    actions, feedback = ActionModel(1.5, normalized), FeedbackModel(alpha=0.8, epsilon=0.1)
+    value, d_q = data_log_likelihood(q, *demo, actions, *steps, feedback)
+    value_d, d_q_d = demonstration_log_likelihood(q, *demo, actions)
+    value_f, d_q_f = feedback_log_likelihood(q, *steps, feedback)
+    assert value == value_d + value_f
+    np.testing.assert_array_equal(d_q, d_q_d + d_q_f)
+    # ... and each part by hand, row by row.
+    assert value_d == pytest.approx(
+        sum(
+            demonstration_log_likelihood(q, [k], [s], [a], actions)[0]
+            for k, s, a in zip(*demo, strict=True)
+        ),
+        rel=1e-12,
+    )
+
+
+@pytest.mark.parametrize(
+    ("demo", "steps", "match"),
+    [
+        (([2], [0], [0]), ([], [], [], []), "out of range"),
+        (([0], [2], [0]), ([], [], [], []), "out of range"),
+        (([0], [0], [-1]), ([], [], [], []), "out of range"),
+        (([], [], []), ([0], [0], [5], [1]), "out of range"),
+        (([], [], []), ([0], [-1], [0], [1]), "out of range"),
+        (([], [], []), ([0], [0], [0], [3]), "feedback must be"),
+    ],
+)
+def test_one_pass_refuses_bad_rows(demo, steps, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        data_log_likelihood(Q, *rows(*demo), ActionModel(), *rows(*steps), FeedbackModel())
+
+
+def test_one_pass_refuses_non_finite_q() -> None:
+    q = Q.copy()
+    q[0, 0, 2] = np.nan
+    with pytest.raises(FloatingPointError, match="not finite"):
+        data_log_likelihood(q, *rows([0], [0], [1]), ActionModel(), *rows([], [], [], []))

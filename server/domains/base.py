@@ -123,6 +123,9 @@ class TransitionModel:
         self.parameter_names = tuple(parameter_names)
         self.num_states, self.num_actions, self.width = self.next_states.shape
         self._parametric = self.coef != 0.0
+        # The table's layout flattened for the planner (fixed for the model's lifetime).
+        self.flat_next_states = self.next_states.reshape(-1)
+        self.flat_parametric_entries = np.flatnonzero(self._parametric.reshape(-1))
 
     @property
     def parametric_entries(self) -> np.ndarray:
@@ -175,32 +178,59 @@ class TransitionModel:
         d_probabilities = np.take_along_axis(d_transitions, self.next_states, axis=2)
         return self.pullback(theta, d_probabilities)
 
-    def transition_log_likelihood(
-        self, theta: np.ndarray, observed: np.ndarray
-    ) -> tuple[float, np.ndarray]:
-        """Sum over observed (state, action, next_state) rows of ln T_theta(s, a, s'), and its
-        gradient with respect to theta. A transition the model space cannot produce is an error."""
+    def observe(self, observed: np.ndarray | ObservedTransitions) -> ObservedTransitions:
+        """Observed (state, action, next_state) rows checked once and matched to the table's
+        entries, for ``transition_log_likelihood`` at many theta (a learner's update)."""
+        if isinstance(observed, ObservedTransitions):
+            return observed
         observed = np.asarray(observed, dtype=np.int64).reshape(-1, 3)
-        if len(observed) == 0:
-            return 0.0, np.zeros(self.num_parameters)
         s, a, s2 = observed.T
         if np.any((s < 0) | (s >= self.num_states) | (s2 < 0) | (s2 >= self.num_states)):
             raise ValueError("observed transition has a state out of range")
         if np.any((a < 0) | (a >= self.num_actions)):
             raise ValueError("observed transition has an action out of range")
-        probabilities = self.probabilities(theta)
         match = self.next_states[s, a] == s2[:, None]  # (N, M)
-        row_probability = (probabilities[s, a] * match).sum(axis=1)
+        rows, columns = np.nonzero(match)  # row by row, entries in table order
+        entries = (s[rows] * self.num_actions + a[rows]) * self.width + columns
+        return ObservedTransitions(observed, entries.astype(np.int64), rows.astype(np.int64))
+
+    def transition_log_likelihood(
+        self, theta: np.ndarray, observed: np.ndarray | ObservedTransitions
+    ) -> tuple[float, np.ndarray]:
+        """Sum over observed (state, action, next_state) rows of ln T_theta(s, a, s'), and its
+        gradient with respect to theta. A transition the model space cannot produce is an error."""
+        observed = self.observe(observed)
+        count = len(observed.rows)
+        if count == 0:
+            return 0.0, np.zeros(self.num_parameters)
+        probabilities = self.probabilities(theta)
+        flat = probabilities.reshape(-1)
+        # T(s, a, s') sums the row's entries that lead to s' (a next state may repeat).
+        row_probability = np.bincount(
+            observed.entry_rows, weights=flat[observed.entries], minlength=count
+        )
         if np.any(row_probability <= 0.0):
             bad = int(np.argmin(row_probability))
             raise ValueError(
-                f"observed transition {tuple(int(x) for x in observed[bad])} is impossible "
+                f"observed transition {tuple(int(x) for x in observed.rows[bad])} is impossible "
                 "under the model space"
             )
         value = float(np.log(row_probability).sum())
-        d_probabilities = np.zeros_like(probabilities)
-        np.add.at(d_probabilities, (s, a), match / row_probability[:, None])
+        d_probabilities = np.bincount(
+            observed.entries,
+            weights=1.0 / row_probability[observed.entry_rows],
+            minlength=flat.size,
+        ).reshape(probabilities.shape)
         return value, self.pullback(theta, d_probabilities)
+
+
+@dataclass(frozen=True)
+class ObservedTransitions:
+    """Observed transitions matched to a model space's table (``TransitionModel.observe``)."""
+
+    rows: np.ndarray  # (N, 3) state, action, next state
+    entries: np.ndarray  # flat table entries (s * A + a) * M + m whose next state is the row's
+    entry_rows: np.ndarray  # the observed row of each entry
 
 
 class SigmoidModel(TransitionModel):

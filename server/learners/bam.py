@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from server.domains.base import Environment
+from server.domains.base import Environment, ObservedTransitions
 from server.learners.objective import TeacherData, maximize_lbfgs
 from server.learners.planner_learner import PlannerLearner, check_count
 
@@ -34,7 +34,7 @@ class BAM(PlannerLearner):
 
     def _fit(self) -> tuple[float, int]:
         data = TeacherData.from_log(self.data)
-        observed = self.data.observed_transitions()
+        observed = self.env.model.observe(self.data.observed_transitions())
         optimizer, evaluations = self.schedule(data)
         if optimizer == "momentum":
             return self._fit_momentum(data, observed, int(self.settings["alternations"]))
@@ -46,7 +46,7 @@ class BAM(PlannerLearner):
         return objective, steps + evaluations
 
     def _fit_momentum(
-        self, data: TeacherData, observed: np.ndarray, alternations: int
+        self, data: TeacherData, observed: ObservedTransitions, alternations: int
     ) -> tuple[float, int]:
         """``alternations`` of [cost steps, then dynamics steps] (the reference schedule)."""
         steps = 0
@@ -63,7 +63,7 @@ class BAM(PlannerLearner):
         return objective, steps
 
     def _fit_lbfgs(
-        self, data: TeacherData, observed: np.ndarray, evaluations: int
+        self, data: TeacherData, observed: ObservedTransitions, evaluations: int
     ) -> tuple[float, int]:
         """Equation (5) over theta and the informed costs jointly with L-BFGS-B."""
         if data.empty:
@@ -89,7 +89,7 @@ class BAM(PlannerLearner):
         self.set_cost_vector(data, best[num_theta:])
         return value, used
 
-    def _dynamics_step(self, data: TeacherData, observed: Any) -> float:
+    def _dynamics_step(self, data: TeacherData, observed: ObservedTransitions) -> float:
         """One momentum step on theta for the whole of equation (5); returns it before."""
         value, grad = self.transition_objective(self.theta, observed)
         if not data.empty:

@@ -17,7 +17,7 @@ class ModelBasedIRL(PlannerLearner):
     }
 
     def _fit(self) -> tuple[float, int]:
-        observed = self.data.observed_transitions()
+        observed = self.env.model.observe(self.data.observed_transitions())
         data = TeacherData.from_log(self.data)
         optimizer, evaluations = self.schedule(data)
         if self.settings["optimizer"] == "lbfgs":

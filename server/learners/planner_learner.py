@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from server.domains.base import Environment, check_finite
+from server.domains.base import Environment, ObservedTransitions, check_finite
 from server.learners.base import Learner
 from server.learners.likelihoods import gaussian_log_prior
 from server.learners.objective import (
@@ -93,9 +93,7 @@ class PlannerLearner(Learner):
 
     def operator(self) -> TransitionOperator:
         # dL/dT is only ever pulled back to theta, which reads the entries theta moves.
-        return TransitionOperator.build(self.env.model.transitions(self.theta)).only_gradients_at(
-            self.env.model.parametric_entries
-        )
+        return TransitionOperator.of_model(self.env.model, self.theta)
 
     def q_values(self) -> np.ndarray:
         """Soft Q (tasks, S, A) under the learned model and rewards."""
@@ -126,7 +124,7 @@ class PlannerLearner(Learner):
         )
 
     def transition_objective(
-        self, theta: np.ndarray, observed: np.ndarray
+        self, theta: np.ndarray, observed: np.ndarray | ObservedTransitions
     ) -> tuple[float, np.ndarray]:
         """ln T_theta over observed transitions plus ln m(theta), and the gradient."""
         value, grad = self.env.model.transition_log_likelihood(theta, observed)
@@ -216,7 +214,7 @@ class PlannerLearner(Learner):
         self.set_cost_vector(data, best)
         return value, evaluations
 
-    def fit_theta_lbfgs(self, observed: np.ndarray, evaluations: int) -> tuple[float, int]:
+    def fit_theta_lbfgs(self, observed: ObservedTransitions, evaluations: int) -> tuple[float, int]:
         """Dynamics by L-BFGS-B on the observed transitions and the prior alone."""
         best, value, evaluations = maximize_lbfgs(
             lambda theta: self.transition_objective(theta, observed),

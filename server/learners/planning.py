@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from server.domains.base import SparseTransitions, check_finite
+from server.domains.base import SparseTransitions, TransitionModel, check_finite
 from server.learners import _kernels
 
 
@@ -78,6 +78,23 @@ class TransitionOperator:
     @classmethod
     def build(cls, transitions: np.ndarray | SparseTransitions) -> TransitionOperator:
         return cls(transitions)
+
+    @classmethod
+    def of_model(cls, model: TransitionModel, theta: np.ndarray) -> TransitionOperator:
+        """A learner's model space at ``theta``, with reverse passes narrowed to the entries
+        theta moves (all the pull-back to theta reads). Built without the checks of arbitrary
+        tables, which a model's table passes by construction: its next states are fixed and in
+        range, and its rows are probability vectors for every finite theta (``probabilities``
+        refuses any other; tests/domains checks the rows). A learner builds one per step."""
+        operator = cls.__new__(cls)
+        operator.dense_input = False
+        operator.num_states, operator.num_actions = model.num_states, model.num_actions
+        operator.width = model.width
+        operator.next_flat = model.flat_next_states
+        operator.probs_flat = model.probabilities(theta).reshape(-1)
+        operator.gradient_entries = model.flat_parametric_entries
+        operator._matrix = None
+        return operator
 
     def only_gradients_at(self, mask: np.ndarray) -> TransitionOperator:
         """Have reverse passes compute dL/dT only where ``mask`` (the table's shape) is true

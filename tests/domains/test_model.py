@@ -179,3 +179,23 @@ def test_pullback_dense_gradient(name: str) -> None:
         lambda t: float((weights * env.model.transitions(t).dense()).sum()), theta
     )
     np.testing.assert_allclose(gradient, numeric, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("name", domains.ENVIRONMENTS)
+def test_observed_transitions_matched_once_give_the_same_likelihood(name: str) -> None:
+    """A learner matches its observed transitions to the table once per update (observe) and
+    evaluates them at many theta: the same value and gradient as the dense formula, where a
+    row's next state may appear in several of its entries (a failed move that stays put)."""
+    env = domains.make(name)
+    observed = sample_observed(env, random_theta(env, 1), seed=2)
+    prepared = env.model.observe(observed)
+    assert env.model.observe(prepared) is prepared
+    for seed in (3, 4):
+        theta = random_theta(env, seed)
+        value, gradient = env.model.transition_log_likelihood(theta, prepared)
+        again, again_gradient = env.model.transition_log_likelihood(theta, observed)
+        assert value == again
+        np.testing.assert_array_equal(gradient, again_gradient)
+        dense = env.model.transitions(theta).dense()
+        expected = np.log(dense[observed[:, 0], observed[:, 1], observed[:, 2]]).sum()
+        assert value == pytest.approx(expected, rel=1e-12)

@@ -643,3 +643,24 @@ def test_transition_gradient_only_where_asked() -> None:
     )
     with pytest.raises(ValueError, match="gradient mask must have shape"):
         full_op.only_gradients_at(np.ones((3, 3), dtype=bool))
+
+
+@pytest.mark.parametrize("name", domains.ENVIRONMENTS)
+def test_a_model_s_operator_is_the_checked_table_narrowed_to_its_parameters(name: str) -> None:
+    """TransitionOperator.of_model (a learner's per-step table, built without re-checking)
+    holds what the checked construction narrowed to the parametric entries holds, and a NaN
+    parameter is still refused."""
+    env = domains.make(name)
+    theta = np.random.default_rng(5).normal(size=env.model.num_parameters) * 2.0
+    fast = TransitionOperator.of_model(env.model, theta)
+    checked = TransitionOperator.build(env.model.transitions(theta)).only_gradients_at(
+        env.model.parametric_entries
+    )
+    for field in ("num_states", "num_actions", "width", "dense_input"):
+        assert getattr(fast, field) == getattr(checked, field)
+    for field in ("next_flat", "probs_flat", "gradient_entries"):
+        np.testing.assert_array_equal(getattr(fast, field), getattr(checked, field))
+    assert fast.matrix.toarray().tolist() == checked.matrix.toarray().tolist()
+    theta[0] = np.nan
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        TransitionOperator.of_model(env.model, theta)

@@ -55,21 +55,27 @@ class FeedbackModel:
 
     def probabilities(self, advantage: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(p(+), p(-)) for each advantage."""
-        advantage = np.asarray(advantage, dtype=np.float64)
-        positive, negative = np.empty_like(advantage), np.empty_like(advantage)
-        for i, x in enumerate(advantage.flat):
+        sig = _sigmoid(self.alpha * np.asarray(advantage, dtype=np.float64))
+        positive, negative = np.empty_like(sig), np.empty_like(sig)
+        for i, x in enumerate(sig.flat):
             positive.flat[i], negative.flat[i], _, _ = _asabl(
                 x, self.epsilon, self.alpha, self.mu_plus, self.mu_minus
             )
         return positive, negative
 
 
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    # NumPy's tanh, not the C library's that compiled code calls: they differ in the last
+    # bits, and feedback experiments amplify such differences into other agents' curves.
+    return 0.5 * (1.0 + np.tanh(0.5 * x))
+
+
 @njit(cache=True, fastmath=False)
 def _asabl(
-    advantage: float, epsilon: float, alpha: float, mu_plus: float, mu_minus: float
+    sig: float, epsilon: float, alpha: float, mu_plus: float, mu_minus: float
 ) -> tuple[float, float, float, float]:
-    """p(+), p(-) and their derivatives with respect to the advantage (equations (3)-(4))."""
-    sig = 0.5 * (1.0 + np.tanh(0.5 * (alpha * advantage)))  # a stable sigmoid
+    """p(+), p(-) and their derivatives with respect to the advantage (equations (3)-(4)),
+    given sig = sigmoid(alpha * advantage)."""
     scale = 1.0 - 2.0 * epsilon
     slope = scale * alpha * sig * (1.0 - sig)
     return (
@@ -162,8 +168,11 @@ def data_log_likelihood(
     """Demonstrations' and feedback's log-likelihood together, and dL/dQ, in one compiled
     pass (a learner's update evaluates it hundreds of times). Indices are int64 arrays; out of
     range ones and feedback other than +1, -1, 0 are refused."""
+    q = np.ascontiguousarray(q, dtype=np.float64)
+    advantages, bad = _step_advantages(q, step_tasks, step_states, step_actions, step_feedback)
+    _refuse(bad, q.shape)
     demo_values, d_q, step_values, d_q_steps, bad = _data_log_likelihood(
-        np.ascontiguousarray(q, dtype=np.float64),
+        q,
         demo_tasks,
         demo_states,
         demo_actions,
@@ -173,20 +182,13 @@ def data_log_likelihood(
         step_states,
         step_actions,
         step_feedback,
+        _sigmoid(float(feedback.alpha) * advantages),
         float(feedback.epsilon),
         float(feedback.alpha),
         float(feedback.mu_plus),
         float(feedback.mu_minus),
     )
-    if bad == BAD_INDEX:
-        raise ValueError(f"a task, state or action index is out of range for Q of shape {q.shape}")
-    if bad == BAD_FEEDBACK:
-        raise ValueError("feedback must be +1, -1 or 0 (none)")
-    if bad == IMPOSSIBLE_FEEDBACK:
-        raise ValueError(
-            "a feedback event has probability 0 under the feedback model "
-            "(no feedback is impossible when mu_plus = mu_minus = 0)"
-        )
+    _refuse(bad, q.shape)
     # Summed by NumPy, as before this was compiled: the same value to the last bit.
     value = float(demo_values.sum()) + float(step_values.sum())
     if not np.isfinite(value):
@@ -195,6 +197,38 @@ def data_log_likelihood(
 
 
 BAD_INDEX, BAD_FEEDBACK, IMPOSSIBLE_FEEDBACK = 1, 2, 3
+
+
+def _refuse(code: int, shape: tuple[int, ...]) -> None:
+    """Raise the error a compiled pass reported (0: none)."""
+    if code == BAD_INDEX:
+        raise ValueError(f"a task, state or action index is out of range for Q of shape {shape}")
+    if code == BAD_FEEDBACK:
+        raise ValueError("feedback must be +1, -1 or 0 (none)")
+    if code == IMPOSSIBLE_FEEDBACK:
+        raise ValueError(
+            "a feedback event has probability 0 under the feedback model "
+            "(no feedback is impossible when mu_plus = mu_minus = 0)"
+        )
+
+
+@njit(cache=True, fastmath=False)
+def _step_advantages(q, step_tasks, step_states, step_actions, step_feedback):
+    """Q(s, a) - mean_b Q(s, b) of each agent step, and an error code (0: none)."""
+    num_tasks, num_states, num_actions = q.shape
+    advantages = np.zeros(step_tasks.shape[0])
+    for n in range(step_tasks.shape[0]):
+        k, s, taken, f = step_tasks[n], step_states[n], step_actions[n], step_feedback[n]
+        if not (0 <= k < num_tasks and 0 <= s < num_states and 0 <= taken < num_actions):
+            return advantages, BAD_INDEX
+        if f < -1 or f > 1:
+            return advantages, BAD_FEEDBACK
+        row = q[k, s]
+        mean = 0.0
+        for a in range(num_actions):
+            mean += row[a]
+        advantages[n] = row[taken] - mean / num_actions
+    return advantages, 0
 
 
 @njit(cache=True, fastmath=False)
@@ -209,6 +243,7 @@ def _data_log_likelihood(
     step_states,
     step_actions,
     step_feedback,
+    sigmoids,
     epsilon,
     alpha,
     mu_plus,
@@ -216,9 +251,8 @@ def _data_log_likelihood(
 ):
     """Each demonstration's log-likelihood, dL/dQ of the demonstrations, each agent step's,
     dL/dQ of the agent steps, and an error code (0: none). The arithmetic is the module
-    docstring's, row by row, in the order of the NumPy code it replaced: the demonstrations'
-    results are identical to the last bit, the feedback's within a few units in the last place
-    (NumPy's tanh is not the C library's)."""
+    docstring's, row by row, in the order of the NumPy code it replaced (identical results to
+    the last bit); ``sigmoids`` are sigmoid(alpha * advantage) of the agent steps."""
     num_tasks, num_states, num_actions = q.shape
     d_q = np.zeros_like(q)
     d_q_steps = np.zeros_like(q)
@@ -275,17 +309,8 @@ def _data_log_likelihood(
                 d_q[k, s, a] += beta * g[a]
     for n in range(step_tasks.shape[0]):
         k, s, taken, f = step_tasks[n], step_states[n], step_actions[n], step_feedback[n]
-        if not (0 <= k < num_tasks and 0 <= s < num_states and 0 <= taken < num_actions):
-            return demo_values, d_q, step_values, d_q_steps, BAD_INDEX
-        if f < -1 or f > 1:
-            return demo_values, d_q, step_values, d_q_steps, BAD_FEEDBACK
-        row = q[k, s]
-        mean = 0.0
-        for a in range(num_actions):
-            mean += row[a]
-        advantage = row[taken] - mean / num_actions
         positive, negative, d_positive, d_negative = _asabl(
-            advantage, epsilon, alpha, mu_plus, mu_minus
+            sigmoids[n], epsilon, alpha, mu_plus, mu_minus
         )
         if f > 0:
             probability, d_probability = positive, d_positive

@@ -48,14 +48,18 @@ DB_POLL_SECONDS = 5.0
 PARENT_CHECK_SECONDS = 1.0
 
 
-def worker_init(niceness: int) -> None:
+def worker_init(niceness: int, server_pid: int) -> None:
     """Lower the worker's priority, leave with the server, import the learners once."""
-    if niceness and hasattr(os, "nice"):
-        os.nice(niceness)
     # A server that dies without shutting its pool down (killed, or stopped while it was
     # replacing workers that a SIGTERM to its process group had killed) leaves its workers
-    # waiting on a queue no one writes to: they must notice and go.
-    parent = os.getppid()
+    # waiting on a queue no one writes to: they must notice and go. A worker whose server died
+    # before it started (its parent is already init) goes at once: comparing with its parent
+    # at start would have kept it forever (seen after every benchmarks/server.py run).
+    parent = server_pid
+    if os.getppid() != parent:
+        os._exit(0)
+    if niceness and hasattr(os, "nice"):
+        os.nice(niceness)
 
     def leave_with_parent() -> None:
         while os.getppid() == parent:
@@ -144,7 +148,7 @@ def new_executor(workers: int, niceness: int) -> ProcessPoolExecutor:
         max_workers=workers,
         mp_context=multiprocessing.get_context("spawn"),
         initializer=worker_init,
-        initargs=(niceness,),
+        initargs=(niceness, os.getpid()),
     )
 
 

@@ -294,6 +294,41 @@ def test_update_workers_leave_when_their_server_dies(tmp_path: Path) -> None:
     assert not any(_alive(pid) for pid in workers), "update workers outlived their server"
 
 
+_LATE_WORKER = """
+import os, sys, time
+from server.app.updates import worker_init
+
+worker_init(0, int(sys.argv[1]))
+print("stayed", flush=True)
+time.sleep(30)
+"""
+
+
+@pytest.mark.parametrize("server", ["gone", "parent"])
+def test_an_update_worker_whose_server_died_before_it_started_leaves(
+    tmp_path: Path, server: str
+) -> None:
+    """A worker spawned to replace killed ones just before its server died starts with init as
+    its parent: it must leave at once, not wait for a parent change that never comes. One
+    started by its live server stays (and leaves when it dies, above)."""
+    script = tmp_path / "late_worker.py"
+    script.write_text(_LATE_WORKER)
+    server_pid = 0 if server == "gone" else os.getpid()  # 0: no process is anyone's parent
+    worker = subprocess.Popen(
+        [sys.executable, str(script), str(server_pid)], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        if server == "gone":
+            assert worker.wait(timeout=30) == 0
+            assert worker.stdout is not None and worker.stdout.read() == ""
+        else:
+            assert worker.stdout is not None and worker.stdout.readline() == "stayed\n"
+            assert worker.poll() is None
+    finally:
+        worker.kill()
+        worker.wait()
+
+
 def test_a_waiter_wakes_on_its_own_update_at_once_and_polls_for_other_processes(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

@@ -55,14 +55,13 @@ def worker_init(niceness: int, server_pid: int) -> None:
     # waiting on a queue no one writes to: they must notice and go. A worker whose server died
     # before it started (its parent is already init) goes at once: comparing with its parent
     # at start would have kept it forever (seen after every benchmarks/server.py run).
-    parent = server_pid
-    if os.getppid() != parent:
+    if os.getppid() != server_pid:
         os._exit(0)
     if niceness and hasattr(os, "nice"):
         os.nice(niceness)
 
     def leave_with_parent() -> None:
-        while os.getppid() == parent:
+        while os.getppid() == server_pid:
             time.sleep(PARENT_CHECK_SECONDS)
         os._exit(0)
 

@@ -322,8 +322,8 @@ def _data_log_likelihood(
             return demo_values, d_q, step_values, d_q_steps, IMPOSSIBLE_FEEDBACK
         step_values[n] = np.log(probability)
         g_advantage = d_probability / probability
+        share = -g_advantage / num_actions
         for a in range(num_actions):
-            share = -g_advantage / num_actions
             d_q_steps[k, s, a] += share + g_advantage if a == taken else share
     return demo_values, d_q, step_values, d_q_steps, 0
 

@@ -65,14 +65,28 @@ class TransitionOperator:
                 f"transition probabilities of (state, action) {tuple(int(i) for i in worst)} "
                 f"sum to {sums[worst]:.6g}, not 1"
             )
-        self.num_states = int(num_states)
-        self.num_actions = int(num_actions)
-        self.width = int(next_states.shape[2])
-        self.next_flat = np.ascontiguousarray(next_states, dtype=np.int64).reshape(-1)
-        self.probs_flat = np.ascontiguousarray(probabilities, dtype=np.float64).reshape(-1)
-        # The flat entries (``(s * A + a) * width + m``) whose gradient the reverse pass computes;
-        # all of them unless narrowed with ``only_gradients_at``.
-        self.gradient_entries = np.arange(self.probs_flat.shape[0], dtype=np.int64)
+        flat_probabilities = np.ascontiguousarray(probabilities, dtype=np.float64).reshape(-1)
+        self._hold(
+            next_states.shape,
+            np.ascontiguousarray(next_states, dtype=np.int64).reshape(-1),
+            flat_probabilities,
+            # All entries' gradients unless narrowed with ``only_gradients_at``.
+            np.arange(flat_probabilities.shape[0], dtype=np.int64),
+        )
+
+    def _hold(
+        self,
+        shape: tuple[int, ...],
+        next_flat: np.ndarray,
+        probs_flat: np.ndarray,
+        gradient_entries: np.ndarray,
+    ) -> None:
+        """Keep a checked table of ``shape`` (S, A, M), flattened to rows ``s * A + a``."""
+        self.num_states, self.num_actions, self.width = (int(n) for n in shape)
+        self.next_flat = next_flat
+        self.probs_flat = probs_flat
+        # The flat entries (``(s * A + a) * width + m``) whose gradient the reverse pass computes.
+        self.gradient_entries = gradient_entries
         self._matrix: sp.csr_matrix | None = None
 
     @classmethod
@@ -88,12 +102,12 @@ class TransitionOperator:
         refuses any other; tests/domains checks the rows). A learner builds one per step."""
         operator = cls.__new__(cls)
         operator.dense_input = False
-        operator.num_states, operator.num_actions = model.num_states, model.num_actions
-        operator.width = model.width
-        operator.next_flat = model.flat_next_states
-        operator.probs_flat = model.probabilities(theta).reshape(-1)
-        operator.gradient_entries = model.flat_parametric_entries
-        operator._matrix = None
+        operator._hold(
+            model.next_states.shape,
+            model.flat_next_states,
+            model.probabilities(theta).reshape(-1),
+            model.flat_parametric_entries,
+        )
         return operator
 
     def only_gradients_at(self, mask: np.ndarray) -> TransitionOperator:

@@ -318,17 +318,26 @@ def rows(*values: list[int]) -> list[np.ndarray]:
     return [np.array(v, dtype=np.int64) for v in values]
 
 
+def random_data(
+    rng: np.random.Generator, tasks: int, states: int, demos: int, steps: int, scale: float
+) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
+    """Q (tasks, states, 5), demonstration rows and agent-step rows with feedback."""
+    q = rng.normal(size=(tasks, states, 5)) * scale
+    demo = rows(
+        rng.integers(0, tasks, demos), rng.integers(0, states, demos), rng.integers(0, 5, demos)
+    )
+    step_rows = rows(
+        rng.integers(0, tasks, steps),
+        rng.integers(0, states, steps),
+        rng.integers(0, 5, steps),
+        rng.integers(-1, 2, steps),
+    )
+    return q, demo, step_rows
+
+
 @pytest.mark.parametrize("normalized", [False, True])
 def test_one_pass_is_the_sum_of_the_two_likelihoods(normalized: bool) -> None:
-    rng = np.random.default_rng(3)
-    q = rng.normal(size=(2, 6, 5)) * 4.0
-    demo = rows(rng.integers(0, 2, 30), rng.integers(0, 6, 30), rng.integers(0, 5, 30))
-    steps = rows(
-        rng.integers(0, 2, 25),
-        rng.integers(0, 6, 25),
-        rng.integers(0, 5, 25),
-        rng.integers(-1, 2, 25),
-    )
+    q, demo, steps = random_data(np.random.default_rng(3), 2, 6, 30, 25, scale=4.0)
     actions, feedback = ActionModel(1.5, normalized), FeedbackModel(alpha=0.8, epsilon=0.1)
     value, d_q = data_log_likelihood(q, *demo, actions, *steps, feedback)
     value_d, d_q_d = demonstration_log_likelihood(q, *demo, actions)
@@ -422,14 +431,7 @@ def test_the_compiled_pass_gives_the_numpy_code_s_results_to_the_last_bit(
     pass must reproduce it exactly, not approximately: a difference in the last bit of one
     gradient moves whole curves of the feedback experiment (agents act greedily on near-ties)."""
     rng = np.random.default_rng(11)
-    q = rng.normal(size=(3, 40, 5)) * 15.0
-    demo = rows(rng.integers(0, 3, 300), rng.integers(0, 40, 300), rng.integers(0, 5, 300))
-    steps = rows(
-        rng.integers(0, 3, 300),
-        rng.integers(0, 40, 300),
-        rng.integers(0, 5, 300),
-        rng.integers(-1, 2, 300),
-    )
+    q, demo, steps = random_data(rng, 3, 40, 300, 300, scale=15.0)
     actions = ActionModel(1.3, normalized)
     for feedback in (FeedbackModel(), FeedbackModel(epsilon=0.1, alpha=0.7, mu_plus=0.2)):
         value, d_q = data_log_likelihood(q, *demo, actions, *steps, feedback)

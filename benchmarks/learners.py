@@ -25,7 +25,8 @@ import numpy as np
 
 from server import domains
 from server.learners import NAMES, dumps, make, restore
-from server.learners.planning import TransitionOperator, soft_plan
+from server.learners.planning import TransitionOperator, set_planner_threads, soft_plan
+from server.simulation.runner import default_workers
 from server.teacher import Teacher
 
 CHECKPOINTS = (1, 5, 10)
@@ -69,6 +70,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
+        "--threads",
+        type=int,
+        default=default_workers(),
+        help="planner threads, as a study server's update process has them "
+        "(default: the number of cores)",
+    )
+    parser.add_argument(
         "--setting",
         action="append",
         default=[],
@@ -76,6 +84,10 @@ def main(argv: list[str] | None = None) -> int:
         help="learner setting override, e.g. optimizer=lbfgs (repeatable)",
     )
     args = parser.parse_args(argv)
+    if args.threads < 1:
+        parser.error("--threads must be at least 1")
+    set_planner_threads(args.threads)
+    print(f"planner threads: {args.threads}")
     settings = {}
     for item in args.setting:
         name, _, value = item.partition("=")

@@ -120,6 +120,7 @@ def create_app(
             study_config.settings_of,
             workers=settings.update_workers,
             niceness=settings.update_worker_niceness,
+            threads=settings.update_threads,
             executor=executor,
         )
         state.updates = manager

@@ -6,6 +6,7 @@ The study itself (domains, environments, learners, texts) is in the study config
 
 from __future__ import annotations
 
+import os
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
@@ -37,6 +38,13 @@ class Settings(BaseSettings):
         "created with the database.",
     )
     update_workers: int = Field(2, ge=1, le=64, description="Processes for learner updates.")
+    update_threads: int = Field(
+        default_factory=lambda: os.cpu_count() or 1,
+        ge=1,
+        le=64,
+        description="Threads each update process's planner may use (one per task at most): an "
+        "update running alone uses the idle cores. Default: the number of cores.",
+    )
     update_worker_niceness: int = Field(
         10, ge=0, le=19, description="Nice increment of update processes, so requests come first."
     )

@@ -3,7 +3,8 @@
 An episode end commits its events and a pending ``learner_updates`` row, then hands the session
 to the ``UpdateManager``. The manager runs each session's pending updates in order, one at a time
 per session, in a pool of processes (``BAM_UPDATE_WORKERS``, at a lower CPU priority than the
-server so that moves stay fast): the worker restores the learner from the latest saved state
+server so that moves stay fast; an update's planner splits its tasks over ``BAM_UPDATE_THREADS``
+threads, which an update running alone finds idle): the worker restores the learner from the latest saved state
 (or builds a new one), replays the events since, updates it, stores its greedy policies and
 scores them (exact normalised return). The server then commits the new learner state with the
 evaluation, and an agent step waiting for that session's update goes on. Sessions with an agent
@@ -48,8 +49,9 @@ DB_POLL_SECONDS = 5.0
 PARENT_CHECK_SECONDS = 1.0
 
 
-def worker_init(niceness: int, server_pid: int) -> None:
-    """Lower the worker's priority, leave with the server, import the learners once."""
+def worker_init(niceness: int, server_pid: int, threads: int = 1) -> None:
+    """Lower the worker's priority, leave with the server, import the learners once and give
+    their planner ``threads``."""
     # A server that dies without shutting its pool down (killed, or stopped while it was
     # replacing workers that a SIGTERM to its process group had killed) leaves its workers
     # waiting on a queue no one writes to: they must notice and go. A worker whose server died
@@ -68,6 +70,9 @@ def worker_init(niceness: int, server_pid: int) -> None:
     threading.Thread(target=leave_with_parent, name="leave-with-server", daemon=True).start()
     import server.learners
     import server.learners.evaluation  # noqa: F401
+    from server.learners.planning import set_planner_threads
+
+    set_planner_threads(threads)
 
 
 def apply_records(learner: Any, records: list[tuple[Any, ...]]) -> None:
@@ -141,13 +146,13 @@ def records_of(rows: Any) -> list[tuple[Any, ...]]:
     return records
 
 
-def new_executor(workers: int, niceness: int) -> ProcessPoolExecutor:
+def new_executor(workers: int, niceness: int, threads: int = 1) -> ProcessPoolExecutor:
     # Spawned, not forked: the server process has threads.
     return ProcessPoolExecutor(
         max_workers=workers,
         mp_context=multiprocessing.get_context("spawn"),
         initializer=worker_init,
-        initargs=(niceness, os.getpid()),
+        initargs=(niceness, os.getpid(), threads),
     )
 
 
@@ -162,12 +167,14 @@ class UpdateManager:
         workers: int = 2,
         niceness: int = 10,
         executor: Executor | None = None,
+        threads: int = 1,
     ) -> None:
         self.db = db
         self.policies = policies
         self.learner_settings = learner_settings  # learner name -> settings dict
         self.workers = workers
         self.niceness = niceness
+        self.threads = threads
         self._executor = executor
         self._own_executor = executor is None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -192,7 +199,7 @@ class UpdateManager:
         self._wake = asyncio.Event()
         self._slots = asyncio.Semaphore(self.workers)
         if self._executor is None:
-            self._executor = new_executor(self.workers, self.niceness)
+            self._executor = new_executor(self.workers, self.niceness, self.threads)
         self._spawn(self._dispatch())
         self._spawn(self._rescan_forever())
 
@@ -366,7 +373,7 @@ class UpdateManager:
             return
         if self._executor is broken:
             self._own_executor = True
-            self._executor = new_executor(self.workers, self.niceness)
+            self._executor = new_executor(self.workers, self.niceness, self.threads)
             broken.shutdown(wait=False, cancel_futures=True)
 
     async def _rescan_forever(self) -> None:

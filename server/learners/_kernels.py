@@ -94,55 +94,63 @@ def nonzero_rows(
     return row_start, columns, probabilities
 
 
-@njit(cache=True, fastmath=False)
-def soft_forward(
-    next_flat: np.ndarray,
-    probs_flat: np.ndarray,
-    width: int,
+@njit(cache=True, nogil=True, fastmath=False)
+def soft_forward_tasks(
+    row_start: np.ndarray,
+    columns: np.ndarray,
+    entries: np.ndarray,
     rewards: np.ndarray,
     beta: float,
     horizon: int,
-    num_actions: int,
     keep_trace: bool,
-):
-    """Q after ``horizon`` backups (tasks, S, A) and, with ``keep_trace``, the values V_t and
-    value Jacobians dV_t/dQ_t of t = 1 .. horizon - 1 that the reverse pass needs."""
+    q: np.ndarray,
+    values: np.ndarray,
+    jacobians: np.ndarray,
+    first: int,
+    last: int,
+) -> None:
+    """Tasks ``first .. last - 1`` of a forward pass, written into ``q`` (tasks, S, A) and, with
+    ``keep_trace``, the values V_t and value Jacobians dV_t/dQ_t of t = 1 .. horizon - 1 that
+    the reverse pass needs. The table is given by its non-zero entries row by row
+    (``nonzero_rows``). Tasks are independent: any split of them over threads (the kernel
+    releases the GIL) computes the same bits."""
+    num_actions = q.shape[2]
     if num_actions == FIVE_ACTIONS:
-        return _soft_forward(
-            next_flat, probs_flat, width, rewards, beta, horizon, FIVE_ACTIONS, keep_trace
-        )
-    return _soft_forward(
-        next_flat, probs_flat, width, rewards, beta, horizon, num_actions, keep_trace
-    )
+        _soft_forward(
+            row_start, columns, entries, rewards, beta, horizon, keep_trace,
+            q, values, jacobians, first, last, FIVE_ACTIONS,
+        )  # fmt: skip
+    else:
+        _soft_forward(
+            row_start, columns, entries, rewards, beta, horizon, keep_trace,
+            q, values, jacobians, first, last, num_actions,
+        )  # fmt: skip
 
 
 @njit(inline="always", fastmath=False)
 def _soft_forward(
-    next_flat: np.ndarray,
-    probs_flat: np.ndarray,
-    width: int,
+    row_start: np.ndarray,
+    columns: np.ndarray,
+    entries: np.ndarray,
     rewards: np.ndarray,
     beta: float,
     horizon: int,
-    num_actions: int,
     keep_trace: bool,
-):
-    num_tasks, num_states = rewards.shape
+    q: np.ndarray,
+    values: np.ndarray,
+    jacobians: np.ndarray,
+    first: int,
+    last: int,
+    num_actions: int,
+) -> None:
+    num_states = rewards.shape[1]
     n = num_states * num_actions
-    # The rows' non-zero entries only (padding is most of the table in gravity and farming:
-    # 73% of flip's entries are zero).
-    row_start, columns, entries = nonzero_rows(next_flat, probs_flat, width, n)
-    q = np.empty((num_tasks, num_states, num_actions))
-    # V_horizon and its Jacobian are never used (Q_horizon is the output).
-    trace_len = horizon - 1 if keep_trace else 0
-    values = np.empty((trace_len, num_tasks, num_states))
-    jacobians = np.empty((trace_len, num_tasks, num_states, num_actions))
     previous = np.zeros(num_states)
     rows = np.empty(n)
     shifted = np.empty(n)
     weights = np.empty(n)
     bits = np.empty(n, dtype=np.int64)
-    for k in range(num_tasks):
+    for k in range(first, last):
         for s in range(num_states):
             previous[s] = 0.0
         for t in range(horizon):
@@ -187,7 +195,6 @@ def _soft_forward(
                         jacobians[t, k, s, a] = weights[i + a] * (
                             1.0 + beta * (rows[i + a] - value)
                         )
-    return q, values, jacobians
 
 
 @njit(cache=True)
@@ -215,69 +222,72 @@ def incoming(
     return indptr, sources, probabilities
 
 
-@njit(cache=True, fastmath=False)
-def soft_backward(
+@njit(cache=True, nogil=True, fastmath=False)
+def soft_backward_tasks(
+    indptr: np.ndarray,
+    sources: np.ndarray,
+    probabilities: np.ndarray,
     next_flat: np.ndarray,
-    probs_flat: np.ndarray,
     width: int,
     values: np.ndarray,
     jacobians: np.ndarray,
     d_q: np.ndarray,
     horizon: int,
     gradient_entries: np.ndarray,
-):
-    """dL/dreward (tasks, S) and dL/d(table entries) from dL/dQ, the latter only at the flat
-    entry indices ``gradient_entries`` (0 elsewhere; empty: no transition gradient)."""
+    d_reward: np.ndarray,
+    d_probs: np.ndarray,
+    terms: np.ndarray,
+    first: int,
+    last: int,
+) -> None:
+    """Tasks ``first .. last - 1`` of a reverse pass from dL/dQ: dL/dreward into ``d_reward``
+    (tasks, S), and dL/d(table entries) at the flat entry indices ``gradient_entries`` (none:
+    no transition gradient). The table's entries by next state come from ``incoming``.
+
+    The transition gradient sums over tasks and backups. With ``terms`` empty the terms are
+    added into ``d_probs`` at once (one thread); otherwise term (k, t, e) is kept in
+    ``terms[k, horizon - t, e]`` and ``add_terms`` adds them afterwards in the one-thread
+    order, so that a split of the tasks over threads gives the same bits."""
     num_actions = d_q.shape[2]
     if num_actions == FIVE_ACTIONS:
-        return _soft_backward(
-            next_flat,
-            probs_flat,
-            width,
-            values,
-            jacobians,
-            d_q,
-            horizon,
-            gradient_entries,
-            FIVE_ACTIONS,
-        )
-    return _soft_backward(
-        next_flat,
-        probs_flat,
-        width,
-        values,
-        jacobians,
-        d_q,
-        horizon,
-        gradient_entries,
-        num_actions,
-    )
+        _soft_backward(
+            indptr, sources, probabilities, next_flat, width, values, jacobians, d_q, horizon,
+            gradient_entries, d_reward, d_probs, terms, first, last, FIVE_ACTIONS,
+        )  # fmt: skip
+    else:
+        _soft_backward(
+            indptr, sources, probabilities, next_flat, width, values, jacobians, d_q, horizon,
+            gradient_entries, d_reward, d_probs, terms, first, last, num_actions,
+        )  # fmt: skip
 
 
 @njit(inline="always", fastmath=False)
 def _soft_backward(
+    indptr: np.ndarray,
+    sources: np.ndarray,
+    probabilities: np.ndarray,
     next_flat: np.ndarray,
-    probs_flat: np.ndarray,
     width: int,
     values: np.ndarray,
     jacobians: np.ndarray,
     d_q: np.ndarray,
     horizon: int,
     gradient_entries: np.ndarray,
+    d_reward: np.ndarray,
+    d_probs: np.ndarray,
+    terms: np.ndarray,
+    first: int,
+    last: int,
     num_actions: int,
-):
-    num_tasks, num_states = d_q.shape[0], d_q.shape[1]
+) -> None:
+    num_states = d_q.shape[1]
     n = num_states * num_actions
-    # dL/dV_{t-1}(s') gathers over the rows that reach s' (no scattered writes).
-    indptr, sources, probabilities = incoming(next_flat, probs_flat, width, num_states)
-    d_reward = np.zeros((num_tasks, num_states))
-    need_transitions = gradient_entries.shape[0] > 0
-    every_entry = gradient_entries.shape[0] == next_flat.shape[0]  # (the entries in order)
+    num_entries = gradient_entries.shape[0]
+    keep_terms = terms.shape[0] > 0
     entry_rows = gradient_entries // width  # the row (s * A + a) of each entry
-    d_probs = np.zeros(next_flat.shape[0] if need_transitions else 0)
     g = np.empty(n)
     g_v = np.empty(num_states)
-    for k in range(num_tasks):
+    for k in range(first, last):
         for s in range(num_states):
             for a in range(num_actions):
                 g[s * num_actions + a] = d_q[k, s, a]
@@ -289,16 +299,14 @@ def _soft_backward(
                 d_reward[k, s] += acc
             if t == 1:
                 break
-            if need_transitions:
+            if num_entries > 0:
                 v = values[t - 2, k]
-                if every_entry:
-                    for i in range(n):
-                        gi = g[i]
-                        base = i * width
-                        for m in range(width):
-                            d_probs[base + m] += gi * v[next_flat[base + m]]
+                if keep_terms:
+                    kept = terms[k, horizon - t]
+                    for e in range(num_entries):
+                        kept[e] = g[entry_rows[e]] * v[next_flat[gradient_entries[e]]]
                 else:
-                    for e in range(gradient_entries.shape[0]):
+                    for e in range(num_entries):
                         j = gradient_entries[e]
                         d_probs[j] += g[entry_rows[e]] * v[next_flat[j]]
             for s in range(num_states):
@@ -311,7 +319,17 @@ def _soft_backward(
                 gs = g_v[s]
                 for a in range(num_actions):
                     g[s * num_actions + a] = gs * jac[s, a]
-    return d_reward, d_probs
+
+
+@njit(cache=True, nogil=True)
+def add_terms(terms: np.ndarray, gradient_entries: np.ndarray, d_probs: np.ndarray) -> None:
+    """The transition gradient's terms kept by ``soft_backward_tasks``, added into
+    ``d_probs`` task by task and backup by backup: the one-thread pass's order of additions."""
+    for k in range(terms.shape[0]):
+        for step in range(terms.shape[1]):
+            kept = terms[k, step]
+            for e in range(gradient_entries.shape[0]):
+                d_probs[gradient_entries[e]] += kept[e]
 
 
 @njit(cache=True)

@@ -18,6 +18,9 @@ Jacobians cost a factor of the number of parameters more).
 
 from __future__ import annotations
 
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +28,68 @@ import scipy.sparse as sp
 
 from server.domains.base import SparseTransitions, TransitionModel, check_finite
 from server.learners import _kernels
+
+# -- threads ----------------------------------------------------------------------------------
+# A pass's tasks are independent, and the compiled kernels release the GIL, so a pass can split
+# its tasks over threads. The numbers do not depend on the split (tested bit for bit). One
+# thread unless set: processes that already fill the cores (a simulation's pool) gain nothing.
+
+THREADS_VARIABLE = "BAM_PLANNER_THREADS"
+_threads: int | None = None
+_pool: ThreadPoolExecutor | None = None
+_pool_owner = (0, 0)  # (process id, threads) the pool was made for
+
+
+def check_threads(value: object, source: str) -> int:
+    """A positive whole number of planner threads; anything else is refused, naming where it
+    came from."""
+    try:
+        threads = int(str(value).strip()) if isinstance(value, str) else value
+    except ValueError:
+        threads = None
+    if isinstance(threads, bool) or not isinstance(threads, int | np.integer) or threads < 1:
+        raise ValueError(f"{source} must be a positive integer, got {value!r}")
+    return int(threads)
+
+
+def set_planner_threads(threads: int) -> None:
+    """Threads each planner pass of this process may use (at most one per task)."""
+    global _threads
+    _threads = check_threads(threads, "planner threads")
+
+
+def planner_threads() -> int:
+    """This process's planner threads: as set, else ``$BAM_PLANNER_THREADS``, else 1."""
+    global _threads
+    if _threads is None:
+        _threads = check_threads(os.environ.get(THREADS_VARIABLE, "1"), THREADS_VARIABLE)
+    return _threads
+
+
+def task_chunks(num_tasks: int) -> list[tuple[int, int]]:
+    """``num_tasks`` split into at most ``planner_threads()`` contiguous (first, last) runs."""
+    parts = max(1, min(planner_threads(), num_tasks))
+    return [(i * num_tasks // parts, (i + 1) * num_tasks // parts) for i in range(parts)]
+
+
+def run_chunks(work: Callable[[int, int], None], chunks: list[tuple[int, int]]) -> None:
+    """``work(first, last)`` for every chunk: the first in this thread, the others in the
+    pool's, all finished (and their errors raised) on return."""
+    if len(chunks) == 1:
+        work(*chunks[0])
+        return
+    global _pool, _pool_owner
+    owner = (os.getpid(), planner_threads())
+    if _pool is None or _pool_owner != owner:
+        # A forked child inherits the pool object but not its threads: it makes its own.
+        _pool = ThreadPoolExecutor(owner[1] - 1, thread_name_prefix="planner")
+        _pool_owner = owner
+    pending = [_pool.submit(work, *chunk) for chunk in chunks[1:]]
+    try:
+        work(*chunks[0])
+    finally:
+        for future in pending:
+            future.result()
 
 
 class TransitionOperator:
@@ -88,6 +153,8 @@ class TransitionOperator:
         # The flat entries (``(s * A + a) * width + m``) whose gradient the reverse pass computes.
         self.gradient_entries = gradient_entries
         self._matrix: sp.csr_matrix | None = None
+        self._rows: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._incoming: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     @classmethod
     def build(cls, transitions: np.ndarray | SparseTransitions) -> TransitionOperator:
@@ -122,6 +189,28 @@ class TransitionOperator:
             )
         self.gradient_entries = np.flatnonzero(mask.reshape(-1)).astype(np.int64)
         return self
+
+    @property
+    def rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The non-zero entries row by row (row starts, next states, probabilities) for
+        forward passes; padding is most of the table in gravity and farming (73% of flip's
+        entries are zero). Built on first use: a learner's cost steps plan on one table many
+        times."""
+        if self._rows is None:
+            self._rows = _kernels.nonzero_rows(
+                self.next_flat, self.probs_flat, self.width, self.num_states * self.num_actions
+            )
+        return self._rows
+
+    @property
+    def incoming(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The non-zero entries by next state (index pointers, source rows, probabilities) for
+        reverse passes, built on first use."""
+        if self._incoming is None:
+            self._incoming = _kernels.incoming(
+                self.next_flat, self.probs_flat, self.width, self.num_states
+            )
+        return self._incoming
 
     @property
     def matrix(self) -> sp.csr_matrix:
@@ -171,16 +260,38 @@ class SoftPlan:
         g_q = d_q[None] if self.single_task else d_q
         if not self.has_trace:
             raise ValueError("this plan was computed without keep_trace; it has no reverse pass")
-        d_reward, d_probs = _kernels.soft_backward(
-            op.next_flat,
-            op.probs_flat,
-            op.width,
-            self.values,
-            self.value_jacobians,
-            np.ascontiguousarray(g_q),
-            self.horizon,
-            op.gradient_entries if need_transitions else np.empty(0, dtype=np.int64),
-        )
+        num_tasks = g_q.shape[0]
+        entries = op.gradient_entries if need_transitions else np.empty(0, dtype=np.int64)
+        d_reward = np.zeros((num_tasks, op.num_states))
+        d_probs = np.zeros(op.next_flat.shape[0] if need_transitions else 0)
+        chunks = task_chunks(num_tasks)
+        split = len(chunks) > 1 and entries.shape[0] > 0
+        terms = np.empty((num_tasks, self.horizon - 1, entries.shape[0]) if split else (0, 0, 0))
+        indptr, sources, probabilities = op.incoming
+        g_q = np.ascontiguousarray(g_q)
+
+        def reverse(first: int, last: int) -> None:
+            _kernels.soft_backward_tasks(
+                indptr,
+                sources,
+                probabilities,
+                op.next_flat,
+                op.width,
+                self.values,
+                self.value_jacobians,
+                g_q,
+                self.horizon,
+                entries,
+                d_reward,
+                d_probs,
+                terms,
+                first,
+                last,
+            )
+
+        run_chunks(reverse, chunks)
+        if split:
+            _kernels.add_terms(terms, entries, d_probs)
         if self.single_task:
             d_reward = d_reward[0]
         if not need_transitions:
@@ -224,16 +335,32 @@ def soft_plan(
     if not np.isfinite(beta) or beta <= 0:
         raise ValueError(f"beta must be a positive finite number, got {beta!r}")
     horizon = check_horizon(horizon)
-    q, values, jacobians = _kernels.soft_forward(
-        operator.next_flat,
-        operator.probs_flat,
-        operator.width,
-        np.ascontiguousarray(rewards),
-        float(beta),
-        horizon,
-        operator.num_actions,
-        keep_trace,
-    )
+    num_tasks = rewards.shape[0]
+    q = np.empty((num_tasks, operator.num_states, operator.num_actions))
+    # V_horizon and its Jacobian are never used (Q_horizon is the output).
+    trace_len = horizon - 1 if keep_trace else 0
+    values = np.empty((trace_len, num_tasks, operator.num_states))
+    jacobians = np.empty((trace_len, num_tasks, operator.num_states, operator.num_actions))
+    row_start, columns, entries = operator.rows
+    rewards = np.ascontiguousarray(rewards, dtype=np.float64)
+
+    def forward(first: int, last: int) -> None:
+        _kernels.soft_forward_tasks(
+            row_start,
+            columns,
+            entries,
+            rewards,
+            float(beta),
+            horizon,
+            bool(keep_trace),
+            q,
+            values,
+            jacobians,
+            first,
+            last,
+        )
+
+    run_chunks(forward, task_chunks(num_tasks))
     return SoftPlan(
         q_all=q,
         operator=operator,

@@ -222,9 +222,18 @@ class Journal:
 # -- where jobs run ------------------------------------------------------------------------
 
 
-def _ignore_interrupts() -> None:
+def _start_worker(threads: int) -> None:
     # Ctrl-C reaches the whole process group; the parent stops the pool itself.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from server.learners.planning import set_planner_threads
+
+    set_planner_threads(threads)
+
+
+def spare_threads(processes: int) -> int:
+    """Planner threads for each of ``processes`` busy processes: the cores they leave (the
+    numbers do not depend on it, only the time)."""
+    return max(1, default_workers() // processes)
 
 
 class LocalBackend:
@@ -242,11 +251,21 @@ class LocalBackend:
 
     def results(self, jobs: Sequence[Job]) -> Iterator[JobResult]:
         if self.workers == 1 or len(jobs) <= 1:
-            for job in jobs:
-                yield run_agent(job)
+            from server.learners import planning
+
+            before = planning.planner_threads()
+            planning.set_planner_threads(spare_threads(1))
+            try:
+                for job in jobs:
+                    yield run_agent(job)
+            finally:
+                planning.set_planner_threads(before)
             return
+        processes = min(self.workers, len(jobs))
         context = multiprocessing.get_context("spawn")
-        pool = context.Pool(min(self.workers, len(jobs)), initializer=_ignore_interrupts)
+        pool = context.Pool(
+            processes, initializer=_start_worker, initargs=(spare_threads(processes),)
+        )
         try:
             yield from pool.imap_unordered(run_agent, jobs, chunksize=1)
             pool.close()

@@ -30,6 +30,7 @@ def test_a_benchmark_script_starts_as_the_readme_runs_it(script: str, tmp_path: 
     ("script", "arguments", "message"),
     [
         ("learners.py", ["--environments", "nowhere"], "invalid choice: 'nowhere'"),
+        ("learners.py", ["--threads", "0"], "--threads must be at least 1"),
         ("compare.py", ["--against", "no-such-revision"], "'no-such-revision' is not a commit"),
         ("compare.py", ["--against", "HEAD", "--cycles", "0"], "--cycles must be at least 1"),
         ("server.py", ["--warm-alternations", "2"], "--warm-alternations needs --optimizer"),

@@ -11,6 +11,7 @@ import pytest
 
 from server import domains
 from server.domains.base import SparseTransitions
+from server.learners import planning
 from server.learners.planning import (
     TransitionOperator,
     expected_return,
@@ -606,17 +607,84 @@ def test_five_action_code_computes_what_the_general_code_does() -> None:
     theta = env.model.initial_parameters() + rng.normal(size=env.model.num_parameters)
     op = TransitionOperator.build(env.model.transitions(theta))
     rewards = rng.normal(size=(len(env.tasks), env.num_states))
-    args = (op.next_flat, op.probs_flat, op.width, rewards, 1.0, env.horizon, 5, True)
-    special = _kernels.soft_forward(*args)
-    general = _kernels._soft_forward(*args)
+    tasks, horizon = len(env.tasks), env.horizon
+
+    def forward(kernel, *five):  # type: ignore[no-untyped-def]
+        out = (
+            np.empty((tasks, env.num_states, 5)),
+            np.empty((horizon - 1, tasks, env.num_states)),
+            np.empty((horizon - 1, tasks, env.num_states, 5)),
+        )
+        kernel(*op.rows, rewards, 1.0, horizon, True, *out, 0, tasks, *five)
+        return out
+
+    special, general = forward(_kernels.soft_forward_tasks), forward(_kernels._soft_forward, 5)
     for a, b in zip(special, general, strict=True):
         np.testing.assert_array_equal(a, b)
     d_q = rng.normal(size=special[0].shape)
-    trace = (op.next_flat, op.probs_flat, op.width, special[1], special[2], d_q, env.horizon)
-    special_back = _kernels.soft_backward(*trace, op.gradient_entries)
-    general_back = _kernels._soft_backward(*trace, op.gradient_entries, 5)
+
+    def backward(kernel, *five):  # type: ignore[no-untyped-def]
+        out = (np.zeros((tasks, env.num_states)), np.zeros(op.next_flat.shape[0]))
+        kernel(
+            *op.incoming, op.next_flat, op.width, special[1], special[2], d_q, horizon,
+            op.gradient_entries, *out, np.empty((0, 0, 0)), 0, tasks, *five,
+        )  # fmt: skip
+        return out
+
+    special_back = backward(_kernels.soft_backward_tasks)
+    general_back = backward(_kernels._soft_backward, 5)
     for a, b in zip(special_back, general_back, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("name", ["doorway", "two-rooms", "flip"])
+def test_passes_split_over_threads_compute_the_same_bits(name: str) -> None:
+    """A pass whose tasks are split over two or three threads gives the one-thread pass's
+    numbers bit for bit (Q, the trace, and both gradients, the transition gradient summed
+    over tasks in the one-thread order), with every entry's gradient and with the learners'
+    narrowed entries; the thread count is restored afterwards."""
+    env = domains.make(name)
+    rng = np.random.default_rng(33)
+    theta = env.model.initial_parameters() + rng.normal(size=env.model.num_parameters)
+    rewards = rng.normal(size=(len(env.tasks), env.num_states))
+    d_q = rng.normal(size=(len(env.tasks), env.num_states, env.num_actions))
+    operators = [
+        TransitionOperator.build(env.model.transitions(theta)),
+        TransitionOperator.of_model(env.model, theta),
+    ]
+    before = planning.planner_threads()
+    try:
+        results = {}
+        for threads in (1, 2, 3):
+            planning.set_planner_threads(threads)
+            results[threads] = []
+            for op in operators:
+                plan = soft_plan(op, rewards, 0.8, env.horizon)
+                d_reward, d_transitions = plan.backward(d_q)
+                results[threads] += [plan.q, plan.values, plan.value_jacobians, d_reward]
+                results[threads] += [d_transitions]
+        for threads in (2, 3):
+            for one, split in zip(results[1], results[threads], strict=True):
+                np.testing.assert_array_equal(split, one)
+        assert np.any(results[1][-1] != 0.0)
+    finally:
+        planning.set_planner_threads(before)
+
+
+@pytest.mark.parametrize("value", [0, -1, 1.5, "two", True, None])
+def test_a_bad_planner_thread_count_is_refused(value: object, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Zero, negative, fractional or non-numeric counts are refused with the setting's name,
+    set directly or through $BAM_PLANNER_THREADS, and leave the count as it was."""
+    before = planning.planner_threads()
+    with pytest.raises(ValueError, match="planner threads must be a positive integer"):
+        planning.set_planner_threads(value)  # type: ignore[arg-type]
+    assert planning.planner_threads() == before
+    monkeypatch.setattr(planning, "_threads", None)
+    monkeypatch.setenv(planning.THREADS_VARIABLE, str(value))
+    with pytest.raises(ValueError, match="BAM_PLANNER_THREADS must be a positive integer"):
+        planning.planner_threads()
+    monkeypatch.setenv(planning.THREADS_VARIABLE, "2")
+    assert planning.planner_threads() == 2
 
 
 def test_transition_gradient_only_where_asked() -> None:

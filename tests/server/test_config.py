@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -92,6 +93,14 @@ def test_settings_come_from_the_environment(
     monkeypatch.setenv("BAM_UPDATE_WORKERS", "0")
     with pytest.raises(ValidationError):
         Settings()
+    monkeypatch.delenv("BAM_UPDATE_WORKERS")
+    assert Settings().update_threads == (os.cpu_count() or 1)
+    monkeypatch.setenv("BAM_UPDATE_THREADS", "3")
+    assert Settings().update_threads == 3
+    for bad in ("0", "two"):
+        monkeypatch.setenv("BAM_UPDATE_THREADS", bad)
+        with pytest.raises(ValidationError, match="update_threads"):
+            Settings()
 
 
 def test_serve_refuses_a_bad_study(

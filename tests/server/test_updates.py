@@ -294,6 +294,25 @@ def test_update_workers_leave_when_their_server_dies(tmp_path: Path) -> None:
     assert not any(_alive(pid) for pid in workers), "update workers outlived their server"
 
 
+def _planner_threads() -> int:
+    from server.learners.planning import planner_threads
+
+    return planner_threads()
+
+
+def test_update_workers_give_their_planner_the_threads_they_are_given() -> None:
+    """``BAM_UPDATE_THREADS`` reaches the update processes' planner (a worker of this test's
+    own process has one thread unless told)."""
+    from server.app.updates import new_executor
+
+    for threads in (3, 1):
+        executor = new_executor(1, 0, threads)
+        try:
+            assert executor.submit(_planner_threads).result(timeout=60) == threads
+        finally:
+            executor.shutdown()
+
+
 _LATE_WORKER = """
 import os, sys, time
 from server.app.updates import worker_init

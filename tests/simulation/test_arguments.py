@@ -220,3 +220,20 @@ def test_a_run_whose_learner_defaults_changed_is_refused(
     )
     assert "bam cost_learning_rate: 0.02 there, 0.01 here" in capsys.readouterr().err
     assert snapshot(out) == before
+
+
+def test_local_processes_share_the_cores_with_their_planner_threads(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Each of n busy processes gives its planner the cores the others leave (at least one),
+    and a run in this process puts the count back when it ends."""
+    from server.learners import planning
+    from server.simulation import runner
+
+    monkeypatch.setattr(runner, "default_workers", lambda: 4)
+    assert [runner.spare_threads(n) for n in (1, 2, 3, 4, 8)] == [4, 2, 1, 1, 1]
+    seen: list[int] = []
+    monkeypatch.setattr(runner, "run_agent", lambda job: seen.append(planning.planner_threads()))
+    before = planning.planner_threads()
+    assert list(runner.LocalBackend(1).results(["a", "b"])) == [None, None]  # type: ignore[list-item]
+    assert seen == [4, 4] and planning.planner_threads() == before

@@ -361,3 +361,26 @@ def test_three_rounds_of_demonstrations_improve_the_return(name: str, environmen
     after = normalized_return(env, learner)
     assert 0.0 <= before <= 1.0 and after <= 1.0 + 1e-9
     assert after > before + 0.1, (before, after)
+
+
+@pytest.mark.parametrize("name", learners.NAMES)
+def test_an_update_runs_with_one_blas_thread_and_restores_the_count(
+    name: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An update's BLAS calls run on one thread (an idle OpenBLAS thread spins on the core
+    the planner's second thread needs) and the process's BLAS thread counts are as before
+    afterwards."""
+    from threadpoolctl import threadpool_info
+
+    def blas_threads() -> list[int]:
+        return [pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"]
+
+    before = blas_threads()
+    assert before, "NumPy and SciPy load a BLAS"
+    learner = learners.make(name, domains.make("wall"))
+    seen: list[list[int]] = []
+    fit = learner._fit
+    monkeypatch.setattr(learner, "_fit", lambda: (seen.append(blas_threads()), fit())[1])
+    learner.update()
+    assert seen == [[1] * len(before)]
+    assert blas_threads() == before

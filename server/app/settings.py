@@ -42,8 +42,9 @@ class Settings(BaseSettings):
         default_factory=lambda: os.cpu_count() or 1,
         ge=1,
         le=64,
-        description="Threads each update process's planner may use (one per task at most): an "
-        "update running alone uses the idle cores. Default: the number of cores.",
+        description="Planner threads for learner updates (one per task at most): an update "
+        "running alone uses them all, updates running together share them. Default: the number "
+        "of cores.",
     )
     update_worker_niceness: int = Field(
         10, ge=0, le=19, description="Nice increment of update processes, so requests come first."

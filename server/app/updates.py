@@ -3,8 +3,8 @@
 An episode end commits its events and a pending ``learner_updates`` row, then hands the session
 to the ``UpdateManager``. The manager runs each session's pending updates in order, one at a time
 per session, in a pool of processes (``BAM_UPDATE_WORKERS``, at a lower CPU priority than the
-server so that moves stay fast; an update's planner splits its tasks over ``BAM_UPDATE_THREADS``
-threads, which an update running alone finds idle): the worker restores the learner from the latest saved state
+server so that moves stay fast; an update running alone splits its planner's tasks over
+``BAM_UPDATE_THREADS`` threads, updates side by side share them): the worker restores the learner from the latest saved state
 (or builds a new one), replays the events since, updates it, stores its greedy policies and
 scores them (exact normalised return). The server then commits the new learner state with the
 evaluation, and an agent step waiting for that session's update goes on. Sessions with an agent
@@ -49,9 +49,8 @@ DB_POLL_SECONDS = 5.0
 PARENT_CHECK_SECONDS = 1.0
 
 
-def worker_init(niceness: int, server_pid: int, threads: int = 1) -> None:
-    """Lower the worker's priority, leave with the server, import the learners once and give
-    their planner ``threads``."""
+def worker_init(niceness: int, server_pid: int) -> None:
+    """Lower the worker's priority, leave with the server, import the learners once."""
     # A server that dies without shutting its pool down (killed, or stopped while it was
     # replacing workers that a SIGTERM to its process group had killed) leaves its workers
     # waiting on a queue no one writes to: they must notice and go. A worker whose server died
@@ -70,9 +69,6 @@ def worker_init(niceness: int, server_pid: int, threads: int = 1) -> None:
     threading.Thread(target=leave_with_parent, name="leave-with-server", daemon=True).start()
     import server.learners
     import server.learners.evaluation  # noqa: F401
-    from server.learners.planning import set_planner_threads
-
-    set_planner_threads(threads)
 
 
 def apply_records(learner: Any, records: list[tuple[Any, ...]]) -> None:
@@ -96,7 +92,9 @@ def run_update(job: dict[str, Any]) -> dict[str, Any]:
     and return its new state, greedy policies and evaluation."""
     from server import domains, learners
     from server.learners.evaluation import normalized_return
+    from server.learners.planning import set_planner_threads
 
+    set_planner_threads(job.get("threads", 1))
     env = domains.make(job["environment"])
     if job["base_state"] is not None:
         learner = learners.restore(env, learners.loads(job["base_state"]))
@@ -116,6 +114,14 @@ def run_update(job: dict[str, Any]) -> dict[str, Any]:
         "normalized_return": float(score),
         "evaluation_seconds": time.perf_counter() - started,
     }
+
+
+def share_threads(threads: int, running: int) -> int:
+    """Planner threads for an update that starts with ``running`` updates in flight (itself
+    included): an update alone uses all ``threads``, updates side by side share them, so that
+    a busy server does not put more threads than cores to work (two updates with two threads
+    each on two cores: fewer updates done, longer waits for them, measured)."""
+    return max(1, threads // max(1, running))
 
 
 # -- in the server process ------------------------------------------------------------------
@@ -146,13 +152,13 @@ def records_of(rows: Any) -> list[tuple[Any, ...]]:
     return records
 
 
-def new_executor(workers: int, niceness: int, threads: int = 1) -> ProcessPoolExecutor:
+def new_executor(workers: int, niceness: int) -> ProcessPoolExecutor:
     # Spawned, not forked: the server process has threads.
     return ProcessPoolExecutor(
         max_workers=workers,
         mp_context=multiprocessing.get_context("spawn"),
         initializer=worker_init,
-        initargs=(niceness, os.getpid(), threads),
+        initargs=(niceness, os.getpid()),
     )
 
 
@@ -188,6 +194,7 @@ class UpdateManager:
         self._tasks: set[asyncio.Task[Any]] = set()
         self._wake: asyncio.Event | None = None
         self._slots: asyncio.Semaphore | None = None
+        self._in_flight = 0  # updates submitted to the processes and not yet returned
         self.completed = 0
         self.failed = 0
         self._stopping = False
@@ -199,7 +206,7 @@ class UpdateManager:
         self._wake = asyncio.Event()
         self._slots = asyncio.Semaphore(self.workers)
         if self._executor is None:
-            self._executor = new_executor(self.workers, self.niceness, self.threads)
+            self._executor = new_executor(self.workers, self.niceness)
         self._spawn(self._dispatch())
         self._spawn(self._rescan_forever())
 
@@ -331,7 +338,7 @@ class UpdateManager:
             executor = self._executor
             assert executor is not None
             try:
-                outcome = await asyncio.wrap_future(executor.submit(run_update, job.payload))
+                outcome = await self._run_in_process(executor, job.payload)
             except BrokenProcessPool:
                 log.error(
                     "an update process died during update %s of session %s",
@@ -368,12 +375,24 @@ class UpdateManager:
                 self._again.discard(session_id)
                 self._enqueue(session_id)
 
+    async def _run_in_process(self, executor: Executor, payload: dict[str, Any]) -> Any:
+        """``run_update`` in an update process, its planner given this server's threads
+        shared among the updates running with it."""
+        self._in_flight += 1
+        try:
+            threads = share_threads(self.threads, self._in_flight)
+            return await asyncio.wrap_future(
+                executor.submit(run_update, {**payload, "threads": threads})
+            )
+        finally:
+            self._in_flight -= 1
+
     def _replace_executor(self, broken: Executor) -> None:
         if self._stopping:  # no new workers while shutting down: they would outlive the server
             return
         if self._executor is broken:
             self._own_executor = True
-            self._executor = new_executor(self.workers, self.niceness, self.threads)
+            self._executor = new_executor(self.workers, self.niceness)
             broken.shutdown(wait=False, cancel_futures=True)
 
     async def _rescan_forever(self) -> None:

@@ -294,23 +294,51 @@ def test_update_workers_leave_when_their_server_dies(tmp_path: Path) -> None:
     assert not any(_alive(pid) for pid in workers), "update workers outlived their server"
 
 
-def _planner_threads() -> int:
-    from server.learners.planning import planner_threads
+@pytest.mark.parametrize(
+    ("threads", "running", "share"),
+    [(2, 1, 2), (2, 2, 1), (2, 3, 1), (4, 2, 2), (4, 3, 1), (1, 1, 1)],
+)
+def test_updates_side_by_side_share_the_planner_threads(
+    threads: int, running: int, share: int
+) -> None:
+    from server.app.updates import share_threads
 
-    return planner_threads()
+    assert share_threads(threads, running) == share
 
 
-def test_update_workers_give_their_planner_the_threads_they_are_given() -> None:
-    """``BAM_UPDATE_THREADS`` reaches the update processes' planner (a worker of this test's
-    own process has one thread unless told)."""
-    from server.app.updates import new_executor
+def test_an_update_gives_its_planner_the_threads_its_job_names(tmp_path: Path) -> None:
+    """The server names each update's planner threads in its job; the update process's
+    planner uses them, and the update's result does not depend on them."""
+    from server.app.updates import run_update
+    from server.learners import planning
 
-    for threads in (3, 1):
-        executor = new_executor(1, 0, threads)
-        try:
-            assert executor.submit(_planner_threads).result(timeout=60) == threads
-        finally:
-            executor.shutdown()
+    env = make("doorway")
+    teacher = Teacher(env, seed=3)
+    records = [
+        ("demonstration", task, *step)
+        for task in range(len(env.tasks))
+        for step in teacher.demonstration(task, env.sample_start(task, np.random.default_rng(task)))
+    ]
+    job = {
+        "environment": "doorway",
+        "learner": "bam",
+        "seed": 1,
+        "settings": {"alternations": 2},
+        "base_state": None,
+        "records": records,
+        "fit": True,
+    }
+    before = planning.planner_threads()
+    try:
+        results = []
+        for threads in (3, 1):
+            outcome = run_update({**job, "threads": threads})
+            assert planning.planner_threads() == threads
+            results.append(outcome)
+    finally:
+        planning.set_planner_threads(before)
+    for key in ("learner_state", "greedy_policy", "objective", "normalized_return"):
+        assert results[0][key] == results[1][key]
 
 
 _LATE_WORKER = """

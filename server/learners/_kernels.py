@@ -71,34 +71,66 @@ def exp_nonpositive(x: np.ndarray, out: np.ndarray, bits: np.ndarray) -> None:
 
 
 @njit(cache=True)
-def nonzero_rows(
+def split_rows(
     next_flat: np.ndarray, probs_flat: np.ndarray, width: int, num_rows: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The table's non-zero entries row by row (compressed sparse rows): row i's next states
-    are ``columns[row_start[i]:row_start[i + 1]]`` with ``probabilities[...]``."""
-    row_start = np.zeros(num_rows + 1, dtype=np.int64)
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The table's non-zero entries for forward passes: every row's first one as two flat
+    arrays (``first_next[i]``, ``first_probability[i]``; a row of probabilities has at least
+    one), and the rest of the rows that have more (``more_rows``; row ``more_rows[x]``'s other
+    entries are ``more_next[more_start[x]:more_start[x + 1]]`` with ``more_probability``).
+
+    Most rows of gravity and farming have a single entry (flip: 1946 of 2000), and a pass
+    that reads the first entries in one loop without a per-row inner loop is about a fifth
+    faster. The entries are added in row order either way, so the sums are the same."""
+    first_next = np.empty(num_rows, dtype=np.int64)
+    first_probability = np.empty(num_rows)
+    counts = np.zeros(num_rows, dtype=np.int64)
     for i in range(num_rows):
-        count = 0
         for m in range(width):
-            if probs_flat[i * width + m] != 0.0:
-                count += 1
-        row_start[i + 1] = row_start[i] + count
-    columns = np.empty(row_start[num_rows], dtype=np.int64)
-    probabilities = np.empty(row_start[num_rows])
+            j = i * width + m
+            if probs_flat[j] != 0.0:
+                if counts[i] == 0:
+                    first_next[i] = next_flat[j]
+                    first_probability[i] = probs_flat[j]
+                counts[i] += 1
+    num_more = 0
+    num_extra = 0
+    for i in range(num_rows):
+        if counts[i] > 1:
+            num_more += 1
+            num_extra += counts[i] - 1
+    more_rows = np.empty(num_more, dtype=np.int64)
+    more_start = np.zeros(num_more + 1, dtype=np.int64)
+    more_next = np.empty(num_extra, dtype=np.int64)
+    more_probability = np.empty(num_extra)
+    x = 0
     e = 0
-    for j in range(next_flat.shape[0]):
-        if probs_flat[j] != 0.0:
-            columns[e] = next_flat[j]
-            probabilities[e] = probs_flat[j]
-            e += 1
-    return row_start, columns, probabilities
+    for i in range(num_rows):
+        if counts[i] <= 1:
+            continue
+        more_rows[x] = i
+        seen = 0
+        for m in range(width):
+            j = i * width + m
+            if probs_flat[j] != 0.0:
+                if seen > 0:
+                    more_next[e] = next_flat[j]
+                    more_probability[e] = probs_flat[j]
+                    e += 1
+                seen += 1
+        x += 1
+        more_start[x] = e
+    return first_next, first_probability, more_rows, more_start, more_next, more_probability
 
 
 @njit(cache=True, nogil=True, fastmath=False)
 def soft_forward_tasks(
-    row_start: np.ndarray,
-    columns: np.ndarray,
-    entries: np.ndarray,
+    first_next: np.ndarray,
+    first_probability: np.ndarray,
+    more_rows: np.ndarray,
+    more_start: np.ndarray,
+    more_next: np.ndarray,
+    more_probability: np.ndarray,
     rewards: np.ndarray,
     beta: float,
     horizon: int,
@@ -111,27 +143,30 @@ def soft_forward_tasks(
 ) -> None:
     """Tasks ``first .. last - 1`` of a forward pass, written into ``q`` (tasks, S, A) and, with
     ``keep_trace``, the values V_t and value Jacobians dV_t/dQ_t of t = 1 .. horizon - 1 that
-    the reverse pass needs. The table is given by its non-zero entries row by row
-    (``nonzero_rows``). Tasks are independent: any split of them over threads (the kernel
+    the reverse pass needs. The table is given by its non-zero entries as ``split_rows``
+    returns them. Tasks are independent: any split of them over threads (the kernel
     releases the GIL) computes the same bits."""
     num_actions = q.shape[2]
     if num_actions == FIVE_ACTIONS:
         _soft_forward(
-            row_start, columns, entries, rewards, beta, horizon, keep_trace,
-            q, values, jacobians, first, last, FIVE_ACTIONS,
+            first_next, first_probability, more_rows, more_start, more_next, more_probability,
+            rewards, beta, horizon, keep_trace, q, values, jacobians, first, last, FIVE_ACTIONS,
         )  # fmt: skip
     else:
         _soft_forward(
-            row_start, columns, entries, rewards, beta, horizon, keep_trace,
-            q, values, jacobians, first, last, num_actions,
+            first_next, first_probability, more_rows, more_start, more_next, more_probability,
+            rewards, beta, horizon, keep_trace, q, values, jacobians, first, last, num_actions,
         )  # fmt: skip
 
 
 @njit(inline="always", fastmath=False)
 def _soft_forward(
-    row_start: np.ndarray,
-    columns: np.ndarray,
-    entries: np.ndarray,
+    first_next: np.ndarray,
+    first_probability: np.ndarray,
+    more_rows: np.ndarray,
+    more_start: np.ndarray,
+    more_next: np.ndarray,
+    more_probability: np.ndarray,
     rewards: np.ndarray,
     beta: float,
     horizon: int,
@@ -154,14 +189,23 @@ def _soft_forward(
         for s in range(num_states):
             previous[s] = 0.0
         for t in range(horizon):
-            for s in range(num_states):
-                r = rewards[k, s]
-                for a in range(num_actions):
-                    i = s * num_actions + a
-                    acc = r
-                    if t > 0:
-                        for e in range(row_start[i], row_start[i + 1]):
-                            acc += entries[e] * previous[columns[e]]
+            if t == 0:
+                for s in range(num_states):
+                    for a in range(num_actions):
+                        rows[s * num_actions + a] = rewards[k, s]
+            else:
+                # r + each entry's term, in row order: the first entries for every row, then
+                # the others of the rows that have more.
+                for s in range(num_states):
+                    r = rewards[k, s]
+                    for a in range(num_actions):
+                        i = s * num_actions + a
+                        rows[i] = r + first_probability[i] * previous[first_next[i]]
+                for x in range(more_rows.shape[0]):
+                    i = more_rows[x]
+                    acc = rows[i]
+                    for e in range(more_start[x], more_start[x + 1]):
+                        acc += more_probability[e] * previous[more_next[e]]
                     rows[i] = acc
             if t == horizon - 1:
                 # Q_horizon is the output; its Boltzmann value is never used.

@@ -153,7 +153,7 @@ class TransitionOperator:
         # The flat entries (``(s * A + a) * width + m``) whose gradient the reverse pass computes.
         self.gradient_entries = gradient_entries
         self._matrix: sp.csr_matrix | None = None
-        self._rows: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._rows: tuple[np.ndarray, ...] | None = None
         self._incoming: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     @classmethod
@@ -191,13 +191,12 @@ class TransitionOperator:
         return self
 
     @property
-    def rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The non-zero entries row by row (row starts, next states, probabilities) for
-        forward passes; padding is most of the table in gravity and farming (73% of flip's
-        entries are zero). Built on first use: a learner's cost steps plan on one table many
-        times."""
+    def rows(self) -> tuple[np.ndarray, ...]:
+        """The non-zero entries for forward passes, as ``_kernels.split_rows`` gives them
+        (padding is most of the table in gravity and farming: 73% of flip's entries are zero).
+        Built on first use: a learner's cost steps plan on one table many times."""
         if self._rows is None:
-            self._rows = _kernels.nonzero_rows(
+            self._rows = _kernels.split_rows(
                 self.next_flat, self.probs_flat, self.width, self.num_states * self.num_actions
             )
         return self._rows
@@ -341,14 +340,12 @@ def soft_plan(
     trace_len = horizon - 1 if keep_trace else 0
     values = np.empty((trace_len, num_tasks, operator.num_states))
     jacobians = np.empty((trace_len, num_tasks, operator.num_states, operator.num_actions))
-    row_start, columns, entries = operator.rows
+    rows = operator.rows
     rewards = np.ascontiguousarray(rewards, dtype=np.float64)
 
     def forward(first: int, last: int) -> None:
         _kernels.soft_forward_tasks(
-            row_start,
-            columns,
-            entries,
+            *rows,
             rewards,
             float(beta),
             horizon,

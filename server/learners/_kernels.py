@@ -73,15 +73,16 @@ def exp_nonpositive(x: np.ndarray, out: np.ndarray, bits: np.ndarray) -> None:
 @njit(cache=True)
 def split_rows(
     next_flat: np.ndarray, probs_flat: np.ndarray, width: int, num_rows: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The table's non-zero entries for forward passes: every row's first one as two flat
-    arrays (``first_next[i]``, ``first_probability[i]``; a row of probabilities has at least
-    one), and the rest of the rows that have more (``more_rows``; row ``more_rows[x]``'s other
-    entries are ``more_next[more_start[x]:more_start[x + 1]]`` with ``more_probability``).
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The table's non-zero entries for forward passes, without a per-row inner loop: every
+    row's first one (``first_next[i]``, ``first_probability[i]``; a row of probabilities has at
+    least one), then the others as flat (``more_rows``, ``more_next``, ``more_probability``)
+    triples, all second entries before all third ones and so on.
 
-    Most rows of gravity and farming have a single entry (flip: 1946 of 2000), and a pass
-    that reads the first entries in one loop without a per-row inner loop is about a fifth
-    faster. The entries are added in row order either way, so the sums are the same."""
+    A pass adds r, then the first entries' terms, then the others in that order: each row's
+    terms in its own order, the sums of the loop over each row's entries. Rows have one entry
+    (most of gravity and farming: flip 1946 of 2000) or a few (navigation: move and stay), and
+    the variable-length inner loop cost 22% of a forward pass."""
     first_next = np.empty(num_rows, dtype=np.int64)
     first_probability = np.empty(num_rows)
     counts = np.zeros(num_rows, dtype=np.int64)
@@ -94,33 +95,28 @@ def split_rows(
                     first_probability[i] = probs_flat[j]
                 counts[i] += 1
     num_more = 0
-    num_extra = 0
     for i in range(num_rows):
-        if counts[i] > 1:
-            num_more += 1
-            num_extra += counts[i] - 1
+        num_more += counts[i] - 1
     more_rows = np.empty(num_more, dtype=np.int64)
-    more_start = np.zeros(num_more + 1, dtype=np.int64)
-    more_next = np.empty(num_extra, dtype=np.int64)
-    more_probability = np.empty(num_extra)
-    x = 0
+    more_next = np.empty(num_more, dtype=np.int64)
+    more_probability = np.empty(num_more)
     e = 0
-    for i in range(num_rows):
-        if counts[i] <= 1:
-            continue
-        more_rows[x] = i
-        seen = 0
-        for m in range(width):
-            j = i * width + m
-            if probs_flat[j] != 0.0:
-                if seen > 0:
-                    more_next[e] = next_flat[j]
-                    more_probability[e] = probs_flat[j]
-                    e += 1
-                seen += 1
-        x += 1
-        more_start[x] = e
-    return first_next, first_probability, more_rows, more_start, more_next, more_probability
+    for level in range(1, width):
+        for i in range(num_rows):
+            if counts[i] <= level:
+                continue
+            seen = 0
+            for m in range(width):
+                j = i * width + m
+                if probs_flat[j] != 0.0:
+                    if seen == level:
+                        more_rows[e] = i
+                        more_next[e] = next_flat[j]
+                        more_probability[e] = probs_flat[j]
+                        e += 1
+                        break
+                    seen += 1
+    return first_next, first_probability, more_rows, more_next, more_probability
 
 
 @njit(cache=True, nogil=True, fastmath=False)
@@ -128,7 +124,6 @@ def soft_forward_tasks(
     first_next: np.ndarray,
     first_probability: np.ndarray,
     more_rows: np.ndarray,
-    more_start: np.ndarray,
     more_next: np.ndarray,
     more_probability: np.ndarray,
     rewards: np.ndarray,
@@ -149,13 +144,13 @@ def soft_forward_tasks(
     num_actions = q.shape[2]
     if num_actions == FIVE_ACTIONS:
         _soft_forward(
-            first_next, first_probability, more_rows, more_start, more_next, more_probability,
-            rewards, beta, horizon, keep_trace, q, values, jacobians, first, last, FIVE_ACTIONS,
+            first_next, first_probability, more_rows, more_next, more_probability, rewards,
+            beta, horizon, keep_trace, q, values, jacobians, first, last, FIVE_ACTIONS,
         )  # fmt: skip
     else:
         _soft_forward(
-            first_next, first_probability, more_rows, more_start, more_next, more_probability,
-            rewards, beta, horizon, keep_trace, q, values, jacobians, first, last, num_actions,
+            first_next, first_probability, more_rows, more_next, more_probability, rewards,
+            beta, horizon, keep_trace, q, values, jacobians, first, last, num_actions,
         )  # fmt: skip
 
 
@@ -164,7 +159,6 @@ def _soft_forward(
     first_next: np.ndarray,
     first_probability: np.ndarray,
     more_rows: np.ndarray,
-    more_start: np.ndarray,
     more_next: np.ndarray,
     more_probability: np.ndarray,
     rewards: np.ndarray,
@@ -194,19 +188,15 @@ def _soft_forward(
                     for a in range(num_actions):
                         rows[s * num_actions + a] = rewards[k, s]
             else:
-                # r + each entry's term, in row order: the first entries for every row, then
-                # the others of the rows that have more.
+                # r + each entry's term in row order (see ``split_rows``).
                 for s in range(num_states):
                     r = rewards[k, s]
                     for a in range(num_actions):
                         i = s * num_actions + a
                         rows[i] = r + first_probability[i] * previous[first_next[i]]
-                for x in range(more_rows.shape[0]):
-                    i = more_rows[x]
-                    acc = rows[i]
-                    for e in range(more_start[x], more_start[x + 1]):
-                        acc += more_probability[e] * previous[more_next[e]]
-                    rows[i] = acc
+                for e in range(more_rows.shape[0]):
+                    i = more_rows[e]
+                    rows[i] = rows[i] + more_probability[e] * previous[more_next[e]]
             if t == horizon - 1:
                 # Q_horizon is the output; its Boltzmann value is never used.
                 for s in range(num_states):

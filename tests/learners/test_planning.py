@@ -732,3 +732,21 @@ def test_a_model_s_operator_is_the_checked_table_narrowed_to_its_parameters(name
     theta[0] = np.nan
     with pytest.raises(ValueError, match="NaN or infinite"):
         TransitionOperator.of_model(env.model, theta)
+
+
+def test_forward_entries_are_each_row_s_non_zero_entries_in_order() -> None:
+    """``split_rows``: the first non-zero entry of every row, then the rows' second entries,
+    third entries and so on, skipping zeros wherever they sit in a row, so that a forward pass
+    adds each row's terms in the row's order."""
+    from server.learners import _kernels
+
+    next_states = np.array([[3, 1, 2, 0], [2, 2, 2, 2], [0, 3, 1, 2], [1, 0, 3, 2]])
+    probabilities = np.array(
+        [[0.0, 0.5, 0.0, 0.5], [1.0, 0.0, 0.0, 0.0], [0.25, 0.25, 0.0, 0.5], [0.0, 0.0, 0.0, 1.0]]
+    )
+    first_next, first_p, more_rows, more_next, more_p = _kernels.split_rows(
+        next_states.reshape(-1), probabilities.reshape(-1), 4, 4
+    )
+    assert first_next.tolist() == [1, 2, 0, 2] and first_p.tolist() == [0.5, 1.0, 0.25, 1.0]
+    assert more_rows.tolist() == [0, 2, 2]  # the second entries of rows 0 and 2, then row 2's third
+    assert more_next.tolist() == [0, 3, 2] and more_p.tolist() == [0.5, 0.25, 0.5]

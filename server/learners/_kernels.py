@@ -318,6 +318,7 @@ def _soft_backward(
     n = num_states * num_actions
     num_entries = gradient_entries.shape[0]
     keep_terms = terms.shape[0] > 0
+    every_entry = num_entries == next_flat.shape[0]  # (the entries in order: a whole table)
     entry_rows = gradient_entries // width  # the row (s * A + a) of each entry
     g = np.empty(n)
     g_v = np.empty(num_states)
@@ -339,6 +340,12 @@ def _soft_backward(
                     kept = terms[k, horizon - t]
                     for e in range(num_entries):
                         kept[e] = g[entry_rows[e]] * v[next_flat[gradient_entries[e]]]
+                elif every_entry:
+                    for i in range(n):
+                        gi = g[i]
+                        base = i * width
+                        for m in range(width):
+                            d_probs[base + m] += gi * v[next_flat[base + m]]
                 else:
                     for e in range(num_entries):
                         j = gradient_entries[e]

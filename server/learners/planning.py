@@ -263,7 +263,11 @@ class SoftPlan:
         entries = op.gradient_entries if need_transitions else np.empty(0, dtype=np.int64)
         d_reward = np.zeros((num_tasks, op.num_states))
         d_probs = np.zeros(op.next_flat.shape[0] if need_transitions else 0)
-        chunks = task_chunks(num_tasks)
+        # Split over threads, the transition gradient's terms are kept and added in order
+        # afterwards, one thread's work: worth it for the few entries a learner's model moves
+        # (flip: 216 for 2000 rows), not for a whole table's (8000; one thread then).
+        rows = op.num_states * op.num_actions
+        chunks = task_chunks(num_tasks) if entries.shape[0] <= 2 * rows else [(0, num_tasks)]
         split = len(chunks) > 1 and entries.shape[0] > 0
         terms = np.empty((num_tasks, self.horizon - 1, entries.shape[0]) if split else (0, 0, 0))
         indptr, sources, probabilities = op.incoming

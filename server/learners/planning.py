@@ -92,6 +92,10 @@ def run_chunks(work: Callable[[int, int], None], chunks: list[tuple[int, int]]) 
             future.result()
 
 
+# A table's non-zero entries for forward passes (``_kernels.split_rows``).
+ForwardRows = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
 class TransitionOperator:
     """A validated transition table in the padded sparse layout the compiled kernels use:
     rows ``s * A + a`` of ``width`` (next state, probability) entries. Dense (S, A, S) input
@@ -153,7 +157,7 @@ class TransitionOperator:
         # The flat entries (``(s * A + a) * width + m``) whose gradient the reverse pass computes.
         self.gradient_entries = gradient_entries
         self._matrix: sp.csr_matrix | None = None
-        self._rows: tuple[np.ndarray, ...] | None = None
+        self._rows: ForwardRows | None = None
         self._incoming: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     @classmethod
@@ -191,7 +195,7 @@ class TransitionOperator:
         return self
 
     @property
-    def rows(self) -> tuple[np.ndarray, ...]:
+    def rows(self) -> ForwardRows:
         """The non-zero entries for forward passes, as ``_kernels.split_rows`` gives them
         (padding is most of the table in gravity and farming: 73% of flip's entries are zero).
         Built on first use: a learner's cost steps plan on one table many times."""

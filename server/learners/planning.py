@@ -37,7 +37,7 @@ from server.learners import _kernels
 THREADS_VARIABLE = "BAM_PLANNER_THREADS"
 _threads: int | None = None
 _pool: ThreadPoolExecutor | None = None
-_pool_owner = (0, 0)  # (process id, threads) the pool was made for
+_pool_owner = (0, 0)  # (process id, threads) of the pool
 
 
 def check_threads(value: object, source: str) -> int:
@@ -79,11 +79,12 @@ def run_chunks(work: Callable[[int, int], None], chunks: list[tuple[int, int]]) 
         work(*chunks[0])
         return
     global _pool, _pool_owner
-    owner = (os.getpid(), planner_threads())
-    if _pool is None or _pool_owner != owner:
-        # A forked child inherits the pool object but not its threads: it makes its own.
-        _pool = ThreadPoolExecutor(owner[1] - 1, thread_name_prefix="planner")
-        _pool_owner = owner
+    # Sized by the chunks, not by planner_threads(), which another thread may have changed
+    # since they were cut; a forked child inherits the pool object but not its threads.
+    pid, needed = os.getpid(), len(chunks) - 1
+    if _pool is None or _pool_owner[0] != pid or _pool_owner[1] < needed:
+        _pool = ThreadPoolExecutor(needed, thread_name_prefix="planner")
+        _pool_owner = (pid, needed)
     pending = [_pool.submit(work, *chunk) for chunk in chunks[1:]]
     try:
         work(*chunks[0])

@@ -5,6 +5,7 @@ differences."""
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -750,3 +751,44 @@ def test_forward_entries_are_each_row_s_non_zero_entries_in_order() -> None:
     assert first_next.tolist() == [1, 2, 0, 2] and first_p.tolist() == [0.5, 1.0, 0.25, 1.0]
     assert more_rows.tolist() == [0, 2, 2]  # the second entries of rows 0 and 2, then row 2's third
     assert more_next.tolist() == [0, 3, 2] and more_p.tolist() == [0.5, 0.25, 0.5]
+
+
+def _split_pass_in_child(queue) -> None:  # type: ignore[no-untyped-def]
+    env = domains.make("flip")
+    rewards = np.random.default_rng(34).normal(size=(len(env.tasks), env.num_states))
+    queue.put(
+        soft_value_iteration(
+            env.model.transitions(env.model.initial_parameters()), rewards, 1.0, env.horizon
+        )
+    )
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork")
+def test_a_forked_child_splits_passes_over_threads_of_its_own() -> None:
+    """A process forked after its parent's planner made its threads inherits the pool but not
+    the threads: it must make its own, not wait forever on a pool no thread serves."""
+    import multiprocessing
+
+    env = domains.make("flip")
+    rewards = np.random.default_rng(34).normal(size=(len(env.tasks), env.num_states))
+    before = planning.planner_threads()
+    planning.set_planner_threads(2)
+    try:
+        expected = soft_value_iteration(
+            env.model.transitions(env.model.initial_parameters()), rewards, 1.0, env.horizon
+        )
+        assert planning._pool is not None  # the parent's threads exist
+        context = multiprocessing.get_context("fork")
+        queue = context.Queue()
+        child = context.Process(target=_split_pass_in_child, args=(queue,))
+        child.start()
+        try:
+            result = queue.get(timeout=60)
+            child.join(timeout=60)
+        finally:
+            if child.is_alive():
+                child.kill()
+    finally:
+        planning.set_planner_threads(before)
+    assert child.exitcode == 0
+    np.testing.assert_array_equal(result, expected)

@@ -279,9 +279,10 @@ def soft_backward_tasks(
     no transition gradient). The table's entries by next state come from ``incoming``.
 
     The transition gradient sums over tasks and backups. With ``terms`` empty the terms are
-    added into ``d_probs`` at once (one thread); otherwise term (k, t, e) is kept in
-    ``terms[k, horizon - t, e]`` and ``add_terms`` adds them afterwards in the one-thread
-    order, so that a split of the tasks over threads gives the same bits."""
+    added into ``d_probs`` at once (one thread, or the first of a split); otherwise term
+    (k, t, e) is kept in ``terms[k - first, horizon - t, e]`` and ``add_terms`` adds them
+    after the earlier tasks' sums, in the one-thread order, so that a split of the tasks over
+    threads gives the same bits."""
     num_actions = d_q.shape[2]
     if num_actions == FIVE_ACTIONS:
         _soft_backward(
@@ -337,7 +338,7 @@ def _soft_backward(
             if num_entries > 0:
                 v = values[t - 2, k]
                 if keep_terms:
-                    kept = terms[k, horizon - t]
+                    kept = terms[k - first, horizon - t]
                     for e in range(num_entries):
                         kept[e] = g[entry_rows[e]] * v[next_flat[gradient_entries[e]]]
                 elif every_entry:

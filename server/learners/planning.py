@@ -93,6 +93,8 @@ def run_chunks(work: Callable[[int, int], None], chunks: list[tuple[int, int]]) 
             future.result()
 
 
+NO_TERMS = np.empty((0, 0, 0))
+
 # A table's non-zero entries for forward passes (``_kernels.split_rows``).
 ForwardRows = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
@@ -268,13 +270,15 @@ class SoftPlan:
         entries = op.gradient_entries if need_transitions else np.empty(0, dtype=np.int64)
         d_reward = np.zeros((num_tasks, op.num_states))
         d_probs = np.zeros(op.next_flat.shape[0] if need_transitions else 0)
-        # Split over threads, the transition gradient's terms are kept and added in order
-        # afterwards, one thread's work: worth it for the few entries a learner's model moves
-        # (flip: 216 for 2000 rows), not for a whole table's (8000; one thread then).
+        # Split over threads, the first chunk's tasks add their transition gradient terms at
+        # once and the later chunks' are kept and added after them, in the one-thread order:
+        # worth it for the few entries a learner's model moves (flip: 216 for 2000 rows), not
+        # for a whole table's (8000; one thread then).
         rows = op.num_states * op.num_actions
         chunks = task_chunks(num_tasks) if entries.shape[0] <= 2 * rows else [(0, num_tasks)]
         split = len(chunks) > 1 and entries.shape[0] > 0
-        terms = np.empty((num_tasks, self.horizon - 1, entries.shape[0]) if split else (0, 0, 0))
+        kept_from = chunks[1][0] if split else num_tasks
+        terms = np.empty((num_tasks - kept_from, self.horizon - 1, entries.shape[0]))
         indptr, sources, probabilities = op.incoming
         g_q = np.ascontiguousarray(g_q)
 
@@ -292,7 +296,7 @@ class SoftPlan:
                 entries,
                 d_reward,
                 d_probs,
-                terms,
+                terms[first - kept_from : last - kept_from] if first >= kept_from else NO_TERMS,
                 first,
                 last,
             )

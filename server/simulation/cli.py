@@ -39,7 +39,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--rounds", type=int, default=10, help="rounds of teaching (default 10)")
     parser.add_argument(
-        "--jobs", type=int, default=None, help="local worker processes (default: all cores)"
+        "--jobs",
+        type=int,
+        default=None,
+        help="local worker processes (default: all cores); with fewer processes than cores, "
+        "each splits its planner passes over the cores left (same numbers)",
     )
     parser.add_argument(
         "--seed", type=int, default=0, help="the seed of every random stream (default 0)"

@@ -235,30 +235,49 @@ def _soft_forward(
 def incoming(
     next_flat: np.ndarray, probs_flat: np.ndarray, width: int, num_states: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The non-zero entries grouped by next state (the transpose of the table): for next state
-    s', rows ``sources[indptr[s']:indptr[s' + 1]]`` (``s * A + a``) reach it with
-    ``probabilities[...]``."""
-    indptr = np.zeros(num_states + 1, dtype=np.int64)
+    """The non-zero entries by next state (the transpose of the table) for reverse passes, as
+    flat triples: row ``sources[e]`` (``s * A + a``) reaches next state ``targets[e]`` with
+    ``probabilities[e]``. Every next state's first entry (in table order) comes first, then
+    every second one, and so on: a reverse pass that adds them in this order into zeros sums
+    each next state's terms in table order, as a loop over its entries would, without that
+    variable-length inner loop (about a tenth of a reverse pass)."""
+    counts = np.zeros(num_states, dtype=np.int64)
     for j in range(next_flat.shape[0]):
         if probs_flat[j] != 0.0:
-            indptr[next_flat[j] + 1] += 1
+            counts[next_flat[j]] += 1
+    # level_start[l]: where the entries that are some state's (l + 1)-th begin.
+    most = 0
     for s in range(num_states):
-        indptr[s + 1] += indptr[s]
-    fill = indptr[:-1].copy()
-    sources = np.empty(indptr[num_states], dtype=np.int64)
-    probabilities = np.empty(indptr[num_states])
+        most = max(most, counts[s])
+    level_start = np.zeros(most + 1, dtype=np.int64)
+    for s in range(num_states):
+        for level in range(counts[s]):
+            level_start[level + 1] += 1
+    for level in range(most):
+        level_start[level + 1] += level_start[level]
+    total = level_start[most]
+    targets = np.empty(total, dtype=np.int64)
+    sources = np.empty(total, dtype=np.int64)
+    probabilities = np.empty(total)
+    seen = np.zeros(num_states, dtype=np.int64)
+    # Within a level, states in table order of their entries; a state's l-th entry goes to
+    # level l, so each state's entries keep table order across levels.
+    fill = level_start[:-1].copy()
     for j in range(next_flat.shape[0]):
         if probs_flat[j] != 0.0:
             s = next_flat[j]
-            sources[fill[s]] = j // width
-            probabilities[fill[s]] = probs_flat[j]
-            fill[s] += 1
-    return indptr, sources, probabilities
+            e = fill[seen[s]]
+            targets[e] = s
+            sources[e] = j // width
+            probabilities[e] = probs_flat[j]
+            fill[seen[s]] += 1
+            seen[s] += 1
+    return targets, sources, probabilities
 
 
 @njit(cache=True, nogil=True, fastmath=False)
 def soft_backward_tasks(
-    indptr: np.ndarray,
+    targets: np.ndarray,
     sources: np.ndarray,
     probabilities: np.ndarray,
     next_flat: np.ndarray,
@@ -286,19 +305,19 @@ def soft_backward_tasks(
     num_actions = d_q.shape[2]
     if num_actions == FIVE_ACTIONS:
         _soft_backward(
-            indptr, sources, probabilities, next_flat, width, values, jacobians, d_q, horizon,
+            targets, sources, probabilities, next_flat, width, values, jacobians, d_q, horizon,
             gradient_entries, d_reward, d_probs, terms, first, last, FIVE_ACTIONS,
         )  # fmt: skip
     else:
         _soft_backward(
-            indptr, sources, probabilities, next_flat, width, values, jacobians, d_q, horizon,
+            targets, sources, probabilities, next_flat, width, values, jacobians, d_q, horizon,
             gradient_entries, d_reward, d_probs, terms, first, last, num_actions,
         )  # fmt: skip
 
 
 @njit(inline="always", fastmath=False)
 def _soft_backward(
-    indptr: np.ndarray,
+    targets: np.ndarray,
     sources: np.ndarray,
     probabilities: np.ndarray,
     next_flat: np.ndarray,
@@ -352,10 +371,10 @@ def _soft_backward(
                         j = gradient_entries[e]
                         d_probs[j] += g[entry_rows[e]] * v[next_flat[j]]
             for s in range(num_states):
-                acc = 0.0
-                for e in range(indptr[s], indptr[s + 1]):
-                    acc += probabilities[e] * g[sources[e]]
-                g_v[s] = acc
+                g_v[s] = 0.0
+            for e in range(targets.shape[0]):
+                s = targets[e]
+                g_v[s] = g_v[s] + probabilities[e] * g[sources[e]]
             jac = jacobians[t - 2, k]
             for s in range(num_states):
                 gs = g_v[s]

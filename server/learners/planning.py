@@ -210,8 +210,8 @@ class TransitionOperator:
 
     @property
     def incoming(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The non-zero entries by next state (index pointers, source rows, probabilities) for
-        reverse passes, built on first use."""
+        """The non-zero entries by next state for reverse passes, as ``_kernels.incoming``
+        gives them, built on first use."""
         if self._incoming is None:
             self._incoming = _kernels.incoming(
                 self.next_flat, self.probs_flat, self.width, self.num_states
@@ -279,12 +279,12 @@ class SoftPlan:
         split = len(chunks) > 1 and entries.shape[0] > 0
         kept_from = chunks[1][0] if split else num_tasks
         terms = np.empty((num_tasks - kept_from, self.horizon - 1, entries.shape[0]))
-        indptr, sources, probabilities = op.incoming
+        targets, sources, probabilities = op.incoming
         g_q = np.ascontiguousarray(g_q)
 
         def reverse(first: int, last: int) -> None:
             _kernels.soft_backward_tasks(
-                indptr,
+                targets,
                 sources,
                 probabilities,
                 op.next_flat,

@@ -735,10 +735,10 @@ def test_a_model_s_operator_is_the_checked_table_narrowed_to_its_parameters(name
         TransitionOperator.of_model(env.model, theta)
 
 
-def test_forward_entries_are_each_row_s_non_zero_entries_in_order() -> None:
+def test_pass_entries_keep_each_row_s_and_each_next_state_s_order() -> None:
     """``split_rows``: the first non-zero entry of every row, then the rows' second entries,
     third entries and so on, skipping zeros wherever they sit in a row, so that a forward pass
-    adds each row's terms in the row's order."""
+    adds each row's terms in the row's order; ``incoming`` likewise by next state."""
     from server.learners import _kernels
 
     next_states = np.array([[3, 1, 2, 0], [2, 2, 2, 2], [0, 3, 1, 2], [1, 0, 3, 2]])
@@ -751,6 +751,13 @@ def test_forward_entries_are_each_row_s_non_zero_entries_in_order() -> None:
     assert first_next.tolist() == [1, 2, 0, 2] and first_p.tolist() == [0.5, 1.0, 0.25, 1.0]
     assert more_rows.tolist() == [0, 2, 2]  # the second entries of rows 0 and 2, then row 2's third
     assert more_next.tolist() == [0, 3, 2] and more_p.tolist() == [0.5, 0.25, 0.5]
+    # Reverse passes: by next state, every state's first entry in table order, then seconds...
+    targets, sources, incoming_p = _kernels.incoming(
+        next_states.reshape(-1), probabilities.reshape(-1), 4, 4
+    )
+    assert targets.tolist() == [1, 0, 2, 3, 0, 2, 2]
+    assert sources.tolist() == [0, 0, 1, 2, 2, 2, 3]
+    assert incoming_p.tolist() == [0.5, 0.5, 1.0, 0.25, 0.25, 0.5, 1.0]
 
 
 def _split_pass_in_child(queue) -> None:  # type: ignore[no-untyped-def]

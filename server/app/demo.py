@@ -10,7 +10,6 @@ analysis.
 from __future__ import annotations
 
 import argparse
-import os
 import secrets
 import sys
 import threading
@@ -18,6 +17,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
+
+from server.cores import available_cores
 
 if TYPE_CHECKING:
     from server.app.db import Database
@@ -166,7 +167,7 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
             "BAM_DATABASE_URL": url,
             "BAM_STUDY_CONFIG": str(study),
             "BAM_ADMIN_TOKEN": secrets.token_urlsafe(24),
-            "BAM_UPDATE_WORKERS": str(options.workers or os.cpu_count() or 1),
+            "BAM_UPDATE_WORKERS": str(options.workers or available_cores()),
         }
         plan = TeachingPlan(
             min_rounds=options.rounds[0],

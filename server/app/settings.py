@@ -6,13 +6,14 @@ The study itself (domains, environments, learners, texts) is in the study config
 
 from __future__ import annotations
 
-import os
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from server.cores import available_cores
 
 DEFAULT_DATABASE_URL = "sqlite:///bam-study.db"
 
@@ -39,7 +40,7 @@ class Settings(BaseSettings):
     )
     update_workers: int = Field(2, ge=1, le=64, description="Processes for learner updates.")
     update_threads: int = Field(
-        default_factory=lambda: os.cpu_count() or 1,
+        default_factory=available_cores,
         ge=1,
         le=64,
         description="Planner threads for learner updates (one per task at most): an update "

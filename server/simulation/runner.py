@@ -22,6 +22,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from server.cores import available_cores
 from server.simulation.config import ConfigError, RunConfig
 from server.simulation.progress import Progress
 from server.simulation.protocols import Job, JobResult, run_agent
@@ -56,10 +57,7 @@ def plan_jobs(config: RunConfig) -> list[Job]:
 
 
 def default_workers() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
+    return available_cores()
 
 
 # -- files ---------------------------------------------------------------------------------

@@ -94,7 +94,7 @@ def test_settings_come_from_the_environment(
     with pytest.raises(ValidationError):
         Settings()
     monkeypatch.delenv("BAM_UPDATE_WORKERS")
-    assert Settings().update_threads == (os.cpu_count() or 1)
+    assert Settings().update_threads == len(os.sched_getaffinity(0))
     monkeypatch.setenv("BAM_UPDATE_THREADS", "3")
     assert Settings().update_threads == 3
     for bad in ("0", "two"):
@@ -114,3 +114,18 @@ def test_serve_refuses_a_bad_study(
     assert main(["serve", "--database-url", f"sqlite:///{tmp_path / 'x.db'}"]) == 2
     assert "unknown learner 'nobody'" in capsys.readouterr().err
     assert not (tmp_path / "x.db").exists()
+
+
+def test_the_cores_counted_are_the_process_s_not_the_host_s(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A container's cpuset narrows the CPU affinity but not os.cpu_count(): the update
+    threads' default follows the affinity, and the count where there is none."""
+    from server import cores
+
+    monkeypatch.setattr(cores.os, "sched_getaffinity", lambda pid: {0, 3, 5}, raising=False)
+    monkeypatch.setattr(cores.os, "cpu_count", lambda: 64)
+    assert cores.available_cores() == 3
+    assert Settings().update_threads == 3
+    monkeypatch.delattr(cores.os, "sched_getaffinity")
+    assert cores.available_cores() == 64

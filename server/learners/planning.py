@@ -272,10 +272,11 @@ class SoftPlan:
         d_probs = np.zeros(op.next_flat.shape[0] if need_transitions else 0)
         # Split over threads, the first chunk's tasks add their transition gradient terms at
         # once and the later chunks' are kept and added after them, in the one-thread order:
-        # worth it for the few entries a learner's model moves (flip: 216 for 2000 rows), not
-        # for a whole table's (8000; one thread then).
-        rows = op.num_states * op.num_actions
-        chunks = task_chunks(num_tasks) if entries.shape[0] <= 2 * rows else [(0, num_tasks)]
+        # worth it for the entries a learner's model moves (flip: 216 of 8000), not for a
+        # whole table's (flip: 8000 terms per task and backup; doorway's whole table, split,
+        # took twice as long as on one thread, in fresh memory for the terms each pass).
+        whole_table = entries.shape[0] == op.next_flat.shape[0]
+        chunks = [(0, num_tasks)] if whole_table else task_chunks(num_tasks)
         split = len(chunks) > 1 and entries.shape[0] > 0
         kept_from = chunks[1][0] if split else num_tasks
         terms = np.empty((num_tasks - kept_from, self.horizon - 1, entries.shape[0]))

@@ -24,9 +24,9 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__)
 import numpy as np
 
 from server import domains
+from server.cores import available_cores
 from server.learners import NAMES, dumps, make, restore
 from server.learners.planning import TransitionOperator, set_planner_threads, soft_plan
-from server.simulation.runner import default_workers
 from server.teacher import Teacher
 
 CHECKPOINTS = (1, 5, 10)
@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--threads",
         type=int,
-        default=default_workers(),
+        default=available_cores(),
         help="planner threads, as a study server's update process has them "
         "(default: the number of cores)",
     )

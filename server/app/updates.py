@@ -4,12 +4,13 @@ An episode end commits its events and a pending ``learner_updates`` row, then ha
 to the ``UpdateManager``. The manager runs each session's pending updates in order, one at a time
 per session, in a pool of processes (``BAM_UPDATE_WORKERS``, at a lower CPU priority than the
 server so that moves stay fast; an update running alone splits its planner's tasks over
-``BAM_UPDATE_THREADS`` threads, updates side by side share them): the worker restores the learner from the latest saved state
-(or builds a new one), replays the events since, updates it, stores its greedy policies and
-scores them (exact normalised return). The server then commits the new learner state with the
-evaluation, and an agent step waiting for that session's update goes on. Sessions with an agent
-step waiting go first; the others take turns. Pending updates are found again in the database
-when the server starts, so none is lost by a restart.
+``BAM_UPDATE_THREADS`` threads, updates side by side share them): the worker restores the
+learner from the latest saved state (or builds a new one), replays the events since, updates
+it, stores its greedy policies and scores them (exact normalised return). The server then
+commits the new learner state with the evaluation, and an agent step waiting for that
+session's update goes on. Sessions with an agent step waiting go first; the others take turns.
+Pending updates are found again in the database when the server starts, so none is lost by a
+restart.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from sqlalchemy import func, select
 from server.app.db import Database
 from server.app.models import Event, LearnerUpdate, LearningSession, utcnow
 from server.app.policies import PolicyCache, decode, encode
+from server.cores import share_threads
 from server.domains import make as make_environment
 from server.domains.base import STAY
 
@@ -114,14 +116,6 @@ def run_update(job: dict[str, Any]) -> dict[str, Any]:
         "normalized_return": float(score),
         "evaluation_seconds": time.perf_counter() - started,
     }
-
-
-def share_threads(threads: int, running: int) -> int:
-    """Planner threads for an update that starts with ``running`` updates in flight (itself
-    included): an update alone uses all ``threads``, updates side by side share them, so that
-    a busy server does not put more threads than cores to work (two updates with two threads
-    each on two cores: fewer updates done, longer waits for them, measured)."""
-    return max(1, threads // max(1, running))
 
 
 # -- in the server process ------------------------------------------------------------------
@@ -380,6 +374,7 @@ class UpdateManager:
         shared among the updates running with it."""
         self._in_flight += 1
         try:
+            # The updates in flight, this one included, share the threads.
             threads = share_threads(self.threads, self._in_flight)
             return await asyncio.wrap_future(
                 executor.submit(run_update, {**payload, "threads": threads})

@@ -22,7 +22,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from server.cores import available_cores
+from server.cores import available_cores, share_threads
 from server.simulation.config import ConfigError, RunConfig
 from server.simulation.progress import Progress
 from server.simulation.protocols import Job, JobResult, run_agent
@@ -231,7 +231,7 @@ def _start_worker(threads: int) -> None:
 def spare_threads(processes: int) -> int:
     """Planner threads for each of ``processes`` busy processes: the cores they leave (the
     numbers do not depend on it, only the time)."""
-    return max(1, default_workers() // processes)
+    return share_threads(default_workers(), processes)
 
 
 class LocalBackend:

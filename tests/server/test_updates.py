@@ -301,7 +301,7 @@ def test_update_workers_leave_when_their_server_dies(tmp_path: Path) -> None:
 def test_updates_side_by_side_share_the_planner_threads(
     threads: int, running: int, share: int
 ) -> None:
-    from server.app.updates import share_threads
+    from server.cores import share_threads
 
     assert share_threads(threads, running) == share
 

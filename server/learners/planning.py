@@ -19,8 +19,9 @@ Jacobians cost a factor of the number of parameters more).
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,6 +57,17 @@ def set_planner_threads(threads: int) -> None:
     """Threads each planner pass of this process may use (at most one per task)."""
     global _threads
     _threads = check_threads(threads, "planner threads")
+
+
+@contextmanager
+def using_planner_threads(threads: int) -> Iterator[None]:
+    """``threads`` for the passes run inside; the count before is restored after."""
+    before = planner_threads()
+    set_planner_threads(threads)
+    try:
+        yield
+    finally:
+        set_planner_threads(before)
 
 
 def planner_threads() -> int:

@@ -249,15 +249,11 @@ class LocalBackend:
 
     def results(self, jobs: Sequence[Job]) -> Iterator[JobResult]:
         if self.workers == 1 or len(jobs) <= 1:
-            from server.learners import planning
+            from server.learners.planning import using_planner_threads
 
-            before = planning.planner_threads()
-            planning.set_planner_threads(spare_threads(1))
-            try:
+            with using_planner_threads(spare_threads(1)):
                 for job in jobs:
                     yield run_agent(job)
-            finally:
-                planning.set_planner_threads(before)
             return
         processes = min(self.workers, len(jobs))
         context = multiprocessing.get_context("spawn")

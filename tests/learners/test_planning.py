@@ -654,22 +654,20 @@ def test_passes_split_over_threads_compute_the_same_bits(name: str) -> None:
         TransitionOperator.of_model(env.model, theta),
     ]
     before = planning.planner_threads()
-    try:
-        results = {}
-        for threads in (1, 2, 3):
-            planning.set_planner_threads(threads)
-            results[threads] = []
+    results: dict[int, list[object]] = {}
+    for threads in (1, 2, 3):
+        results[threads] = []
+        with planning.using_planner_threads(threads):
             for op in operators:
                 plan = soft_plan(op, rewards, 0.8, env.horizon)
                 d_reward, d_transitions = plan.backward(d_q)
                 results[threads] += [plan.q, plan.values, plan.value_jacobians, d_reward]
                 results[threads] += [d_transitions]
-        for threads in (2, 3):
-            for one, split in zip(results[1], results[threads], strict=True):
-                np.testing.assert_array_equal(split, one)
-        assert np.any(results[1][-1] != 0.0)
-    finally:
-        planning.set_planner_threads(before)
+    for threads in (2, 3):
+        for one, split in zip(results[1], results[threads], strict=True):
+            np.testing.assert_array_equal(split, one)
+    assert np.any(results[1][-1] != 0.0)
+    assert planning.planner_threads() == before
 
 
 @pytest.mark.parametrize("value", [0, -1, 1.5, "two", True, None])
@@ -778,9 +776,7 @@ def test_a_forked_child_splits_passes_over_threads_of_its_own() -> None:
 
     env = domains.make("flip")
     rewards = np.random.default_rng(34).normal(size=(len(env.tasks), env.num_states))
-    before = planning.planner_threads()
-    planning.set_planner_threads(2)
-    try:
+    with planning.using_planner_threads(2):
         expected = soft_value_iteration(
             env.model.transitions(env.model.initial_parameters()), rewards, 1.0, env.horizon
         )
@@ -795,7 +791,5 @@ def test_a_forked_child_splits_passes_over_threads_of_its_own() -> None:
         finally:
             if child.is_alive():
                 child.kill()
-    finally:
-        planning.set_planner_threads(before)
     assert child.exitcode == 0
     np.testing.assert_array_equal(result, expected)

@@ -328,15 +328,12 @@ def test_an_update_gives_its_planner_the_threads_its_job_names(tmp_path: Path) -
         "records": records,
         "fit": True,
     }
-    before = planning.planner_threads()
-    try:
-        results = []
+    results = []
+    with planning.using_planner_threads(planning.planner_threads()):  # put back after
         for threads in (3, 1):
             outcome = run_update({**job, "threads": threads})
             assert planning.planner_threads() == threads
             results.append(outcome)
-    finally:
-        planning.set_planner_threads(before)
     for key in ("learner_state", "greedy_policy", "objective", "normalized_return"):
         assert results[0][key] == results[1][key]
 

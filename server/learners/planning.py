@@ -107,8 +107,10 @@ def run_chunks(work: Callable[[int, int], None], chunks: list[tuple[int, int]]) 
 
 NO_TERMS = np.empty((0, 0, 0))
 
-# A table's non-zero entries for forward passes (``_kernels.split_rows``).
+# A table's non-zero entries for forward passes (``_kernels.split_rows``) and by next state for
+# reverse passes (``_kernels.incoming``).
 ForwardRows = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+IncomingEntries = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
 class TransitionOperator:
@@ -173,7 +175,7 @@ class TransitionOperator:
         self.gradient_entries = gradient_entries
         self._matrix: sp.csr_matrix | None = None
         self._rows: ForwardRows | None = None
-        self._incoming: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._incoming: IncomingEntries | None = None
 
     @classmethod
     def build(cls, transitions: np.ndarray | SparseTransitions) -> TransitionOperator:
@@ -216,17 +218,17 @@ class TransitionOperator:
         Built on first use: a learner's cost steps plan on one table many times."""
         if self._rows is None:
             self._rows = _kernels.split_rows(
-                self.next_flat, self.probs_flat, self.width, self.num_states * self.num_actions
+                self.next_flat, self.probs_flat, self.width, self.num_states, self.num_actions
             )
         return self._rows
 
     @property
-    def incoming(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def incoming(self) -> IncomingEntries:
         """The non-zero entries by next state for reverse passes, as ``_kernels.incoming``
         gives them, built on first use."""
         if self._incoming is None:
             self._incoming = _kernels.incoming(
-                self.next_flat, self.probs_flat, self.width, self.num_states
+                self.next_flat, self.probs_flat, self.width, self.num_states, self.num_actions
             )
         return self._incoming
 
@@ -251,9 +253,15 @@ class SoftPlan:
     beta: float
     horizon: int
     values: np.ndarray  # (horizon - 1, K, S): V_1 .. V_{horizon-1}
-    value_jacobians: np.ndarray  # (horizon - 1, K, S, A): dV_t/dQ_t = pi (1 + beta (Q - V))
+    # (horizon - 1, K, A, S), by action as the passes hold them: dV_t/dQ_t = pi (1 + beta (Q - V))
+    jacobians_by_action: np.ndarray
     single_task: bool
     has_trace: bool  # the values and Jacobians were kept (keep_trace)
+
+    @property
+    def value_jacobians(self) -> np.ndarray:
+        """dV_t/dQ_t of t = 1 .. horizon - 1, shape (horizon - 1, K, S, A) (a view)."""
+        return self.jacobians_by_action.transpose(0, 1, 3, 2)
 
     @property
     def q(self) -> np.ndarray:
@@ -292,18 +300,16 @@ class SoftPlan:
         split = len(chunks) > 1 and entries.shape[0] > 0
         kept_from = chunks[1][0] if split else num_tasks
         terms = np.empty((num_tasks - kept_from, self.horizon - 1, entries.shape[0]))
-        targets, sources, probabilities = op.incoming
+        incoming = op.incoming
         g_q = np.ascontiguousarray(g_q)
 
         def reverse(first: int, last: int) -> None:
             _kernels.soft_backward_tasks(
-                targets,
-                sources,
-                probabilities,
+                *incoming,
                 op.next_flat,
                 op.width,
                 self.values,
-                self.value_jacobians,
+                self.jacobians_by_action,
                 g_q,
                 self.horizon,
                 entries,
@@ -365,7 +371,7 @@ def soft_plan(
     # V_horizon and its Jacobian are never used (Q_horizon is the output).
     trace_len = horizon - 1 if keep_trace else 0
     values = np.empty((trace_len, num_tasks, operator.num_states))
-    jacobians = np.empty((trace_len, num_tasks, operator.num_states, operator.num_actions))
+    jacobians = np.empty((trace_len, num_tasks, operator.num_actions, operator.num_states))
     rows = operator.rows
     rewards = np.ascontiguousarray(rewards, dtype=np.float64)
 
@@ -390,7 +396,7 @@ def soft_plan(
         beta=float(beta),
         horizon=horizon,
         values=values,
-        value_jacobians=jacobians,
+        jacobians_by_action=jacobians,
         single_task=single_task,
         has_trace=bool(keep_trace),
     )

@@ -614,7 +614,7 @@ def test_five_action_code_computes_what_the_general_code_does() -> None:
         out = (
             np.empty((tasks, env.num_states, 5)),
             np.empty((horizon - 1, tasks, env.num_states)),
-            np.empty((horizon - 1, tasks, env.num_states, 5)),
+            np.empty((horizon - 1, tasks, 5, env.num_states)),  # by action, as the passes keep it
         )
         kernel(*op.rows, rewards, 1.0, horizon, True, *out, 0, tasks, *five)
         return out
@@ -736,26 +736,57 @@ def test_a_model_s_operator_is_the_checked_table_narrowed_to_its_parameters(name
 def test_pass_entries_keep_each_row_s_and_each_next_state_s_order() -> None:
     """``split_rows``: the first non-zero entry of every row, then the rows' second entries,
     third entries and so on, skipping zeros wherever they sit in a row, so that a forward pass
-    adds each row's terms in the row's order; ``incoming`` likewise by next state."""
+    adds each row's terms in the row's order; ``incoming`` likewise by next state, the levels
+    that at least half the states have dense (padded with probability 0), the rest flat."""
     from server.learners import _kernels
 
     next_states = np.array([[3, 1, 2, 0], [2, 2, 2, 2], [0, 3, 1, 2], [1, 0, 3, 2]])
     probabilities = np.array(
         [[0.0, 0.5, 0.0, 0.5], [1.0, 0.0, 0.0, 0.0], [0.25, 0.25, 0.0, 0.5], [0.0, 0.0, 0.0, 1.0]]
     )
+    # Four states, one action: the passes' rows are the table's.
     first_next, first_p, more_rows, more_next, more_p = _kernels.split_rows(
-        next_states.reshape(-1), probabilities.reshape(-1), 4, 4
+        next_states.reshape(-1), probabilities.reshape(-1), 4, 4, 1
     )
     assert first_next.tolist() == [1, 2, 0, 2] and first_p.tolist() == [0.5, 1.0, 0.25, 1.0]
     assert more_rows.tolist() == [0, 2, 2]  # the second entries of rows 0 and 2, then row 2's third
     assert more_next.tolist() == [0, 3, 2] and more_p.tolist() == [0.5, 0.25, 0.5]
     # Reverse passes: by next state, every state's first entry in table order, then seconds...
-    targets, sources, incoming_p = _kernels.incoming(
-        next_states.reshape(-1), probabilities.reshape(-1), 4, 4
+    # States 0 and 2 have two or more entries (dense level 1), only state 2 a third (flat).
+    dense_sources, dense_p, targets, sources, incoming_p = _kernels.incoming(
+        next_states.reshape(-1), probabilities.reshape(-1), 4, 4, 1
     )
-    assert targets.tolist() == [1, 0, 2, 3, 0, 2, 2]
-    assert sources.tolist() == [0, 0, 1, 2, 2, 2, 3]
-    assert incoming_p.tolist() == [0.5, 0.5, 1.0, 0.25, 0.25, 0.5, 1.0]
+    assert dense_sources.tolist() == [[0, 0, 1, 2], [2, 0, 2, 0]]
+    assert dense_p.tolist() == [[0.5, 0.5, 1.0, 0.25], [0.25, 0.0, 0.5, 0.0]]
+    assert targets.tolist() == [2] and sources.tolist() == [3] and incoming_p.tolist() == [1.0]
+
+
+def test_pass_rows_are_held_action_by_action() -> None:
+    """The passes' row of (s, a) is a * S + s, in both directions: two states, two actions, the
+    table's rows (s0, a0) -> 1, (s0, a1) -> 0, (s1, a0) -> 1, (s1, a1) -> 0."""
+    from server.learners import _kernels
+
+    next_states = np.array([1, 0, 1, 0])
+    probabilities = np.ones(4)
+    first_next, _, more_rows, _, _ = _kernels.split_rows(next_states, probabilities, 1, 2, 2)
+    assert first_next.tolist() == [1, 1, 0, 0] and more_rows.size == 0
+    dense_sources, _, targets, _, _ = _kernels.incoming(next_states, probabilities, 1, 2, 2)
+    # State 0 is reached from (s0, a1) and (s1, a1), rows 2 and 3; state 1 from rows 0 and 1.
+    assert dense_sources.tolist() == [[2, 0], [3, 1]] and targets.size == 0
+    # And the trace's Jacobians are kept by action, jacobians_by_action[t - 1, task, a, s]. With
+    # r = (1, 0): V_1 = r, and Q_2 = (1, 2) in state 0, (0, 1) in state 1, so in both states
+    # a1 is ahead by 1 and weighs p = e / (1 + e): dV_2/dQ_2 is (1 - p)^2 for a0 and
+    # p (2 - p) for a1, in either state.
+    plan = soft_plan(
+        SparseTransitions(next_states.reshape(2, 2, 1), probabilities.reshape(2, 2, 1)),
+        np.array([1.0, 0.0]),
+        1.0,
+        3,
+    )
+    p = math.e / (1.0 + math.e)
+    np.testing.assert_allclose(
+        plan.jacobians_by_action[1, 0], [[(1 - p) ** 2] * 2, [p * (2 - p)] * 2], rtol=1e-12
+    )
 
 
 def _split_pass_in_child(queue) -> None:  # type: ignore[no-untyped-def]

@@ -15,6 +15,7 @@ from server.teacher import Teacher
 from tests.learners._support import demonstrate_round
 
 PLANNER_LEARNERS = ("bam", "model-based", "global-cost")
+LINE_SEARCH_EVALUATIONS = 20  # scipy.optimize.minimize(method="L-BFGS-B"): maxls
 
 
 def reference_passes(learner: Any) -> int:
@@ -99,7 +100,10 @@ def test_warm_alternations_run_momentum_alternations_from_rest_then_lbfgs() -> N
     assert momentum_steps == 2 * (20 + 20)
     result = learner.update()
     evaluations = result.steps - momentum_steps
-    assert 1 <= evaluations <= int(learner.settings["warm_evaluations"]) + 2
+    # SciPy's L-BFGS-B checks its evaluation cap between iterations: the line search it is in
+    # (at most 20 evaluations) may pass it. How far depends on the path, whose last bits depend
+    # on the BLAS kernels the CPU selects (2 over on AVX2 machines, 4 on AVX-512 ones).
+    assert 1 <= evaluations < int(learner.settings["warm_evaluations"]) + LINE_SEARCH_EVALUATIONS
     assert learner.objective()[0] > momentum.objective()[0]
     # Without the L-BFGS-B part, exactly the momentum steps from rest; with the saved velocity
     # kept they would differ.

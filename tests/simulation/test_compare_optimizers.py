@@ -3,11 +3,11 @@ demonstrations experiment's agents, by equation (5) after each update and by ret
 
 from __future__ import annotations
 
-import csv
 import subprocess
 
 import pytest
 
+from server.simulation.protocols import Job, run_agent
 from tests.script_support import ROOT, load_script, run_script
 
 SCRIPT = ROOT / "scripts" / "compare_optimizers.py"
@@ -19,16 +19,14 @@ def run(*arguments: str) -> subprocess.CompletedProcess[str]:
 
 def test_the_reference_agent_is_the_simulation_s_agent() -> None:
     """Same seeds as `bam-study simulate`: the reference run of agent 3 in wall returns what
-    the committed full run (docs/reproduction/demonstrations-current) recorded."""
+    the simulation's agent 3 returns, to the last bit. (Not compared with the committed CSVs:
+    the last bits of an update depend on the BLAS kernels the CPU selects, docs/reproduction.md.)"""
     script = load_script(SCRIPT, "compare_optimizers")
     _, _, _, rows = script.run_agent("wall", "bam", 3, 2, 0, script.Variant("reference", ()))
-    with open(ROOT / "docs/reproduction/demonstrations-current/curves.csv") as file:
-        recorded = {
-            int(row["round"]): float(row["normalized_return"])
-            for row in csv.DictReader(file)
-            if row["environment"] == "wall" and row["learner"] == "bam" and row["agent"] == "3"
-        }
-    assert rows[:, 1] == pytest.approx([recorded[1], recorded[2]], abs=1e-12)
+    simulated = run_agent(Job("demonstrations", "wall", "bam", 3, 2, 0))
+    returns = {row["round"]: row["normalized_return"] for row in simulated.rows}
+    assert rows[:, 1].tolist() == [returns[1], returns[2]]
+    assert returns[2] != returns[0]  # the agent learned something: the rows are not all alike
 
 
 def test_the_reference_settings_as_a_variant_differ_by_nothing() -> None:

@@ -401,12 +401,19 @@ def _soft_backward(
     n = num_states * num_actions
     num_entries = gradient_entries.shape[0]
     keep_terms = terms.shape[0] > 0
-    every_entry = num_entries == next_flat.shape[0]  # (the entries in order: a whole table)
-    # The pass's row (a * S + s) of each entry.
+    # The pass's row (a * S + s) and the next state of each entry, and the sums of its terms
+    # kept side by side (from d_probs, and written back at the end): the terms of a backup then
+    # go into consecutive places, a loop the compiler vectorises, each entry's sum in the same
+    # order as in place (doorway: 880 scattered additions per backup before).
     entry_rows = np.empty(num_entries, dtype=np.int64)
+    entry_next = np.empty(num_entries, dtype=np.int64)
+    entry_sums = np.empty(num_entries)
     for e in range(num_entries):
-        row = gradient_entries[e] // width
+        j = gradient_entries[e]
+        row = j // width
         entry_rows[e] = (row % num_actions) * num_states + row // num_actions
+        entry_next[e] = next_flat[j]
+        entry_sums[e] = d_probs[j] if not keep_terms else 0.0
     g = np.empty(n)  # dL/dQ_t, row a * S + s
     g_v = np.empty(num_states)
     acc = np.empty(num_states)
@@ -430,14 +437,10 @@ def _soft_backward(
                 if keep_terms:
                     kept = terms[k - first, horizon - t]
                     for e in range(num_entries):
-                        kept[e] = g[entry_rows[e]] * v[next_flat[gradient_entries[e]]]
-                elif every_entry:
-                    for e in range(num_entries):
-                        d_probs[e] += g[entry_rows[e]] * v[next_flat[e]]
+                        kept[e] = g[entry_rows[e]] * v[entry_next[e]]
                 else:
                     for e in range(num_entries):
-                        j = gradient_entries[e]
-                        d_probs[j] += g[entry_rows[e]] * v[next_flat[j]]
+                        entry_sums[e] += g[entry_rows[e]] * v[entry_next[e]]
             for s in range(num_states):
                 g_v[s] = 0.0
             for level in range(dense_sources.shape[0]):
@@ -449,6 +452,9 @@ def _soft_backward(
             for a in range(num_actions):
                 for s in range(num_states):
                     g[a * num_states + s] = g_v[s] * jacobians_t[a, s]
+    if not keep_terms:
+        for e in range(num_entries):
+            d_probs[gradient_entries[e]] = entry_sums[e]
 
 
 @njit(inline="never", fastmath=False, error_model="numpy")

@@ -262,10 +262,23 @@ def _data_log_likelihood(
     relative = np.empty(num_actions)
     centred = np.empty(num_actions)
     g = np.empty(num_actions)
+    # A demonstration's value and dL/dQ row depend only on (task, state, action), and teachers
+    # repeat themselves (doorway, ten rounds: 574 steps, 184 different): each is computed once,
+    # at its first step, and every step adds its own copy in step order, as before.
+    first_of = np.full(num_tasks * num_states * num_actions, -1, dtype=np.int64)
+    rows_d_q = np.empty((demo_tasks.shape[0], num_actions))
     for n in range(demo_tasks.shape[0]):
         k, s, chosen = demo_tasks[n], demo_states[n], demo_actions[n]
         if not (0 <= k < num_tasks and 0 <= s < num_states and 0 <= chosen < num_actions):
             return demo_values, d_q, step_values, d_q_steps, BAD_INDEX
+        key = (k * num_states + s) * num_actions + chosen
+        seen = first_of[key]
+        if seen >= 0:
+            demo_values[n] = demo_values[seen]
+            for a in range(num_actions):
+                d_q[k, s, a] += rows_d_q[seen, a]
+            continue
+        first_of[key] = n
         row = q[k, s]
         sd = 1.0
         if normalized:
@@ -301,12 +314,14 @@ def _data_log_likelihood(
             for a in range(num_actions):
                 weighted += g[a] * relative[a]
             for a in range(num_actions):
-                d_q[k, s, a] += beta * g[a] / sd - beta * weighted * centred[a] / (
+                rows_d_q[n, a] = beta * g[a] / sd - beta * weighted * centred[a] / (
                     num_actions * sd**3.0
                 )
         else:
             for a in range(num_actions):
-                d_q[k, s, a] += beta * g[a]
+                rows_d_q[n, a] = beta * g[a]
+        for a in range(num_actions):
+            d_q[k, s, a] += rows_d_q[n, a]
     for n in range(step_tasks.shape[0]):
         k, s, taken, f = step_tasks[n], step_states[n], step_actions[n], step_feedback[n]
         positive, negative, d_positive, d_negative = _asabl(

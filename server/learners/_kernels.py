@@ -370,6 +370,7 @@ def soft_backward_tasks(
     d_reward: np.ndarray,
     d_probs: np.ndarray,
     terms: np.ndarray,
+    gradients: np.ndarray,
     first: int,
     last: int,
 ) -> None:
@@ -382,19 +383,23 @@ def soft_backward_tasks(
     added into ``d_probs`` at once (one thread, or the first of a split); otherwise term
     (k, t, e) is kept in ``terms[k - first, horizon - t, e]`` and ``add_terms`` adds them
     after the earlier tasks' sums, in the one-thread order, so that a split of the tasks over
-    threads gives the same bits."""
+    threads gives the same bits.
+
+    With ``gradients`` not empty, dL/dQ_t of every task and backup t >= 2 is kept in
+    ``gradients[k, horizon - t]`` (rows ``a * S + s``), for ``entry_terms`` to add a whole
+    table's terms split by entries instead."""
     num_actions = d_q.shape[2]
     if num_actions == FIVE_ACTIONS:
         _soft_backward(
             dense_sources, dense_probabilities, targets, sources, probabilities, next_flat,
             width, values, jacobians, d_q, horizon, gradient_entries, d_reward, d_probs, terms,
-            first, last, FIVE_ACTIONS,
+            gradients, first, last, FIVE_ACTIONS,
         )  # fmt: skip
     else:
         _soft_backward(
             dense_sources, dense_probabilities, targets, sources, probabilities, next_flat,
             width, values, jacobians, d_q, horizon, gradient_entries, d_reward, d_probs, terms,
-            first, last, num_actions,
+            gradients, first, last, num_actions,
         )  # fmt: skip
 
 
@@ -415,6 +420,7 @@ def _soft_backward(
     d_reward: np.ndarray,
     d_probs: np.ndarray,
     terms: np.ndarray,
+    gradients: np.ndarray,
     first: int,
     last: int,
     num_actions: int,
@@ -423,6 +429,7 @@ def _soft_backward(
     n = num_states * num_actions
     num_entries = gradient_entries.shape[0]
     keep_terms = terms.shape[0] > 0
+    keep_gradients = gradients.shape[0] > 0
     # The pass's row (a * S + s) and the next state of each entry, and the sums of its terms
     # kept side by side (from d_probs, and written back at the end): the terms of a backup then
     # go into consecutive places, a loop the compiler vectorises, each entry's sum in the same
@@ -454,6 +461,10 @@ def _soft_backward(
                 d_reward_k[s] += acc[s]
             if t == 1:
                 break
+            if keep_gradients:
+                kept_g = gradients[k, horizon - t]
+                for i in range(n):
+                    kept_g[i] = g[i]
             if num_entries > 0:
                 v = values[t - 2, k]
                 if keep_terms:
@@ -486,6 +497,44 @@ def _add_level(
     """One dense level of the transposed table's terms added into ``g_v``."""
     for s in range(g_v.shape[0]):
         g_v[s] = g_v[s] + probabilities[s] * g[sources[s]]
+
+
+@njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
+def entry_terms(
+    gradients: np.ndarray,
+    values: np.ndarray,
+    gradient_entries: np.ndarray,
+    next_flat: np.ndarray,
+    width: int,
+    num_states: int,
+    horizon: int,
+    d_probs: np.ndarray,
+    first: int,
+    last: int,
+) -> None:
+    """The transition gradient at entries ``gradient_entries[first:last]`` from the dL/dQ_t
+    that ``soft_backward_tasks`` kept in ``gradients``: each entry's terms added task by task,
+    from t = horizon down to 2, the order of the pass that adds them as it goes (the same
+    bits), so that the entries of a whole table can be split over threads."""
+    num_actions = gradients.shape[2] // num_states
+    count = last - first
+    rows = np.empty(count, dtype=np.int64)
+    nexts = np.empty(count, dtype=np.int64)
+    sums = np.empty(count)
+    for e in range(count):
+        j = gradient_entries[first + e]
+        row = j // width
+        rows[e] = (row % num_actions) * num_states + row // num_actions
+        nexts[e] = next_flat[j]
+        sums[e] = d_probs[j]
+    for k in range(gradients.shape[0]):
+        for step in range(horizon - 1):  # t = horizon - step
+            g = gradients[k, step]
+            v = values[horizon - step - 2, k]
+            for e in range(count):
+                sums[e] += g[rows[e]] * v[nexts[e]]
+    for e in range(count):
+        d_probs[gradient_entries[first + e]] = sums[e]
 
 
 @njit(cache=True, nogil=True)

@@ -18,7 +18,9 @@ Jacobians cost a factor of the number of parameters more).
 
 from __future__ import annotations
 
+import math
 import os
+import threading
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
@@ -80,8 +82,13 @@ def planner_threads() -> int:
 
 def task_chunks(num_tasks: int) -> list[tuple[int, int]]:
     """``num_tasks`` split into at most ``planner_threads()`` contiguous (first, last) runs."""
-    parts = max(1, min(planner_threads(), num_tasks))
-    return [(i * num_tasks // parts, (i + 1) * num_tasks // parts) for i in range(parts)]
+    return even_chunks(num_tasks, planner_threads())
+
+
+def even_chunks(count: int, parts: int) -> list[tuple[int, int]]:
+    """``range(count)`` split into at most ``parts`` contiguous (first, last) runs."""
+    parts = max(1, min(parts, count))
+    return [(i * count // parts, (i + 1) * count // parts) for i in range(parts)]
 
 
 def run_chunks(work: Callable[[int, int], None], chunks: list[tuple[int, int]]) -> None:
@@ -105,7 +112,25 @@ def run_chunks(work: Callable[[int, int], None], chunks: list[tuple[int, int]]) 
             future.result()
 
 
+_scratch = threading.local()
+
+
+def scratch(name: str, shape: tuple[int, ...]) -> np.ndarray:
+    """This thread's working array ``name`` of ``shape``, its contents undefined, reused from
+    call to call: fresh megabytes cost their first touch page by page (flip's kept dL/dQ, 2.5
+    MB: a whole table's reverse pass on two threads took about 2.8 ms in fresh memory each
+    time, 1.0 ms reused)."""
+    size = math.prod(shape)
+    buffer = getattr(_scratch, name, None)
+    if buffer is None or buffer.size < size:
+        buffer = np.empty(size)
+        setattr(_scratch, name, buffer)
+    return buffer[:size].reshape(shape)
+
+
 NO_TERMS = np.empty((0, 0, 0))
+NO_GRADIENTS = np.empty((0, 0, 0))
+NO_ENTRIES = np.empty(0, dtype=np.int64)
 
 # A table's non-zero entries for forward passes (``_kernels.split_rows``) and by next state for
 # reverse passes (``_kernels.incoming``).
@@ -292,14 +317,22 @@ class SoftPlan:
         d_probs = np.zeros(op.next_flat.shape[0] if need_transitions else 0)
         # Split over threads, the first chunk's tasks add their transition gradient terms at
         # once and the later chunks' are kept and added after them, in the one-thread order:
-        # worth it for the entries a learner's model moves (flip: 216 of 8000), not for a
-        # whole table's (flip: 8000 terms per task and backup; doorway's whole table, split,
-        # took twice as long as on one thread, in fresh memory for the terms each pass).
+        # worth it for the entries a learner's model moves (flip: 216 of 8000). A whole
+        # table's terms (flip: 8000 per task and backup) are split by entries instead, from
+        # every backup's dL/dQ kept by the task pass (kept terms, fresh memory each pass, took
+        # doorway twice as long as one thread).
         whole_table = entries.shape[0] == op.next_flat.shape[0]
-        chunks = [(0, num_tasks)] if whole_table else task_chunks(num_tasks)
-        split = len(chunks) > 1 and entries.shape[0] > 0
+        chunks = task_chunks(num_tasks)
+        by_entries = whole_table and planner_threads() > 1
+        split = len(chunks) > 1 and entries.shape[0] > 0 and not by_entries
         kept_from = chunks[1][0] if split else num_tasks
         terms = np.empty((num_tasks - kept_from, self.horizon - 1, entries.shape[0]))
+        gradients = (
+            scratch("gradients", (num_tasks, self.horizon - 1, op.num_states * op.num_actions))
+            if by_entries
+            else NO_GRADIENTS
+        )
+        task_entries = NO_ENTRIES if by_entries else entries
         incoming = op.incoming
         g_q = np.ascontiguousarray(g_q)
 
@@ -312,10 +345,11 @@ class SoftPlan:
                 self.jacobians_by_action,
                 g_q,
                 self.horizon,
-                entries,
+                task_entries,
                 d_reward,
                 d_probs,
                 terms[first - kept_from : last - kept_from] if first >= kept_from else NO_TERMS,
+                gradients,
                 first,
                 last,
             )
@@ -323,6 +357,23 @@ class SoftPlan:
         run_chunks(reverse, chunks)
         if split:
             _kernels.add_terms(terms, entries, d_probs)
+        if by_entries:
+
+            def add_entries(first: int, last: int) -> None:
+                _kernels.entry_terms(
+                    gradients,
+                    self.values,
+                    entries,
+                    op.next_flat,
+                    op.width,
+                    op.num_states,
+                    self.horizon,
+                    d_probs,
+                    first,
+                    last,
+                )
+
+            run_chunks(add_entries, even_chunks(entries.shape[0], planner_threads()))
         if self.single_task:
             d_reward = d_reward[0]
         if not need_transitions:

@@ -628,7 +628,7 @@ def test_five_action_code_computes_what_the_general_code_does() -> None:
         out = (np.zeros((tasks, env.num_states)), np.zeros(op.next_flat.shape[0]))
         kernel(
             *op.incoming, op.next_flat, op.width, special[1], special[2], d_q, horizon,
-            op.gradient_entries, *out, np.empty((0, 0, 0)), 0, tasks, *five,
+            op.gradient_entries, *out, np.empty((0, 0, 0)), np.empty((0, 0, 0)), 0, tasks, *five,
         )  # fmt: skip
         return out
 

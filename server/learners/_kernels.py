@@ -27,7 +27,7 @@ pass: 1.31 ms before, 0.90 after.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, types
+from numba import njit, prange, types
 from numba.extending import intrinsic
 
 # exp(x) = 2^k exp(r) with k = round(x / ln 2) and r = x - k ln 2 (ln 2 split in two parts so
@@ -580,3 +580,99 @@ def hard_backups(
             for s in range(num_states):
                 previous[s] = current[s]
     return q
+
+
+# -- the passes' chunks on numba's OpenMP threads ------------------------------------------------
+# A pass's chunks of tasks (or of a whole table's entries), each the one-thread kernel above on
+# its own range, run by the threads of a parallel loop. Handing a chunk to a Python thread took
+# 55 us and a sleeping thread's wake-up (this machine, a VM), more than a chunk's work in
+# navigation; OpenMP's threads wait spinning between passes (2.6 us per launch).
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def probe_parallel(x: np.ndarray) -> None:
+    """A parallel loop of nothing: starts the threading layer (planning.compiled_threads)."""
+    for i in prange(x.shape[0]):
+        x[i] += 1.0
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def soft_forward_chunks(
+    first_next: np.ndarray,
+    first_probability: np.ndarray,
+    more_rows: np.ndarray,
+    more_next: np.ndarray,
+    more_probability: np.ndarray,
+    rewards: np.ndarray,
+    beta: float,
+    horizon: int,
+    keep_trace: bool,
+    q: np.ndarray,
+    values: np.ndarray,
+    jacobians: np.ndarray,
+    firsts: np.ndarray,
+    lasts: np.ndarray,
+) -> None:
+    """``soft_forward_tasks`` on the task ranges ``firsts[c] .. lasts[c] - 1``, in parallel."""
+    for c in prange(firsts.shape[0]):
+        soft_forward_tasks(
+            first_next, first_probability, more_rows, more_next, more_probability, rewards,
+            beta, horizon, keep_trace, q, values, jacobians, firsts[c], lasts[c],
+        )  # fmt: skip
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def soft_backward_chunks(
+    dense_sources: np.ndarray,
+    dense_probabilities: np.ndarray,
+    targets: np.ndarray,
+    sources: np.ndarray,
+    probabilities: np.ndarray,
+    next_flat: np.ndarray,
+    width: int,
+    values: np.ndarray,
+    jacobians: np.ndarray,
+    d_q: np.ndarray,
+    horizon: int,
+    gradient_entries: np.ndarray,
+    d_reward: np.ndarray,
+    d_probs: np.ndarray,
+    terms: np.ndarray,
+    kept_from: int,
+    gradients: np.ndarray,
+    firsts: np.ndarray,
+    lasts: np.ndarray,
+) -> None:
+    """``soft_backward_tasks`` on the task ranges ``firsts[c] .. lasts[c] - 1``, in parallel;
+    the ranges from task ``kept_from`` on keep their transition-gradient terms in ``terms``
+    (from its row 0), the others add them into ``d_probs``."""
+    for c in prange(firsts.shape[0]):
+        first, last = firsts[c], lasts[c]
+        start = max(0, first - kept_from)
+        stop = max(0, last - kept_from) if first >= kept_from else 0
+        soft_backward_tasks(
+            dense_sources, dense_probabilities, targets, sources, probabilities, next_flat,
+            width, values, jacobians, d_q, horizon, gradient_entries, d_reward, d_probs,
+            terms[start:stop], gradients, first, last,
+        )  # fmt: skip
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def entry_terms_chunks(
+    gradients: np.ndarray,
+    values: np.ndarray,
+    gradient_entries: np.ndarray,
+    next_flat: np.ndarray,
+    width: int,
+    num_states: int,
+    horizon: int,
+    d_probs: np.ndarray,
+    firsts: np.ndarray,
+    lasts: np.ndarray,
+) -> None:
+    """``entry_terms`` on the entry ranges ``firsts[c] .. lasts[c] - 1``, in parallel."""
+    for c in prange(firsts.shape[0]):
+        entry_terms(
+            gradients, values, gradient_entries, next_flat, width, num_states, horizon, d_probs,
+            firsts[c], lasts[c],
+        )  # fmt: skip

@@ -91,6 +91,64 @@ def even_chunks(count: int, parts: int) -> list[tuple[int, int]]:
     return [(i * count // parts, (i + 1) * count // parts) for i in range(parts)]
 
 
+# Chunks run on numba's OpenMP threads where that layer loads (GNU libgomp), else on a Python
+# thread pool. GNU OpenMP does not survive a fork: a child forked after its parent ran a parallel
+# loop uses the Python pool (the study server and simulations spawn their processes instead).
+_openmp: bool | None = None  # None: not tried in this process yet
+
+
+def compiled_threads() -> bool:
+    """Whether this process splits passes over numba's OpenMP threads (tried on first use)."""
+    global _openmp
+    if _openmp is None:
+        _openmp = _start_openmp()
+    return _openmp
+
+
+def _start_openmp() -> bool:
+    import numba
+    from numba.core import config
+
+    if config.THREADING_LAYER == "default":  # type: ignore[attr-defined]
+        # Not workqueue, numba's fallback: it hands over no faster than a Python pool, and
+        # two threads launching at once abort the process.
+        config.THREADING_LAYER = "omp"  # type: ignore[attr-defined]
+    try:
+        _kernels.probe_parallel(np.zeros(2))
+    except (ValueError, ImportError, OSError):  # no OpenMP runtime here
+        return False
+    return bool(numba.threading_layer() == "omp")
+
+
+def _forked() -> None:
+    global _openmp
+    if _openmp:
+        _openmp = False
+
+
+os.register_at_fork(after_in_child=_forked)
+
+
+def run_pass(
+    chunks: list[tuple[int, int]],
+    work: Callable[[int, int], None],
+    compiled: Callable[[np.ndarray, np.ndarray], None],
+) -> None:
+    """Every chunk of a pass: ``compiled(firsts, lasts)`` on OpenMP threads, or ``work(first,
+    last)`` per chunk on Python threads (``run_chunks``); one chunk runs here."""
+    if len(chunks) > 1 and compiled_threads():
+        import numba
+        from numba.core import config
+
+        numba.set_num_threads(min(len(chunks), config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
+        compiled(
+            np.array([first for first, _ in chunks], dtype=np.int64),
+            np.array([last for _, last in chunks], dtype=np.int64),
+        )
+    else:
+        run_chunks(work, chunks)
+
+
 def run_chunks(work: Callable[[int, int], None], chunks: list[tuple[int, int]]) -> None:
     """``work(first, last)`` for every chunk: the first in this thread, the others in the
     pool's, all finished (and their errors raised) on return."""
@@ -354,7 +412,26 @@ class SoftPlan:
                 last,
             )
 
-        run_chunks(reverse, chunks)
+        def reverse_compiled(firsts: np.ndarray, lasts: np.ndarray) -> None:
+            _kernels.soft_backward_chunks(
+                *incoming,
+                op.next_flat,
+                op.width,
+                self.values,
+                self.jacobians_by_action,
+                g_q,
+                self.horizon,
+                task_entries,
+                d_reward,
+                d_probs,
+                terms,
+                kept_from,
+                gradients,
+                firsts,
+                lasts,
+            )
+
+        run_pass(chunks, reverse, reverse_compiled)
         if split:
             _kernels.add_terms(terms, entries, d_probs)
         if by_entries:
@@ -373,7 +450,23 @@ class SoftPlan:
                     last,
                 )
 
-            run_chunks(add_entries, even_chunks(entries.shape[0], planner_threads()))
+            def add_entries_compiled(firsts: np.ndarray, lasts: np.ndarray) -> None:
+                _kernels.entry_terms_chunks(
+                    gradients,
+                    self.values,
+                    entries,
+                    op.next_flat,
+                    op.width,
+                    op.num_states,
+                    self.horizon,
+                    d_probs,
+                    firsts,
+                    lasts,
+                )
+
+            run_pass(
+                even_chunks(entries.shape[0], planner_threads()), add_entries, add_entries_compiled
+            )
         if self.single_task:
             d_reward = d_reward[0]
         if not need_transitions:
@@ -440,7 +533,21 @@ def soft_plan(
             last,
         )
 
-    run_chunks(forward, task_chunks(num_tasks))
+    def forward_compiled(firsts: np.ndarray, lasts: np.ndarray) -> None:
+        _kernels.soft_forward_chunks(
+            *rows,
+            rewards,
+            float(beta),
+            horizon,
+            bool(keep_trace),
+            q,
+            values,
+            jacobians,
+            firsts,
+            lasts,
+        )
+
+    run_pass(task_chunks(num_tasks), forward, forward_compiled)
     return SoftPlan(
         q_all=q,
         operator=operator,

@@ -638,12 +638,20 @@ def test_five_action_code_computes_what_the_general_code_does() -> None:
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("backend", ["openmp", "python"])
 @pytest.mark.parametrize("name", ["doorway", "two-rooms", "flip"])
-def test_passes_split_over_threads_compute_the_same_bits(name: str) -> None:
+def test_passes_split_over_threads_compute_the_same_bits(
+    name: str, backend: str, monkeypatch
+) -> None:  # type: ignore[no-untyped-def]
     """A pass whose tasks are split over two or three threads gives the one-thread pass's
     numbers bit for bit (Q, the trace, and both gradients, the transition gradient summed
     over tasks in the one-thread order), with every entry's gradient and with the learners'
-    narrowed entries; the thread count is restored afterwards."""
+    narrowed entries, on OpenMP threads and on Python ones; the thread count is restored
+    afterwards."""
+    if backend == "openmp" and not planning.compiled_threads():
+        pytest.skip("no OpenMP runtime on this machine")
+    if backend == "python":
+        monkeypatch.setattr(planning, "_openmp", False)
     env = domains.make(name)
     rng = np.random.default_rng(33)
     theta = env.model.initial_parameters() + rng.normal(size=env.model.num_parameters)
@@ -792,35 +800,43 @@ def test_pass_rows_are_held_action_by_action() -> None:
 def _split_pass_in_child(queue) -> None:  # type: ignore[no-untyped-def]
     env = domains.make("flip")
     rewards = np.random.default_rng(34).normal(size=(len(env.tasks), env.num_states))
-    queue.put(
-        soft_value_iteration(
-            env.model.transitions(env.model.initial_parameters()), rewards, 1.0, env.horizon
-        )
+    result = soft_value_iteration(
+        env.model.transitions(env.model.initial_parameters()), rewards, 1.0, env.horizon
     )
+    queue.put((result, planning.compiled_threads(), planning._pool is not None))
 
 
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="fork")
-def test_a_forked_child_splits_passes_over_threads_of_its_own() -> None:
-    """A process forked after its parent's planner made its threads inherits the pool but not
-    the threads: it must make its own, not wait forever on a pool no thread serves."""
+@pytest.mark.parametrize("backend", ["openmp", "python"])
+def test_a_forked_child_splits_passes_over_threads_of_its_own(backend: str, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """A process forked after its parent's planner started its threads inherits neither the
+    Python pool's threads nor a working OpenMP runtime (GNU OpenMP aborts a forked child's
+    parallel loop): it must split its passes over Python threads of its own, not wait forever
+    on a pool no thread serves or abort."""
     import multiprocessing
 
+    if backend == "openmp" and not planning.compiled_threads():
+        pytest.skip("no OpenMP runtime on this machine")
+    if backend == "python":
+        monkeypatch.setattr(planning, "_openmp", False)
     env = domains.make("flip")
     rewards = np.random.default_rng(34).normal(size=(len(env.tasks), env.num_states))
     with planning.using_planner_threads(2):
         expected = soft_value_iteration(
             env.model.transitions(env.model.initial_parameters()), rewards, 1.0, env.horizon
         )
-        assert planning._pool is not None  # the parent's threads exist
+        if backend == "python":
+            assert planning._pool is not None  # the parent's threads exist
         context = multiprocessing.get_context("fork")
         queue = context.Queue()
         child = context.Process(target=_split_pass_in_child, args=(queue,))
         child.start()
         try:
-            result = queue.get(timeout=60)
+            result, child_openmp, child_pool = queue.get(timeout=60)
             child.join(timeout=60)
         finally:
             if child.is_alive():
                 child.kill()
     assert child.exitcode == 0
     np.testing.assert_array_equal(result, expected)
+    assert not child_openmp and child_pool  # the child split its pass over Python threads

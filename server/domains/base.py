@@ -28,10 +28,16 @@ NUM_ACTIONS = len(ACTIONS)
 DELTAS: tuple[tuple[int, int], ...] = ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1))
 
 
+def all_finite(array: np.ndarray) -> bool:
+    """No NaN or infinity in ``array`` (the array's own ``all``: a learner's update asks
+    thousands of times, and ``np.all``'s dispatch took longer than the check)."""
+    return bool(np.isfinite(array).all())
+
+
 def check_finite(name: str, values: np.ndarray) -> np.ndarray:
     """Reject NaN or infinite parameters at the boundary instead of propagating them."""
     array = np.asarray(values, dtype=np.float64)
-    if not np.all(np.isfinite(array)):
+    if not all_finite(array):
         raise ValueError(f"{name} contains NaN or infinite values")
     return array
 

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from server.domains.base import Environment
+from server.domains.base import Environment, all_finite
 from server.learners.base import DataLog
 from server.learners.likelihoods import (
     ActionModel,
@@ -178,7 +178,7 @@ class MomentumAscent:
         self.max_step = float(max_step)
 
     def step(self, parameters: np.ndarray, gradient: np.ndarray) -> np.ndarray:
-        if not np.all(np.isfinite(gradient)):
+        if not all_finite(gradient):
             raise FloatingPointError("the objective's gradient is not finite")
         step = self.momentum * self.velocity + self.learning_rate * gradient
         norm = float(np.linalg.norm(step))
@@ -205,7 +205,7 @@ def maximize_lbfgs(
         nonlocal evaluations
         evaluations += 1
         value, gradient = objective(x)
-        if not np.isfinite(value) or not np.all(np.isfinite(gradient)):
+        if not np.isfinite(value) or not all_finite(gradient):
             raise FloatingPointError("the objective or its gradient is not finite")
         if value > best["value"]:
             best["value"], best["x"] = value, x.copy()

@@ -9,7 +9,7 @@ import pytest
 
 from server import domains
 from server.domains import farming, gravity, navigation
-from server.domains.base import LEFT, RIGHT, STAY, UP
+from server.domains.base import LEFT, RIGHT, STAY, UP, all_finite, check_finite
 from server.domains.grid import Region, load_map, parse_map
 
 NORTH, EAST = 0, 2
@@ -178,3 +178,24 @@ def test_parse_map() -> None:
 def test_parse_map_errors(text: str, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         parse_map("x", text)
+
+
+@pytest.mark.parametrize(
+    ("values", "finite"),
+    [
+        ([1e308, 1e308], True),
+        ([], True),
+        ([1.0, np.nan], False),
+        ([np.inf, -np.inf], False),  # the sum is NaN
+        ([-1e308, -1e308, np.inf], False),
+        ([[0.5, 2.0], [3.0, -np.inf]], False),
+    ],
+)
+def test_all_finite_refuses_any_nan_or_infinity(values, finite) -> None:  # type: ignore[no-untyped-def]
+    array = np.array(values, dtype=np.float64)
+    assert all_finite(array) is finite
+    if not finite:
+        with pytest.raises(ValueError, match="NaN or infinite"):
+            check_finite("x", array)
+    else:
+        assert check_finite("x", array) is array

@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 import os
 import threading
+import weakref
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
@@ -187,6 +188,10 @@ def scratch(name: str, shape: tuple[int, ...]) -> np.ndarray:
 
 
 NO_TERMS = np.empty((0, 0, 0))
+# Per transition model, its moved entries sorted out by TransitionOperator.distinct_entries.
+_model_entries: weakref.WeakKeyDictionary[
+    TransitionModel, tuple[np.ndarray, np.ndarray, np.ndarray] | None
+] = weakref.WeakKeyDictionary()
 NO_GRADIENTS = np.empty((0, 0, 0))
 NO_ENTRIES = np.empty(0, dtype=np.int64)
 
@@ -256,6 +261,8 @@ class TransitionOperator:
         self.probs_flat = probs_flat
         # The flat entries (``(s * A + a) * width + m``) whose gradient the reverse pass computes.
         self.gradient_entries = gradient_entries
+        # (gradient_entries, distinct ones, [copies; their originals]), see distinct_entries.
+        self._distinct: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._matrix: sp.csr_matrix | None = None
         self._rows: ForwardRows | None = None
         self._incoming: IncomingEntries | None = None
@@ -279,6 +286,13 @@ class TransitionOperator:
             model.probabilities(theta).reshape(-1),
             model.flat_parametric_entries,
         )
+        # A learner builds one per step: the model's entries are sorted out once per model.
+        known = _model_entries.get(model)
+        if known is not None and known[0] is model.flat_parametric_entries:
+            operator._distinct = known
+        else:
+            operator.distinct_entries  # noqa: B018 (sorts them out)
+            _model_entries[model] = operator._distinct
         return operator
 
     def only_gradients_at(self, mask: np.ndarray) -> TransitionOperator:
@@ -293,6 +307,24 @@ class TransitionOperator:
             )
         self.gradient_entries = np.flatnonzero(mask.reshape(-1)).astype(np.int64)
         return self
+
+    @property
+    def distinct_entries(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The gradient entries with a (row, next state) of their own, and the others as
+        (entry, the earlier entry it copies): entries of one row that lead to the same next
+        state have the same terms in the same order, so the same gradient. Padding does (flip's
+        whole table: 8000 entries, 3188 distinct); a model's moved entries do not."""
+        entries = self.gradient_entries
+        if self._distinct is None or self._distinct[0] is not entries:
+            key = (entries // self.width) * self.num_states + self.next_flat[entries]
+            _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+            copied = first[inverse] != np.arange(entries.shape[0])
+            self._distinct = (
+                entries,
+                np.ascontiguousarray(entries[np.sort(first)]),
+                np.stack([entries[copied], entries[first[inverse[copied]]]]),
+            )
+        return self._distinct[1], self._distinct[2][0], self._distinct[2][1]
 
     @property
     def rows(self) -> ForwardRows:
@@ -370,7 +402,10 @@ class SoftPlan:
         if not self.has_trace:
             raise ValueError("this plan was computed without keep_trace; it has no reverse pass")
         num_tasks = g_q.shape[0]
-        entries = op.gradient_entries if need_transitions else np.empty(0, dtype=np.int64)
+        if need_transitions:
+            entries, copies, originals = op.distinct_entries
+        else:
+            entries = copies = originals = NO_ENTRIES
         d_reward = np.zeros((num_tasks, op.num_states))
         d_probs = np.zeros(op.next_flat.shape[0] if need_transitions else 0)
         # Split over threads, the first chunk's tasks add their transition gradient terms at
@@ -379,7 +414,7 @@ class SoftPlan:
         # table's terms (flip: 8000 per task and backup) are split by entries instead, from
         # every backup's dL/dQ kept by the task pass (kept terms, fresh memory each pass, took
         # doorway twice as long as one thread).
-        whole_table = entries.shape[0] == op.next_flat.shape[0]
+        whole_table = op.gradient_entries.shape[0] == op.next_flat.shape[0]
         chunks = task_chunks(num_tasks)
         by_entries = whole_table and planner_threads() > 1
         split = len(chunks) > 1 and entries.shape[0] > 0 and not by_entries
@@ -467,6 +502,7 @@ class SoftPlan:
             run_pass(
                 even_chunks(entries.shape[0], planner_threads()), add_entries, add_entries_compiled
             )
+        d_probs[copies] = d_probs[originals]
         if self.single_task:
             d_reward = d_reward[0]
         if not need_transitions:

@@ -840,3 +840,26 @@ def test_a_forked_child_splits_passes_over_threads_of_its_own(backend: str, monk
     assert child.exitcode == 0
     np.testing.assert_array_equal(result, expected)
     assert not child_openmp and child_pool  # the child split its pass over Python threads
+
+
+def test_entries_of_a_row_with_the_same_next_state_share_their_gradient() -> None:
+    """A whole table's reverse pass computes each (row, next state) once and copies it to the
+    row's other entries that lead there (padding, mostly): the gradient is the one computed
+    entry by entry, to the last bit, and the copies are found."""
+    rng = np.random.default_rng(35)
+    transitions = random_sparse(rng, 9, 5, 3)
+    transitions.next_states[4, 2] = [7, 7, 1]  # two entries of one row lead to state 7
+    op = TransitionOperator.build(transitions)
+    _, copies, originals = op.distinct_entries
+    row = (4 * 5 + 2) * 3
+    assert row + 1 in copies.tolist() and originals[copies.tolist().index(row + 1)] == row
+    rewards = rng.normal(size=(2, 9))
+    d_q = rng.normal(size=(2, 9, 5))
+    shared = soft_plan(op, rewards, 1.2, 6).backward(d_q)[1]
+    each = TransitionOperator.build(transitions)
+    everything = each.gradient_entries
+    each._distinct = (everything, everything, np.empty((2, 0), dtype=np.int64))
+    separate = soft_plan(each, rewards, 1.2, 6).backward(d_q)[1]
+    assert shared is not None and separate is not None
+    np.testing.assert_array_equal(shared, separate)
+    assert shared[4, 2, 0] == shared[4, 2, 1] != 0.0

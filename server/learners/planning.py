@@ -188,12 +188,13 @@ def scratch(name: str, shape: tuple[int, ...]) -> np.ndarray:
 
 
 NO_TERMS = np.empty((0, 0, 0))
+NO_GRADIENTS = np.empty((0, 0, 0))
+NO_ENTRIES = np.empty(0, dtype=np.int64)
+
 # Per transition model, its moved entries sorted out by TransitionOperator.distinct_entries.
 _model_entries: weakref.WeakKeyDictionary[
     TransitionModel, tuple[np.ndarray, np.ndarray, np.ndarray] | None
 ] = weakref.WeakKeyDictionary()
-NO_GRADIENTS = np.empty((0, 0, 0))
-NO_ENTRIES = np.empty(0, dtype=np.int64)
 
 # A table's non-zero entries for forward passes (``_kernels.split_rows``) and by next state for
 # reverse passes (``_kernels.incoming``).

@@ -370,6 +370,7 @@ def soft_backward_tasks(
     d_reward: np.ndarray,
     d_probs: np.ndarray,
     terms: np.ndarray,
+    kept_from: int,
     gradients: np.ndarray,
     first: int,
     last: int,
@@ -379,27 +380,31 @@ def soft_backward_tasks(
     ``gradient_entries`` (none: no transition gradient). The table's entries by next state
     come from ``incoming``, the trace from ``soft_forward_tasks``.
 
-    The transition gradient sums over tasks and backups. With ``terms`` empty the terms are
-    added into ``d_probs`` at once (one thread, or the first of a split); otherwise term
-    (k, t, e) is kept in ``terms[k - first, horizon - t, e]`` and ``add_terms`` adds them
-    after the earlier tasks' sums, in the one-thread order, so that a split of the tasks over
-    threads gives the same bits.
+    The transition gradient sums over tasks and backups. Tasks before ``kept_from`` add their
+    terms into ``d_probs`` at once (one thread, or the first chunk of a split); from
+    ``kept_from`` on, term (k, t, e) is kept in ``terms[k - kept_from, horizon - t, e]`` and
+    ``add_terms`` adds them after the earlier tasks' sums, in the one-thread order, so that a
+    split of the tasks over threads gives the same bits.
 
     With ``gradients`` not empty, dL/dQ_t of every task and backup t >= 2 is kept in
     ``gradients[k, horizon - t]`` (rows ``a * S + s``), for ``entry_terms`` to add a whole
     table's terms split by entries instead."""
+    # This chunk's rows of ``terms``: none for tasks before kept_from (they add at once).
+    start = max(0, first - kept_from)
+    stop = max(0, last - kept_from) if first >= kept_from else 0
+    chunk_terms = terms[start:stop]
     num_actions = d_q.shape[2]
     if num_actions == FIVE_ACTIONS:
         _soft_backward(
             dense_sources, dense_probabilities, targets, sources, probabilities, next_flat,
-            width, values, jacobians, d_q, horizon, gradient_entries, d_reward, d_probs, terms,
-            gradients, first, last, FIVE_ACTIONS,
+            width, values, jacobians, d_q, horizon, gradient_entries, d_reward, d_probs,
+            chunk_terms, gradients, first, last, FIVE_ACTIONS,
         )  # fmt: skip
     else:
         _soft_backward(
             dense_sources, dense_probabilities, targets, sources, probabilities, next_flat,
-            width, values, jacobians, d_q, horizon, gradient_entries, d_reward, d_probs, terms,
-            gradients, first, last, num_actions,
+            width, values, jacobians, d_q, horizon, gradient_entries, d_reward, d_probs,
+            chunk_terms, gradients, first, last, num_actions,
         )  # fmt: skip
 
 
@@ -643,17 +648,12 @@ def soft_backward_chunks(
     firsts: np.ndarray,
     lasts: np.ndarray,
 ) -> None:
-    """``soft_backward_tasks`` on the task ranges ``firsts[c] .. lasts[c] - 1``, in parallel;
-    the ranges from task ``kept_from`` on keep their transition-gradient terms in ``terms``
-    (from its row 0), the others add them into ``d_probs``."""
+    """``soft_backward_tasks`` on the task ranges ``firsts[c] .. lasts[c] - 1``, in parallel."""
     for c in prange(firsts.shape[0]):
-        first, last = firsts[c], lasts[c]
-        start = max(0, first - kept_from)
-        stop = max(0, last - kept_from) if first >= kept_from else 0
         soft_backward_tasks(
             dense_sources, dense_probabilities, targets, sources, probabilities, next_flat,
-            width, values, jacobians, d_q, horizon, gradient_entries, d_reward, d_probs,
-            terms[start:stop], gradients, first, last,
+            width, values, jacobians, d_q, horizon, gradient_entries, d_reward, d_probs, terms,
+            kept_from, gradients, firsts[c], lasts[c],
         )  # fmt: skip
 
 

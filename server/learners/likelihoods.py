@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from server.domains.base import check_finite
+from server.domains.base import all_finite, check_finite
 
 # Floor on the per-state variance of Q in the normalised action model: where every action has
 # the same value the model is uniform instead of dividing by zero.
@@ -94,7 +94,7 @@ def _integer_array(name: str, values: np.ndarray) -> np.ndarray:
         return array.astype(np.int64).reshape(-1)
     if array.size and array.dtype.kind != "f":
         raise ValueError(f"{name} must be integers, got dtype {array.dtype}")
-    if array.size and (not np.all(np.isfinite(array)) or np.any(array != np.round(array))):
+    if array.size and (not all_finite(array) or np.any(array != np.round(array))):
         raise ValueError(f"{name} must be whole numbers")
     return array.astype(np.int64).reshape(-1)
 

@@ -26,6 +26,7 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -132,22 +133,25 @@ os.register_at_fork(after_in_child=_forked)
 
 def run_pass(
     chunks: list[tuple[int, int]],
-    work: Callable[[int, int], None],
-    compiled: Callable[[np.ndarray, np.ndarray], None],
+    kernel: Callable[..., None],
+    kernel_chunks: Callable[..., None],
+    arguments: tuple[Any, ...],
 ) -> None:
-    """Every chunk of a pass: ``compiled(firsts, lasts)`` on OpenMP threads, or ``work(first,
-    last)`` per chunk on Python threads (``run_chunks``); one chunk runs here."""
+    """``kernel(*arguments, first, last)`` for every chunk of a pass: all of them in one call
+    of ``kernel_chunks(*arguments, firsts, lasts)`` on OpenMP threads, or chunk by chunk on
+    Python threads (``run_chunks``); one chunk runs here."""
     if len(chunks) > 1 and compiled_threads():
         import numba
         from numba.core import config
 
         numba.set_num_threads(min(len(chunks), config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
-        compiled(
+        kernel_chunks(
+            *arguments,
             np.array([first for first, _ in chunks], dtype=np.int64),
             np.array([last for _, last in chunks], dtype=np.int64),
         )
     else:
-        run_chunks(work, chunks)
+        run_chunks(lambda first, last: kernel(*arguments, first, last), chunks)
 
 
 def run_chunks(work: Callable[[int, int], None], chunks: list[tuple[int, int]]) -> None:
@@ -187,13 +191,12 @@ def scratch(name: str, shape: tuple[int, ...]) -> np.ndarray:
     return buffer[:size].reshape(shape)
 
 
-NO_TERMS = np.empty((0, 0, 0))
 NO_GRADIENTS = np.empty((0, 0, 0))
 NO_ENTRIES = np.empty(0, dtype=np.int64)
 
 # Per transition model, its moved entries sorted out by TransitionOperator.distinct_entries.
 _model_entries: weakref.WeakKeyDictionary[
-    TransitionModel, tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    TransitionModel, tuple[np.ndarray, np.ndarray, np.ndarray]
 ] = weakref.WeakKeyDictionary()
 
 # A table's non-zero entries for forward passes (``_kernels.split_rows``) and by next state for
@@ -289,11 +292,10 @@ class TransitionOperator:
         )
         # A learner builds one per step: the model's entries are sorted out once per model.
         known = _model_entries.get(model)
-        if known is not None and known[0] is model.flat_parametric_entries:
-            operator._distinct = known
-        else:
-            operator.distinct_entries  # noqa: B018 (sorts them out)
-            _model_entries[model] = operator._distinct
+        if known is None or known[0] is not model.flat_parametric_entries:
+            known = operator._sort_out_entries()
+            _model_entries[model] = known
+        operator._distinct = known
         return operator
 
     def only_gradients_at(self, mask: np.ndarray) -> TransitionOperator:
@@ -315,17 +317,21 @@ class TransitionOperator:
         (entry, the earlier entry it copies): entries of one row that lead to the same next
         state have the same terms in the same order, so the same gradient. Padding does (flip's
         whole table: 8000 entries, 3188 distinct); a model's moved entries do not."""
-        entries = self.gradient_entries
-        if self._distinct is None or self._distinct[0] is not entries:
-            key = (entries // self.width) * self.num_states + self.next_flat[entries]
-            _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
-            copied = first[inverse] != np.arange(entries.shape[0])
-            self._distinct = (
-                entries,
-                np.ascontiguousarray(entries[np.sort(first)]),
-                np.stack([entries[copied], entries[first[inverse[copied]]]]),
-            )
+        if self._distinct is None or self._distinct[0] is not self.gradient_entries:
+            self._distinct = self._sort_out_entries()
         return self._distinct[1], self._distinct[2][0], self._distinct[2][1]
+
+    def _sort_out_entries(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(gradient entries, the distinct ones, [copies; their originals])."""
+        entries = self.gradient_entries
+        key = (entries // self.width) * self.num_states + self.next_flat[entries]
+        _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+        copied = first[inverse] != np.arange(entries.shape[0])
+        return (
+            entries,
+            np.ascontiguousarray(entries[np.sort(first)]),
+            np.stack([entries[copied], entries[first[inverse[copied]]]]),
+        )
 
     @property
     def rows(self) -> ForwardRows:
@@ -427,30 +433,14 @@ class SoftPlan:
             else NO_GRADIENTS
         )
         task_entries = NO_ENTRIES if by_entries else entries
-        incoming = op.incoming
         g_q = np.ascontiguousarray(g_q)
 
-        def reverse(first: int, last: int) -> None:
-            _kernels.soft_backward_tasks(
-                *incoming,
-                op.next_flat,
-                op.width,
-                self.values,
-                self.jacobians_by_action,
-                g_q,
-                self.horizon,
-                task_entries,
-                d_reward,
-                d_probs,
-                terms[first - kept_from : last - kept_from] if first >= kept_from else NO_TERMS,
-                gradients,
-                first,
-                last,
-            )
-
-        def reverse_compiled(firsts: np.ndarray, lasts: np.ndarray) -> None:
-            _kernels.soft_backward_chunks(
-                *incoming,
+        run_pass(
+            chunks,
+            _kernels.soft_backward_tasks,
+            _kernels.soft_backward_chunks,
+            (
+                *op.incoming,
                 op.next_flat,
                 op.width,
                 self.values,
@@ -463,45 +453,25 @@ class SoftPlan:
                 terms,
                 kept_from,
                 gradients,
-                firsts,
-                lasts,
-            )
-
-        run_pass(chunks, reverse, reverse_compiled)
+            ),
+        )
         if split:
             _kernels.add_terms(terms, entries, d_probs)
         if by_entries:
-
-            def add_entries(first: int, last: int) -> None:
-                _kernels.entry_terms(
-                    gradients,
-                    self.values,
-                    entries,
-                    op.next_flat,
-                    op.width,
-                    op.num_states,
-                    self.horizon,
-                    d_probs,
-                    first,
-                    last,
-                )
-
-            def add_entries_compiled(firsts: np.ndarray, lasts: np.ndarray) -> None:
-                _kernels.entry_terms_chunks(
-                    gradients,
-                    self.values,
-                    entries,
-                    op.next_flat,
-                    op.width,
-                    op.num_states,
-                    self.horizon,
-                    d_probs,
-                    firsts,
-                    lasts,
-                )
-
             run_pass(
-                even_chunks(entries.shape[0], planner_threads()), add_entries, add_entries_compiled
+                even_chunks(entries.shape[0], planner_threads()),
+                _kernels.entry_terms,
+                _kernels.entry_terms_chunks,
+                (
+                    gradients,
+                    self.values,
+                    entries,
+                    op.next_flat,
+                    op.width,
+                    op.num_states,
+                    self.horizon,
+                    d_probs,
+                ),
             )
         d_probs[copies] = d_probs[originals]
         if self.single_task:
@@ -556,35 +526,12 @@ def soft_plan(
     rows = operator.rows
     rewards = np.ascontiguousarray(rewards, dtype=np.float64)
 
-    def forward(first: int, last: int) -> None:
-        _kernels.soft_forward_tasks(
-            *rows,
-            rewards,
-            float(beta),
-            horizon,
-            bool(keep_trace),
-            q,
-            values,
-            jacobians,
-            first,
-            last,
-        )
-
-    def forward_compiled(firsts: np.ndarray, lasts: np.ndarray) -> None:
-        _kernels.soft_forward_chunks(
-            *rows,
-            rewards,
-            float(beta),
-            horizon,
-            bool(keep_trace),
-            q,
-            values,
-            jacobians,
-            firsts,
-            lasts,
-        )
-
-    run_pass(task_chunks(num_tasks), forward, forward_compiled)
+    run_pass(
+        task_chunks(num_tasks),
+        _kernels.soft_forward_tasks,
+        _kernels.soft_forward_chunks,
+        (*rows, rewards, float(beta), horizon, bool(keep_trace), q, values, jacobians),
+    )
     return SoftPlan(
         q_all=q,
         operator=operator,

@@ -624,16 +624,18 @@ def test_five_action_code_computes_what_the_general_code_does() -> None:
         np.testing.assert_array_equal(a, b)
     d_q = rng.normal(size=special[0].shape)
 
-    def backward(kernel, *five):  # type: ignore[no-untyped-def]
+    def backward(kernel, *terms_and_the_rest):  # type: ignore[no-untyped-def]
         out = (np.zeros((tasks, env.num_states)), np.zeros(op.next_flat.shape[0]))
         kernel(
             *op.incoming, op.next_flat, op.width, special[1], special[2], d_q, horizon,
-            op.gradient_entries, *out, np.empty((0, 0, 0)), np.empty((0, 0, 0)), 0, tasks, *five,
+            op.gradient_entries, *out, *terms_and_the_rest,
         )  # fmt: skip
         return out
 
-    special_back = backward(_kernels.soft_backward_tasks)
-    general_back = backward(_kernels._soft_backward, 5)
+    no_terms, no_gradients = np.empty((0, 0, 0)), np.empty((0, 0, 0))
+    # The public kernel takes where kept terms start (none kept: all tasks add at once).
+    special_back = backward(_kernels.soft_backward_tasks, no_terms, tasks, no_gradients, 0, tasks)
+    general_back = backward(_kernels._soft_backward, no_terms, no_gradients, 0, tasks, 5)
     for a, b in zip(special_back, general_back, strict=True):
         np.testing.assert_array_equal(a, b)
 

@@ -22,6 +22,13 @@ as a loop over its actions would (the same bits). The passes are compiled with N
 model: Python's, numba's default, checks every division for a zero divisor, which kept the
 divisions scalar (a weight's normaliser is at least 1: the best action weighs 1). Flip's forward
 pass: 1.31 ms before, 0.90 after.
+
+For five actions (every environment) a backup's Boltzmann step is one loop over states with the
+state's five actions written out (``_boltzmann_five``): the five exps' Horner steps interleaved
+(``exp_nonpositive_five``), so that their chains of dependent multiply-adds overlap, and the
+maximum a select rather than a branch (which had kept the loop scalar). The same operations in
+the same order as the general loops, so the same bits. Flip's forward pass with its trace, one
+thread, on an AVX2 machine: 1.45 ms before, 0.89 after; the exps had taken 60% of it.
 """
 
 from __future__ import annotations
@@ -66,6 +73,41 @@ def _bits_float(typingctx, x):  # type: ignore[no-untyped-def]
     return signature, codegen
 
 
+# exp(r)'s Taylor coefficients 1/13!, 1/12!, ..., 1/1!, 1/0!, in Horner's order.
+HORNER_FIRST = 1.0 / 479001600.0
+HORNER = (
+    1.0 / 39916800.0,
+    1.0 / 3628800.0,
+    1.0 / 362880.0,
+    1.0 / 40320.0,
+    1.0 / 5040.0,
+    1.0 / 720.0,
+    1.0 / 120.0,
+    1.0 / 24.0,
+    1.0 / 6.0,
+    0.5,
+    1.0,
+    1.0,
+)
+
+
+@njit(inline="always", fastmath=False, error_model="numpy")
+def _exp_reduce(x: float) -> tuple[float, float]:
+    """k and r of exp(x) = 2^k exp(r), x clamped at -708."""
+    v = max(x, -708.0)
+    k = np.floor(v * LOG2E + 0.5)
+    return k, (v - k * LN2_HI) - k * LN2_LO
+
+
+@njit(inline="always", fastmath=False, error_model="numpy")
+def _exp_scale(p: float, k: float) -> float:
+    """p * 2^k. 2^k's bits, (k + 1023) << 52, without a float-to-int64 conversion (not a
+    vector instruction before AVX-512): k + 1023 + 2^52 is exact, and its bits are
+    EXPONENT_BIAS_BITS + k + 1023."""
+    bits: int = _float_bits(k + TWO_52_PLUS_BIAS)  # type: ignore[call-arg]  # (numba intrinsics)
+    return p * _bits_float((bits - EXPONENT_BIAS_BITS) << 52)  # type: ignore[call-arg]
+
+
 @njit(inline="always", fastmath=False, error_model="numpy")
 def exp_nonpositive_one(x: float) -> float:
     """exp(x) for x <= 0, within 4e-16 relative of ``np.exp`` (x below -708, where exp
@@ -74,27 +116,39 @@ def exp_nonpositive_one(x: float) -> float:
 
     Branch-free so that loops calling it vectorise: |r| <= ln(2) / 2, where the degree-13
     Taylor polynomial's error is below 1e-17, and 2^k is built from its IEEE-754 bits."""
-    v = max(x, -708.0)
-    k = np.floor(v * LOG2E + 0.5)
-    r = (v - k * LN2_HI) - k * LN2_LO
-    p = 1.0 / 479001600.0
-    p = p * r + 1.0 / 39916800.0
-    p = p * r + 1.0 / 3628800.0
-    p = p * r + 1.0 / 362880.0
-    p = p * r + 1.0 / 40320.0
-    p = p * r + 1.0 / 5040.0
-    p = p * r + 1.0 / 720.0
-    p = p * r + 1.0 / 120.0
-    p = p * r + 1.0 / 24.0
-    p = p * r + 1.0 / 6.0
-    p = p * r + 0.5
-    p = p * r + 1.0
-    p = p * r + 1.0
-    # 2^k's bits, (k + 1023) << 52, without a float-to-int64 conversion (not a vector
-    # instruction before AVX-512): k + 1023 + 2^52 is exact, and its bits are
-    # EXPONENT_BIAS_BITS + k + 1023.
-    bits: int = _float_bits(k + TWO_52_PLUS_BIAS)  # type: ignore[call-arg]  # (numba intrinsics)
-    return p * _bits_float((bits - EXPONENT_BIAS_BITS) << 52)  # type: ignore[call-arg]
+    k, r = _exp_reduce(x)
+    p = HORNER_FIRST
+    for c in HORNER:
+        p = p * r + c
+    return _exp_scale(p, k)
+
+
+@njit(inline="always", fastmath=False, error_model="numpy")
+def exp_nonpositive_five(
+    x0: float, x1: float, x2: float, x3: float, x4: float
+) -> tuple[float, float, float, float, float]:
+    """``exp_nonpositive_one`` of five numbers, the same operations on each, their Horner steps
+    interleaved: the five chains of dependent steps then run side by side (one after the
+    other, each step waited on the one before; a forward pass spent 60% of its time there)."""
+    k0, r0 = _exp_reduce(x0)
+    k1, r1 = _exp_reduce(x1)
+    k2, r2 = _exp_reduce(x2)
+    k3, r3 = _exp_reduce(x3)
+    k4, r4 = _exp_reduce(x4)
+    p0 = p1 = p2 = p3 = p4 = HORNER_FIRST
+    for c in HORNER:
+        p0 = p0 * r0 + c
+        p1 = p1 * r1 + c
+        p2 = p2 * r2 + c
+        p3 = p3 * r3 + c
+        p4 = p4 * r4 + c
+    return (
+        _exp_scale(p0, k0),
+        _exp_scale(p1, k1),
+        _exp_scale(p2, k2),
+        _exp_scale(p3, k3),
+        _exp_scale(p4, k4),
+    )
 
 
 @njit(cache=True, fastmath=False, error_model="numpy")
@@ -216,7 +270,6 @@ def _soft_forward(
     previous = np.zeros(num_states)
     rows = np.empty(n)  # Q_t, row a * S + s
     weights = np.empty(n)
-    best = np.empty(num_states)
     total = np.empty(num_states)
     value = np.empty(num_states)
     for k in range(first, last):
@@ -243,30 +296,10 @@ def _soft_forward(
                     for a in range(num_actions):
                         q[k, s, a] = rows[a * num_states + s]
                 break
-            # Each state's best Q, its actions in order; shifted by it, every exponent is <= 0
-            # and the best weighs 1.
-            for s in range(num_states):
-                best[s] = rows[s]
-            for a in range(1, num_actions):
-                for s in range(num_states):
-                    if rows[a * num_states + s] > best[s]:
-                        best[s] = rows[a * num_states + s]
-            for s in range(num_states):
-                total[s] = 0.0
-                value[s] = 0.0
-            for a in range(num_actions):
-                for s in range(num_states):
-                    i = a * num_states + s
-                    weight = exp_nonpositive_one(beta * (rows[i] - best[s]))
-                    weights[i] = weight
-                    total[s] += weight
-            for a in range(num_actions):
-                _normalise(
-                    weights[a * num_states : (a + 1) * num_states],
-                    rows[a * num_states : (a + 1) * num_states],
-                    total,
-                    value,
-                )
+            if num_actions == FIVE_ACTIONS:
+                _boltzmann_five(rows, beta, weights, value)
+            else:
+                _boltzmann(rows, beta, num_actions, weights, total, value)
             for s in range(num_states):
                 previous[s] = value[s]
             if keep_trace:
@@ -278,6 +311,86 @@ def _soft_forward(
                     for s in range(num_states):
                         i = a * num_states + s
                         jacobians_t[a, s] = weights[i] * (1.0 + beta * (rows[i] - value[s]))
+
+
+@njit(inline="always", fastmath=False, error_model="numpy")
+def _boltzmann(
+    rows: np.ndarray,
+    beta: float,
+    num_actions: int,
+    weights: np.ndarray,
+    total: np.ndarray,
+    value: np.ndarray,
+) -> None:
+    """A backup's Boltzmann policy (``weights``, rows as Q's) and value V_t from its rows Q_t
+    (``total``: scratch of a weight per state)."""
+    num_states = value.shape[0]
+    for s in range(num_states):
+        value[s] = 0.0
+        # The state's best Q (the first of equal ones, its actions in order); shifted by it,
+        # every exponent is <= 0 and the best weighs 1. A select, not a branch: the loop runs
+        # as SIMD code (with an if, it stayed scalar and mispredicted).
+        shift = rows[s]
+        for a in range(1, num_actions):
+            candidate = rows[a * num_states + s]
+            shift = candidate if candidate > shift else shift
+        sum_ = 0.0
+        for a in range(num_actions):
+            i = a * num_states + s
+            weight = exp_nonpositive_one(beta * (rows[i] - shift))
+            weights[i] = weight
+            sum_ += weight
+        total[s] = sum_
+    for a in range(num_actions):
+        _normalise(
+            weights[a * num_states : (a + 1) * num_states],
+            rows[a * num_states : (a + 1) * num_states],
+            total,
+            value,
+        )
+
+
+@njit(inline="always", fastmath=False, error_model="numpy")
+def _boltzmann_five(rows: np.ndarray, beta: float, weights: np.ndarray, value: np.ndarray) -> None:
+    """``_boltzmann`` of five actions: the same arithmetic in the same order, in one loop
+    over states (its loops over actions unrolled, each state's five exps interleaved, see
+    ``exp_nonpositive_five``)."""
+    num_states = value.shape[0]
+    for s in range(num_states):
+        q0 = rows[s]
+        q1 = rows[num_states + s]
+        q2 = rows[2 * num_states + s]
+        q3 = rows[3 * num_states + s]
+        q4 = rows[4 * num_states + s]
+        shift = q0
+        shift = q1 if q1 > shift else shift
+        shift = q2 if q2 > shift else shift
+        shift = q3 if q3 > shift else shift
+        shift = q4 if q4 > shift else shift
+        w0, w1, w2, w3, w4 = exp_nonpositive_five(
+            beta * (q0 - shift),
+            beta * (q1 - shift),
+            beta * (q2 - shift),
+            beta * (q3 - shift),
+            beta * (q4 - shift),
+        )
+        total = w0 + w1 + w2 + w3 + w4  # the loop's sum from 0: 0 + w0 is w0
+        w0 = w0 / total
+        w1 = w1 / total
+        w2 = w2 / total
+        w3 = w3 / total
+        w4 = w4 / total
+        weights[s] = w0
+        weights[num_states + s] = w1
+        weights[2 * num_states + s] = w2
+        weights[3 * num_states + s] = w3
+        weights[4 * num_states + s] = w4
+        v = 0.0
+        v = v + w0 * q0
+        v = v + w1 * q1
+        v = v + w2 * q2
+        v = v + w3 * q3
+        value[s] = v + w4 * q4
 
 
 @njit(inline="never", fastmath=False, error_model="numpy")

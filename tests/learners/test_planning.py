@@ -600,7 +600,9 @@ def test_the_trace_holds_every_backups_value_and_jacobian(actions: int) -> None:
 
 def test_five_action_code_computes_what_the_general_code_does() -> None:
     """The passes compiled for exactly five actions give the general code's numbers, bit for
-    bit (the general code is called directly, with the action count as a run-time value)."""
+    bit (the general code is called directly, with the action count as a run-time value: its
+    loops not unrolled; the Boltzmann step, which takes its own code for five actions in both,
+    is checked against the general one in the next test)."""
     from server.learners import _kernels
 
     env = domains.make("doorway")
@@ -638,6 +640,33 @@ def test_five_action_code_computes_what_the_general_code_does() -> None:
     general_back = backward(_kernels._soft_backward, no_terms, no_gradients, 0, tasks, 5)
     for a, b in zip(special_back, general_back, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("beta", [0.5, 1.0, 3.0])
+def test_the_five_action_boltzmann_step_is_the_general_one_bit_for_bit(beta: float) -> None:
+    """The forward pass's Boltzmann step for five actions (one loop over states, five exps
+    interleaved) gives the general loops' weights and values to the last bit, the sign of a
+    zero included: on ties, zeros of both signs, and rows far apart (weights near 0)."""
+    from server.learners import _kernels
+
+    rng = np.random.default_rng(32)
+    num_states = 203  # not a multiple of a vector's width: the loops' remainders run too
+    rows = rng.normal(scale=20.0, size=(5, num_states))
+    rows[:, :10] = 1.25  # every action ties
+    rows[2:4, 10:20] = rows[0, 10:20, None].T  # some tie with the first
+    rows[:, 20:30] = rng.choice([0.0, -0.0], size=(5, 10))
+    rows[:, 30:40] = rng.choice([0.0, -800.0, -1e4, 3.0], size=(5, 10))
+    rows[:, 40:50] *= 1e-300
+    rows = rows.ravel()  # row a * S + s, as the passes hold them
+    five = (np.empty(5 * num_states), np.empty(num_states))
+    general = (np.empty(5 * num_states), np.empty(num_states))
+    _kernels._boltzmann_five(rows, beta, *five)
+    _kernels._boltzmann(rows, beta, 5, general[0], np.empty(num_states), general[1])
+    for a, b in zip(five, general, strict=True):
+        np.testing.assert_array_equal(a.view(np.uint64), b.view(np.uint64))
+    weights = five[0].reshape(5, num_states)
+    np.testing.assert_allclose(weights.sum(axis=0), 1.0, rtol=1e-15)
+    assert np.all(np.isfinite(five[1]))
 
 
 @pytest.mark.parametrize("backend", ["openmp", "python"])

@@ -592,10 +592,7 @@ def _soft_backward(
                 else:
                     for e in range(num_entries):
                         entry_sums[e] += g[entry_rows[e]] * v[entry_next[e]]
-            for s in range(num_states):
-                g_v[s] = 0.0
-            for level in range(dense_sources.shape[0]):
-                _add_level(g_v, dense_sources[level], dense_probabilities[level], g)
+            _dense_levels(g_v, dense_sources, dense_probabilities, g)
             for e in range(targets.shape[0]):
                 s = targets[e]
                 g_v[s] = g_v[s] + probabilities[e] * g[sources[e]]
@@ -609,12 +606,29 @@ def _soft_backward(
 
 
 @njit(inline="never", fastmath=False, error_model="numpy")
-def _add_level(
+def _dense_levels(
     g_v: np.ndarray, sources: np.ndarray, probabilities: np.ndarray, g: np.ndarray
 ) -> None:
-    """One dense level of the transposed table's terms added into ``g_v``."""
-    for s in range(g_v.shape[0]):
-        g_v[s] = g_v[s] + probabilities[s] * g[sources[s]]
+    """The transposed table's dense levels' terms summed into ``g_v`` from zero, level by
+    level: each state's sum in level order, four levels to a loop over states (one loop per
+    level loaded and stored the sums once per level)."""
+    num_states = g_v.shape[0]
+    for s in range(num_states):
+        g_v[s] = 0.0
+    num_levels = sources.shape[0]
+    level = 0
+    while level + 4 <= num_levels:
+        for s in range(num_states):
+            g_v[s] = (
+                ((g_v[s] + probabilities[level, s] * g[sources[level, s]])
+                 + probabilities[level + 1, s] * g[sources[level + 1, s]])
+                + probabilities[level + 2, s] * g[sources[level + 2, s]]
+            ) + probabilities[level + 3, s] * g[sources[level + 3, s]]  # fmt: skip
+        level += 4
+    while level < num_levels:
+        for s in range(num_states):
+            g_v[s] = g_v[s] + probabilities[level, s] * g[sources[level, s]]
+        level += 1
 
 
 @njit(cache=True, nogil=True, fastmath=False, error_model="numpy")

@@ -669,6 +669,28 @@ def test_the_five_action_boltzmann_step_is_the_general_one_bit_for_bit(beta: flo
     assert np.all(np.isfinite(five[1]))
 
 
+@pytest.mark.parametrize("levels", [1, 3, 4, 5, 9])
+def test_dense_levels_sum_each_state_s_terms_in_level_order(levels: int) -> None:
+    """The reverse pass's dense levels, four to a loop, add each state's terms from zero in
+    level order, as one loop per level does: checked to the last bit against Python's own
+    float arithmetic, term by term (wall cells' padding included: probability 0)."""
+    from server.learners import _kernels
+
+    rng = np.random.default_rng(33)
+    num_states = 37
+    g = rng.normal(scale=10.0, size=5 * num_states)
+    sources = rng.integers(0, g.shape[0], size=(levels, num_states))
+    probabilities = rng.uniform(size=(levels, num_states))
+    probabilities[rng.uniform(size=probabilities.shape) < 0.2] = 0.0
+    g_v = np.full(num_states, np.nan)  # every state is written
+    _kernels._dense_levels(g_v, sources, probabilities, g)
+    for s in range(num_states):
+        expected = 0.0
+        for level in range(levels):
+            expected = expected + float(probabilities[level, s]) * float(g[sources[level, s]])
+        assert g_v[s] == expected, (s, g_v[s], expected)
+
+
 @pytest.mark.parametrize("backend", ["openmp", "python"])
 @pytest.mark.parametrize("name", ["doorway", "two-rooms", "flip"])
 def test_passes_split_over_threads_compute_the_same_bits(

@@ -132,6 +132,10 @@ class TransitionModel:
         # The table's layout flattened for the planner (fixed for the model's lifetime).
         self.flat_next_states = self.next_states.reshape(-1)
         self.flat_parametric_entries = np.flatnonzero(self._parametric.reshape(-1))
+        self._last_probabilities: tuple[bytes, np.ndarray] | None = None
+        self._last_primitives: tuple[bytes, np.ndarray] | None = None
+        self._parametric_coef = self.coef.reshape(-1)[self.flat_parametric_entries]
+        self._parametric_index = self.index.reshape(-1)[self.flat_parametric_entries]
 
     @property
     def parametric_entries(self) -> np.ndarray:
@@ -158,8 +162,31 @@ class TransitionModel:
         return check_finite("dynamics parameters", theta)
 
     def probabilities(self, theta: np.ndarray) -> np.ndarray:
-        p = self.primitives(self.check_parameters(theta))
-        return self.const + self.coef * p[self.index]
+        """The (S, A, M) table's probabilities at ``theta`` (a new array each call).
+
+        The last theta's table is kept: a learner's step asks for it twice (the observed
+        transitions' likelihood, then the planner's table), and flip's takes 25 us."""
+        theta = self.check_parameters(theta)
+        key = theta.tobytes()
+        last = self._last_probabilities
+        if last is None or last[0] != key:
+            p = self._primitives_at(theta)
+            last = (key, self.const + self.coef * p[self.index])
+            self._last_probabilities = last  # one assignment: threads see a consistent pair
+        return last[1].copy()
+
+    def _primitives_at(self, theta: np.ndarray) -> np.ndarray:
+        """``primitives(theta)`` of a checked theta, the last one's kept (a learner's step
+        asks for them three times: the table, and two pull-backs)."""
+        theta = np.asarray(theta, dtype=np.float64)
+        key = theta.tobytes()
+        last = self._last_primitives
+        if last is None or last[0] != key:
+            primitives = self.primitives(theta)
+            primitives.flags.writeable = False  # shared by the callers
+            last = (key, primitives)
+            self._last_primitives = last
+        return last[1]
 
     def transitions(self, theta: np.ndarray) -> SparseTransitions:
         return SparseTransitions(self.next_states, self.probabilities(theta))
@@ -171,10 +198,9 @@ class TransitionModel:
         d_probabilities = check_shape(
             "gradient on transition probabilities", d_probabilities, self.next_states.shape
         )
-        weights = (self.coef * d_probabilities)[self._parametric]
-        d_p = np.bincount(
-            self.index[self._parametric], weights=weights, minlength=self.num_primitives
-        )
+        # The entries theta moves, in table order (the others' coefficients are 0).
+        weights = self._parametric_coef * d_probabilities.reshape(-1)[self.flat_parametric_entries]
+        d_p = np.bincount(self._parametric_index, weights=weights, minlength=self.num_primitives)
         return self.primitives_pullback(theta, d_p)
 
     def pullback_dense(self, theta: np.ndarray, d_transitions: np.ndarray) -> np.ndarray:
@@ -251,7 +277,7 @@ class SigmoidModel(TransitionModel):
         return 0.5 * (1.0 + np.tanh(0.5 * theta))  # stable sigmoid
 
     def primitives_pullback(self, theta: np.ndarray, d_primitives: np.ndarray) -> np.ndarray:
-        p = self.primitives(theta)
+        p = self._primitives_at(theta)
         return d_primitives * p * (1.0 - p)
 
 
@@ -276,7 +302,7 @@ class SoftmaxRowsModel(TransitionModel):
         return (z / z.sum(axis=1, keepdims=True)).ravel()
 
     def primitives_pullback(self, theta: np.ndarray, d_primitives: np.ndarray) -> np.ndarray:
-        p = self.primitives(theta).reshape(self.groups, self.choices)
+        p = self._primitives_at(theta).reshape(self.groups, self.choices)
         g = d_primitives.reshape(self.groups, self.choices)
         return (p * (g - (g * p).sum(axis=1, keepdims=True))).ravel()
 

@@ -3,6 +3,7 @@ log-likelihood through the soft planner (the first term of the paper's equation 
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -114,18 +115,28 @@ class TeacherData:
 
 
 def action_model(settings: dict[str, Any]) -> ActionModel:
-    return ActionModel(
-        beta=float(settings["beta"]), normalized=bool(settings["normalized_actions"])
-    )
+    return _action_model(float(settings["beta"]), bool(settings["normalized_actions"]))
 
 
 def feedback_model(settings: dict[str, Any]) -> FeedbackModel:
-    return FeedbackModel(
-        epsilon=float(settings["epsilon"]),
-        alpha=float(settings["alpha"]),
-        mu_plus=float(settings["mu_plus"]),
-        mu_minus=float(settings["mu_minus"]),
+    return _feedback_model(
+        float(settings["epsilon"]),
+        float(settings["alpha"]),
+        float(settings["mu_plus"]),
+        float(settings["mu_minus"]),
     )
+
+
+# The models are immutable and a learner's update asks for them at every step (400 times):
+# built, and checked, once per setting.
+@functools.lru_cache(maxsize=64)
+def _action_model(beta: float, normalized: bool) -> ActionModel:
+    return ActionModel(beta=beta, normalized=normalized)
+
+
+@functools.lru_cache(maxsize=64)
+def _feedback_model(epsilon: float, alpha: float, mu_plus: float, mu_minus: float) -> FeedbackModel:
+    return FeedbackModel(epsilon=epsilon, alpha=alpha, mu_plus=mu_plus, mu_minus=mu_minus)
 
 
 def teacher_log_likelihood(

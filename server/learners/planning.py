@@ -18,6 +18,7 @@ Jacobians cost a factor of the number of parameters more).
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import threading
@@ -141,17 +142,30 @@ def run_pass(
     of ``kernel_chunks(*arguments, firsts, lasts)`` on OpenMP threads, or chunk by chunk on
     Python threads (``run_chunks``); one chunk runs here."""
     if len(chunks) > 1 and compiled_threads():
-        import numba
-        from numba.core import config
+        firsts, lasts, threads = _bounds(tuple(chunks))
+        # numba's thread count is per calling thread; set only when it changes (3 us a call).
+        if getattr(_launches, "threads", None) != threads:
+            import numba
 
-        numba.set_num_threads(min(len(chunks), config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
-        kernel_chunks(
-            *arguments,
-            np.array([first for first, _ in chunks], dtype=np.int64),
-            np.array([last for _, last in chunks], dtype=np.int64),
-        )
+            numba.set_num_threads(threads)  # type: ignore[attr-defined]
+            _launches.threads = threads
+        kernel_chunks(*arguments, firsts, lasts)
     else:
         run_chunks(lambda first, last: kernel(*arguments, first, last), chunks)
+
+
+_launches = threading.local()
+
+
+@functools.lru_cache(maxsize=64)
+def _bounds(chunks: tuple[tuple[int, int], ...]) -> tuple[np.ndarray, np.ndarray, int]:
+    """The chunks' firsts and lasts as the parallel kernels take them (which only read them),
+    and the OpenMP threads they need."""
+    from numba.core import config
+
+    firsts = np.array([first for first, _ in chunks], dtype=np.int64)
+    lasts = np.array([last for _, last in chunks], dtype=np.int64)
+    return firsts, lasts, min(len(chunks), config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]
 
 
 def run_chunks(work: Callable[[int, int], None], chunks: list[tuple[int, int]]) -> None:

@@ -199,3 +199,33 @@ def test_observed_transitions_matched_once_give_the_same_likelihood(name: str) -
         dense = env.model.transitions(theta).dense()
         expected = np.log(dense[observed[:, 0], observed[:, 1], observed[:, 2]]).sum()
         assert value == pytest.approx(expected, rel=1e-12)
+
+
+@pytest.mark.parametrize("name", ["doorway", "flip", "two-fields"])
+def test_the_kept_table_follows_theta_and_stays_the_model_s(name: str) -> None:
+    """The model keeps its last theta's table and primitives: a theta changed in place gets
+    its own table, each call returns an array of the caller's own, and the pull-back at a kept
+    theta equals a fresh model's."""
+    env = domains.make(name)
+    model = env.model
+    rng = np.random.default_rng(5)
+    theta = model.initial_parameters() + rng.normal(size=model.num_parameters)
+    first = model.probabilities(theta)
+    first[...] = -1.0  # the caller's own array: the model's kept table is untouched
+    again = model.probabilities(theta)
+    assert np.all(again >= 0.0)
+    theta[0] += 0.5  # the same array, another theta
+    moved = model.probabilities(theta)
+    fresh = domains.make(name).model
+    np.testing.assert_array_equal(moved, fresh.probabilities(theta.copy()))
+    assert not np.array_equal(moved, again)
+    d_probabilities = rng.normal(size=model.next_states.shape)
+    np.testing.assert_array_equal(
+        model.pullback(theta, d_probabilities), fresh.pullback(theta.copy(), d_probabilities)
+    )
+    # The pull-back reads only the entries theta moves.
+    frozen = d_probabilities.copy()
+    frozen[~model.parametric_entries] = 1e6
+    np.testing.assert_array_equal(
+        model.pullback(theta, frozen), model.pullback(theta, d_probabilities)
+    )

@@ -794,6 +794,32 @@ def test_a_model_s_operator_is_the_checked_table_narrowed_to_its_parameters(name
         TransitionOperator.of_model(env.model, theta)
 
 
+@pytest.mark.parametrize("name", ["doorway", "flip", "two-fields"])
+def test_a_model_s_pass_layouts_are_the_sorted_out_table_s(name: str) -> None:
+    """A model's operators fill the passes' layouts kept for the model (its moved entries'
+    pattern of zeros) instead of sorting the table out again: the same arrays as sorting out
+    that theta's table, also when saturated parameters make moved entries exactly 0 and the
+    pattern changes, and back."""
+    from server.learners import _kernels
+
+    env = domains.make(name)
+    rng = np.random.default_rng(6)
+    start = env.model.initial_parameters() + rng.normal(size=env.model.num_parameters)
+    saturated = start.copy()
+    saturated[::2] = -800.0  # probabilities of exactly 0 (and 1)
+    for theta in (start, start + 0.1, saturated, saturated + 0.1, start):
+        operator = TransitionOperator.of_model(env.model, theta)
+        layout = (operator.next_flat, operator.probs_flat, operator.width)
+        sizes = (operator.num_states, operator.num_actions)
+        expected = (*_kernels.split_rows(*layout, *sizes), *_kernels.incoming(*layout, *sizes))
+        for got, want in zip((*operator.rows, *operator.incoming), expected, strict=True):
+            np.testing.assert_array_equal(got, want)
+    assert np.any(TransitionOperator.of_model(env.model, saturated).probs_flat == 0.0) and (
+        np.count_nonzero(TransitionOperator.of_model(env.model, saturated).probs_flat)
+        != np.count_nonzero(TransitionOperator.of_model(env.model, start).probs_flat)
+    )
+
+
 def test_pass_entries_keep_each_row_s_and_each_next_state_s_order() -> None:
     """``split_rows``: the first non-zero entry of every row, then the rows' second entries,
     third entries and so on, skipping zeros wherever they sit in a row, so that a forward pass

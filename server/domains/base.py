@@ -15,6 +15,7 @@ to theta with the same few lines for every domain.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -24,6 +25,9 @@ import numpy as np
 ACTIONS: tuple[str, ...] = ("STAY", "UP", "DOWN", "LEFT", "RIGHT")
 STAY, UP, DOWN, LEFT, RIGHT = range(5)
 NUM_ACTIONS = len(ACTIONS)
+# Restricted models a model keeps (``TransitionModel.restricted``): a learner's data reaches
+# one set of states per update, mostly the same from one update to the next.
+RESTRICTIONS_KEPT = 8
 # (row, column) offsets, row 0 at the top.
 DELTAS: tuple[tuple[int, int], ...] = ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1))
 
@@ -134,8 +138,55 @@ class TransitionModel:
         self.flat_parametric_entries = np.flatnonzero(self._parametric.reshape(-1))
         self._last_probabilities: tuple[bytes, np.ndarray] | None = None
         self._last_primitives: tuple[bytes, np.ndarray] | None = None
+        self._restrictions: dict[bytes, TransitionModel] = {}
         self._parametric_coef = self.coef.reshape(-1)[self.flat_parametric_entries]
         self._parametric_index = self.index.reshape(-1)[self.flat_parametric_entries]
+
+    # -- the states a set of states can reach -------------------------------------------
+    def reachable(self, states: np.ndarray) -> np.ndarray:
+        """The states reachable from ``states`` (included) through entries that are non-zero
+        for some theta, sorted: a set no theta's table leads out of."""
+        possible = (self.const != 0.0) | (self.coef != 0.0)
+        reached = np.zeros(self.num_states, dtype=bool)
+        frontier = np.unique(np.asarray(states, dtype=np.int64))
+        reached[frontier] = True
+        while frontier.size:
+            successors = np.unique(self.next_states[frontier][possible[frontier]])
+            frontier = successors[~reached[successors]]
+            reached[frontier] = True
+        return np.flatnonzero(reached)
+
+    def restricted(self, states: np.ndarray) -> TransitionModel:
+        """This model over ``states`` only (sorted, a set ``reachable`` returns), its states
+        numbered in their order: the same parameters and, at every theta, the same entries of
+        those states' rows, in the same order. Kept per set (a learner asks at every update)."""
+        states = np.asarray(states, dtype=np.int64)
+        key = states.tobytes()
+        known = self._restrictions.get(key)
+        if known is not None:
+            return known
+        number = np.full(self.num_states, -1, dtype=np.int64)
+        number[states] = np.arange(states.size)
+        next_states = number[self.next_states[states]]
+        possible = (self.const[states] != 0.0) | (self.coef[states] != 0.0)
+        if np.any(next_states[possible] < 0):
+            raise ValueError("the states must include every state they can reach")
+        next_states[~possible] = 0  # entries of probability 0 for every theta
+        model = copy.copy(self)  # a subclass's own settings (groups, choices) come along
+        TransitionModel.__init__(
+            model,
+            next_states,
+            self.const[states],
+            self.coef[states],
+            self.index[states],
+            self.num_parameters,
+            self.initial_value,
+            self.parameter_names,
+        )
+        if len(self._restrictions) >= RESTRICTIONS_KEPT:
+            self._restrictions.pop(next(iter(self._restrictions)))
+        self._restrictions[key] = model
+        return model
 
     @property
     def parametric_entries(self) -> np.ndarray:

@@ -33,7 +33,7 @@ class BAM(PlannerLearner):
         check_count("warm_alternations", self.settings["warm_alternations"], minimum=0)
 
     def _fit(self) -> tuple[float, int]:
-        data = TeacherData.from_log(self.data)
+        data = TeacherData.from_log(self.data).restricted(self.env.model)
         observed = self.env.model.observe(self.data.observed_transitions())
         optimizer, evaluations = self.schedule(data)
         if optimizer == "momentum":
@@ -53,7 +53,7 @@ class BAM(PlannerLearner):
         objective = float("nan")
         for _ in range(alternations):
             if not data.empty:
-                operator = self.operator()
+                operator = self.operator(data)
                 for _ in range(int(self.settings["cost_steps"])):
                     self.cost_step(operator, data)
                     steps += 1
@@ -75,10 +75,10 @@ class BAM(PlannerLearner):
             self.set_cost_vector(data, vector[num_theta:])
             value, d_theta = self.transition_objective(self.theta, observed)
             teacher, d_rewards, d_transitions = self.teacher_objective(
-                self.operator(), data, need_transitions=True
+                self.operator(data), data, need_transitions=True
             )
             assert d_transitions is not None
-            d_theta = d_theta + self.env.model.pullback(self.theta, d_transitions)
+            d_theta = d_theta + self.pullback(data, d_transitions)
             prior, d_costs = self.packed_cost_gradient(data, d_rewards)
             return value + teacher + prior, np.concatenate([d_theta, d_costs])
 
@@ -94,11 +94,11 @@ class BAM(PlannerLearner):
         value, grad = self.transition_objective(self.theta, observed)
         if not data.empty:
             teacher, _, d_transitions = self.teacher_objective(
-                self.operator(), data, need_transitions=True
+                self.operator(data), data, need_transitions=True
             )
             assert d_transitions is not None
             value += teacher
-            grad = grad + self.env.model.pullback(self.theta, d_transitions)
+            grad = grad + self.pullback(data, d_transitions)
         cost_prior, _ = self.cost_prior(self.costs)
         self.theta = self.theta_optimizer.step(self.theta, grad)
         return value + cost_prior

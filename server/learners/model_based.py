@@ -18,7 +18,7 @@ class ModelBasedIRL(PlannerLearner):
 
     def _fit(self) -> tuple[float, int]:
         observed = self.env.model.observe(self.data.observed_transitions())
-        data = TeacherData.from_log(self.data)
+        data = TeacherData.from_log(self.data).restricted(self.env.model)
         optimizer, evaluations = self.schedule(data)
         if self.settings["optimizer"] == "lbfgs":
             dynamics_objective, dynamics_evaluations = self.fit_theta_lbfgs(observed, evaluations)
@@ -33,12 +33,12 @@ class ModelBasedIRL(PlannerLearner):
             if data.empty:
                 return dynamics_objective, dynamics_evaluations
             teacher_objective, cost_evaluations = self.fit_costs_lbfgs(
-                self.operator(), data, evaluations
+                self.operator(data), data, evaluations
             )
             return dynamics_objective + teacher_objective, dynamics_evaluations + cost_evaluations
         teacher_objective = 0.0
         if not data.empty:
-            operator = self.operator()
+            operator = self.operator(data)
             for _ in range(int(self.settings["cost_steps"])):
                 teacher_objective = self.cost_step(operator, data)
         steps = int(self.settings["dynamics_steps"]) + (

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
-from server.domains.base import Environment, all_finite
+from server.domains.base import Environment, TransitionModel, all_finite
 from server.learners.base import DataLog
 from server.learners.likelihoods import (
     ActionModel,
@@ -75,6 +75,10 @@ class TeacherData:
     step_states: np.ndarray
     step_actions: np.ndarray
     step_feedback: np.ndarray
+    # With ``restricted``: the learner's model over the states the data can reach, and those
+    # states (the data's states are then their positions in ``plan_states``).
+    plan_model: TransitionModel | None = None
+    plan_states: np.ndarray | None = None
 
     @classmethod
     def from_log(cls, log: DataLog, include_silent_steps: bool = True) -> TeacherData:
@@ -106,11 +110,36 @@ class TeacherData:
     def empty(self) -> bool:
         return len(self.tasks) == 0
 
+    def restricted(self, model: TransitionModel) -> TeacherData:
+        """This data planned over the states it can reach under ``model`` (at any theta):
+        the rest have no bearing on its likelihood, and the passes skip them (three-fields:
+        112 of 384 states, out of reach of its starts). The likelihood, its gradient and the
+        pull-back to theta are the whole model's to the last bit (tests/learners). The data
+        itself when it reaches every state, or has none."""
+        if self.empty or self.plan_states is not None:
+            return self
+        states = model.reachable(np.concatenate([self.demo_states, self.step_states]))
+        if states.size == model.num_states:
+            return self
+        number = np.full(model.num_states, -1, dtype=np.int64)
+        number[states] = np.arange(states.size)
+        return replace(
+            self,
+            demo_states=number[self.demo_states],
+            step_states=number[self.step_states],
+            plan_model=model.restricted(states),
+            plan_states=states,
+        )
+
+    def full_states(self, states: np.ndarray) -> np.ndarray:
+        """The environment's state numbers of this data's state numbers."""
+        return states if self.plan_states is None else self.plan_states[states]
+
     def visited(self, num_tasks: int, num_states: int) -> np.ndarray:
         """(tasks, states) mask of the states where the teacher gave data for each task."""
         mask = np.zeros((num_tasks, num_states), dtype=bool)
-        mask[self.tasks[self.demo_tasks], self.demo_states] = True
-        mask[self.tasks[self.step_tasks], self.step_states] = True
+        mask[self.tasks[self.demo_tasks], self.full_states(self.demo_states)] = True
+        mask[self.tasks[self.step_tasks], self.full_states(self.step_states)] = True
         return mask
 
 

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from server.domains.base import Environment, ObservedTransitions, check_finite
+from server.domains.base import Environment, ObservedTransitions, TransitionModel, check_finite
 from server.learners.base import Learner
 from server.learners.likelihoods import gaussian_log_prior
 from server.learners.objective import (
@@ -91,9 +91,20 @@ class PlannerLearner(Learner):
         """Per-state rewards (tasks, S) the learner currently believes in."""
         return cell_rewards(self.env, self.costs)
 
-    def operator(self) -> TransitionOperator:
+    def operator(self, data: TeacherData | None = None) -> TransitionOperator:
+        """The learned model's table at theta: over the states ``data`` plans on (see
+        ``TeacherData.restricted``), or all states."""
         # dL/dT is only ever pulled back to theta, which reads the entries theta moves.
-        return TransitionOperator.of_model(self.env.model, self.theta)
+        return TransitionOperator.of_model(self.plan_model(data), self.theta)
+
+    def plan_model(self, data: TeacherData | None) -> TransitionModel:
+        if data is None or data.plan_model is None:
+            return self.env.model
+        return data.plan_model
+
+    def pullback(self, data: TeacherData, d_transitions: np.ndarray) -> np.ndarray:
+        """A gradient on the table of ``operator(data)``, pulled back to theta."""
+        return self.plan_model(data).pullback(self.theta, d_transitions)
 
     def q_values(self) -> np.ndarray:
         """Soft Q (tasks, S, A) under the learned model and rewards."""
@@ -141,15 +152,20 @@ class PlannerLearner(Learner):
         data: TeacherData,
         need_transitions: bool,
     ) -> tuple[float, np.ndarray, np.ndarray | None]:
-        """Teacher-data log-likelihood, dL/d(per-state rewards of tasks with data), dL/dT."""
-        return planned_teacher_log_likelihood(
-            operator,
-            self.task_rewards(data, self.costs),
-            data,
-            self.settings,
-            self.env.horizon,
-            need_transitions,
+        """Teacher-data log-likelihood, dL/d(per-state rewards of tasks with data), dL/dT
+        (on the table of ``operator(data)``)."""
+        rewards = self.task_rewards(data, self.costs)
+        if data.plan_states is not None:
+            rewards = rewards[:, data.plan_states]
+        value, d_rewards, d_transitions = planned_teacher_log_likelihood(
+            operator, rewards, data, self.settings, self.env.horizon, need_transitions
         )
+        if data.plan_states is not None:
+            # States out of the data's reach: 0, as the whole model's reverse pass gives.
+            everywhere = np.zeros((d_rewards.shape[0], self.env.num_states))
+            everywhere[:, data.plan_states] = d_rewards
+            d_rewards = everywhere
+        return value, d_rewards, d_transitions
 
     def cost_step(self, operator: TransitionOperator, data: TeacherData) -> float:
         """One momentum step on the costs (tasks with data); returns the objective before it."""
@@ -228,17 +244,17 @@ class PlannerLearner(Learner):
     def objective(self) -> tuple[float, dict[str, np.ndarray]]:
         """Equation (5) at the current parameters over all recorded data, with its gradient
         for every parameter block (used by tests and to compare optimisers)."""
-        data = TeacherData.from_log(self.data)
+        data = TeacherData.from_log(self.data).restricted(self.env.model)
         value, d_theta = self.transition_objective(self.theta, self.data.observed_transitions())
         d_costs = np.zeros_like(self.costs)
         d_rewards = np.zeros((0, self.env.num_states))
         if not data.empty:
             teacher, d_rewards, d_transitions = self.teacher_objective(
-                self.operator(), data, need_transitions=True
+                self.operator(data), data, need_transitions=True
             )
             assert d_transitions is not None
             value += teacher
-            d_theta = d_theta + self.env.model.pullback(self.theta, d_transitions)
+            d_theta = d_theta + self.pullback(data, d_transitions)
             d_costs[data.tasks] = cell_gradient(self.env, d_rewards)
         prior, prior_grad = self.cost_prior(self.costs)
         gradients = {"theta": d_theta, "costs": d_costs + prior_grad}

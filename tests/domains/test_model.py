@@ -229,3 +229,30 @@ def test_the_kept_table_follows_theta_and_stays_the_model_s(name: str) -> None:
     np.testing.assert_array_equal(
         model.pullback(theta, frozen), model.pullback(theta, d_probabilities)
     )
+
+
+@pytest.mark.parametrize("name", ["three-fields", "flip", "wall"])
+def test_a_model_restricted_to_the_states_it_can_reach(name: str) -> None:
+    """``reachable`` closes a set of states under every entry some theta makes non-zero; the
+    model restricted to such a set has, at any theta, the whole model's rows of those states,
+    their next states renumbered, and refuses a set that is not closed."""
+    env = domains.make(name)
+    model = env.model
+    start = np.array([env.sample_start(0, np.random.default_rng(0))])
+    states = model.reachable(start)
+    assert start[0] in states and np.all(np.diff(states) > 0)
+    possible = (model.const != 0.0) | (model.coef != 0.0)
+    assert np.isin(model.next_states[states][possible[states]], states).all()
+    part = model.restricted(states)
+    assert model.restricted(states) is part  # kept
+    assert type(part) is type(model) and part.num_states == len(states)
+    theta = model.initial_parameters() + np.random.default_rng(1).normal(size=model.num_parameters)
+    whole_table, table = model.probabilities(theta), part.probabilities(theta)
+    np.testing.assert_array_equal(table, whole_table[states])
+    entries = table > 0.0
+    np.testing.assert_array_equal(
+        states[part.next_states][entries], model.next_states[states][entries]
+    )
+    if len(states) < model.num_states:
+        with pytest.raises(ValueError, match="every state they can reach"):
+            model.restricted(start if len(model.reachable(start)) > 1 else states[:-1])

@@ -168,3 +168,45 @@ def test_cloning_update_increases_its_objective() -> None:
     learner.update()
     after, _ = cloning_objective(learner)
     assert after > before + 1.0
+
+
+@pytest.mark.parametrize("name", PLANNER_LEARNERS)
+def test_planning_over_the_states_the_data_reaches_changes_no_bit(name: str) -> None:
+    """Three-fields' data reaches part of its states (machines that cannot be carried into a
+    field): updates plan over those only. The teacher-data likelihood, its gradient on every
+    task's rewards (0 out of reach) and its pull-back to theta equal the whole model's to the
+    last bit, with demonstrations, agent steps and feedback."""
+    env = domains.make("three-fields")
+    learner: Any = learners.make(name, env, seed=3)
+    teach(learner, seed=3)
+    randomise(learner, seed=3)
+    whole = TeacherData.from_log(learner.data)
+    part = whole.restricted(env.model)
+    assert part.plan_states is not None and part.plan_model is not None
+    assert 0 < len(part.plan_states) < env.num_states
+    assert part.restricted(env.model) is part
+    np.testing.assert_array_equal(
+        part.visited(len(env.tasks), env.num_states), whole.visited(len(env.tasks), env.num_states)
+    )
+    results = []
+    for data in (whole, part):
+        value, d_rewards, d_transitions = learner.teacher_objective(
+            learner.operator(data), data, need_transitions=True
+        )
+        results.append((value, d_rewards, learner.pullback(data, d_transitions)))
+    (value, d_rewards, d_theta), (part_value, part_d_rewards, part_d_theta) = results
+    assert part_value == value
+    assert d_rewards.shape == part_d_rewards.shape == (len(whole.tasks), env.num_states)
+    np.testing.assert_array_equal(part_d_rewards.view(np.uint64), d_rewards.view(np.uint64))
+    np.testing.assert_array_equal(part_d_theta.view(np.uint64), d_theta.view(np.uint64))
+    assert np.abs(d_theta).max() > 1e-3 and np.abs(d_rewards[:, part.plan_states]).max() > 1e-3
+
+
+def test_data_that_reaches_every_state_plans_over_all_of_them() -> None:
+    env = domains.make("doorway")
+    learner: Any = learners.make("bam", env, seed=3)
+    teach(learner, seed=3)
+    data = TeacherData.from_log(learner.data)
+    assert data.restricted(env.model) is data
+    empty = TeacherData.from_log(learners.make("bam", env).data)
+    assert empty.restricted(env.model) is empty

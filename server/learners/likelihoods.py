@@ -151,6 +151,7 @@ def feedback_log_likelihood(
 
 
 NO_ROWS = np.empty(0, dtype=np.int64)
+NO_SIGMOIDS = np.empty(0)
 
 
 def data_log_likelihood(
@@ -169,8 +170,12 @@ def data_log_likelihood(
     pass (a learner's update evaluates it hundreds of times). Indices are int64 arrays; out of
     range ones and feedback other than +1, -1, 0 are refused."""
     q = np.ascontiguousarray(q, dtype=np.float64)
-    advantages, bad = _step_advantages(q, step_tasks, step_states, step_actions, step_feedback)
-    _refuse(bad, q.shape)
+    if step_tasks.shape[0]:
+        advantages, bad = _step_advantages(q, step_tasks, step_states, step_actions, step_feedback)
+        _refuse(bad, q.shape)
+        sigmoids = _sigmoid(float(feedback.alpha) * advantages)
+    else:  # demonstrations alone (a demonstrations experiment's every update)
+        sigmoids = NO_SIGMOIDS
     demo_values, d_q, step_values, d_q_steps, bad = _data_log_likelihood(
         q,
         demo_tasks,
@@ -182,7 +187,7 @@ def data_log_likelihood(
         step_states,
         step_actions,
         step_feedback,
-        _sigmoid(float(feedback.alpha) * advantages),
+        sigmoids,
         float(feedback.epsilon),
         float(feedback.alpha),
         float(feedback.mu_plus),
@@ -193,6 +198,9 @@ def data_log_likelihood(
     value = float(demo_values.sum()) + float(step_values.sum())
     if not np.isfinite(value):
         raise FloatingPointError("the teacher data's log-likelihood is not finite (Q is not)")
+    if not step_tasks.shape[0]:
+        # d_q_steps is all +0, and d_q holds no -0 (its sums start from +0): d_q + 0 is d_q.
+        return value, d_q
     return value, d_q + d_q_steps
 
 

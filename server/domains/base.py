@@ -125,7 +125,8 @@ class TransitionModel:
         parameter_names: Sequence[str],
     ) -> None:
         self.next_states = np.ascontiguousarray(next_states, dtype=np.int64)
-        self.const = np.ascontiguousarray(const, dtype=np.float64)
+        # + 0.0: a -0 becomes +0, as const + coef * p gives where coef is 0.
+        self.const = np.ascontiguousarray(const, dtype=np.float64) + 0.0
         self.coef = np.ascontiguousarray(coef, dtype=np.float64)
         self.index = np.ascontiguousarray(index, dtype=np.int64)
         self.num_parameters = int(num_parameters)
@@ -139,6 +140,11 @@ class TransitionModel:
         self._last_probabilities: tuple[bytes, np.ndarray] | None = None
         self._last_primitives: tuple[bytes, np.ndarray] | None = None
         self._restrictions: dict[bytes, TransitionModel] = {}
+        # Whose kept primitives this model uses: a restricted model shares its model's.
+        self._primitives_owner: TransitionModel = self
+        self._const_flat = self.const.reshape(-1)
+        self._coef_flat = self.coef.reshape(-1)
+        self._index_flat = self.index.reshape(-1)
         self._parametric_coef = self.coef.reshape(-1)[self.flat_parametric_entries]
         self._parametric_index = self.index.reshape(-1)[self.flat_parametric_entries]
 
@@ -183,6 +189,7 @@ class TransitionModel:
             self.initial_value,
             self.parameter_names,
         )
+        model._primitives_owner = self._primitives_owner
         if len(self._restrictions) >= RESTRICTIONS_KEPT:
             self._restrictions.pop(next(iter(self._restrictions)))
         self._restrictions[key] = model
@@ -222,21 +229,29 @@ class TransitionModel:
         last = self._last_probabilities
         if last is None or last[0] != key:
             p = self._primitives_at(theta)
-            last = (key, self.const + self.coef * p[self.index])
+            # const + coef * p[index], computed where coef is not 0 (flip: 216 of 8000
+            # entries); elsewhere it is const (+0 for a -0, which __init__ made +0 already).
+            table = self._const_flat.copy()
+            moved = self.flat_parametric_entries
+            table[moved] = (
+                self._const_flat[moved] + self._parametric_coef * p[self._parametric_index]
+            )
+            last = (key, table.reshape(self.next_states.shape))
             self._last_probabilities = last  # one assignment: threads see a consistent pair
         return last[1].copy()
 
     def _primitives_at(self, theta: np.ndarray) -> np.ndarray:
         """``primitives(theta)`` of a checked theta, the last one's kept (a learner's step
         asks for them three times: the table, and two pull-backs)."""
+        owner = self._primitives_owner
         theta = np.asarray(theta, dtype=np.float64)
         key = theta.tobytes()
-        last = self._last_primitives
+        last = owner._last_primitives
         if last is None or last[0] != key:
-            primitives = self.primitives(theta)
+            primitives = owner.primitives(theta)
             primitives.flags.writeable = False  # shared by the callers
             last = (key, primitives)
-            self._last_primitives = last
+            owner._last_primitives = last
         return last[1]
 
     def transitions(self, theta: np.ndarray) -> SparseTransitions:
@@ -286,11 +301,15 @@ class TransitionModel:
         count = len(observed.rows)
         if count == 0:
             return 0.0, np.zeros(self.num_parameters)
-        probabilities = self.probabilities(theta)
-        flat = probabilities.reshape(-1)
+        # The observed entries' probabilities only (the table's, entry by entry).
+        p = self._primitives_at(self.check_parameters(theta))
+        entries = observed.entries
+        entry_probability = (
+            self._const_flat[entries] + self._coef_flat[entries] * p[self._index_flat[entries]]
+        )
         # T(s, a, s') sums the row's entries that lead to s' (a next state may repeat).
         row_probability = np.bincount(
-            observed.entry_rows, weights=flat[observed.entries], minlength=count
+            observed.entry_rows, weights=entry_probability, minlength=count
         )
         if np.any(row_probability <= 0.0):
             bad = int(np.argmin(row_probability))
@@ -302,8 +321,8 @@ class TransitionModel:
         d_probabilities = np.bincount(
             observed.entries,
             weights=1.0 / row_probability[observed.entry_rows],
-            minlength=flat.size,
-        ).reshape(probabilities.shape)
+            minlength=self._const_flat.size,
+        ).reshape(self.next_states.shape)
         return value, self.pullback(theta, d_probabilities)
 
 

@@ -669,15 +669,23 @@ def entry_terms(
         d_probs[gradient_entries[first + e]] = sums[e]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def add_terms(terms: np.ndarray, gradient_entries: np.ndarray, d_probs: np.ndarray) -> None:
     """The transition gradient's terms kept by ``soft_backward_tasks``, added into
-    ``d_probs`` task by task and backup by backup: the one-thread pass's order of additions."""
+    ``d_probs`` task by task and backup by backup: the one-thread pass's order of additions.
+    The entries are distinct; their sums are kept side by side while the terms go in (a loop
+    the compiler vectorises; in place, each addition was a gather and a scatter)."""
+    num_entries = gradient_entries.shape[0]
+    sums = np.empty(num_entries)
+    for e in range(num_entries):
+        sums[e] = d_probs[gradient_entries[e]]
     for k in range(terms.shape[0]):
         for step in range(terms.shape[1]):
             kept = terms[k, step]
-            for e in range(gradient_entries.shape[0]):
-                d_probs[gradient_entries[e]] += kept[e]
+            for e in range(num_entries):
+                sums[e] += kept[e]
+    for e in range(num_entries):
+        d_probs[gradient_entries[e]] = sums[e]
 
 
 @njit(cache=True)

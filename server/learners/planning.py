@@ -529,7 +529,7 @@ class SoftPlan:
         by_entries = whole_table and planner_threads() > 1
         split = len(chunks) > 1 and entries.shape[0] > 0 and not by_entries
         kept_from = chunks[1][0] if split else num_tasks
-        terms = np.empty((num_tasks - kept_from, self.horizon - 1, entries.shape[0]))
+        terms = scratch("terms", (num_tasks - kept_from, self.horizon - 1, entries.shape[0]))
         gradients = (
             scratch("gradients", (num_tasks, self.horizon - 1, op.num_states * op.num_actions))
             if by_entries

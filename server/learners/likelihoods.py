@@ -14,6 +14,7 @@ Q is an array (tasks, states, actions); data are integer arrays of equal length.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -196,7 +197,7 @@ def data_log_likelihood(
     _refuse(bad, q.shape)
     # Summed by NumPy, as before this was compiled: the same value to the last bit.
     value = float(demo_values.sum()) + float(step_values.sum())
-    if not np.isfinite(value):
+    if not math.isfinite(value):
         raise FloatingPointError("the teacher data's log-likelihood is not finite (Q is not)")
     if not step_tasks.shape[0]:
         # d_q_steps is all +0, and d_q holds no -0 (its sums start from +0): d_q + 0 is d_q.

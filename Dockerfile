@@ -3,7 +3,9 @@
 #   postgresql+psycopg://bam:PASSWORD@db:5432/bam
 # compose.yaml runs it with PostgreSQL beside it and applies the migrations first
 # (`bam-study db upgrade`); on its own, `serve` refuses an out-of-date schema.
-FROM python:3.11-slim
+# PYTHON_IMAGE: another image with Python 3.11 and pip, e.g. from a registry mirror.
+ARG PYTHON_IMAGE=python:3.11-slim
+FROM ${PYTHON_IMAGE}
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \

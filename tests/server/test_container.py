@@ -1,8 +1,9 @@
-"""The container's commands, run without a container engine (none runs on these machines, so
-`docker build` itself is not tested here): the build context that `.dockerignore` leaves, the
-compose file's migration command, and the Dockerfile's CMD and HEALTHCHECK, all read from the
-files themselves and run against a fresh PostgreSQL schema with the environment compose gives.
-A change to any of those files that breaks the deployment fails here."""
+"""The container's commands, run without a container engine (CI's machines have none;
+`test_container_image.py` builds and runs the image and the compose file where one answers):
+the build context that `.dockerignore` leaves, the compose file's migration command, and the
+Dockerfile's CMD and HEALTHCHECK, all read from the files themselves and run against a fresh
+PostgreSQL schema with the environment compose gives. A change to any of those files that
+breaks the deployment fails here."""
 
 from __future__ import annotations
 

@@ -15,6 +15,12 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 
 WORKDIR /app
 
+# GNU OpenMP, for the planner's passes on numba's OpenMP threads (without it they fall back to a
+# Python thread pool, slower to hand work over); the slim image does not have it.
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends libgomp1 \
+    && rm -rf /var/lib/apt/lists/*
+
 # The dependencies first, in their own layer: it is rebuilt only when pyproject.toml changes.
 COPY pyproject.toml ./
 RUN python -c "import subprocess, sys, tomllib; \

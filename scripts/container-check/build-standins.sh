@@ -9,7 +9,8 @@
 #       .venv/bin/python -m pytest tests/server/test_container_image.py
 #
 # Needs root, debootstrap and a running Docker engine. The Python image is Debian bookworm's
-# Python 3.11 with pip allowed to install system-wide (as in the official image); both images
+# Python 3.11 with pip allowed to install system-wide (as in the official image, and like it
+# without GNU OpenMP, which the Dockerfile installs); both images
 # trust this machine's extra certificate authorities (a TLS-inspecting proxy's), so that pip
 # inside a build reaches PyPI as the machine does.
 set -eu
@@ -19,7 +20,7 @@ WORK=$(mktemp -d)
 trap 'rm -rf "$WORK"' EXIT
 ROOT="$WORK/rootfs"
 debootstrap --variant=minbase \
-    --include=python3,python3-venv,python3-pip,python-is-python3,ca-certificates,libgomp1 \
+    --include=python3,python3-venv,python3-pip,python-is-python3,ca-certificates \
     bookworm "$ROOT" "$MIRROR"
 rm -f "$ROOT/usr/lib/python3.11/EXTERNALLY-MANAGED"
 if ls /usr/local/share/ca-certificates/*.crt >/dev/null 2>&1; then

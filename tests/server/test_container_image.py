@@ -138,6 +138,10 @@ def test_the_image_serves_a_study_on_postgresql_across_a_restart(
         container = ["docker", "run", "--rm", "--network", "host", *environment, tag]
         upgraded = run([*container, "bam-study", "db", "upgrade"])
         assert upgraded.returncode == 0, upgraded.stderr
+        # The planner's passes split over OpenMP threads in the image (GNU OpenMP installed).
+        probe = "from server.learners.planning import compiled_threads; print(compiled_threads())"
+        threads = run([*container, "python", "-c", probe])
+        assert threads.stdout.strip() == "True", threads.stdout + threads.stderr
         detached = ["docker", "run", "-d", "--name", name, "--network", "host", *environment]
         started = run([*detached, tag, *serve])
         assert started.returncode == 0, started.stderr

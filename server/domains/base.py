@@ -190,9 +190,9 @@ class TransitionModel:
             self.parameter_names,
         )
         model._primitives_owner = self._primitives_owner
-        if len(self._restrictions) >= RESTRICTIONS_KEPT:
-            self._restrictions.pop(next(iter(self._restrictions)))
-        self._restrictions[key] = model
+        kept = self._restrictions if len(self._restrictions) < RESTRICTIONS_KEPT else {}
+        # A new dict in one assignment: a thread reading the old one meanwhile is not disturbed.
+        self._restrictions = {**kept, key: model}
         return model
 
     @property

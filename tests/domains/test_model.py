@@ -256,3 +256,26 @@ def test_a_model_restricted_to_the_states_it_can_reach(name: str) -> None:
     if len(states) < model.num_states:
         with pytest.raises(ValueError, match="every state they can reach"):
             model.restricted(start if len(model.reachable(start)) > 1 else states[:-1])
+
+
+def test_restricted_models_kept_are_bounded() -> None:
+    """A model keeps at most RESTRICTIONS_KEPT restricted models (a long-running study server
+    sees many sets of states); a dropped one is built again, equal to the first."""
+    from server.domains.base import RESTRICTIONS_KEPT
+
+    env = domains.make("three-fields")
+    model = env.model
+    rng = np.random.default_rng(2)
+    sets = []
+    while len(sets) < RESTRICTIONS_KEPT + 3:
+        states = model.reachable(rng.integers(0, model.num_states, size=2))
+        if not any(np.array_equal(states, known) for known in sets):
+            sets.append(states)
+    first = model.restricted(sets[0])
+    for states in sets[1:]:
+        model.restricted(states)
+        assert len(model._restrictions) <= RESTRICTIONS_KEPT
+    again = model.restricted(sets[0])
+    theta = model.initial_parameters()
+    np.testing.assert_array_equal(again.probabilities(theta), first.probabilities(theta))
+    np.testing.assert_array_equal(again.next_states, first.next_states)

@@ -32,6 +32,13 @@ RESTRICTIONS_KEPT = 8
 DELTAS: tuple[tuple[int, int], ...] = ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1))
 
 
+def state_numbers(states: np.ndarray, num_states: int) -> np.ndarray:
+    """For each of ``num_states`` states, its position in ``states`` (sorted), else -1."""
+    number = np.full(num_states, -1, dtype=np.int64)
+    number[states] = np.arange(len(states))
+    return number
+
+
 def all_finite(array: np.ndarray) -> bool:
     """No NaN or infinity in ``array`` (the array's own ``all``: a learner's update asks
     thousands of times, and ``np.all``'s dispatch took longer than the check)."""
@@ -145,19 +152,20 @@ class TransitionModel:
         self._const_flat = self.const.reshape(-1)
         self._coef_flat = self.coef.reshape(-1)
         self._index_flat = self.index.reshape(-1)
-        self._parametric_coef = self.coef.reshape(-1)[self.flat_parametric_entries]
-        self._parametric_index = self.index.reshape(-1)[self.flat_parametric_entries]
+        self._parametric_coef = self._coef_flat[self.flat_parametric_entries]
+        self._parametric_index = self._index_flat[self.flat_parametric_entries]
+        # The entries some theta makes non-zero.
+        self._possible = (self.const != 0.0) | self._parametric
 
     # -- the states a set of states can reach -------------------------------------------
     def reachable(self, states: np.ndarray) -> np.ndarray:
         """The states reachable from ``states`` (included) through entries that are non-zero
         for some theta, sorted: a set no theta's table leads out of."""
-        possible = (self.const != 0.0) | (self.coef != 0.0)
         reached = np.zeros(self.num_states, dtype=bool)
         frontier = np.unique(np.asarray(states, dtype=np.int64))
         reached[frontier] = True
         while frontier.size:
-            successors = np.unique(self.next_states[frontier][possible[frontier]])
+            successors = np.unique(self.next_states[frontier][self._possible[frontier]])
             frontier = successors[~reached[successors]]
             reached[frontier] = True
         return np.flatnonzero(reached)
@@ -171,10 +179,8 @@ class TransitionModel:
         known = self._restrictions.get(key)
         if known is not None:
             return known
-        number = np.full(self.num_states, -1, dtype=np.int64)
-        number[states] = np.arange(states.size)
-        next_states = number[self.next_states[states]]
-        possible = (self.const[states] != 0.0) | (self.coef[states] != 0.0)
+        next_states = state_numbers(states, self.num_states)[self.next_states[states]]
+        possible = self._possible[states]
         if np.any(next_states[possible] < 0):
             raise ValueError("the states must include every state they can reach")
         next_states[~possible] = 0  # entries of probability 0 for every theta
@@ -228,17 +234,18 @@ class TransitionModel:
         key = theta.tobytes()
         last = self._last_probabilities
         if last is None or last[0] != key:
-            p = self._primitives_at(theta)
             # const + coef * p[index], computed where coef is not 0 (flip: 216 of 8000
             # entries); elsewhere it is const (+0 for a -0, which __init__ made +0 already).
             table = self._const_flat.copy()
             moved = self.flat_parametric_entries
-            table[moved] = (
-                self._const_flat[moved] + self._parametric_coef * p[self._parametric_index]
-            )
+            table[moved] = self._entry_probabilities(self._primitives_at(theta), moved)
             last = (key, table.reshape(self.next_states.shape))
             self._last_probabilities = last  # one assignment: threads see a consistent pair
         return last[1].copy()
+
+    def _entry_probabilities(self, p: np.ndarray, entries: np.ndarray) -> np.ndarray:
+        """The table's flat ``entries`` at primitives ``p``: const + coef * p[index]."""
+        return self._const_flat[entries] + self._coef_flat[entries] * p[self._index_flat[entries]]
 
     def _primitives_at(self, theta: np.ndarray) -> np.ndarray:
         """``primitives(theta)`` of a checked theta, the last one's kept (a learner's step
@@ -303,10 +310,7 @@ class TransitionModel:
             return 0.0, np.zeros(self.num_parameters)
         # The observed entries' probabilities only (the table's, entry by entry).
         p = self._primitives_at(self.check_parameters(theta))
-        entries = observed.entries
-        entry_probability = (
-            self._const_flat[entries] + self._coef_flat[entries] * p[self._index_flat[entries]]
-        )
+        entry_probability = self._entry_probabilities(p, observed.entries)
         # T(s, a, s') sums the row's entries that lead to s' (a next state may repeat).
         row_probability = np.bincount(
             observed.entry_rows, weights=entry_probability, minlength=count

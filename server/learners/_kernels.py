@@ -158,6 +158,18 @@ def exp_nonpositive(x: np.ndarray, out: np.ndarray) -> None:
         out[i] = exp_nonpositive_one(x[i])
 
 
+@njit(inline="always")
+def pass_row(row: int, num_states: int, num_actions: int) -> int:
+    """The passes' row ``a * S + s`` of the table's row ``s * A + a``."""
+    return (row % num_actions) * num_states + row // num_actions
+
+
+@njit(inline="always")
+def table_row(row: int, num_states: int, num_actions: int) -> int:
+    """The table's row ``s * A + a`` of the passes' row ``a * S + s``."""
+    return (row % num_states) * num_actions + row // num_states
+
+
 @njit(cache=True)
 def split_rows(
     next_flat: np.ndarray, probs_flat: np.ndarray, width: int, num_states: int, num_actions: int
@@ -177,7 +189,7 @@ def split_rows(
     first_probability = np.empty(num_rows)
     counts = np.zeros(num_rows, dtype=np.int64)
     for i in range(num_rows):  # the pass's row i is the table's row s * A + a
-        base = ((i % num_states) * num_actions + i // num_states) * width
+        base = table_row(i, num_states, num_actions) * width
         for m in range(width):
             j = base + m
             if probs_flat[j] != 0.0:
@@ -196,7 +208,7 @@ def split_rows(
         for i in range(num_rows):
             if counts[i] <= level:
                 continue
-            base = ((i % num_states) * num_actions + i // num_states) * width
+            base = table_row(i, num_states, num_actions) * width
             seen = 0
             for m in range(width):
                 j = base + m
@@ -296,6 +308,8 @@ def _soft_forward(
                     for a in range(num_actions):
                         q[k, s, a] = rows[a * num_states + s]
                 break
+            # V_t into its own array, then copied to ``previous`` (written into ``previous``
+            # directly, flip's pass on two threads took a tenth longer).
             if num_actions == FIVE_ACTIONS:
                 _boltzmann_five(rows, beta, weights, value)
             else:
@@ -451,8 +465,7 @@ def incoming(
         if probs_flat[j] != 0.0:
             s = next_flat[j]
             level = seen[s]
-            row = j // width
-            source = (row % num_actions) * num_states + row // num_actions
+            source = pass_row(j // width, num_states, num_actions)
             if level < num_dense:
                 dense_sources[level, s] = source
                 dense_probabilities[level, s] = probs_flat[j]
@@ -552,15 +565,9 @@ def _soft_backward(
     # kept side by side (from d_probs, and written back at the end): the terms of a backup then
     # go into consecutive places, a loop the compiler vectorises, each entry's sum in the same
     # order as in place (doorway: 880 scattered additions per backup before).
-    entry_rows = np.empty(num_entries, dtype=np.int64)
-    entry_next = np.empty(num_entries, dtype=np.int64)
-    entry_sums = np.empty(num_entries)
-    for e in range(num_entries):
-        j = gradient_entries[e]
-        row = j // width
-        entry_rows[e] = (row % num_actions) * num_states + row // num_actions
-        entry_next[e] = next_flat[j]
-        entry_sums[e] = d_probs[j] if not keep_terms else 0.0
+    entry_rows, entry_next, entry_sums = _entry_places(
+        gradient_entries, next_flat, width, num_states, num_actions, d_probs, not keep_terms
+    )
     g = np.empty(n)  # dL/dQ_t, row a * S + s
     g_v = np.empty(num_states)
     acc = np.empty(num_states)
@@ -603,6 +610,30 @@ def _soft_backward(
     if not keep_terms:
         for e in range(num_entries):
             d_probs[gradient_entries[e]] = entry_sums[e]
+
+
+@njit(inline="always")
+def _entry_places(
+    gradient_entries: np.ndarray,
+    next_flat: np.ndarray,
+    width: int,
+    num_states: int,
+    num_actions: int,
+    d_probs: np.ndarray,
+    from_d_probs: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each gradient entry's pass row and next state, and its sum's start (its ``d_probs``,
+    or 0), side by side."""
+    count = gradient_entries.shape[0]
+    rows = np.empty(count, dtype=np.int64)
+    nexts = np.empty(count, dtype=np.int64)
+    sums = np.empty(count)
+    for e in range(count):
+        j = gradient_entries[e]
+        rows[e] = pass_row(j // width, num_states, num_actions)
+        nexts[e] = next_flat[j]
+        sums[e] = d_probs[j] if from_d_probs else 0.0
+    return rows, nexts, sums
 
 
 @njit(inline="never", fastmath=False, error_model="numpy")
@@ -650,15 +681,9 @@ def entry_terms(
     bits), so that the entries of a whole table can be split over threads."""
     num_actions = gradients.shape[2] // num_states
     count = last - first
-    rows = np.empty(count, dtype=np.int64)
-    nexts = np.empty(count, dtype=np.int64)
-    sums = np.empty(count)
-    for e in range(count):
-        j = gradient_entries[first + e]
-        row = j // width
-        rows[e] = (row % num_actions) * num_states + row // num_actions
-        nexts[e] = next_flat[j]
-        sums[e] = d_probs[j]
+    rows, nexts, sums = _entry_places(
+        gradient_entries[first:last], next_flat, width, num_states, num_actions, d_probs, True
+    )
     for k in range(gradients.shape[0]):
         for step in range(horizon - 1):  # t = horizon - step
             g = gradients[k, step]

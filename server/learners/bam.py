@@ -33,7 +33,7 @@ class BAM(PlannerLearner):
         check_count("warm_alternations", self.settings["warm_alternations"], minimum=0)
 
     def _fit(self) -> tuple[float, int]:
-        data = TeacherData.from_log(self.data).restricted(self.env.model)
+        data = self.teacher_data()
         observed = self.env.model.observe(self.data.observed_transitions())
         optimizer, evaluations = self.schedule(data)
         if optimizer == "momentum":

@@ -4,7 +4,6 @@ fixed model."""
 
 from __future__ import annotations
 
-from server.learners.objective import TeacherData
 from server.learners.planner_learner import PlannerLearner
 
 
@@ -18,7 +17,7 @@ class ModelBasedIRL(PlannerLearner):
 
     def _fit(self) -> tuple[float, int]:
         observed = self.env.model.observe(self.data.observed_transitions())
-        data = TeacherData.from_log(self.data).restricted(self.env.model)
+        data = self.teacher_data()
         optimizer, evaluations = self.schedule(data)
         if self.settings["optimizer"] == "lbfgs":
             dynamics_objective, dynamics_evaluations = self.fit_theta_lbfgs(observed, evaluations)

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from server.domains.base import Environment, TransitionModel, all_finite
+from server.domains.base import Environment, TransitionModel, all_finite, state_numbers
 from server.learners.base import DataLog
 from server.learners.likelihoods import (
     ActionModel,
@@ -121,8 +121,7 @@ class TeacherData:
         states = model.reachable(np.concatenate([self.demo_states, self.step_states]))
         if states.size == model.num_states:
             return self
-        number = np.full(model.num_states, -1, dtype=np.int64)
-        number[states] = np.arange(states.size)
+        number = state_numbers(states, model.num_states)
         return replace(
             self,
             demo_states=number[self.demo_states],

@@ -97,6 +97,10 @@ class PlannerLearner(Learner):
         # dL/dT is only ever pulled back to theta, which reads the entries theta moves.
         return TransitionOperator.of_model(self.plan_model(data), self.theta)
 
+    def teacher_data(self) -> TeacherData:
+        """The recorded teacher data, planned over the states it can reach."""
+        return TeacherData.from_log(self.data).restricted(self.env.model)
+
     def plan_model(self, data: TeacherData | None) -> TransitionModel:
         if data is None or data.plan_model is None:
             return self.env.model
@@ -244,7 +248,7 @@ class PlannerLearner(Learner):
     def objective(self) -> tuple[float, dict[str, np.ndarray]]:
         """Equation (5) at the current parameters over all recorded data, with its gradient
         for every parameter block (used by tests and to compare optimisers)."""
-        data = TeacherData.from_log(self.data).restricted(self.env.model)
+        data = self.teacher_data()
         value, d_theta = self.transition_objective(self.theta, self.data.observed_transitions())
         d_costs = np.zeros_like(self.costs)
         d_rewards = np.zeros((0, self.env.num_states))

@@ -208,11 +208,6 @@ def scratch(name: str, shape: tuple[int, ...]) -> np.ndarray:
 NO_GRADIENTS = np.empty((0, 0, 0))
 NO_ENTRIES = np.empty(0, dtype=np.int64)
 
-# Per transition model, its moved entries sorted out by TransitionOperator.distinct_entries.
-_model_entries: weakref.WeakKeyDictionary[
-    TransitionModel, tuple[np.ndarray, np.ndarray, np.ndarray]
-] = weakref.WeakKeyDictionary()
-
 # A table's non-zero entries for forward passes (``_kernels.split_rows``) and by next state for
 # reverse passes (``_kernels.incoming``).
 ForwardRows = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
@@ -225,9 +220,11 @@ class _PassLayout:
     every theta whose moved entries are zero where ``nonzero`` says: the layouts depend on
     the table only through which entries are zero, so a learner's step fills them with its
     table's values (flip: 8 us) instead of sorting the table out again (46 us). Sources are
-    flat entry indices, -1 for the reverse pass's padding (probability 0)."""
+    flat entry indices, -1 for the reverse pass's padding (probability 0). With them, the
+    model's moved entries sorted out (``TransitionOperator.distinct_entries``)."""
 
     nonzero: np.ndarray  # of the model's moved entries
+    distinct: tuple[np.ndarray, np.ndarray, np.ndarray]
     first_next: np.ndarray
     first_source: np.ndarray
     more_rows: np.ndarray
@@ -256,6 +253,7 @@ class _PassLayout:
 
         return cls(
             nonzero.copy(),
+            operator._sort_out_entries(),
             first_next,
             entry(first),
             more_rows,
@@ -380,19 +378,15 @@ class TransitionOperator:
             model.probabilities(theta).reshape(-1),
             model.flat_parametric_entries,
         )
-        # A learner builds one per step: the model's entries are sorted out once per model,
-        # and the passes' layouts once per pattern of zeros of the entries theta moves.
-        known = _model_entries.get(model)
-        if known is None or known[0] is not model.flat_parametric_entries:
-            known = operator._sort_out_entries()
-            _model_entries[model] = known
-        operator._distinct = known
+        # A learner builds one per step: the model's entries and the passes' layouts are
+        # sorted out once per pattern of zeros of the entries theta moves.
         nonzero = operator.probs_flat[model.flat_parametric_entries] != 0.0
         layout = _model_layouts.get(model)
         if layout is None or not np.array_equal(layout.nonzero, nonzero):
             layout = _PassLayout.of(operator, nonzero)
             _model_layouts[model] = layout
         operator._layout = layout
+        operator._distinct = layout.distinct
         return operator
 
     def only_gradients_at(self, mask: np.ndarray) -> TransitionOperator:
@@ -522,8 +516,8 @@ class SoftPlan:
         # once and the later chunks' are kept and added after them, in the one-thread order:
         # worth it for the entries a learner's model moves (flip: 216 of 8000). A whole
         # table's terms (flip: 8000 per task and backup) are split by entries instead, from
-        # every backup's dL/dQ kept by the task pass (kept terms, fresh memory each pass, took
-        # doorway twice as long as one thread).
+        # every backup's dL/dQ kept by the task pass (kept terms, in fresh memory each pass
+        # then, took doorway twice as long as one thread).
         whole_table = op.gradient_entries.shape[0] == op.next_flat.shape[0]
         chunks = task_chunks(num_tasks)
         by_entries = whole_table and planner_threads() > 1

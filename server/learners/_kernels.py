@@ -497,7 +497,7 @@ def soft_backward_tasks(
     d_probs: np.ndarray,
     terms: np.ndarray,
     kept_from: int,
-    gradients: np.ndarray,
+    task_sums: np.ndarray,
     first: int,
     last: int,
 ) -> None:
@@ -512,25 +512,26 @@ def soft_backward_tasks(
     ``add_terms`` adds them after the earlier tasks' sums, in the one-thread order, so that a
     split of the tasks over threads gives the same bits.
 
-    With ``gradients`` not empty, dL/dQ_t of every task and backup t >= 2 is kept in
-    ``gradients[k, horizon - t]`` (rows ``a * S + s``), for ``entry_terms`` to add a whole
-    table's terms split by entries instead."""
+    With ``task_sums`` not empty (a whole table's gradient), no task adds at once: each task's
+    terms are summed from 0 into ``task_sums[k, 0]``, for ``add_terms`` to add task by task
+    (the order for every split, one thread's included); every chunk then works on its own."""
     # This chunk's rows of ``terms``: none for tasks before kept_from (they add at once).
     start = max(0, first - kept_from)
     stop = max(0, last - kept_from) if first >= kept_from else 0
     chunk_terms = terms[start:stop]
+    chunk_sums = task_sums[first:last] if task_sums.shape[0] > 0 else task_sums[:0]
     num_actions = d_q.shape[2]
     if num_actions == FIVE_ACTIONS:
         _soft_backward(
             dense_sources, dense_probabilities, targets, sources, probabilities, next_flat,
             width, values, jacobians, d_q, horizon, gradient_entries, d_reward, d_probs,
-            chunk_terms, gradients, first, last, FIVE_ACTIONS,
+            chunk_terms, chunk_sums, first, last, FIVE_ACTIONS,
         )  # fmt: skip
     else:
         _soft_backward(
             dense_sources, dense_probabilities, targets, sources, probabilities, next_flat,
             width, values, jacobians, d_q, horizon, gradient_entries, d_reward, d_probs,
-            chunk_terms, gradients, first, last, num_actions,
+            chunk_terms, chunk_sums, first, last, num_actions,
         )  # fmt: skip
 
 
@@ -551,7 +552,7 @@ def _soft_backward(
     d_reward: np.ndarray,
     d_probs: np.ndarray,
     terms: np.ndarray,
-    gradients: np.ndarray,
+    task_sums: np.ndarray,
     first: int,
     last: int,
     num_actions: int,
@@ -560,18 +561,26 @@ def _soft_backward(
     n = num_states * num_actions
     num_entries = gradient_entries.shape[0]
     keep_terms = terms.shape[0] > 0
-    keep_gradients = gradients.shape[0] > 0
+    by_task = task_sums.shape[0] > 0
     # The pass's row (a * S + s) and the next state of each entry, and the sums of its terms
     # kept side by side (from d_probs, and written back at the end): the terms of a backup then
     # go into consecutive places, a loop the compiler vectorises, each entry's sum in the same
     # order as in place (doorway: 880 scattered additions per backup before).
     entry_rows, entry_next, entry_sums = _entry_places(
-        gradient_entries, next_flat, width, num_states, num_actions, d_probs, not keep_terms
+        gradient_entries,
+        next_flat,
+        width,
+        num_states,
+        num_actions,
+        d_probs,
+        not (keep_terms or by_task),
     )
     g = np.empty(n)  # dL/dQ_t, row a * S + s
     g_v = np.empty(num_states)
     acc = np.empty(num_states)
     for k in range(first, last):
+        if by_task:
+            entry_sums[:] = 0.0
         for s in range(num_states):
             for a in range(num_actions):
                 g[a * num_states + s] = d_q[k, s, a]
@@ -586,10 +595,6 @@ def _soft_backward(
                 d_reward_k[s] += acc[s]
             if t == 1:
                 break
-            if keep_gradients:
-                kept_g = gradients[k, horizon - t]
-                for i in range(n):
-                    kept_g[i] = g[i]
             if num_entries > 0:
                 v = values[t - 2, k]
                 if keep_terms:
@@ -607,7 +612,9 @@ def _soft_backward(
             for a in range(num_actions):
                 for s in range(num_states):
                     g[a * num_states + s] = g_v[s] * jacobians_t[a, s]
-    if not keep_terms:
+        if by_task:
+            task_sums[k - first, 0, :] = entry_sums
+    if not (keep_terms or by_task):
         for e in range(num_entries):
             d_probs[gradient_entries[e]] = entry_sums[e]
 
@@ -660,38 +667,6 @@ def _dense_levels(
         for s in range(num_states):
             g_v[s] = g_v[s] + probabilities[level, s] * g[sources[level, s]]
         level += 1
-
-
-@njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
-def entry_terms(
-    gradients: np.ndarray,
-    values: np.ndarray,
-    gradient_entries: np.ndarray,
-    next_flat: np.ndarray,
-    width: int,
-    num_states: int,
-    horizon: int,
-    d_probs: np.ndarray,
-    first: int,
-    last: int,
-) -> None:
-    """The transition gradient at entries ``gradient_entries[first:last]`` from the dL/dQ_t
-    that ``soft_backward_tasks`` kept in ``gradients``: each entry's terms added task by task,
-    from t = horizon down to 2, the order of the pass that adds them as it goes (the same
-    bits), so that the entries of a whole table can be split over threads."""
-    num_actions = gradients.shape[2] // num_states
-    count = last - first
-    rows, nexts, sums = _entry_places(
-        gradient_entries[first:last], next_flat, width, num_states, num_actions, d_probs, True
-    )
-    for k in range(gradients.shape[0]):
-        for step in range(horizon - 1):  # t = horizon - step
-            g = gradients[k, step]
-            v = values[horizon - step - 2, k]
-            for e in range(count):
-                sums[e] += g[rows[e]] * v[nexts[e]]
-    for e in range(count):
-        d_probs[gradient_entries[first + e]] = sums[e]
 
 
 @njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
@@ -804,7 +779,7 @@ def soft_backward_chunks(
     d_probs: np.ndarray,
     terms: np.ndarray,
     kept_from: int,
-    gradients: np.ndarray,
+    task_sums: np.ndarray,
     firsts: np.ndarray,
     lasts: np.ndarray,
 ) -> None:
@@ -813,26 +788,5 @@ def soft_backward_chunks(
         soft_backward_tasks(
             dense_sources, dense_probabilities, targets, sources, probabilities, next_flat,
             width, values, jacobians, d_q, horizon, gradient_entries, d_reward, d_probs, terms,
-            kept_from, gradients, firsts[c], lasts[c],
-        )  # fmt: skip
-
-
-@njit(cache=True, parallel=True, nogil=True)
-def entry_terms_chunks(
-    gradients: np.ndarray,
-    values: np.ndarray,
-    gradient_entries: np.ndarray,
-    next_flat: np.ndarray,
-    width: int,
-    num_states: int,
-    horizon: int,
-    d_probs: np.ndarray,
-    firsts: np.ndarray,
-    lasts: np.ndarray,
-) -> None:
-    """``entry_terms`` on the entry ranges ``firsts[c] .. lasts[c] - 1``, in parallel."""
-    for c in prange(firsts.shape[0]):
-        entry_terms(
-            gradients, values, gradient_entries, next_flat, width, num_states, horizon, d_probs,
-            firsts[c], lasts[c],
+            kept_from, task_sums, firsts[c], lasts[c],
         )  # fmt: skip

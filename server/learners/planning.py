@@ -205,7 +205,7 @@ def scratch(name: str, shape: tuple[int, ...]) -> np.ndarray:
     return buffer[:size].reshape(shape)
 
 
-NO_GRADIENTS = np.empty((0, 0, 0))
+NO_TERMS = np.empty((0, 0, 0))
 NO_ENTRIES = np.empty(0, dtype=np.int64)
 
 # A table's non-zero entries for forward passes (``_kernels.split_rows``) and by next state for
@@ -337,6 +337,7 @@ class TransitionOperator:
             flat_probabilities,
             # All entries' gradients unless narrowed with ``only_gradients_at``.
             np.arange(flat_probabilities.shape[0], dtype=np.int64),
+            whole_table=True,
         )
 
     def _hold(
@@ -345,6 +346,7 @@ class TransitionOperator:
         next_flat: np.ndarray,
         probs_flat: np.ndarray,
         gradient_entries: np.ndarray,
+        whole_table: bool,
     ) -> None:
         """Keep a checked table of ``shape`` (S, A, M), flattened to rows ``s * A + a``."""
         self.num_states, self.num_actions, self.width = (int(n) for n in shape)
@@ -352,6 +354,10 @@ class TransitionOperator:
         self.probs_flat = probs_flat
         # The flat entries (``(s * A + a) * width + m``) whose gradient the reverse pass computes.
         self.gradient_entries = gradient_entries
+        # Every entry's gradient (not narrowed to a model's entries): the reverse pass sums
+        # the tasks' terms task by task, which the learners' narrowed passes do not (the last
+        # bits of a sum over several tasks differ between the two orders).
+        self.whole_table = whole_table
         # (gradient_entries, distinct ones, [copies; their originals]), see distinct_entries.
         self._distinct: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._matrix: sp.csr_matrix | None = None
@@ -377,6 +383,7 @@ class TransitionOperator:
             model.flat_next_states,
             model.probabilities(theta).reshape(-1),
             model.flat_parametric_entries,
+            whole_table=False,
         )
         # A learner builds one per step: the model's entries and the passes' layouts are
         # sorted out once per pattern of zeros of the entries theta moves.
@@ -392,7 +399,9 @@ class TransitionOperator:
     def only_gradients_at(self, mask: np.ndarray) -> TransitionOperator:
         """Have reverse passes compute dL/dT only where ``mask`` (the table's shape) is true
         and return 0 elsewhere. A learner whose model space moves only some entries (flip:
-        216 of 8000) skips the rest; the gradient at the kept entries is unchanged."""
+        216 of 8000) skips the rest; the gradient at the kept entries is unchanged (to the
+        last bit with one task; with several, the whole table sums each task's terms before
+        adding the tasks' sums, the narrowed pass adds them as they come)."""
         mask = np.asarray(mask, dtype=bool)
         if mask.shape != (self.num_states, self.num_actions, self.width):
             raise ValueError(
@@ -400,6 +409,7 @@ class TransitionOperator:
                 f", got {mask.shape}"
             )
         self.gradient_entries = np.flatnonzero(mask.reshape(-1)).astype(np.int64)
+        self.whole_table = False
         return self
 
     @property
@@ -514,22 +524,18 @@ class SoftPlan:
         d_probs = np.zeros(op.next_flat.shape[0] if need_transitions else 0)
         # Split over threads, the first chunk's tasks add their transition gradient terms at
         # once and the later chunks' are kept and added after them, in the one-thread order:
-        # worth it for the entries a learner's model moves (flip: 216 of 8000). A whole
-        # table's terms (flip: 8000 per task and backup) are split by entries instead, from
-        # every backup's dL/dQ kept by the task pass (kept terms, in fresh memory each pass
-        # then, took doorway twice as long as one thread).
-        whole_table = op.gradient_entries.shape[0] == op.next_flat.shape[0]
+        # worth it for the entries a learner's model moves (flip: 216 of 8000), whose order of
+        # additions the learners' results depend on. A whole table's terms (flip: 8000 per
+        # task and backup) are summed task by task instead and the tasks' sums added after
+        # (the same bits for every split): kept terms took doorway twice as long as one
+        # thread, and keeping dL/dQ to add the terms split by entries left flip's reverse pass
+        # on two threads no faster than on one (its trace read across cores).
         chunks = task_chunks(num_tasks)
-        by_entries = whole_table and planner_threads() > 1
-        split = len(chunks) > 1 and entries.shape[0] > 0 and not by_entries
+        by_task = op.whole_table and entries.shape[0] > 0
+        split = len(chunks) > 1 and entries.shape[0] > 0 and not by_task
         kept_from = chunks[1][0] if split else num_tasks
         terms = scratch("terms", (num_tasks - kept_from, self.horizon - 1, entries.shape[0]))
-        gradients = (
-            scratch("gradients", (num_tasks, self.horizon - 1, op.num_states * op.num_actions))
-            if by_entries
-            else NO_GRADIENTS
-        )
-        task_entries = NO_ENTRIES if by_entries else entries
+        task_sums = scratch("task sums", (num_tasks, 1, entries.shape[0])) if by_task else NO_TERMS
         g_q = np.ascontiguousarray(g_q)
 
         run_pass(
@@ -544,32 +550,18 @@ class SoftPlan:
                 self.jacobians_by_action,
                 g_q,
                 self.horizon,
-                task_entries,
+                entries,
                 d_reward,
                 d_probs,
                 terms,
                 kept_from,
-                gradients,
+                task_sums,
             ),
         )
         if split:
             _kernels.add_terms(terms, entries, d_probs)
-        if by_entries:
-            run_pass(
-                even_chunks(entries.shape[0], planner_threads()),
-                _kernels.entry_terms,
-                _kernels.entry_terms_chunks,
-                (
-                    gradients,
-                    self.values,
-                    entries,
-                    op.next_flat,
-                    op.width,
-                    op.num_states,
-                    self.horizon,
-                    d_probs,
-                ),
-            )
+        if by_task:
+            _kernels.add_terms(task_sums, entries, d_probs)
         d_probs[copies] = d_probs[originals]
         if self.single_task:
             d_reward = d_reward[0]

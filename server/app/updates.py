@@ -19,6 +19,7 @@ import asyncio
 import logging
 import multiprocessing
 import os
+import sys
 import threading
 import time
 import traceback
@@ -69,8 +70,21 @@ def worker_init(niceness: int, server_pid: int) -> None:
         os._exit(0)
 
     threading.Thread(target=leave_with_parent, name="leave-with-server", daemon=True).start()
-    import server.learners
-    import server.learners.evaluation  # noqa: F401
+    from server.learners.warmup import warm_up
+
+    # The kernels loaded (or compiled, about 14 s, where numba's cache lacks them) now, not on
+    # a participant's first update.
+    try:
+        seconds = warm_up()
+    except Exception:  # an update would meet the same error, and report it for its session
+        traceback.print_exc()
+    else:
+        print(f"update process {os.getpid()} ready in {seconds:.1f} s", file=sys.stderr)
+
+
+def worker_ready() -> int:
+    """A job that only starts an update process (its ``worker_init``)."""
+    return os.getpid()
 
 
 def apply_records(learner: Any, records: list[tuple[Any, ...]]) -> None:
@@ -201,6 +215,7 @@ class UpdateManager:
         self._slots = asyncio.Semaphore(self.workers)
         if self._executor is None:
             self._executor = new_executor(self.workers, self.niceness)
+            self._start_workers()
         self._spawn(self._dispatch())
         self._spawn(self._rescan_forever())
 
@@ -388,7 +403,15 @@ class UpdateManager:
         if self._executor is broken:
             self._own_executor = True
             self._executor = new_executor(self.workers, self.niceness)
+            self._start_workers()
             broken.shutdown(wait=False, cancel_futures=True)
+
+    def _start_workers(self) -> None:
+        """Start every update process now (a process pool starts one when a job finds none
+        idle), so that they are warmed up before the first participant's update."""
+        assert self._executor is not None
+        for _ in range(self.workers):
+            self._executor.submit(worker_ready)
 
     async def _rescan_forever(self) -> None:
         while True:

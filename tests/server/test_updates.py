@@ -422,3 +422,57 @@ def test_a_waiter_wakes_on_its_own_update_at_once_and_polls_for_other_processes(
     assert woken and notified_after < 1.0  # not the 60 s poll interval
     assert found and 0.3 <= polled_after < 2.0  # the commit at 0.3 s, polls every 0.2 s
     assert not timed_out and 0.4 < waited < 2.0
+
+
+def loaded_kernels() -> tuple[int, int]:
+    """In an update process: its pid and how many of the planner's kernels it holds compiled
+    (loaded from numba's cache or compiled)."""
+    from server.learners import _kernels
+
+    kernels = (
+        _kernels.soft_forward_tasks,
+        _kernels.soft_forward_chunks,
+        _kernels.soft_backward_tasks,
+        _kernels.soft_backward_chunks,
+    )
+    return os.getpid(), sum(1 for kernel in kernels if kernel.signatures)
+
+
+@pytest.mark.slow
+def test_update_processes_start_with_the_server_and_load_their_kernels_first(
+    tmp_path: Path,
+) -> None:
+    """The update processes start when the server does, not on the first participant's
+    update, and load the planner's kernels before they take any update (server.learners.
+    warmup; tests/learners/test_warmup.py checks that it loads all an update uses)."""
+    import asyncio
+
+    from server.app.db import upgrade
+    from server.app.policies import PolicyCache
+    from server.app.updates import UpdateManager
+
+    database = Database.from_url(f"sqlite:///{tmp_path / 'study.db'}")
+    upgrade(database.engine)
+
+    async def scenario() -> tuple[int, list[tuple[int, int]]]:
+        manager = UpdateManager(database, PolicyCache(), lambda name: {}, workers=2, niceness=0)
+        await manager.start()
+        try:
+            assert manager._executor is not None
+            started = len(manager._executor._processes)  # type: ignore[attr-defined]
+            probes = [
+                await asyncio.wrap_future(manager._executor.submit(loaded_kernels))
+                for _ in range(3)
+            ]
+        finally:
+            await manager.stop()
+        return started, probes
+
+    try:
+        # In a thread of its own: after the browser tests, this thread may run an event loop.
+        with ThreadPoolExecutor(1) as pool:
+            started, probes = pool.submit(asyncio.run, scenario()).result()
+    finally:
+        database.dispose()
+    assert started == 2  # both processes, before any update
+    assert all(count == 4 for _, count in probes), probes  # no update had run in them

@@ -1,0 +1,72 @@
+"""The learners' compiled kernels loaded before anyone waits on them.
+
+numba compiles the planner's and the likelihoods' kernels on their first call and keeps them in
+its on-disk cache: a process loads them on its first update (about 0.3 s), and on a machine
+whose cache is missing or was made for another CPU (a new container, a new checkout) compiles
+them (about 7 s). A study server's update processes run ``warm_up`` when they start, so that
+neither lands on a participant's first update."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from server import domains
+from server.domains.base import STAY, Environment
+from server.learners import NAMES, make, restore
+from server.learners.evaluation import normalized_return
+from server.learners.planning import using_planner_threads
+from server.teacher import Teacher
+
+# One environment of each domain (navigation, farming, gravity), each with several tasks so
+# that a pass can split over threads.
+ENVIRONMENTS = ("navigation-tutorial", "farming-tutorial", "gravity-tutorial")
+# What every update does, in as few steps as the schedules allow (the kernels are the same).
+SETTINGS = {
+    "bam": {"alternations": 1, "cost_steps": 1, "dynamics_steps": 1},
+    "model-based": {"cost_steps": 1, "dynamics_steps": 1},
+    "global-cost": {"cost_steps": 1, "dynamics_steps": 1},
+    "cloning": {},
+}
+
+
+def warm_up(thread_counts: tuple[int, ...] = (1, 2)) -> float:
+    """Every learner through what a study's updates do, in one environment of each domain,
+    with each planner thread count: greedy policies and their exact evaluation before any
+    data, an update on a demonstration, an update on the agent's own steps with feedback
+    (restored from its saved state first, as an update process does). Returns the seconds it
+    took."""
+    started = time.perf_counter()
+    rng = np.random.default_rng(0)
+    for threads in thread_counts:
+        with using_planner_threads(threads):
+            for name in ENVIRONMENTS:
+                env = domains.make(name)
+                teacher = Teacher(env, seed=0)
+                for learner_name in NAMES:
+                    learner = make(learner_name, env, **_settings(learner_name))
+                    normalized_return(env, learner)
+                    for task in range(len(env.tasks)):
+                        steps = teacher.demonstration(task, _start(env, task))
+                        for state, action, next_state in steps[:6]:
+                            learner.record_demonstration(task, state, action, next_state)
+                    learner.update()
+                    learner = restore(env, learner.state_dict())
+                    for task in range(len(env.tasks)):
+                        state = _start(env, task)
+                        for action, feedback in ((1, 1), (4, -1), (STAY, 0)):
+                            next_state = env.step(state, action, rng)
+                            learner.record_agent_step(task, state, action, next_state, feedback)
+                            state = next_state
+                    learner.update()
+                    normalized_return(env, learner)
+    return time.perf_counter() - started
+
+
+def _settings(learner_name: str) -> dict[str, int]:
+    return dict(SETTINGS.get(learner_name, {}))
+
+
+def _start(env: Environment, task: int) -> int:
+    return int(np.argmax(env.tasks[task].start))

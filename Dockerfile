@@ -32,6 +32,10 @@ RUN pip install --no-deps -e . \
     && useradd --create-home --uid 10001 bam
 
 USER bam
+# The learners' compiled kernels, in numba's cache in the image (the bam user's ~/.cache): the
+# update processes load them when they start (about 0.4 s) instead of compiling them (about
+# 14 s each). The cache is made for this machine's CPU; on another, they compile at start.
+RUN python -c "from server.learners.warmup import warm_up; warm_up()"
 EXPOSE 8000
 
 HEALTHCHECK --interval=10s --timeout=5s --start-period=30s --retries=3 \

@@ -147,6 +147,14 @@ def test_the_image_serves_a_study_on_postgresql_across_a_restart(
         assert started.returncode == 0, started.stderr
         url = f"http://127.0.0.1:{port}"
         wait_healthy(url)
+        # The update processes start with the server and load the kernels compiled into the
+        # image's numba cache at build time (server.learners.warmup).
+        cached = run([*container, "sh", "-c", "find ~/.cache/numba -name '*.nbc' | wc -l"])
+        assert int(cached.stdout.strip() or 0) > 0, cached.stdout + cached.stderr
+        deadline = time.monotonic() + 120
+        while (logs := run(["docker", "logs", name])).stderr.count("update process") < 2:
+            assert time.monotonic() < deadline, logs.stdout[-2000:] + logs.stderr[-2000:]
+            time.sleep(0.5)
         acknowledged = teach(url, participants=2, first_index=0, seed=11)
         assert run(["docker", "restart", name]).returncode == 0
         wait_healthy(url)

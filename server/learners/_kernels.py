@@ -519,7 +519,7 @@ def soft_backward_tasks(
     start = max(0, first - kept_from)
     stop = max(0, last - kept_from) if first >= kept_from else 0
     chunk_terms = terms[start:stop]
-    chunk_sums = task_sums[first:last] if task_sums.shape[0] > 0 else task_sums[:0]
+    chunk_sums = task_sums[first:last]  # none without task sums
     num_actions = d_q.shape[2]
     if num_actions == FIVE_ACTIONS:
         _soft_backward(

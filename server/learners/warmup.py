@@ -23,7 +23,7 @@ from server.teacher import Teacher
 # that a pass can split over threads.
 ENVIRONMENTS = ("navigation-tutorial", "farming-tutorial", "gravity-tutorial")
 # What every update does, in as few steps as the schedules allow (the kernels are the same).
-SETTINGS = {
+SETTINGS: dict[str, dict[str, int]] = {
     "bam": {"alternations": 1, "cost_steps": 1, "dynamics_steps": 1},
     "model-based": {"cost_steps": 1, "dynamics_steps": 1},
     "global-cost": {"cost_steps": 1, "dynamics_steps": 1},
@@ -45,7 +45,7 @@ def warm_up(thread_counts: tuple[int, ...] = (1, 2)) -> float:
                 env = domains.make(name)
                 teacher = Teacher(env, seed=0)
                 for learner_name in NAMES:
-                    learner = make(learner_name, env, **_settings(learner_name))
+                    learner = make(learner_name, env, **SETTINGS.get(learner_name, {}))
                     normalized_return(env, learner)
                     for task in range(len(env.tasks)):
                         steps = teacher.demonstration(task, _start(env, task))
@@ -62,10 +62,6 @@ def warm_up(thread_counts: tuple[int, ...] = (1, 2)) -> float:
                     learner.update()
                     normalized_return(env, learner)
     return time.perf_counter() - started
-
-
-def _settings(learner_name: str) -> dict[str, int]:
-    return dict(SETTINGS.get(learner_name, {}))
 
 
 def _start(env: Environment, task: int) -> int:

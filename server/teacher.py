@@ -1,10 +1,18 @@
 """The simulated teacher: optimal demonstrations from hard-max value iteration on the true
-dynamics (ties broken at random) and feedback sampled from A-SABL on the teacher's Q.
+dynamics and feedback sampled from A-SABL on the teacher's Q.
 
-A demonstration from a start state follows the teacher's greedy policy until the first goal
-state, then appends one STAY so the learner sees the teacher remain at the goal; the whole
-demonstration is capped at the horizon. ``mistake_probability`` makes the teacher take a
-uniformly random move instead, to simulate imperfect people.
+Two styles of demonstration:
+
+- "authors" (the default; the paper authors' simulated teacher): at every step an action drawn
+  uniformly from all the optimal actions, STAY included where it ties; at most ``horizon``
+  steps, and when a step reaches a goal state, one more optimal action there (any of them: in
+  farming often a move within the field), then the demonstration ends.
+- "person" (what a study participant can do): moves only, never STAY, until the first goal
+  state, then one STAY (the study page appends it), at most ``horizon`` steps in all.
+
+``next_action`` is a person's move (the simulated study participants press arrow keys).
+``mistake_probability`` makes the teacher take a uniformly random move instead, to simulate
+imperfect people.
 """
 
 from __future__ import annotations
@@ -16,6 +24,7 @@ from server.learners.likelihoods import FeedbackModel
 from server.learners.planning import TransitionOperator, hard_value_iteration
 
 Step = tuple[int, int, int]  # (state, action, next_state)
+STYLES = ("authors", "person")
 
 # Actions whose values are within this of the best count as ties.
 TIE_TOLERANCE = 1e-9
@@ -30,9 +39,13 @@ class Teacher:
         mu: float = 0.1,
         alpha: float = 1.0,
         mistake_probability: float = 0.0,
+        style: str = "authors",
     ) -> None:
         if not 0.0 <= mistake_probability <= 1.0:
             raise ValueError(f"mistake_probability must be in [0, 1], got {mistake_probability!r}")
+        if style not in STYLES:
+            raise ValueError(f"style must be one of {', '.join(map(repr, STYLES))}, got {style!r}")
+        self.style = style
         self.env = env
         self.rng = np.random.default_rng(seed)
         self.feedback_model = FeedbackModel(epsilon=epsilon, alpha=alpha, mu_plus=mu, mu_minus=mu)
@@ -57,12 +70,28 @@ class Teacher:
         moves = best[best != STAY]
         return int(self.rng.choice(moves if len(moves) else best))
 
+    def optimal_action(self, task: int, state: int) -> int:
+        """One of the optimal actions in ``state``, uniformly, STAY included (the authors')."""
+        if self.mistake_probability and self.rng.random() < self.mistake_probability:
+            return int(self.rng.integers(1, self.env.num_actions))
+        return int(self.rng.choice(self.best_actions(task, state)))
+
     def demonstration(self, task: int, start_state: int) -> list[Step]:
-        """Steps from ``start_state`` to the first goal state plus one STAY, at most
-        ``horizon`` steps in all."""
+        """A demonstration from ``start_state`` in the teacher's style (module docstring)."""
         task = self.env.check_task(task)
         state = self.env.check_state(start_state)
         steps: list[Step] = []
+        if self.style == "authors":
+            while len(steps) < self.env.horizon:
+                action = self.optimal_action(task, state)
+                next_state = self.env.step(state, action, self.rng)
+                steps.append((state, action, next_state))
+                state = next_state
+                if self.env.is_goal(task, state):
+                    action = self.optimal_action(task, state)
+                    steps.append((state, action, self.env.step(state, action, self.rng)))
+                    break
+            return steps
         while not self.env.is_goal(task, state) and len(steps) < self.env.horizon - 1:
             action = self.next_action(task, state)
             next_state = self.env.step(state, action, self.rng)

@@ -130,6 +130,9 @@ class TransitionModel:
         num_parameters: int,
         initial_value: float,
         parameter_names: Sequence[str],
+        prior_sd: float | None = None,
+        parameter_bound: float | None = None,
+        outcomes: np.ndarray | None = None,
     ) -> None:
         self.next_states = np.ascontiguousarray(next_states, dtype=np.int64)
         # + 0.0: a -0 becomes +0, as const + coef * p gives where coef is 0.
@@ -140,6 +143,16 @@ class TransitionModel:
         self.initial_value = float(initial_value)
         self.parameter_names = tuple(parameter_names)
         self.num_states, self.num_actions, self.width = self.next_states.shape
+        # The model space's own prior on theta (the paper authors'): Gaussian of this deviation
+        # centred on ``initial_value``, or None for none.
+        self.prior_sd = None if prior_sd is None else float(prior_sd)
+        # Where the authors clip theta after every update (None: nowhere).
+        self.parameter_bound = None if parameter_bound is None else float(parameter_bound)
+        # The authors' farming update is not the gradient of the likelihood: it treats each
+        # parametric entry as a success (+1: the machine worked, or an action that stays on a
+        # field, which their model counts as one) or a failure (-1); None where their update
+        # is the exact gradient (see ``pullback`` and ``transition_log_likelihood``).
+        self.outcomes = None if outcomes is None else np.ascontiguousarray(outcomes, dtype=np.int64)
         self._parametric = self.coef != 0.0
         # The table's layout flattened for the planner (fixed for the model's lifetime).
         self.flat_next_states = self.next_states.reshape(-1)
@@ -194,6 +207,9 @@ class TransitionModel:
             self.num_parameters,
             self.initial_value,
             self.parameter_names,
+            self.prior_sd,
+            self.parameter_bound,
+            None if self.outcomes is None else self.outcomes[states],
         )
         model._primitives_owner = self._primitives_owner
         kept = self._restrictions if len(self._restrictions) < RESTRICTIONS_KEPT else {}
@@ -264,15 +280,32 @@ class TransitionModel:
     def transitions(self, theta: np.ndarray) -> SparseTransitions:
         return SparseTransitions(self.next_states, self.probabilities(theta))
 
-    def pullback(self, theta: np.ndarray, d_probabilities: np.ndarray) -> np.ndarray:
+    def pullback(
+        self, theta: np.ndarray, d_probabilities: np.ndarray, rule: str = "exact"
+    ) -> np.ndarray:
         """Gradient with respect to theta of a function whose gradient with respect to the
-        sparse transition probabilities is ``d_probabilities`` (shape (S, A, M))."""
+        sparse transition probabilities is ``d_probabilities`` (shape (S, A, M)).
+
+        ``rule="authors"`` gives the paper authors' update where their model space has one
+        that is not the exact gradient (``outcomes``; farming): each entry e of probability
+        T_e with weight w_e = dL/dT_e * T_e adds w_e * 2 d ln p(theta)[k] for a success and
+        w_e * (d ln(1 - p[k]) - d ln p[k]) for a failure. Elsewhere it is the exact gradient."""
         theta = self.check_parameters(theta)
         d_probabilities = check_shape(
             "gradient on transition probabilities", d_probabilities, self.next_states.shape
         )
-        # The entries theta moves, in table order (the others' coefficients are 0).
-        weights = self._parametric_coef * d_probabilities.reshape(-1)[self.flat_parametric_entries]
+        check_gradient_rule(rule)
+        d_moved = d_probabilities.reshape(-1)[self.flat_parametric_entries]
+        if rule == "authors" and self.outcomes is not None:
+            p = self._primitives_at(theta)
+            moved = self.flat_parametric_entries
+            k = self._parametric_index
+            weights = d_moved * _outcome_factors(
+                self.outcomes.reshape(-1)[moved], self._entry_probabilities(p, moved), p[k]
+            )
+        else:
+            # The entries theta moves, in table order (the others' coefficients are 0).
+            weights = self._parametric_coef * d_moved
         d_p = np.bincount(self._parametric_index, weights=weights, minlength=self.num_primitives)
         return self.primitives_pullback(theta, d_p)
 
@@ -300,11 +333,20 @@ class TransitionModel:
         return ObservedTransitions(observed, entries.astype(np.int64), rows.astype(np.int64))
 
     def transition_log_likelihood(
-        self, theta: np.ndarray, observed: np.ndarray | ObservedTransitions
+        self,
+        theta: np.ndarray,
+        observed: np.ndarray | ObservedTransitions,
+        rule: str = "exact",
     ) -> tuple[float, np.ndarray]:
         """Sum over observed (state, action, next_state) rows of ln T_theta(s, a, s'), and its
-        gradient with respect to theta. A transition the model space cannot produce is an error."""
+        gradient with respect to theta. A transition the model space cannot produce is an error.
+
+        With ``rule="authors"`` the gradient is the paper authors' update where their model
+        space has one (``outcomes``; farming): each observed transition through a parametric
+        row adds 2 d ln p[k] if it was a success, d ln(1 - p[k]) - d ln p[k] if a failure.
+        The value is the exact log-likelihood either way."""
         observed = self.observe(observed)
+        check_gradient_rule(rule)
         count = len(observed.rows)
         if count == 0:
             return 0.0, np.zeros(self.num_parameters)
@@ -322,12 +364,46 @@ class TransitionModel:
                 "under the model space"
             )
         value = float(np.log(row_probability).sum())
+        if rule == "authors" and self.outcomes is not None:
+            # One term per observed transition, from its first parametric entry.
+            outcomes = self.outcomes.reshape(-1)[observed.entries]
+            parametric = outcomes != 0
+            _, first = np.unique(observed.entry_rows[parametric], return_index=True)
+            entries = observed.entries[parametric][first]
+            k = self._index_flat[entries]
+            pk = p[k]
+            success = outcomes[parametric][first] > 0
+            with np.errstate(divide="ignore"):  # np.where computes both branches
+                terms = np.where(success, 2.0 / pk, -1.0 / (1.0 - pk) - 1.0 / pk)
+            d_p = np.bincount(k, weights=terms, minlength=self.num_primitives)
+            return value, self.primitives_pullback(theta, d_p)
         d_probabilities = np.bincount(
             observed.entries,
             weights=1.0 / row_probability[observed.entry_rows],
             minlength=self._const_flat.size,
         ).reshape(self.next_states.shape)
         return value, self.pullback(theta, d_probabilities)
+
+
+GRADIENT_RULES = ("authors", "exact")
+
+
+def check_gradient_rule(rule: str) -> None:
+    if rule not in GRADIENT_RULES:
+        raise ValueError(
+            f"dynamics_gradient must be one of {', '.join(map(repr, GRADIENT_RULES))}, got {rule!r}"
+        )
+
+
+def _outcome_factors(outcomes: np.ndarray, t: np.ndarray, pk: np.ndarray) -> np.ndarray:
+    """The authors' term per unit of dL/dT_e on p[k] for entries of probability ``t``:
+    T_e * 2 / p for a success, T_e * (-1 / (1 - p) - 1 / p) for a failure; T_e / p and
+    T_e / (1 - p) are taken as 1 where their denominator is 0 (their limit for the entries
+    whose probability is that denominator)."""
+    ones = np.ones_like(t)
+    over_p = np.divide(t, pk, out=ones.copy(), where=pk > 0.0)
+    over_q = np.divide(t, 1.0 - pk, out=ones, where=pk < 1.0)
+    return np.where(outcomes > 0, 2.0 * over_p, -over_q - over_p)
 
 
 @dataclass(frozen=True)
@@ -402,10 +478,18 @@ class Environment:
     layout: dict[str, Any]  # JSON-serialisable description for drawing (see describe())
     feature_names: tuple[str, ...] = ("none",)
     num_actions: int = NUM_ACTIONS
+    # The cells whose cost the learners fit (the authors' learners: in farming only the
+    # fields, never the dirt); left empty: every cell.
+    cost_cells: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     state_cells: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
         self.state_cells = np.arange(self.num_states) // self.num_features
+        if self.cost_cells.size == 0:
+            self.cost_cells = np.ones(self.num_cells, dtype=bool)
+        self.cost_cells = np.asarray(self.cost_cells, dtype=bool)
+        if self.cost_cells.shape != (self.num_cells,):
+            raise ValueError(f"cost_cells must have one entry per cell ({self.num_cells})")
 
     # -- sizes ----------------------------------------------------------------------------
     @property

@@ -1,14 +1,22 @@
 """Farming: reach a field; each field terrain can only be entered with the right machine.
 Soil needs the plow, immature crops (grass) the sprinkler, grown crops the harvester; dirt is
-free. The learner does not know which machine works on which terrain: its model is, per
-machine, a softmax over the three field terrains.
+free. The learner does not know which machine works on which terrain: its model is, as the
+paper authors' is, per machine a softmax over the four terrains, dirt included (dirt is never
+the terrain a machine is tried on, so it only takes probability from the others: a machine's
+chance on a field starts at 1/4), with no prior and the logits clipped to +-50.
 
 States are (cell, machine carried) with machines none, plow, sprinkler, harvester. Machines
 stand on dirt cells and stay there (they are sources): stepping onto a machine's cell moves
 there and the carried machine becomes that one. Moving onto dirt always succeeds (known).
 Moving onto a field cell of terrain t while carrying machine m succeeds with model probability
 p = softmax(theta[m])[t] (row ``[moved, stay]`` = ``[p, 1 - p]``) and truly iff m works on t;
-carrying nothing never enters a field (known). STAY and moves off the grid stay put (known).
+carrying nothing never enters a field (known). STAY and moves off the grid stay put; on dirt,
+or carrying nothing, that is a known row. On a field cell while carrying a machine the row is,
+as in the authors' model, ``[stay, stay]`` = ``[p, 1 - p]`` for that machine and the field's
+terrain: the same certain outcome, which the authors' update counts as a success (their
+gradient rule, ``TransitionModel.outcomes``; the exact gradient of such a row is 0).
+
+Only the field cells carry a cost (``Environment.cost_cells``), as in the authors' learners.
 """
 
 from __future__ import annotations
@@ -31,7 +39,8 @@ from server.domains.grid import (
 DOMAIN = "farming"
 FEATURES: tuple[str, ...] = ("none", "plow", "sprinkler", "harvester")
 MACHINES = FEATURES[1:]  # the model's softmax rows
-TERRAINS: tuple[str, ...] = ("soil", "grass", "crops")  # the model's softmax columns
+TERRAINS: tuple[str, ...] = ("dirt", "soil", "grass", "crops")  # the model's softmax columns
+PARAMETER_BOUND = 50.0  # the authors clip the logits here after every update
 # Map letters.
 DIRT = "."
 TERRAIN_OF_LETTER: dict[str, str] = {".": "dirt", "s": "soil", "i": "grass", "c": "crops"}
@@ -66,6 +75,11 @@ def build(name: str, grid_map: GridMap) -> Environment:
     def state_of(cell: tuple[int, int], feature: int) -> int:
         return (cell[0] * width + cell[1]) * num_features + feature
 
+    def parametric(carried: str, target_terrain: str) -> tuple[int, float]:
+        """The model parameter of ``carried`` on ``target_terrain``, and whether it truly works."""
+        index = MACHINES.index(carried) * len(TERRAINS) + TERRAINS.index(target_terrain)
+        return index, float(TERRAIN_OF_MACHINE[carried] == target_terrain)
+
     table = TransitionTable(num_states, WIDTH)
     for cell in grid_map.cells():
         for feature, carried in enumerate(FEATURES):
@@ -73,7 +87,18 @@ def build(name: str, grid_map: GridMap) -> Environment:
             for action in range(NUM_ACTIONS):
                 target = target_cell(cell, action, height, width)
                 if target is None:
-                    table.set(state, action, known(state))
+                    if carried == "none" or terrain[cell] == "dirt":
+                        table.set(state, action, known(state))
+                    else:
+                        index, works = parametric(carried, terrain[cell])
+                        table.set(
+                            state,
+                            action,
+                            [
+                                Successor(state, 0.0, 1.0, index, works, outcome=1),
+                                Successor(state, 1.0, -1.0, index, 1.0 - works, outcome=1),
+                            ],
+                        )
                 elif terrain[target] == "dirt":
                     machine = machine_of_cell.get(target)
                     new = feature if machine is None else FEATURES.index(machine)
@@ -81,16 +106,13 @@ def build(name: str, grid_map: GridMap) -> Environment:
                 elif carried == "none":
                     table.set(state, action, known(state))
                 else:
-                    index = MACHINES.index(carried) * len(TERRAINS) + TERRAINS.index(
-                        terrain[target]
-                    )
-                    works = float(TERRAIN_OF_MACHINE[carried] == terrain[target])
+                    index, works = parametric(carried, terrain[target])
                     table.set(
                         state,
                         action,
                         [
-                            Successor(state_of(target, feature), 0.0, 1.0, index, works),
-                            Successor(state, 1.0, -1.0, index, 1.0 - works),
+                            Successor(state_of(target, feature), 0.0, 1.0, index, works, 1),
+                            Successor(state, 1.0, -1.0, index, 1.0 - works, -1),
                         ],
                     )
     model = SoftmaxRowsModel(
@@ -100,7 +122,11 @@ def build(name: str, grid_map: GridMap) -> Environment:
         parameter_names=[f"{machine}->{t}" for machine in MACHINES for t in TERRAINS],
         groups=len(MACHINES),
         choices=len(TERRAINS),
+        prior_sd=None,
+        parameter_bound=PARAMETER_BOUND,
+        outcomes=table.outcomes,
     )
+    cost_cells = np.array([terrain[cell] != "dirt" for cell in grid_map.cells()])
 
     start = uniform(
         num_states,
@@ -145,6 +171,7 @@ def build(name: str, grid_map: GridMap) -> Environment:
         table=table,
         model=model,
         layout=layout,
+        cost_cells=cost_cells,
     )
 
 

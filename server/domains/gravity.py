@@ -1,13 +1,19 @@
-"""Gravity: the agent cannot move against the current gravity, and entering a coloured cell
-sets the gravity to the direction that colour maps to. The learner sees colours, not
-directions: its model is one softmax over the four gravities per colour.
+"""Gravity: the agent cannot move against the current gravity, and a coloured cell sets the
+gravity to the direction that colour maps to. The learner sees colours, not directions: its
+model is one softmax over the four gravities per colour, with the paper authors' prior N(0, 1)
+on the logits, clipped to +-50.
 
 States are (cell, gravity) with gravities north, south, east, west. Gravity NORTH forbids
-moving DOWN, SOUTH forbids UP, EAST forbids LEFT and WEST forbids RIGHT; forbidden moves, moves
-off the grid and STAY leave the agent where it is with its gravity unchanged (they do not
-re-enter a cell), and the learner knows this. A permitted move into a plain cell keeps the
-gravity (known); a permitted move into a coloured cell has four model successors, one per
-gravity g', each with probability softmax(theta[colour])[g']. There are no walls.
+moving DOWN, SOUTH forbids UP, EAST forbids LEFT and WEST forbids RIGHT. As in the authors'
+dynamics, a colour acts when the agent acts from its cell: any action taken on a coloured cell
+(STAY included) first sets the gravity, and the move is then judged against the new gravity,
+so the row has four model successors, one per gravity g', each with probability
+softmax(theta[colour])[g']; entering a coloured cell changes nothing yet. On a plain cell,
+forbidden moves, moves off the grid and STAY leave the agent where it is, and permitted moves
+keep the gravity (known). There are no walls.
+
+Simulations start anywhere, in any gravity, as the authors' do (a few such states can never
+reach the goal); a participant of the study starts only where the goal can be reached.
 """
 
 from __future__ import annotations
@@ -46,6 +52,8 @@ FORBIDDEN: dict[int, int] = {NORTH: DOWN, SOUTH: UP, EAST: LEFT, WEST: RIGHT}
 COLOURS: dict[str, str] = {"o": "orange", "g": "green", "p": "purple"}
 PLAIN = "."
 TRUE_LOGIT = 30.0  # softmax(+30 against -30) is within 1e-26 of one-hot
+PRIOR_SD = 1.0  # the authors' N(0, 1) on the logits
+PARAMETER_BOUND = 50.0  # the authors clip the logits here after every update
 
 
 def horizon(height: int, width: int) -> int:
@@ -79,10 +87,8 @@ def build(name: str, grid_map: GridMap) -> Environment:
             state = state_of(cell, gravity)
             for action in range(NUM_ACTIONS):
                 target = target_cell(cell, action, height, width)
-                if target is None or action == FORBIDDEN[gravity]:
-                    table.set(state, action, known(state))
-                elif target in colour_of_cell:
-                    colour = colour_of_cell[target]
+                if cell in colour_of_cell:
+                    colour = colour_of_cell[cell]
                     group = groups.index(colour)
                     true_gravity = GRAVITIES.index(mapping[colour])
                     table.set(
@@ -90,7 +96,10 @@ def build(name: str, grid_map: GridMap) -> Environment:
                         action,
                         [
                             Successor(
-                                state_of(target, new),
+                                state_of(
+                                    cell if target is None or action == FORBIDDEN[new] else target,
+                                    new,
+                                ),
                                 0.0,
                                 1.0,
                                 group * num_features + new,
@@ -99,6 +108,8 @@ def build(name: str, grid_map: GridMap) -> Environment:
                             for new in range(num_features)
                         ],
                     )
+                elif target is None or action == FORBIDDEN[gravity]:
+                    table.set(state, action, known(state))
                 else:
                     table.set(state, action, known(state_of(target, gravity)))
     model = SoftmaxRowsModel(
@@ -108,6 +119,8 @@ def build(name: str, grid_map: GridMap) -> Environment:
         parameter_names=[f"{colour}->{gravity}" for colour in groups for gravity in GRAVITIES],
         groups=len(groups),
         choices=num_features,
+        prior_sd=PRIOR_SD,
+        parameter_bound=PARAMETER_BOUND,
     )
 
     candidates = [
@@ -124,16 +137,17 @@ def build(name: str, grid_map: GridMap) -> Environment:
         if set(spec.goal_cells) & set(colour_of_cell):
             raise ValueError(f"map {name!r}: the goal of task {spec.name!r} is coloured")
         reward = goal_reward(num_states, num_features, width, spec.goal_cells)
-        # "Any cell, any gravity", less the few states from which no policy can ever reach the
+        # The study's starts leave out the few states from which no policy can ever reach the
         # goal (e.g. gravity east in the last column with no colour in it, for a goal at the
-        # left): a demonstration from there could never end at the goal.
+        # left): a person's demonstration from there could never end at the goal.
         reachable = can_reach(true_transitions, reward > 0, horizon(height, width) - 1)
         tasks.append(
             Task(
                 name=spec.name,
                 reward=reward,
-                start=uniform(num_states, (s for s in candidates if reachable[s])),
+                start=uniform(num_states, candidates),
                 goal_cells=spec.goal_cells,
+                study_start=uniform(num_states, (s for s in candidates if reachable[s])),
             )
         )
 

@@ -43,7 +43,7 @@ import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 
@@ -246,12 +246,23 @@ class Successor:
     coef: float
     index: int
     true: float
+    # The authors' farming update: +1 a success, -1 a failure (see TransitionModel.outcomes).
+    outcome: int = 0
 
 
 def known(state: int) -> list[Successor]:
     """A deterministic outcome the learner knows (STAY, a move off the grid, a forbidden move,
     a move onto dirt...)."""
     return [Successor(state, 1.0, 0.0, 0, 1.0)]
+
+
+class ModelArrays(TypedDict):
+    """The arrays a TransitionModel is built from (see server.domains.base)."""
+
+    next_states: np.ndarray
+    const: np.ndarray
+    coef: np.ndarray
+    index: np.ndarray
 
 
 @dataclass
@@ -272,6 +283,7 @@ class TransitionTable:
         self.coef = np.zeros(shape)
         self.index = np.zeros(shape, dtype=np.int64)
         self.true = np.zeros(shape)
+        self.outcomes = np.zeros(shape, dtype=np.int64)
         self._filled = np.zeros(shape[:2], dtype=bool)
 
     def set(self, state: int, action: int, successors: Sequence[Successor]) -> None:
@@ -285,6 +297,7 @@ class TransitionTable:
             self.coef[state, action, m] = successor.coef
             self.index[state, action, m] = successor.index
             self.true[state, action, m] = successor.true
+            self.outcomes[state, action, m] = successor.outcome
         self._filled[state, action] = True
 
     def true_transitions(self) -> SparseTransitions:
@@ -293,7 +306,7 @@ class TransitionTable:
             raise ValueError("every (state, action) row must be set")
         return SparseTransitions(self.next_states, self.true)
 
-    def model_arrays(self) -> dict[str, np.ndarray]:
+    def model_arrays(self) -> ModelArrays:
         if not self._filled.all():
             raise ValueError("every (state, action) row must be set")
         return {
@@ -351,6 +364,7 @@ def make_environment(
     table: TransitionTable,
     model: TransitionModel,
     layout: dict[str, Any],
+    cost_cells: np.ndarray | None = None,
 ) -> Environment:
     """Assemble an environment and make its arrays read-only: ``make`` shares one instance."""
     environment = Environment(
@@ -365,11 +379,13 @@ def make_environment(
         model=model,
         layout=layout,
         feature_names=feature_names,
+        cost_cells=np.zeros(0, dtype=bool) if cost_cells is None else cost_cells,
     )
     arrays: list[np.ndarray] = [
         environment.true_transitions.next_states,
         environment.true_transitions.probabilities,
         environment.state_cells,
+        environment.cost_cells,
         model.next_states,
         model.const,
         model.coef,

@@ -83,7 +83,8 @@ def build(name: str, grid_map: GridMap) -> Environment:
             Task(
                 name=spec.name,
                 reward=goal_reward(num_cells, 1, width, spec.goal_cells),
-                start=starts(grid_map.start),
+                # The authors' simulations start a task with study starts in them too.
+                start=starts(grid_map.start if study is None else study),
                 goal_cells=spec.goal_cells,
                 study_start=None if study is None else starts(study),
             )

@@ -91,14 +91,14 @@ class BAM(PlannerLearner):
 
     def _dynamics_step(self, data: TeacherData, observed: ObservedTransitions) -> float:
         """One momentum step on theta for the whole of equation (5); returns it before."""
-        value, grad = self.transition_objective(self.theta, observed)
+        value, grad = self.transition_objective(self.theta, observed, exact=False)
         if not data.empty:
             teacher, _, d_transitions = self.teacher_objective(
                 self.operator(data), data, need_transitions=True
             )
             assert d_transitions is not None
             value += teacher
-            grad = grad + self.pullback(data, d_transitions)
+            grad = grad + self.pullback(data, d_transitions, exact=False)
         cost_prior, _ = self.cost_prior(self.costs)
-        self.theta = self.theta_optimizer.step(self.theta, grad)
+        self.theta_step(grad)
         return value + cost_prior

@@ -1,6 +1,10 @@
 """Behavioural cloning (section 4.1): a table Q(s, a) per task fitted to the demonstrated
 actions and the feedback under the same action and feedback models as the other learners,
-with no generalisation between states; in states without data for a task it acts at random."""
+with no generalisation between states; in states without data for a task it acts at random.
+
+As in the paper authors' implementation, each task's table has an optimiser of its own (its
+step clipped on its own), the table is clipped to +-3 prior deviations after every step, and
+only actions of exactly the best value count as tied."""
 
 from __future__ import annotations
 
@@ -20,8 +24,7 @@ from server.learners.objective import (
     teacher_log_likelihood,
 )
 
-# Q values this close (relative) to a state's best count as tied for best.
-TIE_TOLERANCE = 1e-9
+COST_OPTIMIZERS = ("per-task", "joint")
 
 
 class BehavioralCloning(Learner):
@@ -31,16 +34,37 @@ class BehavioralCloning(Learner):
         "steps": 200,
         "learning_rate": 0.01,
         "q_prior_sd": 1.0,
+        # The table is clipped to +- this many prior deviations after every step (the
+        # authors': 3); None: not clipped.
+        "q_bound_sds": 3.0,
+        # "per-task": one optimiser per task's table (the authors'); "joint": one for all.
+        "optimizers": "per-task",
+        # Q values this close (relative) to a state's best count as tied for best (the
+        # authors: 0, exact ties only).
+        "tie_tolerance": 0.0,
     }
 
     def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
         super().__init__(env, seed, **settings)
+        if self.settings["optimizers"] not in COST_OPTIMIZERS:
+            raise ValueError(
+                f"optimizers must be one of {', '.join(map(repr, COST_OPTIMIZERS))}, "
+                f"got {self.settings['optimizers']!r}"
+            )
+        bound = self.settings["q_bound_sds"]
+        if bound is not None and (isinstance(bound, bool) or not bound > 0):
+            raise ValueError(f"q_bound_sds must be a positive number or None, got {bound!r}")
+        tolerance = self.settings["tie_tolerance"]
+        if isinstance(tolerance, bool) or not 0 <= tolerance < 1:
+            raise ValueError(f"tie_tolerance must be in [0, 1), got {tolerance!r}")
         self.table = np.zeros((len(env.tasks), env.num_states, env.num_actions))
         self.optimizer = MomentumAscent(
             self.table.size,
             self.settings["learning_rate"],
             self.settings["momentum"],
             self.settings["max_step"],
+            clip=self.settings["momentum_clip"],
+            rows=len(env.tasks) if self.settings["optimizers"] == "per-task" else 1,
         )
 
     def _fit(self) -> tuple[float, int]:
@@ -58,6 +82,9 @@ class BehavioralCloning(Learner):
             self.table = self.optimizer.step(self.table.ravel(), grad.ravel()).reshape(
                 self.table.shape
             )
+            if self.settings["q_bound_sds"] is not None:
+                bound = float(self.settings["q_bound_sds"]) * float(self.settings["q_prior_sd"])
+                self.table = np.clip(self.table, -bound, bound)
         return objective, int(self.settings["steps"])
 
     def policy(self, task: int) -> np.ndarray:
@@ -75,7 +102,8 @@ class BehavioralCloning(Learner):
         # the agent STAY there for ever.
         rows = self.table[task][visited]
         best = rows.max(axis=1, keepdims=True)
-        tied = rows >= best - TIE_TOLERANCE * np.maximum(1.0, np.abs(best))
+        tolerance = float(self.settings["tie_tolerance"])
+        tied = rows >= best - tolerance * np.maximum(1.0, np.abs(best))
         probabilities[visited] = tied / tied.sum(axis=1, keepdims=True)
         return probabilities
 

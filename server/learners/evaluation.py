@@ -1,5 +1,9 @@
 """Exact evaluation of a learner's policies: expected total return over all tasks under the
-true dynamics, relative to the optimal total return (no sampled episodes)."""
+true dynamics, relative to the optimal total return (no sampled episodes).
+
+An episode's return counts, as the paper authors' evaluation does, the rewards of the states
+reached after each of the horizon's H transitions, r(s_1) ... r(s_H): the optimal totals then
+equal their expert's (doorway 129.1 against their 129.2)."""
 
 from __future__ import annotations
 
@@ -18,9 +22,13 @@ def _true_dynamics(env: Environment) -> tuple[TransitionOperator, np.ndarray]:
     if cached is None or cached[0] is not env:
         operator = TransitionOperator.build(env.true_transitions)
         rewards = np.stack([task.reward for task in env.tasks])
-        q = hard_value_iteration(operator, rewards, env.horizon)
+        # H + 1 backups count r(s_0) ... r(s_H); less r(s_0), the optimum of r(s_1) ... r(s_H).
+        q = hard_value_iteration(operator, rewards, env.horizon + 1)
         optimal = np.array(
-            [float(task.start @ q[k].max(axis=1)) for k, task in enumerate(env.tasks)]
+            [
+                float(task.start @ (q[k].max(axis=1) - task.reward))
+                for k, task in enumerate(env.tasks)
+            ]
         )
         cached = (env, operator, optimal)
         _cache[id(env)] = cached
@@ -39,7 +47,9 @@ def task_returns(env: Environment, policies: list[np.ndarray]) -> np.ndarray:
     operator, _ = _true_dynamics(env)
     return np.array(
         [
-            expected_return(operator, policy, task.reward, task.start, env.horizon)
+            expected_return(
+                operator, policy, task.reward, task.start, env.horizon, after_transitions=True
+            )
             for policy, task in zip(policies, env.tasks, strict=True)
         ]
     )

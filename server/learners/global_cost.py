@@ -10,7 +10,7 @@ import numpy as np
 
 from server.domains.base import Environment, check_finite
 from server.learners.model_based import ModelBasedIRL
-from server.learners.objective import MomentumAscent, TeacherData, cell_gradient, cell_rewards
+from server.learners.objective import MomentumAscent, TeacherData, cell_rewards
 from server.learners.planning import TransitionOperator
 
 
@@ -21,12 +21,15 @@ class GlobalCostIRL(ModelBasedIRL):
     def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
         super().__init__(env, seed, **settings)
         self.global_costs = np.zeros(env.num_states)
-        # One optimiser over [task costs, global cost]: they are fitted jointly.
-        self.cost_optimizer = MomentumAscent(
-            self.costs.size + env.num_states,
+        # "per-task" (the authors'): each task's costs and the global cost have an optimiser
+        # of their own; "joint": one optimiser over [task costs, global cost].
+        self.joint = self.settings["cost_optimizers"] == "joint"
+        self.global_optimizer = MomentumAscent(
+            (self.costs.size if self.joint else 0) + env.num_states,
             self.settings["cost_learning_rate"],
             self.settings["momentum"],
             self.settings["max_step"],
+            clip=self.settings["momentum_clip"],
         )
 
     def rewards(self) -> np.ndarray:
@@ -38,17 +41,23 @@ class GlobalCostIRL(ModelBasedIRL):
     def cost_step(self, operator: TransitionOperator, data: TeacherData) -> float:
         value, d_rewards, _ = self.teacher_objective(operator, data, need_transitions=False)
         grad = np.zeros_like(self.costs)
-        grad[data.tasks] = cell_gradient(self.env, d_rewards)
+        grad[data.tasks] = self.cost_gradient(d_rewards)
         prior, prior_grad = self.cost_prior(self.costs)
         global_prior, global_prior_grad = self._global_prior()
-        joint = np.concatenate([self.costs.ravel(), self.global_costs])
-        joint_grad = np.concatenate(
-            [(grad + prior_grad).ravel(), d_rewards.sum(axis=0) + global_prior_grad]
-        )
+        global_grad = d_rewards.sum(axis=0) + global_prior_grad
         bound = self.settings["cost_bound"]
-        updated = np.clip(self.cost_optimizer.step(joint, joint_grad), -bound, bound)
-        self.costs = updated[: self.costs.size].reshape(self.costs.shape)
-        self.global_costs = updated[self.costs.size :]
+        if self.joint:
+            joint = np.concatenate([self.costs.ravel(), self.global_costs])
+            joint_grad = np.concatenate([(grad + prior_grad).ravel(), global_grad])
+            updated = np.clip(self.global_optimizer.step(joint, joint_grad), -bound, bound)
+            self.costs = updated[: self.costs.size].reshape(self.costs.shape)
+            self.global_costs = updated[self.costs.size :]
+        else:
+            costs = self.cost_optimizer.step(self.costs.ravel(), (grad + prior_grad).ravel())
+            self.costs = np.clip(costs.reshape(self.costs.shape), -bound, bound)
+            self.global_costs = np.clip(
+                self.global_optimizer.step(self.global_costs, global_grad), -bound, bound
+            )
         return value + prior + global_prior
 
     # L-BFGS-B packing: the informed task costs, then the global cost.
@@ -75,8 +84,16 @@ class GlobalCostIRL(ModelBasedIRL):
 
         return gaussian_log_prior(self.global_costs, 0.0, self.settings["global_prior_sd"])
 
+    def stop_momentum(self) -> None:
+        super().stop_momentum()
+        self.global_optimizer.velocity[:] = 0.0
+
     def _parameters_state(self) -> dict[str, np.ndarray]:
-        return {**super()._parameters_state(), "global_costs": self.global_costs.copy()}
+        return {
+            **super()._parameters_state(),
+            "global_costs": self.global_costs.copy(),
+            "global_velocity": self.global_optimizer.velocity.copy(),
+        }
 
     def _load_parameters_state(self, state: dict[str, Any]) -> None:
         super()._load_parameters_state(state)
@@ -84,3 +101,10 @@ class GlobalCostIRL(ModelBasedIRL):
         if global_costs.shape != (self.env.num_states,):
             raise ValueError(f"global costs must have shape ({self.env.num_states},)")
         self.global_costs = global_costs.copy()
+        if "global_velocity" in state:
+            velocity = check_finite("global velocity", state["global_velocity"])
+            if velocity.shape != self.global_optimizer.velocity.shape:
+                raise ValueError(
+                    f"global velocity must have shape {self.global_optimizer.velocity.shape}"
+                )
+            self.global_optimizer.velocity = velocity.copy()

@@ -22,8 +22,9 @@ from numba import njit
 
 from server.domains.base import all_finite, check_finite
 
-# Floor on the per-state variance of Q in the normalised action model: where every action has
-# the same value the model is uniform instead of dividing by zero.
+# A floor on the per-state variance of Q in the normalised action model, added before the
+# square root, as an alternative to the paper authors' rule (ActionModel.variance_floor = 0:
+# no floor, and a row whose values are all equal divides by 1, so the model is uniform there).
 VARIANCE_FLOOR = 1e-8
 
 
@@ -31,10 +32,17 @@ VARIANCE_FLOOR = 1e-8
 class ActionModel:
     beta: float = 1.0
     normalized: bool = True
+    # Added to the variance of a Q row before its square root; 0 is the authors' rule (a
+    # row whose values are all equal divides by 1).
+    variance_floor: float = 0.0
 
     def __post_init__(self) -> None:
         if not np.isfinite(self.beta) or self.beta <= 0:
             raise ValueError(f"beta must be a positive finite number, got {self.beta!r}")
+        if not np.isfinite(self.variance_floor) or self.variance_floor < 0:
+            raise ValueError(
+                f"variance_floor must be a non-negative finite number, got {self.variance_floor!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -184,6 +192,7 @@ def data_log_likelihood(
         demo_actions,
         float(actions.beta),
         bool(actions.normalized),
+        float(actions.variance_floor),
         step_tasks,
         step_states,
         step_actions,
@@ -248,6 +257,7 @@ def _data_log_likelihood(
     demo_actions,
     beta,
     normalized,
+    variance_floor,
     step_tasks,
     step_states,
     step_actions,
@@ -299,7 +309,9 @@ def _data_log_likelihood(
             for a in range(num_actions):
                 centred[a] = row[a] - mean
                 variance += centred[a] * centred[a]
-            sd = np.sqrt(variance / num_actions + VARIANCE_FLOOR)
+            sd = np.sqrt(variance / num_actions + variance_floor)
+            if sd == 0.0:  # every action equal, no floor: the authors divide by 1
+                sd = 1.0
             for a in range(num_actions):
                 relative[a] = row[a] - row[0]  # Q(s, a) - Q(s, STAY)
                 logits[a] = beta * relative[a] / sd

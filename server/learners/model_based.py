@@ -25,8 +25,10 @@ class ModelBasedIRL(PlannerLearner):
             # The dynamics fit never runs the planner: the momentum schedule costs little.
             dynamics_objective = 0.0
             for _ in range(int(self.settings["dynamics_steps"])):
-                dynamics_objective, grad = self.transition_objective(self.theta, observed)
-                self.theta = self.theta_optimizer.step(self.theta, grad)
+                dynamics_objective, grad = self.transition_objective(
+                    self.theta, observed, exact=False
+                )
+                self.theta_step(grad)
             dynamics_evaluations = int(self.settings["dynamics_steps"])
         if optimizer == "lbfgs":
             if data.empty:

@@ -23,12 +23,18 @@ from server.learners.planning import TransitionOperator, soft_plan
 COMMON_SETTINGS: dict[str, Any] = {
     "beta": 1.0,
     "normalized_actions": True,
+    # Added to the variance of a Q row in the normalised action model (0: the authors' rule,
+    # which divides by 1 where all of a row's values are equal).
+    "variance_floor": 0.0,
     "epsilon": 0.05,
     "alpha": 1.0,
     "mu_plus": 0.1,
     "mu_minus": 0.1,
     "momentum": 0.7,
     "max_step": 0.1,
+    # "step": the authors' clipped momentum (the velocity unclipped, the applied step
+    # clipped); "velocity": the clipped step kept as the velocity.
+    "momentum_clip": "step",
 }
 
 # Settings of the learners that fit per-cell costs through a planner.
@@ -37,8 +43,20 @@ COST_SETTINGS: dict[str, Any] = {
     "cost_bound": 3.0,
     "cost_learning_rate": 0.01,
     "dynamics_learning_rate": 1.0,
-    # m(theta): a weak Gaussian prior centred on the model's initialisation.
-    "dynamics_prior_sd": 3.0,
+    # m(theta): None is the model space's own prior, the authors' (navigation and farming:
+    # none; gravity: N(0, 1)); a number is a Gaussian prior of that deviation centred on the
+    # model's initialisation.
+    "dynamics_prior_sd": None,
+    # "per-task": each task's costs have an optimiser of their own, whose step is clipped on
+    # its own (the authors'); "joint": one optimiser over every task's costs.
+    "cost_optimizers": "per-task",
+    # "domain": the cells the environment's model space gives a cost (farming: the fields,
+    # not the dirt, as the authors' learners have it; elsewhere every cell); "every": all.
+    "cost_cells": "domain",
+    # "authors": the dynamics gradient of the authors' model space where it is not the
+    # exact gradient of the likelihood (farming; see TransitionModel.outcomes); "exact": the
+    # gradient of equation (5). L-BFGS-B always uses the exact gradient.
+    "dynamics_gradient": "authors",
     # "momentum": the reference schedule of fixed momentum steps on every update;
     # "lbfgs": L-BFGS-B over the parameter blocks on every update, stopping at convergence or
     # after `max_evaluations` objective evaluations;
@@ -143,7 +161,11 @@ class TeacherData:
 
 
 def action_model(settings: dict[str, Any]) -> ActionModel:
-    return _action_model(float(settings["beta"]), bool(settings["normalized_actions"]))
+    return _action_model(
+        float(settings["beta"]),
+        bool(settings["normalized_actions"]),
+        float(settings["variance_floor"]),
+    )
 
 
 def feedback_model(settings: dict[str, Any]) -> FeedbackModel:
@@ -158,8 +180,8 @@ def feedback_model(settings: dict[str, Any]) -> FeedbackModel:
 # The models are immutable and a learner's update asks for them at every step (400 times):
 # built, and checked, once per setting.
 @functools.lru_cache(maxsize=64)
-def _action_model(beta: float, normalized: bool) -> ActionModel:
-    return ActionModel(beta=beta, normalized=normalized)
+def _action_model(beta: float, normalized: bool, variance_floor: float) -> ActionModel:
+    return ActionModel(beta=beta, normalized=normalized, variance_floor=variance_floor)
 
 
 @functools.lru_cache(maxsize=64)
@@ -206,24 +228,56 @@ def planned_teacher_log_likelihood(
     return value, d_rewards, d_transitions
 
 
-class MomentumAscent:
-    """Momentum gradient ascent with the step's norm clipped (reference settings: momentum
-    0.7, step norm at most 0.1). Its velocity persists across updates (warm start)."""
+MOMENTUM_CLIPS = ("step", "velocity")
+ROW_CLIPS = ("per-row", "joint")
 
-    def __init__(self, size: int, learning_rate: float, momentum: float, max_step: float) -> None:
+
+class MomentumAscent:
+    """Momentum gradient ascent with the norm of the applied step clipped (reference settings:
+    momentum 0.7, step norm at most 0.1). Its velocity persists across updates (warm start).
+
+    ``clip``: "step" (the paper authors' rule) keeps the velocity unclipped, velocity =
+    momentum x velocity + learning rate x gradient, and clips only the step it applies;
+    "velocity" stores the clipped step as the velocity. With ``rows`` > 1 the parameters are
+    a (rows, n) matrix whose rows are clipped one by one (the authors fit each task's costs
+    with an optimiser of its own)."""
+
+    def __init__(
+        self,
+        size: int,
+        learning_rate: float,
+        momentum: float,
+        max_step: float,
+        clip: str = "step",
+        rows: int = 1,
+    ) -> None:
+        if clip not in MOMENTUM_CLIPS:
+            raise ValueError(
+                f"momentum_clip must be one of {', '.join(map(repr, MOMENTUM_CLIPS))}, got {clip!r}"
+            )
+        if rows < 1 or size % rows:
+            raise ValueError(f"{size} parameters do not split into {rows} rows")
         self.velocity = np.zeros(size)
         self.learning_rate = float(learning_rate)
         self.momentum = float(momentum)
         self.max_step = float(max_step)
+        self.clip = clip
+        self.rows = int(rows)
 
     def step(self, parameters: np.ndarray, gradient: np.ndarray) -> np.ndarray:
         if not all_finite(gradient):
             raise FloatingPointError("the objective's gradient is not finite")
-        step = self.momentum * self.velocity + self.learning_rate * gradient
-        norm = float(np.linalg.norm(step))
-        if norm > self.max_step:
-            step *= self.max_step / norm
-        self.velocity = step
+        velocity = self.momentum * self.velocity + self.learning_rate * gradient
+        if self.rows == 1:
+            norm = float(np.linalg.norm(velocity))
+            scale = self.max_step / norm if norm > self.max_step else 1.0
+            step = velocity * scale if scale != 1.0 else velocity.copy()
+        else:
+            matrix = velocity.reshape(self.rows, -1)
+            norms = np.sqrt(np.einsum("ij,ij->i", matrix, matrix))
+            scales = np.where(norms > self.max_step, self.max_step / np.maximum(norms, 1e-300), 1.0)
+            step = (matrix * scales[:, None]).reshape(-1)
+        self.velocity = velocity if self.clip == "step" else step
         return parameters + step
 
 

@@ -7,7 +7,13 @@ from typing import Any
 
 import numpy as np
 
-from server.domains.base import Environment, ObservedTransitions, TransitionModel, check_finite
+from server.domains.base import (
+    Environment,
+    ObservedTransitions,
+    TransitionModel,
+    check_finite,
+    check_gradient_rule,
+)
 from server.learners.base import Learner
 from server.learners.likelihoods import gaussian_log_prior
 from server.learners.objective import (
@@ -25,6 +31,13 @@ from server.learners.objective import (
 from server.learners.planning import TransitionOperator, soft_plan
 
 THETA_BOUND = 15.0
+COST_OPTIMIZERS = ("per-task", "joint")
+COST_CELLS = ("domain", "every")
+
+
+def check_choice(name: str, value: Any, choices: tuple[str, ...]) -> None:
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {', '.join(map(repr, choices))}, got {value!r}")
 
 
 def check_count(name: str, value: Any, minimum: int) -> None:
@@ -49,19 +62,38 @@ class PlannerLearner(Learner):
             )
         for name in ("max_evaluations", "warm_evaluations"):
             check_count(name, self.settings[name], minimum=1)
+        check_choice("cost_optimizers", self.settings["cost_optimizers"], COST_OPTIMIZERS)
+        check_choice("cost_cells", self.settings["cost_cells"], COST_CELLS)
+        check_gradient_rule(self.settings["dynamics_gradient"])
+        prior_sd = self.settings["dynamics_prior_sd"]
+        if prior_sd is not None and (
+            isinstance(prior_sd, bool) or not isinstance(prior_sd, int | float) or prior_sd <= 0
+        ):
+            raise ValueError(
+                f"dynamics_prior_sd must be a positive number or None, got {prior_sd!r}"
+            )
         self.theta = env.model.initial_parameters()
         self.costs = np.zeros((len(env.tasks), env.num_cells))
+        # The cells whose costs are fitted (the others stay at 0).
+        self.cost_mask = (
+            env.cost_cells
+            if self.settings["cost_cells"] == "domain"
+            else np.ones(env.num_cells, bool)
+        )
         self.theta_optimizer = MomentumAscent(
             env.model.num_parameters,
             self.settings["dynamics_learning_rate"],
             self.settings["momentum"],
             self.settings["max_step"],
+            clip=self.settings["momentum_clip"],
         )
         self.cost_optimizer = MomentumAscent(
             self.costs.size,
             self.settings["cost_learning_rate"],
             self.settings["momentum"],
             self.settings["max_step"],
+            clip=self.settings["momentum_clip"],
+            rows=len(env.tasks) if self.settings["cost_optimizers"] == "per-task" else 1,
         )
         # Tasks whose costs an update has fitted (a task's first fit is a cold start).
         self.fitted_tasks = np.zeros(len(env.tasks), dtype=bool)
@@ -106,9 +138,14 @@ class PlannerLearner(Learner):
             return self.env.model
         return data.plan_model
 
-    def pullback(self, data: TeacherData, d_transitions: np.ndarray) -> np.ndarray:
-        """A gradient on the table of ``operator(data)``, pulled back to theta."""
-        return self.plan_model(data).pullback(self.theta, d_transitions)
+    def pullback(
+        self, data: TeacherData, d_transitions: np.ndarray, exact: bool = True
+    ) -> np.ndarray:
+        """A gradient on the table of ``operator(data)``, pulled back to theta (with
+        ``exact=False``, by the setting's gradient rule)."""
+        return self.plan_model(data).pullback(
+            self.theta, d_transitions, rule=self.gradient_rule(exact)
+        )
 
     def q_values(self) -> np.ndarray:
         """Soft Q (tasks, S, A) under the learned model and rewards."""
@@ -134,17 +171,43 @@ class PlannerLearner(Learner):
         return gaussian_log_prior(costs, 0.0, self.settings["cost_prior_sd"])
 
     def dynamics_prior(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
-        return gaussian_log_prior(
-            theta, self.env.model.initial_value, self.settings["dynamics_prior_sd"]
-        )
+        """ln m(theta): the setting's Gaussian, else the model space's own prior (or none)."""
+        sd = self.settings["dynamics_prior_sd"]
+        if sd is None:
+            sd = self.env.model.prior_sd
+        if sd is None:
+            return 0.0, np.zeros_like(theta)
+        return gaussian_log_prior(theta, self.env.model.initial_value, sd)
+
+    def gradient_rule(self, exact: bool) -> str:
+        """The dynamics gradient of a momentum step ("authors" or "exact"); L-BFGS-B needs the
+        exact one (``exact``)."""
+        return "exact" if exact else str(self.settings["dynamics_gradient"])
 
     def transition_objective(
-        self, theta: np.ndarray, observed: np.ndarray | ObservedTransitions
+        self,
+        theta: np.ndarray,
+        observed: np.ndarray | ObservedTransitions,
+        exact: bool = True,
     ) -> tuple[float, np.ndarray]:
-        """ln T_theta over observed transitions plus ln m(theta), and the gradient."""
-        value, grad = self.env.model.transition_log_likelihood(theta, observed)
+        """ln T_theta over observed transitions plus ln m(theta), and the gradient (with
+        ``exact=False``, the setting's gradient rule)."""
+        value, grad = self.env.model.transition_log_likelihood(
+            theta, observed, rule=self.gradient_rule(exact)
+        )
         prior, prior_grad = self.dynamics_prior(theta)
         return value + prior, grad + prior_grad
+
+    def theta_step(self, grad: np.ndarray) -> None:
+        """One momentum step on theta, clipped where the model space clips it (the authors)."""
+        theta = self.theta_optimizer.step(self.theta, grad)
+        bound = self.env.model.parameter_bound
+        self.theta = theta if bound is None else np.clip(theta, -bound, bound)
+
+    def cost_gradient(self, d_rewards: np.ndarray) -> np.ndarray:
+        """dL/d(per-cell costs) of tasks with data from dL/d(per-state rewards): 0 on the cells
+        that carry no cost."""
+        return cell_gradient(self.env, d_rewards) * self.cost_mask
 
     def task_rewards(self, data: TeacherData, costs: np.ndarray) -> np.ndarray:
         """Rewards (tasks with data, S) for the planner; subclasses add a global cost."""
@@ -175,7 +238,7 @@ class PlannerLearner(Learner):
         """One momentum step on the costs (tasks with data); returns the objective before it."""
         value, d_rewards, _ = self.teacher_objective(operator, data, need_transitions=False)
         grad = np.zeros_like(self.costs)
-        grad[data.tasks] = cell_gradient(self.env, d_rewards)
+        grad[data.tasks] = self.cost_gradient(d_rewards)
         prior, prior_grad = self.cost_prior(self.costs)
         bound = self.settings["cost_bound"]
         updated = self.cost_optimizer.step(self.costs.ravel(), (grad + prior_grad).ravel())
@@ -212,7 +275,7 @@ class PlannerLearner(Learner):
     ) -> tuple[float, np.ndarray]:
         """Cost priors and the gradient of (teacher likelihood + priors) in the packed layout."""
         prior, prior_grad = self.cost_prior(self.costs[data.tasks])
-        return prior, (cell_gradient(self.env, d_rewards) + prior_grad).ravel()
+        return prior, (self.cost_gradient(d_rewards) + prior_grad).ravel()
 
     def fit_costs_lbfgs(
         self, operator: TransitionOperator, data: TeacherData, evaluations: int
@@ -259,7 +322,7 @@ class PlannerLearner(Learner):
             assert d_transitions is not None
             value += teacher
             d_theta = d_theta + self.pullback(data, d_transitions)
-            d_costs[data.tasks] = cell_gradient(self.env, d_rewards)
+            d_costs[data.tasks] = self.cost_gradient(d_rewards)
         prior, prior_grad = self.cost_prior(self.costs)
         gradients = {"theta": d_theta, "costs": d_costs + prior_grad}
         extra_value, extra = self._extra_objective(d_rewards)

@@ -694,9 +694,12 @@ def expected_return(
     reward: np.ndarray,
     start: np.ndarray,
     horizon: int,
+    after_transitions: bool = False,
 ) -> float:
     """Exact expected sum of ``horizon`` rewards of a stationary policy (S, A) of action
-    probabilities (or (S,) actions) from the start distribution; no sampling."""
+    probabilities (or (S,) actions) from the start distribution; no sampling. The rewards
+    counted are r(s_0) ... r(s_{H-1}), or with ``after_transitions`` those of the states
+    reached by the H transitions, r(s_1) ... r(s_H) (the paper authors' counting)."""
     operator = (
         transitions
         if isinstance(transitions, TransitionOperator)
@@ -723,6 +726,9 @@ def expected_return(
     distribution = start.astype(np.float64)
     total = 0.0
     for _ in range(check_horizon(horizon)):
+        if after_transitions:
+            distribution = p_pi_t @ distribution
         total += float(distribution @ reward)
-        distribution = p_pi_t @ distribution
+        if not after_transitions:
+            distribution = p_pi_t @ distribution
     return total

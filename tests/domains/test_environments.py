@@ -147,8 +147,11 @@ def test_true_transitions_valid_and_deterministic(name: str) -> None:
     np.testing.assert_allclose(transitions.sum(axis=2), 1.0, rtol=0, atol=1e-12)
     # Deterministic everywhere: one successor with probability 1 per row.
     successors = true_successors(env)
-    # STAY stays; every move goes to the same cell or a neighbouring one.
-    assert np.array_equal(successors[:, 0], np.arange(env.num_states))
+    # STAY stays in its cell (in gravity, acting from a coloured cell sets its gravity; the
+    # state stays elsewhere); every move goes to the same cell or a neighbouring one.
+    assert np.array_equal(env.state_cells[successors[:, 0]], env.state_cells)
+    if env.domain != "gravity":
+        assert np.array_equal(successors[:, 0], np.arange(env.num_states))
     cells = env.state_cells[successors]
     rows, columns = np.divmod(cells, env.width)
     here_rows, here_columns = np.divmod(env.state_cells, env.width)
@@ -202,8 +205,10 @@ def test_tasks_rewards_and_starts(name: str) -> None:
     ],
 )
 def test_start_regions(name: str, rows: range, columns: range, features: int) -> None:
-    """Starts cover exactly the allowed cells of the reference's start region (with every
-    gravity in gravity, carrying nothing in farming)."""
+    """The study's starts cover exactly the allowed cells of the reference's start region
+    (with every gravity in gravity, carrying nothing in farming), less the states from which
+    the goal cannot be reached; the simulations' starts are the same, except that gravity's
+    keep those states (as the authors' do) and Two Rooms' are its study regions."""
     env = domains.make(name)
     description = env.describe()
     blocked = {tuple(cell) for cell in description["walls"]}
@@ -219,8 +224,15 @@ def test_start_regions(name: str, rows: range, columns: range, features: int) ->
     for task in env.tasks:
         excluded = {env.state_of(*rcf) for rcf in UNREACHABLE.get((name, task.name), set())}
         assert excluded <= expected
-        assert set(np.flatnonzero(task.start).tolist()) == expected - excluded
-        if name != "two-rooms":
+        study = set(np.flatnonzero(task.study_start_distribution).tolist())
+        simulation = set(np.flatnonzero(task.start).tolist())
+        if name == "two-rooms":  # the study's regions (test_two_rooms_study_starts)
+            assert simulation == study < expected
+            continue
+        assert study == expected - excluded
+        if env.domain == "gravity":
+            assert simulation == expected
+        else:
             assert task.study_start is None
             assert task.study_start_distribution is task.start
 
@@ -248,7 +260,11 @@ def test_goals_reachable_within_horizon(name: str) -> None:
     env = domains.make(name)
     for task in env.tasks:
         distance = steps_to_goal(env, task.reward)
-        for start in (task.start, task.study_start_distribution):
+        # Gravity simulations start anywhere, as the authors' do (test_start_regions).
+        starts = [task.study_start_distribution]
+        if env.domain != "gravity":
+            starts.append(task.start)
+        for start in starts:
             support = np.flatnonzero(start)
             unreachable = {
                 (*env.cell_of(int(s)), env.feature_of(int(s))) for s in support if distance[s] < 0

@@ -76,6 +76,7 @@ def test_model_space(name: str) -> None:
         assert model.num_parameters == env.num_cells and model.width == 2
         assert model.initial_value == -3.0
         assert model.parameter_names[env.width + 2] == "fail(1,2)"
+        assert model.prior_sd is None and model.parameter_bound is None
     elif env.domain == "gravity":
         assert isinstance(model, SoftmaxRowsModel)
         colours = list(env.layout["gravity_of_colour"])
@@ -86,15 +87,18 @@ def test_model_space(name: str) -> None:
             f"{colours[1]}->north",
         )
         assert model.initial_value == 0.0
+        assert model.prior_sd == 1.0 and model.parameter_bound == 50.0
     else:
         assert isinstance(model, SoftmaxRowsModel)
-        assert (model.groups, model.choices, model.width) == (3, 3, 2)
+        # The authors' four terrains, dirt included, without prior, clipped to +-50.
+        assert (model.groups, model.choices, model.width) == (3, 4, 2)
         assert model.parameter_names == tuple(
             f"{m}->{t}"
             for m in ("plow", "sprinkler", "harvester")
-            for t in ("soil", "grass", "crops")
+            for t in ("dirt", "soil", "grass", "crops")
         )
         assert model.initial_value == 0.0
+        assert model.prior_sd is None and model.parameter_bound == 50.0
     assert np.all(model.initial_parameters() == model.initial_value)
 
 

@@ -113,17 +113,21 @@ def test_navigation_model_rows() -> None:
 
 
 def test_flip_colours_set_gravity() -> None:
+    """As in the authors' dynamics: entering a coloured cell changes nothing yet; any action
+    taken from it (STAY included) first sets the colour's gravity, and the move is judged
+    against that gravity."""
     env = domains.make("flip")
-    assert step(env, (1, 1), NORTH, UP) == (0, 1, SOUTH)  # orange sets south
-    assert step(env, (1, 4), WEST, UP) == (0, 4, SOUTH)
-    assert step(env, (0, 0), EAST, RIGHT) == (0, 1, SOUTH)
-    assert step(env, (8, 1), SOUTH, DOWN) == (9, 1, NORTH)  # green sets north
+    assert step(env, (1, 1), NORTH, UP) == (0, 1, NORTH)  # entering orange
+    assert step(env, (0, 1), NORTH, STAY) == (0, 1, SOUTH)  # orange sets south
+    assert step(env, (0, 1), NORTH, DOWN) == (1, 1, SOUTH)  # south permits DOWN
+    assert step(env, (0, 1), NORTH, UP) == (0, 1, SOUTH)  # off the grid
+    assert step(env, (0, 4), WEST, RIGHT) == (0, 5, SOUTH)
+    assert step(env, (0, 0), EAST, RIGHT) == (0, 1, EAST)
+    assert step(env, (8, 1), SOUTH, DOWN) == (9, 1, SOUTH)  # entering green
+    assert step(env, (9, 1), SOUTH, UP) == (8, 1, NORTH)  # green sets north
+    assert step(env, (9, 1), SOUTH, DOWN) == (9, 1, NORTH)  # north forbids DOWN
     assert step(env, (9, 7), WEST, RIGHT) == (9, 7, WEST)  # west forbids RIGHT
     assert step(env, (9, 7), NORTH, RIGHT) == (9, 8, NORTH)
-    # STAY or a failed move does not re-enter a coloured cell.
-    assert step(env, (0, 1), NORTH, STAY) == (0, 1, NORTH)
-    assert step(env, (0, 1), NORTH, UP) == (0, 1, NORTH)  # off the grid
-    assert step(env, (0, 1), NORTH, DOWN) == (0, 1, NORTH)  # forbidden
 
 
 def test_gravity_forbids_moving_against_it() -> None:
@@ -138,34 +142,44 @@ def test_gravity_forbids_moving_against_it() -> None:
 
 def test_choices_purple_sets_north() -> None:
     env = domains.make("choices")
-    assert step(env, (1, 13), EAST, UP) == (0, 13, NORTH)
-    assert step(env, (0, 12), SOUTH, RIGHT) == (0, 13, NORTH)
-    assert step(env, (1, 10), WEST, UP) == (0, 10, SOUTH)  # orange
-    assert step(env, (0, 2), SOUTH, LEFT) == (0, 1, NORTH)  # green
+    assert step(env, (1, 13), EAST, UP) == (0, 13, EAST)  # entering purple
+    assert step(env, (0, 13), EAST, DOWN) == (0, 13, NORTH)  # purple sets north: no DOWN
+    assert step(env, (0, 13), SOUTH, LEFT) == (0, 12, NORTH)
+    assert step(env, (0, 10), WEST, DOWN) == (1, 10, SOUTH)  # orange
+    assert step(env, (0, 1), SOUTH, RIGHT) == (0, 2, NORTH)  # green
     assert step(env, (3, 1), NORTH, LEFT) == (3, 0, NORTH)  # the goal cell A is plain
 
 
 def test_gravity_model_rows() -> None:
     env = domains.make("choices")
     model = env.model
-    # Groups: orange, green, purple.
-    state = env.state_of(1, 13, EAST)
-    assert model.next_states[state, UP].tolist() == [env.state_of(0, 13, g) for g in range(4)]
-    assert model.index[state, UP].tolist() == [8, 9, 10, 11]
-    assert model.const[state, UP].tolist() == [0.0] * 4
-    assert model.coef[state, UP].tolist() == [1.0] * 4
-    assert model_row(env, (1, 13), EAST, UP, model.initial_parameters()) == pytest.approx(
+    # Groups: orange, green, purple. From purple (0, 13), DOWN: one successor per gravity g,
+    # staying where g forbids DOWN (north).
+    state = env.state_of(0, 13, EAST)
+    assert model.next_states[state, DOWN].tolist() == [
+        env.state_of(0, 13, NORTH),
+        env.state_of(1, 13, SOUTH),
+        env.state_of(1, 13, EAST),
+        env.state_of(1, 13, WEST),
+    ]
+    assert model.index[state, DOWN].tolist() == [8, 9, 10, 11]
+    assert model.const[state, DOWN].tolist() == [0.0] * 4
+    assert model.coef[state, DOWN].tolist() == [1.0] * 4
+    assert model_row(env, (0, 13), EAST, STAY, model.initial_parameters()) == pytest.approx(
         {(0, 13, g): 0.25 for g in range(4)}
     )
     theta = np.zeros(12)
     theta[4:8] = [2.0, 0.0, -1.0, 0.5]  # green
     softmax = np.exp(theta[4:8]) / np.exp(theta[4:8]).sum()
-    assert model_row(env, (0, 2), SOUTH, LEFT, theta) == pytest.approx(
-        {(0, 1, g): softmax[g] for g in range(4)}
-    )
-    # Plain cells keep the gravity, forbidden moves stay: known to the learner.
+    # From green (0, 1), LEFT: east forbids it.
+    expected = {(0, 0, g): softmax[g] for g in range(4) if g != EAST}
+    expected[(0, 1, EAST)] = softmax[EAST]
+    assert model_row(env, (0, 1), SOUTH, LEFT, theta) == pytest.approx(expected)
+    # Plain cells keep the gravity, forbidden moves stay, entering a colour changes nothing:
+    # known to the learner.
     assert model_row(env, (2, 5), EAST, RIGHT, theta) == {(2, 6, EAST): 1.0}
     assert model_row(env, (2, 5), EAST, LEFT, theta) == {(2, 5, EAST): 1.0}
+    assert model_row(env, (1, 13), EAST, UP, theta) == {(0, 13, EAST): 1.0}
     plain = env.state_of(2, 5, EAST)
     assert model.coef[plain].tolist() == [[0.0] * 4] * 5
 
@@ -220,27 +234,31 @@ def test_three_fields_and_tutorial_terrains() -> None:
 def test_farming_model_rows() -> None:
     env = domains.make("two-fields")
     model = env.model
-    for machine, index in ((PLOW, 0), (SPRINKLER, 3), (HARVESTER, 6)):  # onto soil
+    # Parameters: per machine, dirt, soil, grass, crops.
+    for machine, index in ((PLOW, 1), (SPRINKLER, 5), (HARVESTER, 9)):  # onto soil
         state = env.state_of(2, 3, machine)
         assert model.next_states[state, LEFT].tolist() == [env.state_of(2, 2, machine), state]
         assert model.const[state, LEFT].tolist() == [0.0, 1.0]
         assert model.coef[state, LEFT].tolist() == [1.0, -1.0]
         assert model.index[state, LEFT].tolist() == [index, index]
+        assert model.outcomes[state, LEFT].tolist() == [1, -1]
     crops = env.state_of(5, 3, HARVESTER)
-    assert model.index[crops, LEFT].tolist() == [8, 8]  # harvester x crops
-    theta = np.zeros(9)
-    theta[0:3] = [1.0, -1.0, 0.5]  # plow over soil, grass, crops
-    softmax = np.exp(theta[0:3]) / np.exp(theta[0:3]).sum()
+    assert model.index[crops, LEFT].tolist() == [11, 11]  # harvester x crops
+    theta = np.zeros(12)
+    theta[0:4] = [0.3, 1.0, -1.0, 0.5]  # plow over dirt, soil, grass, crops
+    softmax = np.exp(theta[0:4]) / np.exp(theta[0:4]).sum()
     assert model_row(env, (2, 3), PLOW, LEFT, theta) == pytest.approx(
-        {(2, 2, PLOW): softmax[0], (2, 3, PLOW): 1 - softmax[0]}
+        {(2, 2, PLOW): softmax[1], (2, 3, PLOW): 1 - softmax[1]}
     )
     assert model_row(env, (5, 3), PLOW, LEFT, theta) == pytest.approx(
-        {(5, 2, PLOW): softmax[2], (5, 3, PLOW): 1 - softmax[2]}
+        {(5, 2, PLOW): softmax[3], (5, 3, PLOW): 1 - softmax[3]}
     )
     # Known outcomes: carrying nothing never enters a field; dirt and machines always succeed.
     assert model_row(env, (2, 3), NONE, LEFT, theta) == {(2, 3, NONE): 1.0}
     assert model_row(env, (2, 3), PLOW, RIGHT, theta) == {(2, 4, SPRINKLER): 1.0}
     assert model_row(env, (1, 2), HARVESTER, RIGHT, theta) == {(1, 3, HARVESTER): 1.0}
+    # STAY on a field carrying a machine: the same state either way.
+    assert model_row(env, (2, 2), PLOW, STAY, theta) == pytest.approx({(2, 2, PLOW): 1.0})
 
 
 def test_farming_starts_carry_nothing_on_free_dirt() -> None:

@@ -47,15 +47,18 @@ class TeacherPolicy(Learner):
 
 @pytest.mark.parametrize("name", domains.NAMES)
 def test_optimal_returns_from_shortest_paths(name: str) -> None:
-    """With deterministic dynamics and reward 1 per step at the goal, the best return from s
-    over H steps is H - d(s) for a goal d(s) moves away (0 if unreachable in time)."""
+    """With deterministic dynamics and reward 1 at the goal, counted on the states reached by
+    the H transitions, the best return from s is H - d(s) + 1 for a goal d(s) >= 1 moves away,
+    H from the goal itself (0 if unreachable in time)."""
     env = domains.make(name)
     optimal = optimal_returns(env)
     assert optimal.shape == (len(env.tasks),)
     assert np.all(optimal > 0.0) and np.all(optimal <= env.horizon)
     for task in range(len(env.tasks)):
         distance = goal_distances(env, task).astype(float)
-        per_state = np.where(distance >= 0, np.maximum(env.horizon - distance, 0.0), 0.0)
+        per_state = np.where(
+            distance >= 0, np.clip(env.horizon - distance + 1, 0.0, env.horizon), 0.0
+        )
         assert optimal[task] == pytest.approx(float(env.tasks[task].start @ per_state), rel=1e-12)
 
 

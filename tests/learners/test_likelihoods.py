@@ -393,7 +393,8 @@ def numpy_demonstrations(q, tasks, states, actions, model: ActionModel):
     rows = q[tasks, states]
     mean = rows.mean(axis=1, keepdims=True)
     centred = rows - mean
-    sd = np.sqrt((centred**2).mean(axis=1, keepdims=True) + 1e-8)
+    sd = np.sqrt((centred**2).mean(axis=1, keepdims=True) + model.variance_floor)
+    sd[sd == 0.0] = 1.0  # the authors' rule for a flat row (no floor)
     relative = rows - rows[:, :1]
     logits = model.beta * relative / sd if model.normalized else model.beta * rows
     shifted = logits - logits.max(axis=1, keepdims=True)
@@ -445,8 +446,10 @@ def test_the_compiled_pass_gives_the_numpy_code_s_results_to_the_last_bit(
     gradient moves whole curves of the feedback experiment (agents act greedily on near-ties)."""
     rng = np.random.default_rng(11)
     q, demo, steps = random_data(rng, 3, 40, 300, 300, scale=15.0)
-    actions = ActionModel(1.3, normalized)
-    for feedback in (FeedbackModel(), FeedbackModel(epsilon=0.1, alpha=0.7, mu_plus=0.2)):
+    for actions, feedback in (
+        (ActionModel(1.3, normalized), FeedbackModel()),
+        (ActionModel(1.3, normalized, 1e-8), FeedbackModel(epsilon=0.1, alpha=0.7, mu_plus=0.2)),
+    ):
         value, d_q = data_log_likelihood(q, *demo, actions, *steps, feedback)
         value_d, d_q_d = numpy_demonstrations(q, *demo, actions)
         value_f, d_q_f = numpy_feedback(q, *steps, feedback)

@@ -814,7 +814,7 @@ def test_a_model_s_pass_layouts_are_the_sorted_out_table_s(name: str) -> None:
     rng = np.random.default_rng(6)
     start = env.model.initial_parameters() + rng.normal(size=env.model.num_parameters)
     saturated = start.copy()
-    saturated[::2] = -800.0  # probabilities of exactly 0 (and 1)
+    saturated[1::2] = -800.0  # probabilities of exactly 0 (and 1)
     for theta in (start, start + 0.1, saturated, saturated + 0.1, start):
         operator = TransitionOperator.of_model(env.model, theta)
         layout = (operator.next_flat, operator.probs_flat, operator.width)

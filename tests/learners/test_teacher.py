@@ -17,13 +17,13 @@ from tests.learners._support import assert_deterministic, goal_distances
 
 
 @pytest.mark.parametrize("name", domains.NAMES)
-def test_every_start_state_can_reach_every_goal_within_the_horizon(name: str) -> None:
-    """Every state in every task's start distribution has a path to the task's goal under the
-    true dynamics, short enough for the horizon (so the teacher can reach it)."""
+def test_every_study_start_state_can_reach_every_goal_within_the_horizon(name: str) -> None:
+    """Every state a participant can start in has a path to the task's goal under the true
+    dynamics, short enough for the horizon (so a person can reach it)."""
     env = domains.make(name)
     for task in range(len(env.tasks)):
         distance = goal_distances(env, task)
-        starts = np.flatnonzero(env.tasks[task].start > 0)
+        starts = np.flatnonzero(env.tasks[task].study_start_distribution > 0)
         assert len(starts) > 0
         hopeless = [
             (env.cell_of(int(s)), env.feature_of(int(s)))
@@ -33,15 +33,35 @@ def test_every_start_state_can_reach_every_goal_within_the_horizon(name: str) ->
         assert not hopeless, f"{name} task {env.tasks[task].name}: (cell, feature) {hopeless}"
 
 
+@pytest.mark.parametrize("name", ["flip", "choices"])
+def test_gravity_simulations_start_anywhere_in_any_gravity(name: str) -> None:
+    """As the authors' simulations do: every (cell, gravity), uniformly, including the few
+    states from which the goal cannot be reached (which the study's starts leave out)."""
+    env = domains.make(name)
+    for task in env.tasks:
+        assert np.allclose(task.start, 1.0 / env.num_states)
+        assert np.count_nonzero(task.study_start_distribution) < env.num_states
+
+
+def test_two_rooms_simulations_start_in_the_study_s_regions() -> None:
+    """The authors' simulated Two Rooms starts A and C in columns 0-2, B in columns 12-14."""
+    env = domains.make("two-rooms")
+    for task, columns in zip(env.tasks, [(0, 2), (12, 14), (0, 2)], strict=True):
+        assert np.array_equal(task.start, task.study_start_distribution)
+        for state in np.flatnonzero(task.start):
+            assert columns[0] <= env.cell_of(int(state))[1] <= columns[1]
+
+
 @pytest.mark.parametrize("name", domains.NAMES)
-def test_demonstrations_are_optimal_and_end_with_stay_at_the_goal(name: str) -> None:
-    """From every start state that can reach the goal, the demonstration follows the true
-    dynamics, takes the fewest moves to a goal (breadth-first search), never presses STAY
-    before the goal, and ends with one STAY at a goal state, within the horizon. From a start
-    that cannot reach it, the demonstration is capped at the horizon."""
+def test_a_person_s_demonstrations_are_optimal_and_end_with_stay_at_the_goal(name: str) -> None:
+    """The "person" style (what a participant can do): from every start state that can reach
+    the goal, the demonstration follows the true dynamics, takes the fewest moves to a goal
+    (breadth-first search), never presses STAY before the goal, and ends with one STAY at a
+    goal state, within the horizon. From a start that cannot reach it, the demonstration is
+    capped at the horizon."""
     env = domains.make(name)
     assert_deterministic(env)  # so the fewest moves is the optimal length
-    teacher = Teacher(env, seed=0)
+    teacher = Teacher(env, seed=0, style="person")
     for task in range(len(env.tasks)):
         distance = goal_distances(env, task)
         for start in np.flatnonzero(env.tasks[task].start > 0):
@@ -54,11 +74,55 @@ def test_demonstrations_are_optimal_and_end_with_stay_at_the_goal(name: str) -> 
                 assert not env.is_goal(task, state)
             last_state, last_action, last_next = steps[-1]
             assert last_action == STAY and last_next == last_state
-            if distance[start] < 0:
+            if distance[start] < 0 or distance[start] >= env.horizon:
                 assert len(steps) == env.horizon
                 continue
             assert env.is_goal(task, last_state), (name, task, start)
             assert len(steps) == distance[start] + 1, (name, task, start)
+
+
+@pytest.mark.parametrize("name", domains.NAMES)
+def test_the_authors_demonstrations_take_optimal_actions_and_one_more_at_the_goal(
+    name: str,
+) -> None:
+    """The default ("authors") style: every action is one of the optimal actions of its
+    state; the goal is reached in the fewest moves, then exactly one more optimal action is
+    taken there; from a start that cannot reach the goal, ``horizon`` optimal actions."""
+    env = domains.make(name)
+    assert_deterministic(env)
+    teacher = Teacher(env, seed=0)
+    for task in range(len(env.tasks)):
+        distance = goal_distances(env, task)
+        for start in np.flatnonzero(env.tasks[task].start > 0)[::3]:
+            steps = teacher.demonstration(task, int(start))
+            assert steps[0][0] == start
+            for state, action, _ in steps:
+                assert action in teacher.best_actions(task, state)
+            for (_, _, next_state), following in itertools.pairwise(steps):
+                assert following[0] == next_state
+            if not 0 <= distance[start] < env.horizon:
+                assert len(steps) == env.horizon
+                continue
+            reached = [env.is_goal(task, next_state) for _, _, next_state in steps]
+            assert reached.index(True) == max(distance[start], 1) - 1, (name, task, start)
+            assert len(steps) == max(distance[start], 1) + 1, (name, task, start)
+
+
+def test_the_authors_teacher_chooses_uniformly_among_all_optimal_actions() -> None:
+    """At a state of the soil field in Two Fields, carrying the plow, the optimal actions
+    include STAY and the moves that stay within the field: the final action at the goal is
+    each of them about equally often, not always STAY."""
+    env = domains.make("two-fields")
+    plow = env.feature_names.index("plow")
+    state = env.state_of(1, 1, plow)
+    teacher = Teacher(env, seed=5)
+    best = teacher.best_actions(0, state)
+    assert STAY in best and len(best) >= 3
+    counts = {int(a): 0 for a in best}
+    for _ in range(3000):
+        counts[teacher.optimal_action(0, state)] += 1
+    expected = 3000 / len(best)
+    assert all(abs(count - expected) < 5 * math.sqrt(expected) for count in counts.values())
 
 
 @pytest.mark.parametrize("name", ["wall", "flip", "two-fields"])

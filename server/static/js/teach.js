@@ -209,8 +209,8 @@ export class Teacher {
     } else if (env.domain === "gravity") {
       lines.push("The agent has a gravity, shown by the arrow on it: it cannot move against it (gravity north: it cannot move down).");
       lines.push(this.study.reveal_gravity
-        ? "Entering a coloured cell sets the gravity to the direction its arrow shows."
-        : "Entering a coloured cell changes the gravity; which direction each colour sets is for you to find out by trying.");
+        ? "On a coloured cell, the next move (or staying) first sets the gravity to the direction its arrow shows."
+        : "On a coloured cell, the next move (or staying) first changes the gravity; which direction each colour sets is for you to find out by trying.");
       lines.push("Each task is to reach its goal, marked with its name; the selected one has a ★.");
     }
     lines.push(`An agent's try ends at the goal or after ${env.horizon} moves.`);

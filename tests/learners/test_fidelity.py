@@ -303,3 +303,24 @@ def test_optimal_totals_count_the_rewards_after_each_transition(
     """Counting r(s_1) ... r(s_H), as the authors do, our optimal totals equal their expert's
     sampled returns (within their sampling noise, 0.5%)."""
     assert optimal_returns(domains.make(name)).sum() == pytest.approx(authors_expert, rel=5e-3)
+
+
+def test_cloning_keeps_a_variance_floor_and_does_not_collapse() -> None:
+    """Without a floor our cloning's rows shrink under the prior and the agent collapses from
+    round 3 in doorway, which the authors' cloning does not: cloning keeps the floor (the
+    planner learners use the authors' rule)."""
+    from server.learners.evaluation import normalized_return
+    from tests.learners._support import demonstrate_round
+
+    env = domains.make("doorway")
+    assert make_learner("cloning", env).settings["variance_floor"] == 1e-8
+    assert make_learner("bam", env).settings["variance_floor"] == 0.0
+    returns = {}
+    for floor in (1e-8, 0.0):
+        learner = make_learner("cloning", env, seed=0, variance_floor=floor)
+        teacher, rng = Teacher(env, seed=0), np.random.default_rng(0)
+        for _ in range(3):
+            demonstrate_round(learner, env, teacher, rng)
+            learner.update()
+        returns[floor] = normalized_return(env, learner)
+    assert returns[1e-8] > 0.6 and returns[0.0] < 0.2

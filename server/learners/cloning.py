@@ -17,14 +17,14 @@ from server.learners.base import Learner
 from server.learners.likelihoods import VARIANCE_FLOOR, gaussian_log_prior
 from server.learners.objective import (
     COMMON_SETTINGS,
+    OPTIMIZER_SCOPES,
     MomentumAscent,
     TeacherData,
     action_model,
+    check_choice,
     feedback_model,
     teacher_log_likelihood,
 )
-
-COST_OPTIMIZERS = ("per-task", "joint")
 
 
 class BehavioralCloning(Learner):
@@ -52,11 +52,7 @@ class BehavioralCloning(Learner):
 
     def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
         super().__init__(env, seed, **settings)
-        if self.settings["optimizers"] not in COST_OPTIMIZERS:
-            raise ValueError(
-                f"optimizers must be one of {', '.join(map(repr, COST_OPTIMIZERS))}, "
-                f"got {self.settings['optimizers']!r}"
-            )
+        check_choice("optimizers", self.settings["optimizers"], OPTIMIZER_SCOPES)
         bound = self.settings["q_bound_sds"]
         if bound is not None and (isinstance(bound, bool) or not bound > 0):
             raise ValueError(f"q_bound_sds must be a positive number or None, got {bound!r}")

@@ -73,6 +73,14 @@ COST_SETTINGS: dict[str, Any] = {
 }
 
 OPTIMIZERS = ("momentum", "lbfgs", "warm-lbfgs")
+# One optimiser per task's parameters (the authors'), or one for all of them.
+OPTIMIZER_SCOPES = ("per-task", "joint")
+
+
+def check_choice(name: str, value: Any, choices: tuple[str, ...]) -> None:
+    """A setting that must be one of ``choices``."""
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {', '.join(map(repr, choices))}, got {value!r}")
 
 
 def taught_tasks(log: DataLog) -> np.ndarray:

@@ -19,11 +19,13 @@ from server.learners.likelihoods import gaussian_log_prior
 from server.learners.objective import (
     COMMON_SETTINGS,
     COST_SETTINGS,
+    OPTIMIZER_SCOPES,
     OPTIMIZERS,
     MomentumAscent,
     TeacherData,
     cell_gradient,
     cell_rewards,
+    check_choice,
     maximize_lbfgs,
     planned_teacher_log_likelihood,
     taught_tasks,
@@ -31,13 +33,7 @@ from server.learners.objective import (
 from server.learners.planning import TransitionOperator, soft_plan
 
 THETA_BOUND = 15.0
-COST_OPTIMIZERS = ("per-task", "joint")
 COST_CELLS = ("domain", "every")
-
-
-def check_choice(name: str, value: Any, choices: tuple[str, ...]) -> None:
-    if value not in choices:
-        raise ValueError(f"{name} must be one of {', '.join(map(repr, choices))}, got {value!r}")
 
 
 def check_count(name: str, value: Any, minimum: int) -> None:
@@ -62,7 +58,7 @@ class PlannerLearner(Learner):
             )
         for name in ("max_evaluations", "warm_evaluations"):
             check_count(name, self.settings[name], minimum=1)
-        check_choice("cost_optimizers", self.settings["cost_optimizers"], COST_OPTIMIZERS)
+        check_choice("cost_optimizers", self.settings["cost_optimizers"], OPTIMIZER_SCOPES)
         check_choice("cost_cells", self.settings["cost_cells"], COST_CELLS)
         check_gradient_rule(self.settings["dynamics_gradient"])
         prior_sd = self.settings["dynamics_prior_sd"]

@@ -91,7 +91,9 @@ class BAMStudyEnv(gym.Env[Any, np.int64]):
     ``(height, width, channels)`` array of 0/1 with one channel per kind of cell (walls,
     terrains, colours, machines), the agent's cell, the agent's gravity or carried machine
     (one channel each, set on the agent's cell), and the current task's goal cells: the
-    channel names are ``grid_channels``.
+    channel names are ``grid_channels``. ``task``: the task of every episode whose ``reset``
+    names none (else one drawn at random): the state number does not say which goal to reach,
+    so an agent that learns from it alone learns one task at a time.
     """
 
     metadata = {"render_modes": ["ansi", "rgb_array"], "render_fps": 4}
@@ -101,8 +103,10 @@ class BAMStudyEnv(gym.Env[Any, np.int64]):
         environment: str | Environment = "doorway",
         observation: str = "state",
         render_mode: str | None = None,
+        task: int | None = None,
     ) -> None:
         self.env = domains.make(environment) if isinstance(environment, str) else environment
+        self.default_task = None if task is None else self.env.check_task(task)
         if observation not in OBSERVATIONS:
             raise ValueError(f"observation must be one of {OBSERVATIONS}, got {observation!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -136,10 +140,11 @@ class BAMStudyEnv(gym.Env[Any, np.int64]):
         unknown = sorted(set(options) - {"task"})
         if unknown:
             raise ValueError(f"unknown reset option(s) {unknown}; the one option is 'task'")
-        if options.get("task") is None:
+        task = options.get("task", self.default_task)
+        if task is None:
             self.task = int(self.np_random.integers(len(self.env.tasks)))
         else:
-            self.task = self.env.check_task(options["task"])
+            self.task = self.env.check_task(task)
         self.state = self.env.sample_start(self.task, self.np_random)
         self.steps = 0
         return self._observation(), self._info()

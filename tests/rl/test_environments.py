@@ -218,6 +218,11 @@ def test_the_task_option_and_truncation_at_the_horizon() -> None:
         gym_env.unwrapped.step(0)
     drawn = {gym_env.reset(seed=seed)[1]["task"] for seed in range(40)}
     assert drawn == set(range(len(env.tasks)))
+    fixed = gym.make(environment_id("doorway"), task=2)
+    assert {fixed.reset(seed=seed)[1]["task"] for seed in range(10)} == {2}
+    assert fixed.reset(options={"task": 1})[1]["task"] == 1
+    with pytest.raises(ValueError, match="task 7 out of range"):
+        BAMStudyEnv("doorway", task=7)
     with pytest.raises(ValueError, match="task 4 out of range"):
         gym_env.reset(options={"task": 4})
     with pytest.raises(ValueError, match="unknown reset option"):

@@ -23,7 +23,7 @@ from gymnasium import spaces
 
 from server import domains
 from server.domains import farming, gravity, navigation
-from server.domains.base import ACTIONS, Environment
+from server.domains.base import Environment
 
 NAMESPACE = "BAMStudy"
 VERSION = 0
@@ -308,14 +308,3 @@ def register_environments() -> None:
             kwargs={"environment": name},
             max_episode_steps=domains.make(name).horizon,
         )
-
-
-__all__ = [
-    "ACTIONS",
-    "ENVIRONMENT_IDS",
-    "NAMESPACE",
-    "BAMStudyEnv",
-    "environment_id",
-    "register_environments",
-    "step_reward",
-]

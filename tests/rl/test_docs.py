@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -12,22 +10,14 @@ import pytest
 
 from server import domains
 from server.rl.datasets import Dataset, DatasetEpisode, write_datasets
+from tests.rl._support import REPOSITORY, run_python
 
-REPOSITORY = Path(__file__).resolve().parents[2]
 PAGE = (REPOSITORY / "docs" / "rl-ecosystem.md").read_text()
 BLOCKS = re.findall(r"```python\n(.*?)```", PAGE, flags=re.S)
 
 
 def run(code: str, cwd: Path) -> str:
-    result = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        env={"PYTHONPATH": str(REPOSITORY), "PATH": ""},
-    )
-    assert result.returncode == 0, result.stderr
-    return result.stdout
+    return run_python(code, cwd)
 
 
 def test_the_page_has_its_three_examples() -> None:

@@ -7,9 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 import re
-import subprocess
-import sys
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -24,8 +21,8 @@ from server.learners.evaluation import optimal_returns, task_returns
 from server.rl import ENVIRONMENT_IDS, BAMStudyEnv, environment_id
 from server.rl.environments import PALETTE
 from server.teacher import Teacher
+from tests.rl._support import REPOSITORY, run_python
 
-REPOSITORY = Path(__file__).resolve().parents[2]
 # The ids the issue names.
 EXPECTED_IDS = {
     f"BAMStudy/{name}-v0"
@@ -52,11 +49,7 @@ def test_gymnasium_makes_them_without_an_import_of_ours() -> None:
         "observation, info = env.reset(seed=0, options={'task': 1})\n"
         "print(type(env.unwrapped).__name__, env.unwrapped.env.name, info['task_name'])\n"
     )
-    result = subprocess.run(
-        [sys.executable, "-c", program], capture_output=True, text=True, cwd=REPOSITORY
-    )
-    assert result.returncode == 0, result.stderr
-    assert result.stdout.split() == ["BAMStudyEnv", "doorway", "B"]
+    assert run_python(program).split() == ["BAMStudyEnv", "doorway", "B"]
 
 
 @pytest.mark.parametrize("observation", ["state", "grid"])

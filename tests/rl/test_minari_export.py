@@ -7,8 +7,6 @@ an older export each fail clearly and write nothing."""
 from __future__ import annotations
 
 import hashlib
-import subprocess
-import sys
 from collections import defaultdict
 from datetime import datetime
 from pathlib import Path
@@ -33,9 +31,9 @@ from server.cli import main
 from server.domains.base import ACTIONS, STAY
 from server.rl import environment_id
 from server.rl.datasets import Dataset, DatasetEpisode, write_datasets
+from tests.rl._support import run_python
 from tests.server.conftest import ADMIN_TOKEN, wait_for_updates
 
-REPOSITORY = Path(__file__).resolve().parents[2]
 PLAN = TeachingPlan(min_rounds=1, max_rounds=2, agent_try_probability=0.7, max_agent_steps=10)
 
 
@@ -200,15 +198,8 @@ def check_a_new_program_loads_them(folder: Path) -> None:
         "    episode = next(dataset.iterate_episodes())\n"
         "    print(dataset_id, env.spec.id, env.observation_space.contains(episode.observations[0]))\n"
     )
-    result = subprocess.run(
-        [sys.executable, "-c", program],
-        capture_output=True,
-        text=True,
-        cwd=REPOSITORY,
-        env={"MINARI_DATASETS_PATH": str(folder), "PATH": ""},
-    )
-    assert result.returncode == 0, result.stderr
-    lines = [line.split() for line in result.stdout.splitlines()]
+    out = run_python(program, MINARI_DATASETS_PATH=str(folder))
+    lines = [line.split() for line in out.splitlines()]
     assert lines and all(
         gym_id == environment_id(dataset_id.split("/")[1]) and contains == "True"
         for dataset_id, gym_id, contains in lines

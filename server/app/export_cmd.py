@@ -60,6 +60,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"bam-study export: {error}", file=sys.stderr)
         return 2
     minari = args.format == "minari"
+    if not minari and (args.include_excluded or args.study is not None):
+        print(
+            "bam-study export: --include-excluded and --study apply to --format minari only "
+            "(the CSVs mark exclusions in participants.csv)",
+            file=sys.stderr,
+        )
+        return 2
     if minari:
         try:
             check_out_folder(args.out)  # before any work: an older export stays as it is

@@ -251,6 +251,8 @@ def move(action: Action, session_id: int, name: str) -> ActionResponse:
     state = int(session.state)
     next_state = env.step(state, act, action.rng(session.seed))
     action.event.update(mode=session.mode, state=state, action=act, next_state=next_state)
+    if session.mode == "demonstrate":
+        _open_episode(action, session, "demonstration")  # starts where the move starts
     session.state = next_state
     outcome = Outcome(state=state, action=name, next_state=next_state)
     if session.mode == "idle":
@@ -258,7 +260,6 @@ def move(action: Action, session_id: int, name: str) -> ActionResponse:
         session.idle_moves += 1
         session.last_action = "idle"
         return respond(action, session, outcome)
-    _open_episode(action, session, "demonstration")
     _observe(action, session, "demonstration", episode_index=session.open_episode)
     session.episode_actions += 1
     session.actions += 1

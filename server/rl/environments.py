@@ -48,11 +48,11 @@ ENVIRONMENT_IDS: tuple[str, ...] = tuple(environment_id(name) for name in domain
 def step_reward(env: Environment, task: int, state: int, next_state: int) -> float:
     """The reward of the step from ``state`` to ``next_state`` in ``task``.
 
-    The exact evaluation sums a task's reward over the states s_0 .. s_{H-1} an episode of
-    H steps visits before each of its actions (``planning.expected_return``), so a step pays
-    the reward of the state it is taken from; tests/rl checks this against the evaluation's
-    own function, and fails if the evaluation counts otherwise."""
-    return float(env.tasks[task].reward[state])
+    The exact evaluation counts, as the paper authors' does, the rewards of the states s_1 ..
+    s_H that an episode's H transitions reach (``server.learners.evaluation``), so a step pays
+    the reward of the state it reaches; tests/rl checks this against the evaluation's own
+    function, and fails if the evaluation counts otherwise."""
+    return float(env.tasks[task].reward[next_state])
 
 
 def _palette() -> dict[str, tuple[int, int, int]]:

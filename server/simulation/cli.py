@@ -63,6 +63,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "(needs bam-study[dask] here and bam-study installed on the workers)",
     )
     parser.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder")
+    parser.add_argument(
+        "--minari",
+        type=Path,
+        metavar="DIR",
+        help="also write the simulated teacher's demonstrations as Minari datasets, one per "
+        "environment, in this new folder (for offline RL baselines on the paper's protocol)",
+    )
 
 
 def count(number: int, noun: str) -> str:
@@ -123,6 +130,8 @@ def run(args: argparse.Namespace) -> int:
         if workers < 1:
             raise ConfigError(f"--jobs must be at least 1, got {workers}")
         check_out_dir(args.out, config)
+        if args.minari is not None and args.minari.exists():
+            raise ConfigError(f"--minari {args.minari} already exists: give a new folder")
         backend = DaskBackend(args.scheduler) if args.scheduler else LocalBackend(workers)
     except ConfigError as error:
         print(f"bam-study simulate: error: {error}", file=sys.stderr)
@@ -159,4 +168,11 @@ def run(args: argparse.Namespace) -> int:
         args.out, config, outcome.results, outcome.sessions, command_line(args, config)
     )
     print(f"wrote {', '.join(str(path) for path in written)}", file=sys.stderr)
+    if args.minari is not None:
+        from server.rl.teacher_datasets import write_teacher_datasets
+
+        ids = write_teacher_datasets(
+            config.environments, config.agents, config.rounds, config.seed, args.minari
+        )
+        print(f"wrote the Minari datasets {', '.join(ids)} in {args.minari}", file=sys.stderr)
     return 0

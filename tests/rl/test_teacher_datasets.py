@@ -49,3 +49,23 @@ def test_the_datasets_hold_the_demonstrations_the_simulations_give(
             for _ in range(rounds):
                 give_demonstrations(env, teacher, learner, starts)
             assert np.array_equal(np.array(rows[agent]), learner.data.demonstrations)
+
+
+def test_simulate_keeps_the_demonstrations_as_minari_datasets(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``bam-study simulate ... --minari DIR`` writes the same datasets as
+    ``write_teacher_datasets`` for the run's environments, agents, rounds and seed; an existing
+    folder is refused before anything runs."""
+    from server.cli import main
+    from tests.simulation.conftest import AGENTS, ROUNDS, small_args
+
+    out, data = tmp_path / "run", tmp_path / "minari"
+    assert main(small_args(out, "demonstrations", "--minari", str(data))) == 0
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(data))
+    for name in ("wall", "doorway"):
+        dataset = minari.load_dataset(f"bam-study/{name}/simulated-teacher-v0")
+        assert dataset.total_episodes == AGENTS * ROUNDS * len(domains.make(name).tasks)
+    again = tmp_path / "again"
+    assert main(small_args(again, "demonstrations", "--minari", str(data))) == 2
+    assert not again.exists()

@@ -17,7 +17,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any
-from urllib.parse import urlsplit
 
 import numpy as np
 from sqlalchemy import Connection, and_, bindparam, func, or_, select
@@ -158,7 +157,7 @@ class Platform:
 
 
 def classify_arrival(
-    request: ArrivalRequest, study: StudyConfig, settings: Settings, own_host: str | None
+    request: ArrivalRequest, study: StudyConfig, settings: Settings, own_origin: str | None
 ) -> Platform | None:
     """The arrival's platform and ids; None for an MTurk preview. Bad parameters get 400,
     arrivals the study does not accept are turned away."""
@@ -178,7 +177,7 @@ def classify_arrival(
         ]
         if missing:
             raise ApiError(400, f"the Mechanical Turk link lacks {', '.join(missing)}")
-        submit_to = _check_submit_to(str(request.turk_submit_to), settings, own_host)
+        submit_to = _check_submit_to(str(request.turk_submit_to), settings, own_origin)
         platform = Platform(
             "mturk", request.worker_id, request.assignment_id, request.hit_id, submit_to
         )
@@ -211,15 +210,23 @@ def classify_arrival(
     return platform
 
 
-def _check_submit_to(value: str, settings: Settings, own_host: str | None) -> str:
-    parts = urlsplit(value)
-    host = (parts.hostname or "").lower()
-    allowed = host in settings.submit_hosts or (own_host is not None and host == own_host.lower())
-    if parts.scheme not in ("https", "http") or not allowed:
-        raise ApiError(400, f"turkSubmitTo must be a Mechanical Turk address, got {value!r}")
-    if parts.scheme == "http" and host in settings.submit_hosts:
-        raise ApiError(400, "turkSubmitTo must use https")
-    return value.rstrip("/")
+def _check_submit_to(value: str, settings: Settings, own_origin: str | None) -> str:
+    """The origin the completion form posts to: exactly one of MTurk's (or this server's, for
+    the local replica), written as the accepted origin, never as the raw parameter. Matching
+    whole origins leaves nothing for browsers and URL parsers to read differently (a
+    backslash, user info, a port, a control character, a bracketed host)."""
+    allowed = {origin.lower(): origin for origin in settings.submit_origins}
+    if own_origin is not None and own_origin.isascii() and own_origin.isprintable():
+        allowed[own_origin.lower()] = own_origin
+    candidate = value[:-1] if value.endswith("/") else value
+    origin = allowed.get(candidate.lower())
+    if origin is None:
+        raise ApiError(
+            400,
+            f"turkSubmitTo must be one of {', '.join(sorted(settings.submit_origins))} "
+            f"(or this server, for its Mechanical Turk replica), got {value[:100]!a}",
+        )
+    return origin
 
 
 @dataclass

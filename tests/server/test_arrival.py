@@ -286,3 +286,64 @@ def test_simultaneous_arrivals_of_one_worker_make_one_participant(
         ids = set(pool.map(one, range(6)))
     assert len(ids) == 1
     assert participants_in(db) == 1
+
+
+# turkSubmitTo values a browser and Python's URL parser read differently, or that point
+# elsewhere: each is refused on the API and on the study page, and creates nothing.
+CRAFTED_SUBMIT_TO = [
+    "https://evil.example\\@www.mturk.com",
+    "https://evil.example\\www.mturk.com",
+    "https://user:pw@www.mturk.com",
+    "https://www.mturk.com@evil.example",
+    "https://www.mturk.com:99999",
+    "https://www.mturk.com:443",
+    "https://www.mturk.com:8443",
+    "https://www.mturk.com.evil.example",
+    "https://www.mturk.com/../@evil.example",
+    "https://www.mturk.com/mturk",
+    "https://www.mturk.com?x=1",
+    "https://www.mturk.com#x",
+    "https://www.mturk.com\t",
+    "https://www.mturk.com\n.evil.example",
+    "https://www.mturk.com\x00",
+    " https://www.mturk.com",
+    "//www.mturk.com",
+    "http://www.mturk.com",
+    "https://[::1",
+    "https://[::1]",
+    "http://evil.example",
+    "javascript:alert(1)",
+]
+
+
+def test_crafted_submit_addresses_are_refused(client: TestClient, db: Database) -> None:
+    for value in CRAFTED_SUBMIT_TO:
+        params = {"assignmentId": "A1", "hitId": "H1", "workerId": "W1", "turkSubmitTo": value}
+        response = client.post("/api/arrivals", json=params)
+        assert response.status_code == 400, (value, response.text)
+        assert "turkSubmitTo" in response.json()["detail"], value
+        page = client.get("/study", params=params)
+        assert page.status_code == 400, (value, page.text)
+        assert "<form" not in page.text
+    assert participants_in(db) == 0
+
+
+def test_the_submit_url_is_built_from_the_accepted_origin(client: TestClient, db: Database) -> None:
+    accepted = {
+        "https://www.mturk.com": "https://www.mturk.com",
+        "https://workersandbox.mturk.com/": "https://workersandbox.mturk.com",
+        "HTTPS://WWW.MTURK.COM": "https://www.mturk.com",
+        # The local replica: this server's own origin (the test client's is http://testserver).
+        "http://testserver": "http://testserver",
+    }
+    for number, (value, origin) in enumerate(accepted.items()):
+        response = arrive(TestClient(client.app), f"W{number}", f"A{number}", turkSubmitTo=value)
+        assert response.status_code == 201, (value, response.text)
+        with db.read() as s:
+            stored = s.scalar(
+                select(ParticipantRow.submit_to).where(ParticipantRow.worker_id == f"W{number}")
+            )
+        assert stored == origin
+    # Another port of this server's host is another origin.
+    response = arrive(client, "W9", "A9", turkSubmitTo="http://testserver:8080")
+    assert response.status_code == 400

@@ -31,11 +31,16 @@ def set_participant_cookie(response: Response, state: ServerState, token: str) -
     )
 
 
+def own_origin(request: Request) -> str:
+    """This server's origin as the browser addressed it (the replica's ``turkSubmitTo``)."""
+    return f"{request.url.scheme}://{request.url.netloc}"
+
+
 def arrive(
     state: ServerState, body: ArrivalRequest, request: Request, response: Response
 ) -> ArrivalResponse:
     """Shared by the API and the page: returns the preview answer or the participant."""
-    platform = flow.classify_arrival(body, state.study, state.settings, request.url.hostname)
+    platform = flow.classify_arrival(body, state.study, state.settings, own_origin(request))
     if platform is None:
         return ArrivalResponse(preview=True)
     cookie = request.cookies.get(state.settings.cookie_name)

@@ -66,11 +66,14 @@ _random = secrets.SystemRandom()
 # Prepared: every request looks its participant up by token.
 _BY_TOKEN = select(PARTICIPANTS).where(PARTICIPANTS.c.token_hash == bindparam("token_hash"))
 _BY_TOKEN_LOCKED = _BY_TOKEN.with_for_update()
-# PostgreSQL advisory lock key of domain assignment: the study's own constant (the first 8 bytes
-# of sha256("bam-study domain assignment")).
-DOMAIN_LOCK_KEY = int.from_bytes(
-    hashlib.sha256(b"bam-study domain assignment").digest()[:8], "big", signed=True
-)
+
+
+def advisory_lock_key(name: str) -> int:
+    """A PostgreSQL advisory lock key: the first 8 bytes of sha256(name)."""
+    return int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "big", signed=True)
+
+
+DOMAIN_LOCK_KEY = advisory_lock_key("bam-study domain assignment")
 _LOCK_DOMAIN_ASSIGNMENT = select(func.pg_advisory_xact_lock(DOMAIN_LOCK_KEY))
 _STORED_EVENT = select(EVENTS.c.request_hash, EVENTS.c.response).where(
     EVENTS.c.participant_id == bindparam("participant_id"), EVENTS.c.seq == bindparam("seq")
@@ -263,6 +266,11 @@ def _arrive(
                 current.save(c)
                 return Arrival(current, None, True)
             return Arrival(*_create(c, platform, now), False)
+        if c.dialect.name == "postgresql" and not study.allow_repeat_workers:
+            # One worker's arrivals one at a time, until this one commits (SQLite's writes are
+            # one at a time already: BEGIN IMMEDIATE).
+            key = advisory_lock_key(f"bam-study worker {platform.name} {platform.worker_id}")
+            c.execute(select(func.pg_advisory_xact_lock(key)))
         existing = load(
             c,
             PARTICIPANTS,
@@ -270,7 +278,12 @@ def _arrive(
             PARTICIPANTS.c.worker_id == platform.worker_id,
             PARTICIPANTS.c.assignment_id == platform.assignment_id,
         )
-        if existing is None and not study.allow_repeat_workers and _took_part(c, platform):
+        coming_back = existing is None or existing.status == "returned"
+        if (
+            coming_back
+            and not study.allow_repeat_workers
+            and _took_part(c, platform, None if existing is None else existing.id)
+        ):
             raise TurnedAway(
                 "You have already taken part",
                 "Our records show that you have already taken part in this study, which allows "
@@ -301,20 +314,23 @@ def _arrive(
         return Arrival(existing, token, True)
 
 
-def _took_part(c: Connection, platform: Platform) -> bool:
-    consented = select(STATUS_CHANGES.c.participant_id).where(
-        STATUS_CHANGES.c.status == "consented"
-    )
-    count = c.scalar(
+def _took_part(c: Connection, platform: Platform, other_than: int | None) -> bool:
+    """The worker has another participation that still counts: any but one returned (the
+    assignment went to another worker) or declined (no consent), whatever its status. The
+    worker's arrivals are serialised (``_arrive``), so two arriving at once cannot both find
+    none."""
+    query = (
         select(func.count())
         .select_from(PARTICIPANTS)
         .where(
             PARTICIPANTS.c.platform == platform.name,
             PARTICIPANTS.c.worker_id == platform.worker_id,
-            PARTICIPANTS.c.id.in_(consented),
+            PARTICIPANTS.c.status.not_in(("returned", "declined")),
         )
     )
-    return bool(count)
+    if other_than is not None:
+        query = query.where(PARTICIPANTS.c.id != other_than)
+    return bool(c.scalar(query))
 
 
 def _create(c: Connection, platform: Platform, now: datetime) -> tuple[Record, str]:

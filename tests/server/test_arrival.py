@@ -3,6 +3,7 @@ resuming with and without the cookie, and bad links."""
 
 from __future__ import annotations
 
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 from fastapi.testclient import TestClient
@@ -109,11 +110,56 @@ def test_a_worker_who_took_part_is_turned_away(client: TestClient, db: Database)
     assert participants_in(db) == 1
 
 
-def test_a_worker_who_only_looked_at_the_consent_may_come_back(
+def test_a_worker_with_an_open_participation_is_turned_away(
     client: TestClient, db: Database
 ) -> None:
+    # Before consenting to either: the first participation counts whatever its status.
     new_participant(client, "W8", "A1")
+    refused = arrive(TestClient(client.app), "W8", "A2")
+    assert refused.status_code == 403 and refused.json()["turned_away"] is True
+    # Arriving again with the first assignment resumes it.
+    assert arrive(TestClient(client.app), "W8", "A1").status_code == 200
+    assert participants_in(db) == 1
+
+
+def test_a_worker_who_declined_or_whose_assignment_was_returned_may_come_back(
+    client: TestClient, db: Database
+) -> None:
+    declined = new_participant(client, "W8", "A1")
+    declined.act("/api/participant/consent", agree=False)
     assert arrive(TestClient(client.app), "W8", "A2").status_code == 201
+    # W8's A2 goes to W9 (W8 returned it on MTurk): W8 may take A3, and then not A2 again.
+    assert arrive(TestClient(client.app), "W9", "A2").status_code == 201
+    assert arrive(TestClient(client.app), "W8", "A3").status_code == 201
+    assert arrive(TestClient(client.app), "W8", "A2").status_code == 403
+
+
+def test_simultaneous_arrivals_of_one_worker_with_different_assignments_make_one_participation(
+    client: TestClient, db: Database
+) -> None:
+    arrivals = 8
+    start = threading.Barrier(arrivals)
+
+    def one(number: int) -> tuple[int, str | None]:
+        other = TestClient(client.app)
+        start.wait()
+        response = arrive(other, "W6", f"RA{number}")
+        assert response.status_code in (201, 403), response.text
+        if response.status_code == 403:
+            return 403, None
+        token = response.json()["token"]
+        consent = other.post(
+            "/api/participant/consent",
+            json={"seq": 1, "agree": True},
+            headers={"X-Participant-Token": token},
+        )
+        assert consent.status_code == 200, consent.text
+        return 201, token
+
+    with ThreadPoolExecutor(arrivals) as pool:
+        answers = list(pool.map(one, range(arrivals)))
+    assert sorted(status for status, _ in answers) == [201] + [403] * (arrivals - 1)
+    assert participants_in(db) == 1
 
 
 def test_repeat_workers_are_accepted_when_the_study_allows_them(db: Database, executor) -> None:

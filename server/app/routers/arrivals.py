@@ -2,8 +2,9 @@
 
 The browser arrives through ``GET /study`` (``pages.py``), with the same rules: an MTurk preview
 creates nothing; MTurk and Prolific participants are keyed on (worker, assignment) and resumed
-when they arrive again, with a new token if their cookie is gone; a worker who took part before
-is turned away unless the study allows repeats.
+when they arrive again, with a new token if their cookie is gone; a worker with another
+participation (of any status but returned or declined) is turned away unless the study allows
+repeats.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ from __future__ import annotations
 import secrets
 from typing import Annotated
 
-from fastapi import Depends, Header, Request
+from fastapi import Depends, Header, Path, Request
 
 from server.app.errors import ApiError
 from server.app.flow import TOKEN_HEADER
@@ -19,6 +19,11 @@ async def get_state(request: Request) -> ServerState:
 
 
 StateDep = Annotated[ServerState, Depends(get_state)]
+
+# Ids in paths: a row id of the database (PostgreSQL's integer is 32-bit), so that a larger
+# number is refused here and never reaches the database driver.
+MAX_ROW_ID = 2**31 - 1
+RowId = Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="A row id.")]
 
 
 async def participant_token(

@@ -58,7 +58,6 @@ def arrive(
     response_model=ArrivalResponse,
     responses={
         201: {"description": "A new participant."},
-        403: {"description": "Turned away (a repeat worker, or the wrong platform)."},
     },
 )
 def create_arrival(

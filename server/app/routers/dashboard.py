@@ -17,7 +17,7 @@ from fastapi import APIRouter, Depends, Form, Query, Request, Response
 from fastapi.responses import HTMLResponse, RedirectResponse
 from sqlalchemy import select
 
-from server.app.deps import StateDep
+from server.app.deps import RowId, StateDep
 from server.app.errors import ApiError
 from server.app.models import LearningSession
 from server.app.replica_models import ReplicaAssignment, ReplicaSubmission
@@ -156,7 +156,7 @@ def participants(state: StateDep) -> list[AdminParticipant]:
 
 
 @api.get("/participants/{participant_id}")
-def participant(participant_id: int, state: StateDep) -> dict[str, Any]:
+def participant(participant_id: RowId, state: StateDep) -> dict[str, Any]:
     """``/api/admin/participants/{id}`` with each session's colour, to draw it."""
     answer = admin.read_participant(participant_id, state).model_dump(mode="json")
     with state.db.read() as s:
@@ -172,12 +172,12 @@ def participant(participant_id: int, state: StateDep) -> dict[str, Any]:
 
 
 @api.get("/sessions/{session_id}/evaluations", response_model=list[AdminEvaluation])
-def evaluations(session_id: int, state: StateDep) -> list[AdminEvaluation]:
+def evaluations(session_id: RowId, state: StateDep) -> list[AdminEvaluation]:
     return admin.list_evaluations(session_id, state)
 
 
 @api.get("/sessions/{session_id}/replay")
-def replay(session_id: int, state: StateDep) -> dict[str, Any]:
+def replay(session_id: RowId, state: StateDep) -> dict[str, Any]:
     """``/api/admin/sessions/{id}/replay`` with the agent's colour, to draw it as it was."""
     answer = admin.replay(session_id, state)
     with state.db.read() as s:

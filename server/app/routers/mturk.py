@@ -21,7 +21,7 @@ from fastapi.responses import HTMLResponse, RedirectResponse
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from server.app.deps import StateDep
+from server.app.deps import RowId, StateDep
 from server.app.flow import PREVIEW_ASSIGNMENT
 from server.app.models import utcnow
 from server.app.replica_models import ReplicaAssignment, ReplicaHit, ReplicaSubmission
@@ -155,7 +155,7 @@ def accept(
 
 
 @router.get("/work/{row_id}", response_class=HTMLResponse)
-def work(row_id: int, request: Request, state: StateDep) -> Response:
+def work(row_id: RowId, request: Request, state: StateDep) -> Response:
     if not is_admin(request, state):
         return login_redirect(f"/mturk/work/{row_id}")
     with state.db.read() as s:
@@ -195,7 +195,7 @@ def work(row_id: int, request: Request, state: StateDep) -> Response:
 
 
 @router.post("/work/{row_id}/return")
-def return_hit(row_id: int, request: Request, state: StateDep) -> Response:
+def return_hit(row_id: RowId, request: Request, state: StateDep) -> Response:
     if not is_admin(request, state):
         return login_redirect("/mturk")
     with state.db.write() as s:

@@ -19,7 +19,7 @@ from datetime import datetime, timedelta
 from typing import Any
 
 import numpy as np
-from sqlalchemy import Connection, and_, bindparam, func, or_, select
+from sqlalchemy import Connection, and_, bindparam, func, insert, or_, select
 from sqlalchemy.exc import IntegrityError
 
 from server.app.config import StudyConfig
@@ -30,6 +30,7 @@ from server.app.models import (
     LearnerUpdate,
     LearningSession,
     Participant,
+    ParticipantToken,
     StatusChange,
     utcnow,
 )
@@ -61,11 +62,21 @@ SESSIONS = table_of(LearningSession)
 EVENTS = table_of(Event)
 UPDATES = table_of(LearnerUpdate)
 STATUS_CHANGES = table_of(StatusChange)
+TOKENS = table_of(ParticipantToken)
 
 _random = secrets.SystemRandom()
 # Prepared: every request looks its participant up by token.
 _BY_TOKEN = select(PARTICIPANTS).where(PARTICIPANTS.c.token_hash == bindparam("token_hash"))
 _BY_TOKEN_LOCKED = _BY_TOKEN.with_for_update()
+# A further browser's token (see ParticipantToken), looked up when the first's does not match.
+_BY_FURTHER_TOKEN = select(PARTICIPANTS).where(
+    PARTICIPANTS.c.id
+    == select(TOKENS.c.participant_id)
+    .where(TOKENS.c.token_hash == bindparam("token_hash"))
+    .scalar_subquery()
+)
+_BY_FURTHER_TOKEN_LOCKED = _BY_FURTHER_TOKEN.with_for_update()
+_ADD_TOKEN = insert(TOKENS)
 
 
 def advisory_lock_key(name: str) -> int:
@@ -90,16 +101,25 @@ def hash_token(token: str) -> str:
     return hashlib.sha256(token.encode()).hexdigest()
 
 
+def participant_by_token(c: Connection, token: str, lock: bool = False) -> Record | None:
+    """The participant whose token (any of its browsers') this is; ``lock`` holds its row until
+    the transaction ends (PostgreSQL; SQLite writes are serialised already)."""
+    token_hash = {"token_hash": hash_token(token)}
+    row = c.execute(_BY_TOKEN_LOCKED if lock else _BY_TOKEN, token_hash).mappings().first()
+    if row is None:
+        further = _BY_FURTHER_TOKEN_LOCKED if lock else _BY_FURTHER_TOKEN
+        row = c.execute(further, token_hash).mappings().first()
+    return None if row is None else Record(PARTICIPANTS, row)
+
+
 def participant_for(c: Connection, token: str | None, lock: bool = False) -> Record:
-    """The participant whose token this is (401 otherwise); ``lock`` holds its row until the
-    transaction ends (PostgreSQL; SQLite writes are serialised already)."""
+    """The participant whose token this is (401 otherwise); ``lock`` as above."""
     if not token or len(token) > 128:
         raise ApiError(401, "no participant: open the study from its link again")
-    query = _BY_TOKEN_LOCKED if lock else _BY_TOKEN
-    row = c.execute(query, {"token_hash": hash_token(token)}).mappings().first()
-    if row is None:
+    participant = participant_by_token(c, token, lock)
+    if participant is None:
         raise ApiError(401, "unknown participant token: open the study from its link again")
-    return Record(PARTICIPANTS, row)
+    return participant
 
 
 # -- statuses -------------------------------------------------------------------------------
@@ -258,8 +278,8 @@ def _arrive(
     now = utcnow()
     with db.transaction() as c:
         current = None
-        if cookie_token:
-            current = load(c, PARTICIPANTS, PARTICIPANTS.c.token_hash == hash_token(cookie_token))
+        if cookie_token and len(cookie_token) <= 128:
+            current = participant_by_token(c, cookie_token)
         if platform.name == "lab":
             if current is not None and current.platform == "lab":
                 reactivate(c, current, now)
@@ -307,9 +327,14 @@ def _arrive(
             restore_status(c, existing, now)
         token = None
         if current is None or current.id != existing.id:
-            # The cookie is gone (a new browser, or blocked in the platform's iframe): the
-            # platform's ids identify the participant; the old token stops working.
-            token, existing.token_hash = new_token()
+            # Another browser (or the cookie is blocked in the platform's iframe): the
+            # platform's ids identify the participant, and this browser gets a token of its own
+            # beside the others' (the sequence numbers keep their requests in order).
+            token, token_hash = new_token()
+            c.execute(
+                _ADD_TOKEN,
+                {"token_hash": token_hash, "participant_id": existing.id, "created_at": now},
+            )
         existing.save(c)
         return Arrival(existing, token, True)
 

@@ -79,17 +79,48 @@ def test_arriving_again_resumes_the_same_participant(client: TestClient, db: Dat
     assert again.json()["resumed"] is True
     assert again.json()["token"] is None
     assert again.json()["participant"]["participant_id"] == first["participant"]["participant_id"]
-    # A new browser without the cookie: the MTurk ids identify the participant, a new token is
-    # issued and the old one stops working.
+    # A new browser without the cookie: the MTurk ids identify the participant, and the new
+    # browser gets a token of its own; the first browser's goes on working.
     other = TestClient(client.app)
     resumed = arrive(other)
     assert resumed.status_code == 200
     assert resumed.json()["participant"]["participant_id"] == first["participant"]["participant_id"]
     assert resumed.json()["token"] not in (None, first["token"])
     old = client.get("/api/participant", headers={"X-Participant-Token": first["token"]})
-    assert old.status_code == 401
+    assert old.status_code == 200
     new = other.get("/api/participant", headers={"X-Participant-Token": resumed.json()["token"]})
     assert new.status_code == 200
+    assert participants_in(db) == 1
+
+
+def test_every_browser_of_a_participant_keeps_its_own_token(
+    client: TestClient, db: Database
+) -> None:
+    browsers = 8
+    start = threading.Barrier(browsers)
+
+    def one(_: int) -> tuple[int, str]:
+        other = TestClient(client.app)
+        start.wait()
+        response = arrive(other, "W4", "A4")
+        assert response.status_code in (200, 201), response.text
+        return response.json()["participant"]["participant_id"], response.json()["token"]
+
+    with ThreadPoolExecutor(browsers) as pool:
+        arrivals = list(pool.map(one, range(browsers)))
+    assert len({participant for participant, _ in arrivals}) == 1
+    tokens = [token for _, token in arrivals]
+    assert len(set(tokens)) == browsers
+    # Each browser's token works, and their requests share the participant's sequence.
+    participants = [Participant(client, token) for token in tokens]
+    participants[0].act("/api/participant/consent", agree=True)
+    participants[1].seq = 2
+    session = participants[1].act("/api/participant/start")["participant"]["current_session_id"]
+    for seq, participant in enumerate(participants[2:], start=3):
+        participant.seq = seq
+        participant.act(f"/api/sessions/{session}/move", action="UP")
+    for participant in participants:
+        assert participant.get("/api/participant")["next_seq"] == browsers + 1
     assert participants_in(db) == 1
 
 

@@ -105,7 +105,9 @@ def create_app(
     own_db = db is None
     if db is None:
         db = Database.from_url(
-            settings.database_url, busy_timeout_ms=settings.sqlite_busy_timeout_ms
+            settings.database_url,
+            busy_timeout_ms=settings.sqlite_busy_timeout_ms,
+            synchronous=settings.sqlite_synchronous,
         )
     state = ServerState(db=db, study=study_config, settings=settings)
 

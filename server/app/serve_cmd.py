@@ -38,7 +38,11 @@ def run(args: argparse.Namespace) -> int:
     if weak is not None:
         print(f"bam-study serve: {weak}", file=sys.stderr)
         return 2
-    db = Database.from_url(settings.database_url, busy_timeout_ms=settings.sqlite_busy_timeout_ms)
+    db = Database.from_url(
+        settings.database_url,
+        busy_timeout_ms=settings.sqlite_busy_timeout_ms,
+        synchronous=settings.sqlite_synchronous,
+    )
     try:
         print(prepare_schema(db.engine), file=sys.stderr)
     except SchemaError as error:

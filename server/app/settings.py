@@ -75,6 +75,11 @@ class Settings(BaseSettings):
         "always accepted, for a local replica).",
     )
     sqlite_busy_timeout_ms: int = Field(10_000, ge=0)
+    sqlite_synchronous: Literal["full", "normal"] = Field(
+        "full",
+        description="SQLite's synchronous mode (WAL): 'full' keeps every acknowledged request "
+        "through an OS crash or power loss; 'normal' only through a crash of the server.",
+    )
 
     @field_validator("database_url")
     @classmethod

@@ -20,6 +20,7 @@ from tests.server.conftest import (
     study_config,
     teaching_participant,
     wait_for_updates,
+    wait_until_ready,
 )
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
@@ -138,7 +139,7 @@ def test_public_study_information_and_health(client: TestClient) -> None:
     study = client.get("/api/study").json()
     assert study["completion_mode"] == "mturk" and "3.00 USD" in study["payment"]
     assert "bam" not in str(study).lower()
-    health = client.get("/api/health").json()
+    health = wait_until_ready(client)
     assert health["status"] == "ok" and health["update_backlog"] >= 0
 
 

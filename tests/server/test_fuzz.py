@@ -14,7 +14,7 @@ from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given, settings
 
 from server.app.flow import TOKEN_HEADER
-from tests.server.conftest import ADMIN_TOKEN, teaching_participant
+from tests.server.conftest import ADMIN_TOKEN, teaching_participant, wait_until_ready
 
 # Bounded, so that the whole run (both backends) takes a few minutes.
 EXAMPLES_PER_OPERATION = 30
@@ -29,6 +29,7 @@ SENT: Counter[str] = Counter()
 
 @pytest.fixture
 def credentials(client: TestClient) -> dict[str, str]:
+    wait_until_ready(client)  # a ready server: /api/health answers 503 while it starts
     participant, _ = teaching_participant(client)
     return {TOKEN_HEADER: participant.token, "Authorization": f"Bearer {ADMIN_TOKEN}"}
 

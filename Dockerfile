@@ -38,7 +38,8 @@ USER bam
 RUN python -c "from server.learners.warmup import warm_up; warm_up()"
 EXPOSE 8000
 
-HEALTHCHECK --interval=10s --timeout=5s --start-period=30s --retries=3 \
+# Healthy once every update process has loaded the learners' compiled kernels (503 before).
+HEALTHCHECK --interval=10s --timeout=5s --start-period=120s --retries=3 \
     CMD python -c "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/api/health', timeout=4)"
 
 # Behind a TLS proxy (needed for MTurk's https iframe), set FORWARDED_ALLOW_IPS to the proxy's

@@ -98,6 +98,12 @@ def main(argv: list[str] | None = None) -> int:
         metavar="N",
         help="BAM's momentum alternations before L-BFGS-B (with --optimizer warm-lbfgs)",
     )
+    parser.add_argument(
+        "--sqlite-synchronous",
+        choices=("full", "normal"),
+        default="full",
+        help="SQLite's synchronous mode (BAM_SQLITE_SYNCHRONOUS; default full)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     if args.warm_alternations is not None:
@@ -121,6 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         "BAM_DATABASE_URL": url,
         "BAM_STUDY_CONFIG": str(study),
         "BAM_UPDATE_WORKERS": str(args.workers),
+        "BAM_SQLITE_SYNCHRONOUS": args.sqlite_synchronous,
     }
     plan = TeachingPlan(
         min_rounds=2,

@@ -1,6 +1,10 @@
 """Database engines, transactions and the Alembic migrations.
 
-SQLite (the embedded default) runs in WAL mode with a busy timeout and foreign keys on. All of
+SQLite (the embedded default) runs in WAL mode with a busy timeout and foreign keys on, and
+with ``synchronous=FULL`` by default: every commit (every acknowledged request) is on disk
+before it is answered, through an OS crash or power loss too. ``NORMAL``
+(``BAM_SQLITE_SYNCHRONOUS=normal``) survives a crash of the server process but may lose the
+last commits to an OS crash or power loss. All of
 one server's writes go through ``Database.write()``: on SQLite they queue on a lock inside the
 process and open with ``BEGIN IMMEDIATE``, so concurrent participants never see "database is
 locked" and never wait in SQLite's sleeping busy handler; on PostgreSQL each transaction locks
@@ -32,8 +36,15 @@ class SchemaError(RuntimeError):
     """The database schema is not at the version this code needs."""
 
 
+SQLITE_SYNCHRONOUS = ("full", "normal")
+
+
 def create_db_engine(
-    url: str, busy_timeout_ms: int = 10_000, pool_size: int = 20, **kwargs: Any
+    url: str,
+    busy_timeout_ms: int = 10_000,
+    pool_size: int = 20,
+    synchronous: str = "full",
+    **kwargs: Any,
 ) -> Engine:
     """An engine for ``url`` with the settings the study server relies on."""
     parsed = make_url(url)
@@ -44,12 +55,14 @@ def create_db_engine(
             raise ValueError("the study needs a SQLite file, not an in-memory database")
         connect_args = {"check_same_thread": False, "timeout": busy_timeout_ms / 1000}
         engine = create_engine(url, connect_args=connect_args, **kwargs)
-        _configure_sqlite(engine, busy_timeout_ms)
+        if synchronous not in SQLITE_SYNCHRONOUS:
+            raise ValueError(f"SQLite synchronous must be one of {SQLITE_SYNCHRONOUS}")
+        _configure_sqlite(engine, busy_timeout_ms, synchronous)
         return engine
     return create_engine(url, pool_pre_ping=True, **kwargs)
 
 
-def _configure_sqlite(engine: Engine, busy_timeout_ms: int) -> None:
+def _configure_sqlite(engine: Engine, busy_timeout_ms: int, synchronous: str) -> None:
     @event.listens_for(engine, "connect")
     def _on_connect(dbapi_connection: Any, _record: Any) -> None:
         # Take over BEGIN from the driver so that writes can BEGIN IMMEDIATE (see do_begin).
@@ -58,7 +71,7 @@ def _configure_sqlite(engine: Engine, busy_timeout_ms: int) -> None:
         cursor.execute("PRAGMA journal_mode=WAL")
         cursor.execute(f"PRAGMA busy_timeout={int(busy_timeout_ms)}")
         cursor.execute("PRAGMA foreign_keys=ON")
-        cursor.execute("PRAGMA synchronous=NORMAL")
+        cursor.execute(f"PRAGMA synchronous={synchronous.upper()}")
         cursor.close()
 
     @event.listens_for(engine, "begin")

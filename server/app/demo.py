@@ -114,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"  BAM_DATABASE_URL=sqlite:///{options.out.resolve() / 'study.sqlite'} "
         f"BAM_STUDY_CONFIG={options.out.resolve() / 'study.toml'} "
-        "BAM_ADMIN_TOKEN=choose-a-token bam-study serve"
+        f"BAM_ADMIN_TOKEN={secrets.token_urlsafe()} bam-study serve"
     )
     print("  then open http://127.0.0.1:8000/dashboard and sign in with that token.")
     return 0

@@ -200,7 +200,12 @@ DESCRIPTIONS = {
     "events": "One row per acknowledged participant request, in order (append-only log).",
     "evaluations": "One row per processed learner update of the study's sessions.",
     "status_changes": "One row per change of a participant's status.",
+    "data_dictionary": "Every file's columns. In every file, a text cell that begins with =, +, "
+    "-, @, a tab or a carriage return is written with an apostrophe (') before it, so that a "
+    "spreadsheet shows it as text instead of running it as a formula; remove that first "
+    "apostrophe to get the text as stored. Numbers are written as they are.",
 }
+FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
 
 
 def pseudonym(secret: str, value: str | None, prefix: str) -> str | None:
@@ -503,9 +508,29 @@ def dictionary_frame() -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["file", "column", "description"])
 
 
+def as_text(value: Any) -> Any:
+    """A text cell a spreadsheet will not run as a formula (``DESCRIPTIONS``)."""
+    if isinstance(value, str) and value.startswith(FORMULA_STARTS):
+        return "'" + value
+    return value
+
+
+def neutralised(frame: pd.DataFrame) -> pd.DataFrame:
+    text = [name for name in frame.columns if pd.api.types.is_string_dtype(frame[name].dtype)]
+    if not text:
+        return frame
+    frame = frame.copy()
+    for name in text:
+        frame[name] = frame[name].map(as_text)
+    return frame
+
+
 def export_files(tables: dict[str, pd.DataFrame]) -> dict[str, bytes]:
-    files = {f"{name}.csv": frame.to_csv(index=False).encode() for name, frame in tables.items()}
-    files["data_dictionary.csv"] = dictionary_frame().to_csv(index=False).encode()
+    files = {
+        f"{name}.csv": neutralised(frame).to_csv(index=False).encode()
+        for name, frame in tables.items()
+    }
+    files["data_dictionary.csv"] = neutralised(dictionary_frame()).to_csv(index=False).encode()
     return files
 
 

@@ -17,10 +17,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any
-from urllib.parse import urlsplit
 
 import numpy as np
-from sqlalchemy import Connection, and_, bindparam, func, or_, select
+from sqlalchemy import Connection, and_, bindparam, func, insert, or_, select
 from sqlalchemy.exc import IntegrityError
 
 from server.app.config import StudyConfig
@@ -31,6 +30,7 @@ from server.app.models import (
     LearnerUpdate,
     LearningSession,
     Participant,
+    ParticipantToken,
     StatusChange,
     utcnow,
 )
@@ -62,16 +62,29 @@ SESSIONS = table_of(LearningSession)
 EVENTS = table_of(Event)
 UPDATES = table_of(LearnerUpdate)
 STATUS_CHANGES = table_of(StatusChange)
+TOKENS = table_of(ParticipantToken)
 
 _random = secrets.SystemRandom()
 # Prepared: every request looks its participant up by token.
 _BY_TOKEN = select(PARTICIPANTS).where(PARTICIPANTS.c.token_hash == bindparam("token_hash"))
 _BY_TOKEN_LOCKED = _BY_TOKEN.with_for_update()
-# PostgreSQL advisory lock key of domain assignment: the study's own constant (the first 8 bytes
-# of sha256("bam-study domain assignment")).
-DOMAIN_LOCK_KEY = int.from_bytes(
-    hashlib.sha256(b"bam-study domain assignment").digest()[:8], "big", signed=True
+# A further browser's token (see ParticipantToken), looked up when the first's does not match.
+_BY_FURTHER_TOKEN = select(PARTICIPANTS).where(
+    PARTICIPANTS.c.id
+    == select(TOKENS.c.participant_id)
+    .where(TOKENS.c.token_hash == bindparam("token_hash"))
+    .scalar_subquery()
 )
+_BY_FURTHER_TOKEN_LOCKED = _BY_FURTHER_TOKEN.with_for_update()
+_ADD_TOKEN = insert(TOKENS)
+
+
+def advisory_lock_key(name: str) -> int:
+    """A PostgreSQL advisory lock key: the first 8 bytes of sha256(name)."""
+    return int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "big", signed=True)
+
+
+DOMAIN_LOCK_KEY = advisory_lock_key("bam-study domain assignment")
 _LOCK_DOMAIN_ASSIGNMENT = select(func.pg_advisory_xact_lock(DOMAIN_LOCK_KEY))
 _STORED_EVENT = select(EVENTS.c.request_hash, EVENTS.c.response).where(
     EVENTS.c.participant_id == bindparam("participant_id"), EVENTS.c.seq == bindparam("seq")
@@ -88,16 +101,25 @@ def hash_token(token: str) -> str:
     return hashlib.sha256(token.encode()).hexdigest()
 
 
+def participant_by_token(c: Connection, token: str, lock: bool = False) -> Record | None:
+    """The participant whose token (any of its browsers') this is; ``lock`` holds its row until
+    the transaction ends (PostgreSQL; SQLite writes are serialised already)."""
+    token_hash = {"token_hash": hash_token(token)}
+    row = c.execute(_BY_TOKEN_LOCKED if lock else _BY_TOKEN, token_hash).mappings().first()
+    if row is None:
+        further = _BY_FURTHER_TOKEN_LOCKED if lock else _BY_FURTHER_TOKEN
+        row = c.execute(further, token_hash).mappings().first()
+    return None if row is None else Record(PARTICIPANTS, row)
+
+
 def participant_for(c: Connection, token: str | None, lock: bool = False) -> Record:
-    """The participant whose token this is (401 otherwise); ``lock`` holds its row until the
-    transaction ends (PostgreSQL; SQLite writes are serialised already)."""
+    """The participant whose token this is (401 otherwise); ``lock`` as above."""
     if not token or len(token) > 128:
         raise ApiError(401, "no participant: open the study from its link again")
-    query = _BY_TOKEN_LOCKED if lock else _BY_TOKEN
-    row = c.execute(query, {"token_hash": hash_token(token)}).mappings().first()
-    if row is None:
+    participant = participant_by_token(c, token, lock)
+    if participant is None:
         raise ApiError(401, "unknown participant token: open the study from its link again")
-    return Record(PARTICIPANTS, row)
+    return participant
 
 
 # -- statuses -------------------------------------------------------------------------------
@@ -158,7 +180,7 @@ class Platform:
 
 
 def classify_arrival(
-    request: ArrivalRequest, study: StudyConfig, settings: Settings, own_host: str | None
+    request: ArrivalRequest, study: StudyConfig, settings: Settings, own_origin: str | None
 ) -> Platform | None:
     """The arrival's platform and ids; None for an MTurk preview. Bad parameters get 400,
     arrivals the study does not accept are turned away."""
@@ -178,7 +200,7 @@ def classify_arrival(
         ]
         if missing:
             raise ApiError(400, f"the Mechanical Turk link lacks {', '.join(missing)}")
-        submit_to = _check_submit_to(str(request.turk_submit_to), settings, own_host)
+        submit_to = _check_submit_to(str(request.turk_submit_to), settings, own_origin)
         platform = Platform(
             "mturk", request.worker_id, request.assignment_id, request.hit_id, submit_to
         )
@@ -211,15 +233,23 @@ def classify_arrival(
     return platform
 
 
-def _check_submit_to(value: str, settings: Settings, own_host: str | None) -> str:
-    parts = urlsplit(value)
-    host = (parts.hostname or "").lower()
-    allowed = host in settings.submit_hosts or (own_host is not None and host == own_host.lower())
-    if parts.scheme not in ("https", "http") or not allowed:
-        raise ApiError(400, f"turkSubmitTo must be a Mechanical Turk address, got {value!r}")
-    if parts.scheme == "http" and host in settings.submit_hosts:
-        raise ApiError(400, "turkSubmitTo must use https")
-    return value.rstrip("/")
+def _check_submit_to(value: str, settings: Settings, own_origin: str | None) -> str:
+    """The origin the completion form posts to: exactly one of MTurk's (or this server's, for
+    the local replica), written as the accepted origin, never as the raw parameter. Matching
+    whole origins leaves nothing for browsers and URL parsers to read differently (a
+    backslash, user info, a port, a control character, a bracketed host)."""
+    allowed = {origin.lower(): origin for origin in settings.submit_origins}
+    if own_origin is not None and own_origin.isascii() and own_origin.isprintable():
+        allowed[own_origin.lower()] = own_origin
+    candidate = value[:-1] if value.endswith("/") else value
+    origin = allowed.get(candidate.lower())
+    if origin is None:
+        raise ApiError(
+            400,
+            f"turkSubmitTo must be one of {', '.join(sorted(settings.submit_origins))} "
+            f"(or this server, for its Mechanical Turk replica), got {value[:100]!a}",
+        )
+    return origin
 
 
 @dataclass
@@ -248,14 +278,19 @@ def _arrive(
     now = utcnow()
     with db.transaction() as c:
         current = None
-        if cookie_token:
-            current = load(c, PARTICIPANTS, PARTICIPANTS.c.token_hash == hash_token(cookie_token))
+        if cookie_token and len(cookie_token) <= 128:
+            current = participant_by_token(c, cookie_token)
         if platform.name == "lab":
             if current is not None and current.platform == "lab":
                 reactivate(c, current, now)
                 current.save(c)
                 return Arrival(current, None, True)
             return Arrival(*_create(c, platform, now), False)
+        if c.dialect.name == "postgresql" and not study.allow_repeat_workers:
+            # One worker's arrivals one at a time, until this one commits (SQLite's writes are
+            # one at a time already: BEGIN IMMEDIATE).
+            key = advisory_lock_key(f"bam-study worker {platform.name} {platform.worker_id}")
+            c.execute(select(func.pg_advisory_xact_lock(key)))
         existing = load(
             c,
             PARTICIPANTS,
@@ -263,7 +298,12 @@ def _arrive(
             PARTICIPANTS.c.worker_id == platform.worker_id,
             PARTICIPANTS.c.assignment_id == platform.assignment_id,
         )
-        if existing is None and not study.allow_repeat_workers and _took_part(c, platform):
+        coming_back = existing is None or existing.status == "returned"
+        if (
+            coming_back
+            and not study.allow_repeat_workers
+            and _took_part(c, platform, None if existing is None else existing.id)
+        ):
             raise TurnedAway(
                 "You have already taken part",
                 "Our records show that you have already taken part in this study, which allows "
@@ -287,27 +327,35 @@ def _arrive(
             restore_status(c, existing, now)
         token = None
         if current is None or current.id != existing.id:
-            # The cookie is gone (a new browser, or blocked in the platform's iframe): the
-            # platform's ids identify the participant; the old token stops working.
-            token, existing.token_hash = new_token()
+            # Another browser (or the cookie is blocked in the platform's iframe): the
+            # platform's ids identify the participant, and this browser gets a token of its own
+            # beside the others' (the sequence numbers keep their requests in order).
+            token, token_hash = new_token()
+            c.execute(
+                _ADD_TOKEN,
+                {"token_hash": token_hash, "participant_id": existing.id, "created_at": now},
+            )
         existing.save(c)
         return Arrival(existing, token, True)
 
 
-def _took_part(c: Connection, platform: Platform) -> bool:
-    consented = select(STATUS_CHANGES.c.participant_id).where(
-        STATUS_CHANGES.c.status == "consented"
-    )
-    count = c.scalar(
+def _took_part(c: Connection, platform: Platform, other_than: int | None) -> bool:
+    """The worker has another participation that still counts: any but one returned (the
+    assignment went to another worker) or declined (no consent), whatever its status. The
+    worker's arrivals are serialised (``_arrive``), so two arriving at once cannot both find
+    none."""
+    query = (
         select(func.count())
         .select_from(PARTICIPANTS)
         .where(
             PARTICIPANTS.c.platform == platform.name,
             PARTICIPANTS.c.worker_id == platform.worker_id,
-            PARTICIPANTS.c.id.in_(consented),
+            PARTICIPANTS.c.status.not_in(("returned", "declined")),
         )
     )
-    return bool(count)
+    if other_than is not None:
+        query = query.where(PARTICIPANTS.c.id != other_than)
+    return bool(c.scalar(query))
 
 
 def _create(c: Connection, platform: Platform, now: datetime) -> tuple[Record, str]:

@@ -36,7 +36,7 @@ class LiveServer:
     def log_path(self) -> Path:
         return self.folder / f"server-{self.starts}.log"
 
-    def start(self, timeout: float = 60.0) -> None:
+    def start(self, timeout: float = 600.0) -> None:
         self.starts += 1
         with open(self.log_path, "wb") as log:
             self.process = subprocess.Popen(

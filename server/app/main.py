@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 from collections.abc import AsyncIterator
 from concurrent.futures import Executor
 from contextlib import asynccontextmanager
@@ -11,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -29,6 +31,7 @@ from server.app.routers import (
     sessions,
     study,
 )
+from server.app.schemas import ERROR_RESPONSES
 from server.app.settings import Settings, get_settings
 from server.app.state import ServerState
 from server.app.updates import UpdateManager
@@ -102,7 +105,9 @@ def create_app(
     own_db = db is None
     if db is None:
         db = Database.from_url(
-            settings.database_url, busy_timeout_ms=settings.sqlite_busy_timeout_ms
+            settings.database_url,
+            busy_timeout_ms=settings.sqlite_busy_timeout_ms,
+            synchronous=settings.sqlite_synchronous,
         )
     state = ServerState(db=db, study=study_config, settings=settings)
 
@@ -140,6 +145,7 @@ def create_app(
         title="BAM Study",
         summary="Participants teach learning agents in grid worlds; every event is stored.",
         lifespan=lifespan,
+        responses=ERROR_RESPONSES,
     )
     app.state.server = state
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
@@ -150,6 +156,12 @@ def create_app(
         if isinstance(error, TurnedAway):
             content["turned_away"] = True
         return JSONResponse(content, status_code=error.status, headers=error.headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(request: Request, error: RequestValidationError) -> JSONResponse:
+        # FastAPI's own handler echoes the input as it was parsed, which JSON cannot always
+        # write (NaN, Infinity, a lone surrogate): the echo is made writable here.
+        return JSONResponse({"detail": _writable(list(error.errors()))}, status_code=422)
 
     for router in (
         study.router,
@@ -166,6 +178,22 @@ def create_app(
     if STATIC_DIR.is_dir():
         app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     return app
+
+
+def _writable(value: Any) -> Any:
+    """``value`` with what strict JSON cannot hold written as text: non-finite numbers, lone
+    surrogates (as escapes), and objects other than JSON's types."""
+    if isinstance(value, str):
+        return value.encode("utf-8", "backslashreplace").decode("utf-8")
+    if isinstance(value, bool | int | None):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else str(value)
+    if isinstance(value, dict):
+        return {str(_writable(k)): _writable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_writable(v) for v in value]
+    return _writable(str(value))
 
 
 async def _sweep_forever(state: ServerState) -> None:

@@ -108,6 +108,18 @@ class Participant(Base):
     last_seen_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
 
 
+class ParticipantToken(Base):
+    """The token of each further browser of a participant (one that arrived again without the
+    first's cookie): every browser keeps its own. The first is ``participants.token_hash``."""
+
+    __tablename__ = "participant_tokens"
+
+    # SHA-256 of the token, as for the first.
+    token_hash: Mapped[str] = mapped_column(String(64), primary_key=True)
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), index=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
 class StatusChange(Base):
     __tablename__ = "status_changes"
 

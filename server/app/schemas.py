@@ -10,7 +10,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 MAX_SEQ = 1_000_000_000
 ID_PATTERN = r"^[A-Za-z0-9_\-]{1,128}$"
@@ -19,8 +19,28 @@ Mode = Literal["idle", "demonstrate", "agent"]
 Move = Literal["UP", "DOWN", "LEFT", "RIGHT"]
 
 
+def plain_text(value: str) -> str:
+    """Text the database stores as given: Unicode (no lone surrogate) without NUL, the same rule
+    on SQLite and PostgreSQL (whose text cannot hold NUL)."""
+    if "\x00" in value:
+        raise ValueError("text must not contain NUL characters")
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError:
+        raise ValueError("text must be valid Unicode (no lone surrogate)") from None
+    return value
+
+
 class Body(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """A request body: the JSON types documented (strict: no "1" for 1, no "yes" for true), no
+    unknown field, text without NUL or lone surrogates."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    @field_validator("*", mode="after")
+    @classmethod
+    def _plain_text(cls, value: Any) -> Any:
+        return plain_text(value) if isinstance(value, str) else value
 
 
 class SeqRequest(Body):
@@ -50,7 +70,7 @@ class FeedbackRequest(SeqRequest):
 class ArrivalRequest(Body):
     """The parameters the platform appends to the study URL (none for a lab participant)."""
 
-    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+    model_config = ConfigDict(extra="forbid", strict=True, populate_by_name=True)
 
     assignment_id: str | None = Field(None, alias="assignmentId", pattern=ID_PATTERN)
     hit_id: str | None = Field(None, alias="hitId", pattern=ID_PATTERN)
@@ -62,6 +82,28 @@ class ArrivalRequest(Body):
 
 
 # -- responses ------------------------------------------------------------------------------
+class ErrorMessage(BaseModel):
+    """Every refusal but a 422 (whose detail lists the fields at fault)."""
+
+    detail: str
+    turned_away: bool | None = Field(None, description="The arrival is refused for good.")
+
+
+ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
+    status: {"model": ErrorMessage, "description": description}
+    for status, description in {
+        400: "A bad request (a bad link, a bad parameter).",
+        401: "No participant or admin token, or an unknown one.",
+        403: "Turned away (a repeat worker, or the wrong platform).",
+        404: "No such participant or learning session.",
+        409: "Not now: a sequence number out of order, or a step the flow is not at.",
+        413: "The request body is too large.",
+        429: "Too many failed sign-ins from this address: wait Retry-After seconds.",
+        503: "Not available: the admin token is not set, or the agent is still learning.",
+    }.items()
+}
+
+
 class Colour(BaseModel):
     name: str
     hex: str

@@ -22,6 +22,7 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
     from pydantic import ValidationError
 
+    from server.app.admin_auth import weak_admin_token
     from server.app.config import StudyConfigError, load_study_config
     from server.app.db import Database, SchemaError, prepare_schema
     from server.app.main import create_app
@@ -33,7 +34,15 @@ def run(args: argparse.Namespace) -> int:
     except (ValidationError, StudyConfigError) as error:
         print(f"bam-study serve: {error}", file=sys.stderr)
         return 2
-    db = Database.from_url(settings.database_url, busy_timeout_ms=settings.sqlite_busy_timeout_ms)
+    weak = weak_admin_token(settings)
+    if weak is not None:
+        print(f"bam-study serve: {weak}", file=sys.stderr)
+        return 2
+    db = Database.from_url(
+        settings.database_url,
+        busy_timeout_ms=settings.sqlite_busy_timeout_ms,
+        synchronous=settings.sqlite_synchronous,
+    )
     try:
         print(prepare_schema(db.engine), file=sys.stderr)
     except SchemaError as error:

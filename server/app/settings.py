@@ -6,6 +6,7 @@ The study itself (domains, environments, learners, texts) is in the study config
 
 from __future__ import annotations
 
+import re
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
@@ -74,6 +75,11 @@ class Settings(BaseSettings):
         "always accepted, for a local replica).",
     )
     sqlite_busy_timeout_ms: int = Field(10_000, ge=0)
+    sqlite_synchronous: Literal["full", "normal"] = Field(
+        "full",
+        description="SQLite's synchronous mode (WAL): 'full' keeps every acknowledged request "
+        "through an OS crash or power loss; 'normal' only through a crash of the server.",
+    )
 
     @field_validator("database_url")
     @classmethod
@@ -94,9 +100,22 @@ class Settings(BaseSettings):
     def is_sqlite(self) -> bool:
         return self.database_url.startswith("sqlite")
 
+    @field_validator("mturk_submit_hosts")
+    @classmethod
+    def _plain_hosts(cls, value: str) -> str:
+        for host in value.split(","):
+            if host.strip() and not re.fullmatch(r"[A-Za-z0-9.-]+", host.strip()):
+                raise ValueError(
+                    f"BAM_MTURK_SUBMIT_HOSTS lists host names only (no scheme, port or path), "
+                    f"got {host.strip()!r}"
+                )
+        return value
+
     @property
-    def submit_hosts(self) -> frozenset[str]:
-        return frozenset(h.strip().lower() for h in self.mturk_submit_hosts.split(",") if h.strip())
+    def submit_origins(self) -> frozenset[str]:
+        """The origins accepted in turkSubmitTo (HTTPS on the default port)."""
+        hosts = (h.strip().lower() for h in self.mturk_submit_hosts.split(","))
+        return frozenset(f"https://{host}" for host in hosts if host)
 
 
 @lru_cache

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, TypeVar
 
 from starlette.concurrency import run_in_threadpool
 
+from server.app.admin_auth import AdminSessions, SignInGuard
 from server.app.config import StudyConfig
 from server.app.db import Database
 from server.app.policies import PolicyCache
@@ -27,6 +28,8 @@ class ServerState:
     settings: Settings
     policies: PolicyCache = field(default_factory=PolicyCache)
     updates: UpdateManager | None = None
+    sign_ins: SignInGuard = field(default_factory=SignInGuard)
+    admin_sessions: AdminSessions = field(default_factory=AdminSessions)
 
     async def run_db(self, work: Callable[[], T]) -> T:
         """Run a short database transaction for a request. On SQLite, in the event loop itself:

@@ -82,8 +82,10 @@ def worker_init(niceness: int, server_pid: int) -> None:
         print(f"update process {os.getpid()} ready in {seconds:.1f} s", file=sys.stderr)
 
 
-def worker_ready() -> int:
-    """A job that only starts an update process (its ``worker_init``)."""
+def worker_ready(hold_seconds: float = 0.0) -> int:
+    """A job that only starts an update process (its ``worker_init``, which warms it up before
+    it takes any job) and names it; held a moment, so that the next goes to another process."""
+    time.sleep(hold_seconds)
     return os.getpid()
 
 
@@ -205,6 +207,8 @@ class UpdateManager:
         self._in_flight = 0  # updates submitted to the processes and not yet returned
         self.completed = 0
         self.failed = 0
+        self.warm_processes = 0  # update processes known to have loaded the kernels
+        self.ready = False  # every update process is warm
         self._stopping = False
 
     # -- lifecycle ---------------------------------------------------------------------------
@@ -216,6 +220,7 @@ class UpdateManager:
         if self._executor is None:
             self._executor = new_executor(self.workers, self.niceness)
             self._start_workers()
+        self._spawn(self._await_warm())
         self._spawn(self._dispatch())
         self._spawn(self._rescan_forever())
 
@@ -412,6 +417,39 @@ class UpdateManager:
         assert self._executor is not None
         for _ in range(self.workers):
             self._executor.submit(worker_ready)
+
+    async def _await_warm(self) -> None:
+        """Until every update process answers a job, which it takes only once it has loaded
+        (or compiled) the learners' kernels: then the server is ready (``/api/health``)."""
+        began = time.monotonic()
+        log.info(
+            "waiting for %d update process(es) to load the learners' compiled kernels (where "
+            "numba's cache lacks them, as on a first start, they are compiled: about a minute); "
+            "/api/health answers 503 until then",
+            self.workers,
+        )
+        seen: set[int] = set()
+        pool = self._executor
+        while len(seen) < self.workers:
+            executor = self._executor
+            assert executor is not None
+            if executor is not pool:  # replaced: its processes are new
+                seen.clear()
+                pool = executor
+            try:
+                jobs = [executor.submit(worker_ready, 0.2) for _ in range(self.workers)]
+                for done in asyncio.as_completed([asyncio.wrap_future(job) for job in jobs]):
+                    seen.add(await done)
+                    self.warm_processes = min(len(seen), self.workers)
+            except asyncio.CancelledError:
+                raise
+            except Exception:  # a broken pool is replaced by the dispatcher
+                await asyncio.sleep(0.5)
+        self.ready = True
+        log.info(
+            "update processes ready after %.1f s: the server is ready",
+            time.monotonic() - began,
+        )
 
     async def _rescan_forever(self) -> None:
         while True:

@@ -180,6 +180,17 @@ def teaching_participant(
     return participant, data["participant"]["current_session_id"]
 
 
+def wait_until_ready(client: TestClient, timeout: float = 120.0) -> dict[str, Any]:
+    """Until /api/health answers 200 (every update process warm); its answer."""
+    deadline = time.monotonic() + timeout
+    while (response := client.get("/api/health")).status_code == 503:
+        if time.monotonic() > deadline:
+            raise AssertionError(f"not ready after {timeout} s: {response.text}")
+        time.sleep(0.05)
+    assert response.status_code == 200, response.text
+    return dict(response.json())
+
+
 def count_events(db: Database) -> int:
     with db.read() as s:
         return int(s.scalar(select(func.count()).select_from(Event)) or 0)

@@ -2,19 +2,25 @@
 
 from __future__ import annotations
 
+import time
 from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
+import pytest
 from fastapi.testclient import TestClient
 
+from server.app.admin_auth import FAILURES_ALLOWED, SESSION_SECONDS
 from server.app.db import Database
 from server.app.main import create_app
 from server.app.settings import Settings
+from server.cli import main
 from tests.server.conftest import (
     ADMIN_TOKEN,
     demonstrate_each_task,
     study_config,
     teaching_participant,
     wait_for_updates,
+    wait_until_ready,
 )
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
@@ -133,5 +139,89 @@ def test_public_study_information_and_health(client: TestClient) -> None:
     study = client.get("/api/study").json()
     assert study["completion_mode"] == "mturk" and "3.00 USD" in study["payment"]
     assert "bam" not in str(study).lower()
-    health = client.get("/api/health").json()
+    health = wait_until_ready(client)
     assert health["status"] == "ok" and health["update_backlog"] >= 0
+
+
+def test_serve_refuses_a_short_admin_token(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("BAM_DATABASE_URL", f"sqlite:///{tmp_path / 'study.db'}")
+    monkeypatch.setenv("BAM_ADMIN_TOKEN", "hunter2hunter2")
+    assert main(["serve", "--port", "1"]) == 2
+    error = capsys.readouterr().err
+    assert "BAM_ADMIN_TOKEN has 14 characters; it needs at least 16" in error
+    assert "secrets.token_urlsafe()" in error
+    assert not (tmp_path / "study.db").exists()  # refused before touching the database
+
+
+def test_failed_sign_ins_are_limited_per_address(client: TestClient) -> None:
+    state = client.app.state.server
+    clock = [1000.0]
+    state.sign_ins.clock = lambda: clock[0]
+    other = TestClient(client.app, client=("192.0.2.7", 5000))
+    for _ in range(FAILURES_ALLOWED):
+        wrong = client.post("/dashboard/login", data={"token": "guess", "next": "/dashboard"})
+        assert wrong.status_code == 401
+    # Past the limit the address gets 429 with Retry-After, even with the right token, on the
+    # login form and on the admin API alike.
+    for response in (
+        client.post("/dashboard/login", data={"token": ADMIN_TOKEN}, follow_redirects=False),
+        client.get("/api/admin/participants", headers={"Authorization": "Bearer guess"}),
+        client.get("/api/admin/participants", headers=ADMIN),
+        client.get("/dashboard/api/participants", headers=ADMIN),
+    ):
+        assert response.status_code == 429, response.text
+        assert response.headers["Retry-After"] == "60"
+        assert "too many failed sign-ins" in response.text
+    # Another address is not held up.
+    assert other.get("/api/admin/participants", headers=ADMIN).status_code == 200
+    # A minute after the first failure, one more try.
+    clock[0] += 30
+    assert client.get("/api/admin/sessions", headers=ADMIN).headers["Retry-After"] == "30"
+    clock[0] += 30
+    assert client.get("/api/admin/participants", headers=ADMIN).status_code == 200
+
+
+def sign_in(client: TestClient) -> str:
+    response = client.post(
+        "/dashboard/login", data={"token": ADMIN_TOKEN, "next": "/dashboard"},
+        follow_redirects=False,
+    )  # fmt: skip
+    assert response.status_code == 303
+    cookie = client.cookies.get("bam_admin")
+    assert cookie is not None and ADMIN_TOKEN not in cookie
+    return cookie
+
+
+def test_the_dashboard_cookie_is_a_session_that_expires_and_is_revoked(
+    client: TestClient,
+) -> None:
+    state = client.app.state.server
+    first = sign_in(client)
+    second = sign_in(TestClient(client.app))
+    assert first != second  # a random id per session, not a fixed value of the token
+    copied = TestClient(client.app)
+    copied.cookies.set("bam_admin", first)
+    assert copied.get("/dashboard/api/participants").status_code == 200
+    # Signing out revokes the session: the copy stops working, the other session goes on.
+    assert client.post("/dashboard/logout", follow_redirects=False).status_code == 303
+    assert copied.get("/dashboard/api/participants").status_code == 401
+    other = TestClient(client.app)
+    other.cookies.set("bam_admin", second)
+    assert other.get("/dashboard/api/participants").status_code == 200
+    # A changed expiry or signature is refused.
+    session_id, expires, signature = second.split(".")
+    for forged in (
+        f"{session_id}.{int(expires) + 3600}.{signature}",
+        f"{session_id}.{expires}.{'0' * len(signature)}",
+        f"{session_id}.{expires}",
+        "",
+    ):
+        forger = TestClient(client.app)
+        forger.cookies.set("bam_admin", forged)
+        assert forger.get("/dashboard/api/participants").status_code == 401
+    # The session ends at its expiry.
+    now = time.time()
+    state.admin_sessions.clock = lambda: now + SESSION_SECONDS + 1
+    assert other.get("/dashboard/api/participants").status_code == 401

@@ -3,6 +3,7 @@ resuming with and without the cookie, and bad links."""
 
 from __future__ import annotations
 
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 from fastapi.testclient import TestClient
@@ -78,17 +79,48 @@ def test_arriving_again_resumes_the_same_participant(client: TestClient, db: Dat
     assert again.json()["resumed"] is True
     assert again.json()["token"] is None
     assert again.json()["participant"]["participant_id"] == first["participant"]["participant_id"]
-    # A new browser without the cookie: the MTurk ids identify the participant, a new token is
-    # issued and the old one stops working.
+    # A new browser without the cookie: the MTurk ids identify the participant, and the new
+    # browser gets a token of its own; the first browser's goes on working.
     other = TestClient(client.app)
     resumed = arrive(other)
     assert resumed.status_code == 200
     assert resumed.json()["participant"]["participant_id"] == first["participant"]["participant_id"]
     assert resumed.json()["token"] not in (None, first["token"])
     old = client.get("/api/participant", headers={"X-Participant-Token": first["token"]})
-    assert old.status_code == 401
+    assert old.status_code == 200
     new = other.get("/api/participant", headers={"X-Participant-Token": resumed.json()["token"]})
     assert new.status_code == 200
+    assert participants_in(db) == 1
+
+
+def test_every_browser_of_a_participant_keeps_its_own_token(
+    client: TestClient, db: Database
+) -> None:
+    browsers = 8
+    start = threading.Barrier(browsers)
+
+    def one(_: int) -> tuple[int, str]:
+        other = TestClient(client.app)
+        start.wait()
+        response = arrive(other, "W4", "A4")
+        assert response.status_code in (200, 201), response.text
+        return response.json()["participant"]["participant_id"], response.json()["token"]
+
+    with ThreadPoolExecutor(browsers) as pool:
+        arrivals = list(pool.map(one, range(browsers)))
+    assert len({participant for participant, _ in arrivals}) == 1
+    tokens = [token for _, token in arrivals]
+    assert len(set(tokens)) == browsers
+    # Each browser's token works, and their requests share the participant's sequence.
+    participants = [Participant(client, token) for token in tokens]
+    participants[0].act("/api/participant/consent", agree=True)
+    participants[1].seq = 2
+    session = participants[1].act("/api/participant/start")["participant"]["current_session_id"]
+    for seq, participant in enumerate(participants[2:], start=3):
+        participant.seq = seq
+        participant.act(f"/api/sessions/{session}/move", action="UP")
+    for participant in participants:
+        assert participant.get("/api/participant")["next_seq"] == browsers + 1
     assert participants_in(db) == 1
 
 
@@ -109,11 +141,56 @@ def test_a_worker_who_took_part_is_turned_away(client: TestClient, db: Database)
     assert participants_in(db) == 1
 
 
-def test_a_worker_who_only_looked_at_the_consent_may_come_back(
+def test_a_worker_with_an_open_participation_is_turned_away(
     client: TestClient, db: Database
 ) -> None:
+    # Before consenting to either: the first participation counts whatever its status.
     new_participant(client, "W8", "A1")
+    refused = arrive(TestClient(client.app), "W8", "A2")
+    assert refused.status_code == 403 and refused.json()["turned_away"] is True
+    # Arriving again with the first assignment resumes it.
+    assert arrive(TestClient(client.app), "W8", "A1").status_code == 200
+    assert participants_in(db) == 1
+
+
+def test_a_worker_who_declined_or_whose_assignment_was_returned_may_come_back(
+    client: TestClient, db: Database
+) -> None:
+    declined = new_participant(client, "W8", "A1")
+    declined.act("/api/participant/consent", agree=False)
     assert arrive(TestClient(client.app), "W8", "A2").status_code == 201
+    # W8's A2 goes to W9 (W8 returned it on MTurk): W8 may take A3, and then not A2 again.
+    assert arrive(TestClient(client.app), "W9", "A2").status_code == 201
+    assert arrive(TestClient(client.app), "W8", "A3").status_code == 201
+    assert arrive(TestClient(client.app), "W8", "A2").status_code == 403
+
+
+def test_simultaneous_arrivals_of_one_worker_with_different_assignments_make_one_participation(
+    client: TestClient, db: Database
+) -> None:
+    arrivals = 8
+    start = threading.Barrier(arrivals)
+
+    def one(number: int) -> tuple[int, str | None]:
+        other = TestClient(client.app)
+        start.wait()
+        response = arrive(other, "W6", f"RA{number}")
+        assert response.status_code in (201, 403), response.text
+        if response.status_code == 403:
+            return 403, None
+        token = response.json()["token"]
+        consent = other.post(
+            "/api/participant/consent",
+            json={"seq": 1, "agree": True},
+            headers={"X-Participant-Token": token},
+        )
+        assert consent.status_code == 200, consent.text
+        return 201, token
+
+    with ThreadPoolExecutor(arrivals) as pool:
+        answers = list(pool.map(one, range(arrivals)))
+    assert sorted(status for status, _ in answers) == [201] + [403] * (arrivals - 1)
+    assert participants_in(db) == 1
 
 
 def test_repeat_workers_are_accepted_when_the_study_allows_them(db: Database, executor) -> None:
@@ -286,3 +363,64 @@ def test_simultaneous_arrivals_of_one_worker_make_one_participant(
         ids = set(pool.map(one, range(6)))
     assert len(ids) == 1
     assert participants_in(db) == 1
+
+
+# turkSubmitTo values a browser and Python's URL parser read differently, or that point
+# elsewhere: each is refused on the API and on the study page, and creates nothing.
+CRAFTED_SUBMIT_TO = [
+    "https://evil.example\\@www.mturk.com",
+    "https://evil.example\\www.mturk.com",
+    "https://user:pw@www.mturk.com",
+    "https://www.mturk.com@evil.example",
+    "https://www.mturk.com:99999",
+    "https://www.mturk.com:443",
+    "https://www.mturk.com:8443",
+    "https://www.mturk.com.evil.example",
+    "https://www.mturk.com/../@evil.example",
+    "https://www.mturk.com/mturk",
+    "https://www.mturk.com?x=1",
+    "https://www.mturk.com#x",
+    "https://www.mturk.com\t",
+    "https://www.mturk.com\n.evil.example",
+    "https://www.mturk.com\x00",
+    " https://www.mturk.com",
+    "//www.mturk.com",
+    "http://www.mturk.com",
+    "https://[::1",
+    "https://[::1]",
+    "http://evil.example",
+    "javascript:alert(1)",
+]
+
+
+def test_crafted_submit_addresses_are_refused(client: TestClient, db: Database) -> None:
+    for value in CRAFTED_SUBMIT_TO:
+        params = {"assignmentId": "A1", "hitId": "H1", "workerId": "W1", "turkSubmitTo": value}
+        response = client.post("/api/arrivals", json=params)
+        assert response.status_code in (400, 422), (value, response.text)
+        assert "turkSubmitTo" in str(response.json()["detail"]), value
+        page = client.get("/study", params=params)
+        assert page.status_code == 400, (value, page.text)
+        assert "<form" not in page.text
+    assert participants_in(db) == 0
+
+
+def test_the_submit_url_is_built_from_the_accepted_origin(client: TestClient, db: Database) -> None:
+    accepted = {
+        "https://www.mturk.com": "https://www.mturk.com",
+        "https://workersandbox.mturk.com/": "https://workersandbox.mturk.com",
+        "HTTPS://WWW.MTURK.COM": "https://www.mturk.com",
+        # The local replica: this server's own origin (the test client's is http://testserver).
+        "http://testserver": "http://testserver",
+    }
+    for number, (value, origin) in enumerate(accepted.items()):
+        response = arrive(TestClient(client.app), f"W{number}", f"A{number}", turkSubmitTo=value)
+        assert response.status_code == 201, (value, response.text)
+        with db.read() as s:
+            stored = s.scalar(
+                select(ParticipantRow.submit_to).where(ParticipantRow.worker_id == f"W{number}")
+            )
+        assert stored == origin
+    # Another port of this server's host is another origin.
+    response = arrive(client, "W9", "A9", turkSubmitTo="http://testserver:8080")
+    assert response.status_code == 400

@@ -3,6 +3,7 @@ one evaluation per update, pseudonymised worker ids unless asked otherwise."""
 
 from __future__ import annotations
 
+import csv
 import io
 import sqlite3
 import zipfile
@@ -155,3 +156,45 @@ def test_exporting_a_missing_sqlite_file_fails_clearly_and_creates_nothing(
     assert main(["export", "--database-url", url, "--out", str(tmp_path / "out")]) == 1
     assert f"no database file {missing}" in capsys.readouterr().err
     assert sorted(tmp_path.iterdir()) == []  # no empty missing.db (nor -wal, -shm, out/)
+
+
+def test_text_cells_that_a_spreadsheet_would_run_are_neutralised(
+    client: TestClient, db: Database
+) -> None:
+    admin = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    reasons = {
+        "-": "-2+3",
+        "=": '=HYPERLINK("http://example.org","x")',
+        "+": "+1",
+        "@": "@SUM(A1)",
+        "tab": "\t=1",
+        "plain": "left early",
+    }
+    for number, reason in enumerate(reasons.values(), start=1):
+        worker = "-W" if number == 1 else f"W{number}"
+        arrival = {
+            "assignmentId": f"A{number}", "hitId": "H", "workerId": worker,
+            "turkSubmitTo": "https://www.mturk.com",
+        }  # fmt: skip
+        assert client.post("/api/arrivals", json=arrival).status_code == 201
+        excluded = client.post(
+            f"/api/admin/participants/{number}/exclusion", json={"reason": reason}, headers=admin
+        )
+        assert excluded.status_code == 200
+    response = client.get("/api/admin/export.zip?pseudonymize=false", headers=admin)
+    with zipfile.ZipFile(io.BytesIO(response.content)) as archive:
+        participants = list(csv.DictReader(io.StringIO(archive.read("participants.csv").decode())))
+        changes = list(csv.DictReader(io.StringIO(archive.read("status_changes.csv").decode())))
+        dictionary = archive.read("data_dictionary.csv").decode()
+    written = [row["exclusion_reason"] for row in participants]
+    assert written == ["'" + r if r != "left early" else r for r in reasons.values()]
+    assert participants[0]["worker_id"] == "'-W"
+    notes = [row["note"] for row in changes if row["status"] == "excluded"]
+    assert notes == written
+    # The numbers stay numbers, and the data dictionary says what was done.
+    assert [row["participant_id"] for row in participants] == ["1", "2", "3", "4", "5", "6"]
+    assert "apostrophe" in dictionary
+    # The database keeps the text as given.
+    assert (
+        client.get("/api/admin/participants/1", headers=admin).json()["exclusion_reason"] == "-2+3"
+    )

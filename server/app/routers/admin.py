@@ -9,7 +9,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from server.app import export, flow, teaching
-from server.app.deps import AdminDep, StateDep
+from server.app.deps import AdminDep, RowId, StateDep
 from server.app.errors import ApiError
 from server.app.models import (
     Event,
@@ -161,14 +161,16 @@ def _participant_detail(s: Session, participant_id: int) -> AdminParticipantDeta
 
 
 @router.get("/participants/{participant_id}", response_model=AdminParticipantDetail)
-def read_participant(participant_id: int, state: StateDep) -> AdminParticipantDetail:
+def read_participant(participant_id: RowId, state: StateDep) -> AdminParticipantDetail:
     """One participant: status history and learning sessions."""
     with state.db.read() as s:
         return _participant_detail(s, participant_id)
 
 
 @router.post("/participants/{participant_id}/exclusion", response_model=AdminParticipantDetail)
-def exclude(participant_id: int, body: ExclusionRequest, state: StateDep) -> AdminParticipantDetail:
+def exclude(
+    participant_id: RowId, body: ExclusionRequest, state: StateDep
+) -> AdminParticipantDetail:
     """Exclude the participant from analysis (their flow goes on unchanged)."""
     with state.db.write() as s:
         p = s.get(Participant, participant_id)
@@ -185,7 +187,7 @@ def exclude(participant_id: int, body: ExclusionRequest, state: StateDep) -> Adm
 
 
 @router.delete("/participants/{participant_id}/exclusion", response_model=AdminParticipantDetail)
-def include(participant_id: int, state: StateDep) -> AdminParticipantDetail:
+def include(participant_id: RowId, state: StateDep) -> AdminParticipantDetail:
     """Undo an exclusion."""
     with state.db.write() as s:
         p = s.get(Participant, participant_id)
@@ -223,7 +225,7 @@ def _session(s: Session, session_id: int) -> LearningSession:
 
 
 @router.get("/sessions/{session_id}/evaluations", response_model=list[AdminEvaluation])
-def list_evaluations(session_id: int, state: StateDep) -> list[AdminEvaluation]:
+def list_evaluations(session_id: RowId, state: StateDep) -> list[AdminEvaluation]:
     """The session's learning curve: normalised return after each update."""
     with state.db.read() as s:
         _session(s, session_id)
@@ -245,7 +247,7 @@ def list_evaluations(session_id: int, state: StateDep) -> list[AdminEvaluation]:
 
 
 @router.get("/sessions/{session_id}/replay")
-def replay(session_id: int, state: StateDep) -> dict[str, Any]:
+def replay(session_id: RowId, state: StateDep) -> dict[str, Any]:
     """What a replay needs: the grid, the first state and every event of the session."""
     with state.db.read() as s:
         session = _session(s, session_id)

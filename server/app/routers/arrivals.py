@@ -2,8 +2,9 @@
 
 The browser arrives through ``GET /study`` (``pages.py``), with the same rules: an MTurk preview
 creates nothing; MTurk and Prolific participants are keyed on (worker, assignment) and resumed
-when they arrive again, with a new token if their cookie is gone; a worker who took part before
-is turned away unless the study allows repeats.
+when they arrive again, with a new token if their cookie is gone; a worker with another
+participation (of any status but returned or declined) is turned away unless the study allows
+repeats.
 """
 
 from __future__ import annotations
@@ -31,11 +32,16 @@ def set_participant_cookie(response: Response, state: ServerState, token: str) -
     )
 
 
+def own_origin(request: Request) -> str:
+    """This server's origin as the browser addressed it (the replica's ``turkSubmitTo``)."""
+    return f"{request.url.scheme}://{request.url.netloc}"
+
+
 def arrive(
     state: ServerState, body: ArrivalRequest, request: Request, response: Response
 ) -> ArrivalResponse:
     """Shared by the API and the page: returns the preview answer or the participant."""
-    platform = flow.classify_arrival(body, state.study, state.settings, request.url.hostname)
+    platform = flow.classify_arrival(body, state.study, state.settings, own_origin(request))
     if platform is None:
         return ArrivalResponse(preview=True)
     cookie = request.cookies.get(state.settings.cookie_name)
@@ -52,7 +58,6 @@ def arrive(
     response_model=ArrivalResponse,
     responses={
         201: {"description": "A new participant."},
-        403: {"description": "Turned away (a repeat worker, or the wrong platform)."},
     },
 )
 def create_arrival(

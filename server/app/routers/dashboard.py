@@ -1,14 +1,13 @@
 """The experimenter's dashboard: an HTML page behind the admin token.
 
-Signing in with ``BAM_ADMIN_TOKEN`` sets an HttpOnly, SameSite=Strict cookie holding an HMAC of
-the token (never the token itself); the dashboard's JSON under ``/dashboard/api`` accepts that
-cookie or ``Authorization: Bearer``, and answers with the same views as ``/api/admin``.
+Signing in with ``BAM_ADMIN_TOKEN`` starts a dashboard session (``admin_auth``): an HttpOnly,
+SameSite=Strict cookie with a random id, its expiry and a signature, which signing out revokes.
+The dashboard's JSON under ``/dashboard/api`` accepts that cookie or ``Authorization: Bearer``,
+and answers with the same views as ``/api/admin``. Failed sign-ins are limited per address.
 """
 
 from __future__ import annotations
 
-import hashlib
-import hmac
 import secrets
 from typing import Annotated, Any
 from urllib.parse import quote
@@ -17,7 +16,8 @@ from fastapi import APIRouter, Depends, Form, Query, Request, Response
 from fastapi.responses import HTMLResponse, RedirectResponse
 from sqlalchemy import select
 
-from server.app.deps import StateDep
+from server.app.admin_auth import SESSION_SECONDS, admin_token, bearer_is_admin, client_address
+from server.app.deps import RowId, StateDep
 from server.app.errors import ApiError
 from server.app.models import LearningSession
 from server.app.replica_models import ReplicaAssignment, ReplicaSubmission
@@ -27,35 +27,21 @@ from server.app.schemas import AdminEvaluation, AdminParticipant
 from server.app.state import ServerState
 
 ADMIN_COOKIE = "bam_admin"
-COOKIE_MAX_AGE = 12 * 3600
-
-
-def _expected_token(state: ServerState) -> str | None:
-    token = state.settings.admin_token
-    if token is None or not token.get_secret_value():
-        return None
-    return token.get_secret_value()
-
-
-def cookie_value(token: str) -> str:
-    """What the admin cookie holds: an HMAC of the token, so the token never leaves the form."""
-    return hmac.new(token.encode(), b"bam-study dashboard", hashlib.sha256).hexdigest()
 
 
 def is_admin(request: Request, state: ServerState) -> bool:
-    """The request carries the admin token (bearer header) or the dashboard's cookie."""
-    expected = _expected_token(state)
+    """The request carries the admin token (bearer header) or a dashboard session's cookie."""
+    expected = admin_token(state.settings)
     if expected is None:
         return False
-    scheme, _, given = (request.headers.get("authorization") or "").partition(" ")
-    if scheme.lower() == "bearer" and secrets.compare_digest(given.encode(), expected.encode()):
+    if bearer_is_admin(request, expected, state.sign_ins):
         return True
-    cookie = request.cookies.get(ADMIN_COOKIE) or ""
-    return secrets.compare_digest(cookie.encode(), cookie_value(expected).encode())
+    cookie = request.cookies.get(ADMIN_COOKIE)
+    return cookie is not None and state.admin_sessions.valid(expected, cookie)
 
 
 def require_dashboard_admin(request: Request, state: StateDep) -> None:
-    if _expected_token(state) is None:
+    if admin_token(state.settings) is None:
         raise ApiError(503, "the dashboard is disabled: set BAM_ADMIN_TOKEN")
     if not is_admin(request, state):
         raise ApiError(
@@ -73,14 +59,21 @@ def safe_next(target: str | None) -> str:
     return "/dashboard"
 
 
-def login_page(request: Request, state: ServerState, next_path: str, error: str | None) -> Response:
-    disabled = _expected_token(state) is None
+def login_page(
+    request: Request,
+    state: ServerState,
+    next_path: str,
+    error: str | None,
+    status_code: int = 401,
+    headers: dict[str, str] | None = None,
+) -> Response:
+    disabled = admin_token(state.settings) is None
     return templates.TemplateResponse(
         request,
         "dashboard_login.html",
         {"next": safe_next(next_path), "error": error, "disabled": disabled},
-        status_code=401 if error else (503 if disabled else 200),
-        headers={"Cache-Control": "no-store"},
+        status_code=status_code if error else (503 if disabled else 200),
+        headers={"Cache-Control": "no-store", **(headers or {})},
     )
 
 
@@ -120,16 +113,22 @@ def dashboard_login(
     token: Annotated[str, Form(max_length=512)],
     next: Annotated[str, Form(max_length=512)] = "/dashboard",
 ) -> Response:
-    expected = _expected_token(state)
+    expected = admin_token(state.settings)
     if expected is None:
         return login_page(request, state, next, None)
+    address = client_address(request)
+    try:
+        state.sign_ins.check(address)
+    except ApiError as refused:
+        return login_page(request, state, next, refused.message, 429, refused.headers)
     if not secrets.compare_digest(token.strip().encode(), expected.encode()):
+        state.sign_ins.failed(address)
         return login_page(request, state, next, "That is not the admin token.")
     response = RedirectResponse(safe_next(next), status_code=303)
     response.set_cookie(
         ADMIN_COOKIE,
-        cookie_value(expected),
-        max_age=COOKIE_MAX_AGE,
+        state.admin_sessions.start(expected),
+        max_age=SESSION_SECONDS,
         httponly=True,
         samesite="strict",
         secure=state.settings.cookie_secure,
@@ -138,7 +137,12 @@ def dashboard_login(
 
 
 @pages.post("/dashboard/logout")
-def dashboard_logout() -> Response:
+def dashboard_logout(request: Request, state: StateDep) -> Response:
+    """Sign out: the session is revoked (a copy of its cookie stops working too)."""
+    expected = admin_token(state.settings)
+    cookie = request.cookies.get(ADMIN_COOKIE)
+    if expected is not None and cookie is not None:
+        state.admin_sessions.end(expected, cookie)
     response = RedirectResponse("/dashboard/login", status_code=303)
     response.delete_cookie(ADMIN_COOKIE)
     return response
@@ -156,7 +160,7 @@ def participants(state: StateDep) -> list[AdminParticipant]:
 
 
 @api.get("/participants/{participant_id}")
-def participant(participant_id: int, state: StateDep) -> dict[str, Any]:
+def participant(participant_id: RowId, state: StateDep) -> dict[str, Any]:
     """``/api/admin/participants/{id}`` with each session's colour, to draw it."""
     answer = admin.read_participant(participant_id, state).model_dump(mode="json")
     with state.db.read() as s:
@@ -172,12 +176,12 @@ def participant(participant_id: int, state: StateDep) -> dict[str, Any]:
 
 
 @api.get("/sessions/{session_id}/evaluations", response_model=list[AdminEvaluation])
-def evaluations(session_id: int, state: StateDep) -> list[AdminEvaluation]:
+def evaluations(session_id: RowId, state: StateDep) -> list[AdminEvaluation]:
     return admin.list_evaluations(session_id, state)
 
 
 @api.get("/sessions/{session_id}/replay")
-def replay(session_id: int, state: StateDep) -> dict[str, Any]:
+def replay(session_id: RowId, state: StateDep) -> dict[str, Any]:
     """``/api/admin/sessions/{id}/replay`` with the agent's colour, to draw it as it was."""
     answer = admin.replay(session_id, state)
     with state.db.read() as s:

@@ -21,10 +21,11 @@ from fastapi.responses import HTMLResponse, RedirectResponse
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from server.app.deps import StateDep
+from server.app.deps import RowId, StateDep
 from server.app.flow import PREVIEW_ASSIGNMENT
 from server.app.models import utcnow
 from server.app.replica_models import ReplicaAssignment, ReplicaHit, ReplicaSubmission
+from server.app.routers.arrivals import own_origin
 from server.app.routers.dashboard import is_admin, login_redirect
 from server.app.routers.pages import notice, templates
 from server.app.schemas import ID_PATTERN
@@ -48,11 +49,6 @@ def the_hit(s: Session, state: ServerState) -> ReplicaHit:
         s.add(hit)
         s.flush()
     return hit
-
-
-def submit_to(request: Request) -> str:
-    """This server's address: the replica's ``turkSubmitTo``."""
-    return str(request.base_url).rstrip("/")
 
 
 def reusable_assignment_id(s: Session, hit_id: str) -> str | None:
@@ -159,7 +155,7 @@ def accept(
 
 
 @router.get("/work/{row_id}", response_class=HTMLResponse)
-def work(row_id: int, request: Request, state: StateDep) -> Response:
+def work(row_id: RowId, request: Request, state: StateDep) -> Response:
     if not is_admin(request, state):
         return login_redirect(f"/mturk/work/{row_id}")
     with state.db.read() as s:
@@ -181,7 +177,7 @@ def work(row_id: int, request: Request, state: StateDep) -> Response:
             "assignmentId": row.assignment_id,
             "hitId": row.hit_id,
             "workerId": row.worker_id,
-            "turkSubmitTo": submit_to(request),
+            "turkSubmitTo": own_origin(request),
         }
     )
     return templates.TemplateResponse(
@@ -199,7 +195,7 @@ def work(row_id: int, request: Request, state: StateDep) -> Response:
 
 
 @router.post("/work/{row_id}/return")
-def return_hit(row_id: int, request: Request, state: StateDep) -> Response:
+def return_hit(row_id: RowId, request: Request, state: StateDep) -> Response:
     if not is_admin(request, state):
         return login_redirect("/mturk")
     with state.db.write() as s:

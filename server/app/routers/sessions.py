@@ -13,7 +13,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Response
 
 from server.app import flow, teaching
-from server.app.deps import StateDep, TokenDep
+from server.app.deps import RowId, StateDep, TokenDep
 from server.app.errors import ApiError, LearnerBusy
 from server.app.flow import Action
 from server.app.routers.participant import answer
@@ -47,7 +47,7 @@ async def teach(
 
 
 @router.get("/{session_id}", response_model=SessionView)
-async def read_session(session_id: int, state: StateDep, token: TokenDep) -> SessionView:
+async def read_session(session_id: RowId, state: StateDep, token: TokenDep) -> SessionView:
     """Everything to draw the session: the grid, the agent, the mode, the task, progress."""
 
     def read() -> SessionView:
@@ -60,11 +60,17 @@ async def read_session(session_id: int, state: StateDep, token: TokenDep) -> Ses
 
 @router.get("/{session_id}/learning", response_model=Learning)
 async def read_learning(
-    session_id: int,
+    session_id: RowId,
     state: StateDep,
     token: TokenDep,
     wait: Annotated[
-        float, Query(ge=0, le=60, description="Wait up to this long for the agent to learn.")
+        float,
+        Query(
+            ge=0,
+            le=60,
+            allow_inf_nan=False,
+            description="Wait up to this long for the agent to learn.",
+        ),
     ] = 0.0,
 ) -> Learning:
     """Whether the agent is learning (pending updates), optionally waiting until it is done."""
@@ -84,7 +90,7 @@ async def read_learning(
 
 @router.post("/{session_id}/task", response_model=ActionResponse)
 async def select_task(
-    session_id: int, body: TaskRequest, state: StateDep, token: TokenDep
+    session_id: RowId, body: TaskRequest, state: StateDep, token: TokenDep
 ) -> Response:
     """Select the task that demonstrations and feedback belong to (ends an open episode)."""
     return await teach(
@@ -95,7 +101,7 @@ async def select_task(
 
 @router.post("/{session_id}/mode", response_model=ActionResponse)
 async def select_mode(
-    session_id: int, body: ModeRequest, state: StateDep, token: TokenDep
+    session_id: RowId, body: ModeRequest, state: StateDep, token: TokenDep
 ) -> Response:
     """Demonstrate, let the agent try, or idle (ends an open episode)."""
     return await teach(
@@ -105,7 +111,7 @@ async def select_mode(
 
 
 @router.post("/{session_id}/move", response_model=ActionResponse)
-async def move(session_id: int, body: MoveRequest, state: StateDep, token: TokenDep) -> Response:
+async def move(session_id: RowId, body: MoveRequest, state: StateDep, token: TokenDep) -> Response:
     """An arrow key: a demonstrated action, or in idle mode a move that is not one."""
     return await teach(
         state, token, "move", body, session_id,
@@ -115,7 +121,7 @@ async def move(session_id: int, body: MoveRequest, state: StateDep, token: Token
 
 @router.post("/{session_id}/agent-step", response_model=ActionResponse)
 async def agent_step(
-    session_id: int, body: SeqRequest, state: StateDep, token: TokenDep
+    session_id: RowId, body: SeqRequest, state: StateDep, token: TokenDep
 ) -> Response:
     """One action of the agent, from its learner's greedy policy, under the true dynamics."""
     waited: float | None = None
@@ -152,7 +158,7 @@ async def agent_step(
 
 @router.post("/{session_id}/feedback", response_model=ActionResponse)
 async def give_feedback(
-    session_id: int, body: FeedbackRequest, state: StateDep, token: TokenDep
+    session_id: RowId, body: FeedbackRequest, state: StateDep, token: TokenDep
 ) -> Response:
     """Positive (+1) or negative (-1) feedback on the agent's latest action."""
     return await teach(
@@ -162,7 +168,7 @@ async def give_feedback(
 
 
 @router.post("/{session_id}/reset", response_model=ActionResponse)
-async def reset(session_id: int, body: SeqRequest, state: StateDep, token: TokenDep) -> Response:
+async def reset(session_id: RowId, body: SeqRequest, state: StateDep, token: TokenDep) -> Response:
     """Put the agent at a random start of the selected task (ends an open episode)."""
     return await teach(
         state, token, "reset", body, session_id,
@@ -172,7 +178,7 @@ async def reset(session_id: int, body: SeqRequest, state: StateDep, token: Token
 
 @router.post("/{session_id}/end-episode", response_model=ActionResponse)
 async def end_episode(
-    session_id: int, body: SeqRequest, state: StateDep, token: TokenDep
+    session_id: RowId, body: SeqRequest, state: StateDep, token: TokenDep
 ) -> Response:
     """Stop: end the episode (a demonstration gets its synthetic STAY); the learner updates."""
     return await teach(
@@ -182,7 +188,7 @@ async def end_episode(
 
 
 @router.post("/{session_id}/finish", response_model=ActionResponse)
-async def finish(session_id: int, body: SeqRequest, state: StateDep, token: TokenDep) -> Response:
+async def finish(session_id: RowId, body: SeqRequest, state: StateDep, token: TokenDep) -> Response:
     """Finish this agent and go on to the next (refused until every task has a demonstrated
     action); after the last agent the completion is committed and its code returned."""
     return await teach(

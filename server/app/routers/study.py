@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from fastapi import APIRouter
+from fastapi.responses import JSONResponse
 from sqlalchemy import text
 
 from server.app.deps import StateDep
@@ -18,15 +19,24 @@ def read_study(state: StateDep) -> PublicStudy:
 
 
 @router.get("/health")
-def health(state: StateDep) -> dict[str, object]:
-    """The database answers; learner updates waiting or running, done and failed since the
-    server started."""
+def health(state: StateDep) -> JSONResponse:
+    """Ready (200) once the database answers and every learner-update process has loaded the
+    learners' compiled kernels; 503 before (starting). With the updates waiting or running,
+    done and failed since the server started."""
     with state.db.connect() as c:
         c.execute(text("SELECT 1"))
     updates = state.updates
-    return {
-        "status": "ok",
+    ready = updates is not None and updates.ready
+    answer: dict[str, object] = {
+        "status": "ok" if ready else "starting",
+        "update_processes_warm": updates.warm_processes if updates is not None else 0,
+        "update_processes": state.settings.update_workers if updates is None else updates.workers,
         "update_backlog": updates.backlog if updates is not None else None,
         "updates_done": updates.completed if updates is not None else None,
         "updates_failed": updates.failed if updates is not None else None,
     }
+    if not ready:
+        answer["detail"] = (
+            "starting: the learner-update processes are loading the learners' compiled kernels"
+        )
+    return JSONResponse(answer, status_code=200 if ready else 503)

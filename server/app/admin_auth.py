@@ -1,0 +1,159 @@
+"""The experimenter's sign-in: the admin token, guesses of it limited per client address, and
+the dashboard's sessions.
+
+A dashboard session is a random id kept by the server with its expiry, sent as a cookie signed
+with a key derived from the admin token (``id.expiry.signature``). Signing out forgets the id,
+so a copied cookie stops working; so does every cookie when the server restarts or the admin
+token changes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import math
+import secrets
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+
+from fastapi import Request
+
+from server.app.errors import ApiError
+from server.app.settings import Settings
+
+MIN_ADMIN_TOKEN = 16
+SESSION_SECONDS = 12 * 3600
+FAILURES_ALLOWED = 10  # failed sign-ins per address in FAILURE_WINDOW seconds, then 429
+FAILURE_WINDOW = 60.0
+ADDRESSES_KEPT = 10_000
+
+
+def admin_token(settings: Settings) -> str | None:
+    token = settings.admin_token
+    if token is None or not token.get_secret_value():
+        return None
+    return token.get_secret_value()
+
+
+def weak_admin_token(settings: Settings) -> str | None:
+    """Why the admin token is not good enough to serve with, or None."""
+    token = admin_token(settings)
+    if token is not None and len(token) < MIN_ADMIN_TOKEN:
+        return (
+            f"BAM_ADMIN_TOKEN has {len(token)} characters; it needs at least {MIN_ADMIN_TOKEN} "
+            "(make one with: python3 -c 'import secrets; print(secrets.token_urlsafe())')"
+        )
+    return None
+
+
+def client_address(request: Request) -> str:
+    return request.client.host if request.client is not None else "unknown"
+
+
+class SignInGuard:
+    """Failed sign-ins per client address: past ``FAILURES_ALLOWED`` within ``FAILURE_WINDOW``
+    seconds the address gets 429 (with Retry-After) until the oldest failure is that old,
+    whatever it sends, so guessing runs at a few tokens a minute."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self.clock = clock
+        self._failures: dict[str, deque[float]] = {}
+        self._lock = threading.Lock()
+
+    def _recent(self, address: str, now: float) -> deque[float]:
+        failures = self._failures.get(address, deque())
+        while failures and failures[0] <= now - FAILURE_WINDOW:
+            failures.popleft()
+        return failures
+
+    def check(self, address: str) -> None:
+        """429 while ``address`` has used up its failures."""
+        with self._lock:
+            now = self.clock()
+            failures = self._recent(address, now)
+            if len(failures) >= FAILURES_ALLOWED:
+                wait = max(1, math.ceil(failures[0] + FAILURE_WINDOW - now))
+                raise ApiError(
+                    429,
+                    f"too many failed sign-ins from this address: try again in {wait} s",
+                    headers={"Retry-After": str(wait)},
+                )
+
+    def failed(self, address: str) -> None:
+        with self._lock:
+            now = self.clock()
+            if len(self._failures) >= ADDRESSES_KEPT:
+                for known in list(self._failures):
+                    if not self._recent(known, now):
+                        del self._failures[known]
+            failures = self._recent(address, now)
+            failures.append(now)
+            self._failures[address] = failures
+
+
+class AdminSessions:
+    """The dashboard's signed-in sessions (module docstring)."""
+
+    def __init__(self, clock: Callable[[], float] = time.time) -> None:
+        self.clock = clock
+        self._expiry: dict[str, int] = {}
+        self._lock = threading.Lock()
+
+    @staticmethod
+    def _signature(token: str, payload: str) -> str:
+        key = hashlib.sha256(b"bam-study admin session\0" + token.encode()).digest()
+        return hmac.new(key, payload.encode(), hashlib.sha256).hexdigest()
+
+    def start(self, token: str) -> str:
+        """A new session: the cookie's value."""
+        now = self.clock()
+        session_id = secrets.token_urlsafe(32)
+        expires = int(now) + SESSION_SECONDS
+        with self._lock:
+            self._expiry = {k: v for k, v in self._expiry.items() if v > now}
+            self._expiry[session_id] = expires
+        payload = f"{session_id}.{expires}"
+        return f"{payload}.{self._signature(token, payload)}"
+
+    def _session_id(self, token: str, cookie: str) -> str | None:
+        session_id, _, rest = cookie.partition(".")
+        expires, _, signature = rest.partition(".")
+        payload = f"{session_id}.{expires}"
+        if not secrets.compare_digest(signature.encode(), self._signature(token, payload).encode()):
+            return None
+        return session_id
+
+    def valid(self, token: str, cookie: str) -> bool:
+        session_id = self._session_id(token, cookie)
+        if session_id is None:
+            return False
+        with self._lock:
+            expires = self._expiry.get(session_id)
+        return (
+            expires is not None
+            and cookie.split(".")[1] == str(expires)
+            and (expires > self.clock())
+        )
+
+    def end(self, token: str, cookie: str) -> None:
+        session_id = self._session_id(token, cookie)
+        if session_id is not None:
+            with self._lock:
+                self._expiry.pop(session_id, None)
+
+
+def bearer_is_admin(request: Request, token: str, guard: SignInGuard) -> bool:
+    """The request's ``Authorization: Bearer`` is the admin token. A wrong one counts as a
+    failed sign-in of its address; an address past its failures gets 429."""
+    authorization = request.headers.get("authorization")
+    if authorization is None:
+        return False
+    address = client_address(request)
+    guard.check(address)
+    scheme, _, given = authorization.partition(" ")
+    if scheme.lower() == "bearer" and secrets.compare_digest(given.encode(), token.encode()):
+        return True
+    guard.failed(address)
+    return False

@@ -102,7 +102,9 @@ DICTIONARY: dict[str, dict[str, str]] = {
         "kind": "demonstration or agent.",
         "task": "Index of the task selected during the episode.",
         "task_name": "Name of that task.",
-        "start_state": "State at the episode's first action.",
+        "start_state": "State before the episode's first action (never the task's goal in "
+        "data recorded since no episode may start there; before, a demonstration's start_state "
+        "was the state after its first move).",
         "end_state": "State when it ended (after the synthetic STAY, if any).",
         "started_at": "Time of the first action (UTC).",
         "ended_at": "When it ended (UTC; empty if still open).",
@@ -123,7 +125,9 @@ DICTIONARY: dict[str, dict[str, str]] = {
         "mode": "Mode after the event: idle, demonstrate or agent.",
         "state": "The agent's state before the event.",
         "action": "The action taken (move, agent_step): STAY, UP, DOWN, LEFT or RIGHT.",
-        "next_state": "The agent's state after the action (before a synthetic STAY).",
+        "next_state": "The agent's state after the event (before a synthetic STAY); differs "
+        "from state for a mode or task event when the agent stood on the selected task's goal "
+        "with a mode on and was put at a random start.",
         "feedback": "+1 or -1 (feedback events); 0 on agent steps.",
         "episode_index": "The episode the event belongs to or ended.",
         "record": "What the learner observed: demonstration, agent_step, transition (idle move) "

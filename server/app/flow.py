@@ -16,6 +16,7 @@ import secrets
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
+from functools import cache
 from typing import Any
 from urllib.parse import urlsplit
 
@@ -636,7 +637,23 @@ def activate(action: Action, session: Record) -> None:
 def initial_state(session: Any) -> int:
     """Where the agent starts: a random start of the first task, from the session's seed."""
     env = make_environment(session.environment)
-    return env.sample_start(0, np.random.default_rng([session.seed, 0]), study=True)
+    return random_start(env.name, 0, np.random.default_rng([session.seed, 0]))
+
+
+@cache
+def _start_distribution(environment: str, task: int) -> np.ndarray:
+    env = make_environment(environment)
+    chosen = env.tasks[task]
+    start = np.where(chosen.reward > 0, 0.0, chosen.study_start_distribution)
+    return start / start.sum()
+
+
+def random_start(environment: str, task: int, rng: Any) -> int:
+    """A random start of ``task``: the study's start distribution without the task's goal. A
+    start on the goal would give an episode with nothing to do (an agent's try from there ends
+    at once, and its update would count as an episode)."""
+    start = _start_distribution(environment, task)
+    return int(rng.choice(len(start), p=start))
 
 
 def advance(action: Action, finished: Record) -> Record | None:

@@ -151,6 +151,11 @@ class Outcome(BaseModel):
     feedback: int | None = None
     episode_ended: str | None = Field(None, description="Why an episode ended, if one did.")
     goal_reached: bool = False
+    new_start: bool = Field(
+        False,
+        description="The agent stood on the selected task's goal with a mode on: it was put at "
+        "a random start of the task (from state to next_state) before any episode began.",
+    )
     update_queued: int | None = None
     learning_wait_seconds: float | None = None
 

@@ -131,6 +131,7 @@ function describe(event, env) {
   const parts = [event.kind.replace("_", " ")];
   if (event.kind === "mode") parts.push(`→ ${event.mode}`);
   if (event.kind === "task") parts.push(`→ ${task}`);
+  if ((event.kind === "mode" || event.kind === "task") && event.next_state !== event.state) parts.push("(was on the goal: to a random start)");
   if (action) parts.push(action);
   if (event.record === "demonstration") parts.push(`(demonstration of ${task})`);
   if (event.record === "transition") parts.push("(idle move)");

@@ -45,19 +45,14 @@ function steps(teacher) {
     {
       id: "try",
       title: "Let the agent try",
-      text: "Press Let the agent try (T). The agent acts on its own, a step every half second, with what it has learned so far. Watch a few steps.",
+      text: "Press Let the agent try (T). The agent is on the goal already, so it first goes to a random start; then it acts on its own, a step every half second, with what it has learned so far. Watch a few steps.",
       done: (e, n) => e.kind === "agent-step" && (count(n, "steps") >= 3 || Boolean(e.outcome.episode_ended)),
     },
     {
       id: "feedback",
       title: "Tell it how it is doing",
-      text: "While the agent moves, press G after a good move and B after a bad one: give at least one of each. If the agent has stopped, press T again.",
-      done: (e, n) => {
-        if (e.kind !== "feedback") return false;
-        if (e.outcome.feedback > 0) n.good = true;
-        if (e.outcome.feedback < 0) n.bad = true;
-        return Boolean(n.good && n.bad);
-      },
+      text: "While the agent moves, press G after a good move or B after a bad one. If the agent has stopped, press T: it tries again (from a random start if it reached the goal).",
+      done: (e) => e.kind === "feedback",
     },
     {
       id: "stop",
@@ -75,7 +70,7 @@ function steps(teacher) {
     {
       id: "reset",
       title: "Start again",
-      text: "Press Reset (R): the agent jumps to a random start for the selected task. Do this whenever a task is done.",
+      text: "Press Reset (R): the agent jumps to a random start for the selected task, away from its goal.",
       done: (e) => e.kind === "reset",
     },
     {

@@ -223,6 +223,25 @@ def _leave_goal(action: Action, session: Record, env: Environment) -> bool:
     return True
 
 
+def _switched(
+    action: Action, session: Record, env: Environment, state: int, queued: int | None
+) -> ActionResponse:
+    """The answer to a task or mode change (from ``state``), once the agent is off the goal."""
+    moved = _leave_goal(action, session, env)
+    action.event.update(task=session.task, mode=session.mode, state=state, next_state=session.state)
+    return respond(
+        action,
+        session,
+        Outcome(
+            episode_ended=action.event.get("episode_end"),
+            update_queued=queued,
+            new_start=moved,
+            state=state if moved else None,
+            next_state=session.state if moved else None,
+        ),
+    )
+
+
 # -- handlers -------------------------------------------------------------------------------
 def set_task(action: Action, session_id: int, task: int) -> ActionResponse:
     session = session_for(action, session_id)
@@ -235,19 +254,8 @@ def set_task(action: Action, session_id: int, task: int) -> ActionResponse:
         queued = end_episode(action, session, env, "task", stay=False)
         session.task = task
         session.last_action = None  # feedback belongs to the task selected when it is given
-    moved = _leave_goal(action, session, env)
-    action.event.update(task=task, mode=session.mode, state=state, next_state=session.state)
-    return respond(
-        action,
-        session,
-        Outcome(
-            episode_ended=action.event.get("episode_end"),
-            update_queued=queued,
-            new_start=moved,
-            state=state if moved else None,
-            next_state=session.state if moved else None,
-        ),
-    )
+    action.event["task"] = task
+    return _switched(action, session, env, state, queued)
 
 
 def set_mode(action: Action, session_id: int, mode: str) -> ActionResponse:
@@ -258,19 +266,7 @@ def set_mode(action: Action, session_id: int, mode: str) -> ActionResponse:
     if mode != session.mode:
         queued = end_episode(action, session, env, "mode", stay=False)
         session.mode = mode
-    moved = _leave_goal(action, session, env)
-    action.event.update(mode=mode, task=session.task, state=state, next_state=session.state)
-    return respond(
-        action,
-        session,
-        Outcome(
-            episode_ended=action.event.get("episode_end"),
-            update_queued=queued,
-            new_start=moved,
-            state=state if moved else None,
-            next_state=session.state if moved else None,
-        ),
-    )
+    return _switched(action, session, env, state, queued)
 
 
 def move(action: Action, session_id: int, name: str) -> ActionResponse:

@@ -21,6 +21,7 @@ from tests.server.conftest import (
     teaching_participant,
     wait_for_updates,
 )
+from tests.server.test_updates import demonstrate
 
 
 def snapshot(db: Database) -> tuple[Any, ...]:
@@ -393,24 +394,12 @@ def test_moves_follow_the_true_dynamics(client: TestClient, db: Database, mode: 
             break
 
 
-def demonstrate_to_goal(participant: Participant, base: str, env: Any, task: int) -> int:
-    """Demonstrate ``task`` from where the agent is to its goal (optimal moves); returns the
-    goal state where the demonstration ended."""
-    from server.teacher import Teacher
-
-    teacher = Teacher(env, seed=0)
+def demonstrate_to_goal(participant: Participant, base: str, task: int) -> int:
+    """A demonstration of ``task`` by the simulated teacher, to its goal: the goal's state."""
     participant.act(f"{base}/mode", mode="idle")
-    state = participant.act(f"{base}/task", task=task)["session"]["agent"]["state"]
-    if env.is_goal(task, state):
-        state = participant.act(f"{base}/reset")["session"]["agent"]["state"]
-    participant.act(f"{base}/mode", mode="demonstrate")
-    for _ in range(env.horizon):
-        data = participant.act(f"{base}/move", action=ACTIONS[teacher.next_action(task, state)])
-        state = data["session"]["agent"]["state"]
-        if data["outcome"]["episode_ended"]:
-            assert data["outcome"]["episode_ended"] == "goal"
-            return int(state)
-    raise AssertionError("the demonstration did not reach the goal")
+    data = demonstrate(participant, int(base.rsplit("/", 1)[1]), task)
+    assert data["outcome"]["episode_ended"] == "goal"
+    return int(data["session"]["agent"]["state"])
 
 
 def counts(db: Database, session_id: int) -> tuple[int, int, int]:
@@ -434,7 +423,7 @@ def test_a_try_from_the_goal_starts_a_real_episode_from_a_random_start(
     base = participant.session(session_id)
     env = make(participant.get(base)["summary"]["environment"])
     for _ in range(3):
-        goal = demonstrate_to_goal(participant, base, env, 0)
+        goal = demonstrate_to_goal(participant, base, 0)
         assert env.is_goal(0, goal)
         before = counts(db, session_id)
         tried = participant.act(f"{base}/mode", mode="agent")
@@ -473,7 +462,7 @@ def test_demonstrating_or_selecting_a_task_on_its_goal_starts_from_a_random_star
     base = participant.session(session_id)
     env = make(participant.get(base)["summary"]["environment"])
     # Demonstrate (D) on the goal: a random start first, no episode.
-    goal = demonstrate_to_goal(participant, base, env, 0)
+    goal = demonstrate_to_goal(participant, base, 0)
     before = counts(db, session_id)
     shown = participant.act(f"{base}/mode", mode="demonstrate")
     assert shown["outcome"]["new_start"] and shown["outcome"]["state"] == goal
@@ -487,7 +476,7 @@ def test_demonstrating_or_selecting_a_task_on_its_goal_starts_from_a_random_star
         ).first()
     assert episode.start_state == moved["outcome"]["state"] == start
     # Selecting a task whose goal the agent stands on, while the agent tries: a random start.
-    goal = demonstrate_to_goal(participant, base, env, 1)
+    goal = demonstrate_to_goal(participant, base, 1)
     participant.act(f"{base}/task", task=0)
     participant.act(f"{base}/move", action="UP")  # idle: no episode
     back = participant.act(f"{base}/move", action="DOWN")
@@ -500,7 +489,7 @@ def test_demonstrating_or_selecting_a_task_on_its_goal_starts_from_a_random_star
     assert not env.is_goal(1, switched["session"]["agent"]["state"])
     assert counts(db, session_id) == before
     # Idle, nothing moves the agent off the goal: no episode can begin there.
-    goal = demonstrate_to_goal(participant, base, env, 1)
+    goal = demonstrate_to_goal(participant, base, 1)
     idle = participant.act(f"{base}/task", task=1)
     assert idle["outcome"]["new_start"] is False and idle["session"]["agent"]["state"] == goal
 

@@ -254,7 +254,6 @@ def set_task(action: Action, session_id: int, task: int) -> ActionResponse:
         queued = end_episode(action, session, env, "task", stay=False)
         session.task = task
         session.last_action = None  # feedback belongs to the task selected when it is given
-    action.event["task"] = task
     return _switched(action, session, env, state, queued)
 
 

@@ -603,6 +603,7 @@ def start(action: Action) -> Record:
     if first is None:
         raise ApiError(409, "this participant has no learning sessions")
     activate(action, first)
+    first.opened_at = action.now  # the instructions were its introduction
     return first
 
 
@@ -675,6 +676,21 @@ def complete(action: Action) -> None:
     set_status(action.c, participant, "completed", action.now)
 
 
+def reach_tutorial_step(action: Action, step: int) -> None:
+    """The page's tutorial reached ``step``; the step kept never goes back (another tab may be
+    behind)."""
+    participant = action.participant
+    if participant.status != "tutorial":
+        raise ApiError(409, f"the tutorial is not in progress (status {participant.status})")
+    participant.tutorial_step = max(int(participant.tutorial_step), step)
+
+
+def open_session(action: Action, session: Record) -> None:
+    """The participant began teaching ``session`` (left its introduction page)."""
+    if session.opened_at is None:
+        session.opened_at = action.now
+
+
 def submission(action: Action) -> None:
     """The page reports that it sends the participant's submission to the platform."""
     status = action.participant.status
@@ -731,6 +747,7 @@ def summary(session: Any) -> SessionSummary:
         environment=session.environment,
         colour={"name": session.colour_name, "hex": session.colour_hex},  # type: ignore[arg-type]
         status=session.status,
+        opened=session.opened_at is not None,
     )
 
 
@@ -751,4 +768,5 @@ def participant_state(c: Connection, participant: Any, study: StudyConfig) -> Pa
         completion=completion(participant, study),
         progress=Progress(agent=len(reached), of=len(study_sessions)),
         sessions=[summary(x) for x in sessions],
+        tutorial_step=participant.tutorial_step,
     )

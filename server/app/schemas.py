@@ -43,6 +43,10 @@ class MoveRequest(SeqRequest):
     action: Move = Field(description="The arrow pressed (STAY cannot be demonstrated).")
 
 
+class TutorialStepRequest(SeqRequest):
+    step: int = Field(ge=0, le=100, description="The tutorial step reached, from 0.")
+
+
 class FeedbackRequest(SeqRequest):
     feedback: Literal[1, -1] = Field(description="+1 (positive) or -1 (negative).")
 
@@ -92,6 +96,7 @@ class SessionSummary(BaseModel):
     environment: str
     colour: Colour
     status: Literal["pending", "active", "finished"]
+    opened: bool = Field(description="The participant began teaching it (past its introduction).")
 
 
 class Progress(BaseModel):
@@ -105,6 +110,7 @@ class ParticipantState(ParticipantBrief):
     domain: str | None
     progress: Progress
     sessions: list[SessionSummary]
+    tutorial_step: int = Field(description="The tutorial step reached, from 0.")
 
 
 class ArrivalResponse(BaseModel):

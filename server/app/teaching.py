@@ -381,6 +381,16 @@ def finish_episode(action: Action, session_id: int) -> ActionResponse:
     return respond(action, session, Outcome(episode_ended="end", update_queued=queued))
 
 
+def open_session(action: Action, session_id: int) -> ActionResponse:
+    """Past the agent's introduction page (a reload before this shows that page again)."""
+    session = session_for(action, session_id)
+    flow.open_session(action, session)
+    action.event.update(
+        state=session.state, next_state=session.state, task=session.task, mode=session.mode
+    )
+    return respond(action, session, Outcome())
+
+
 def finish_session(action: Action, session_id: int) -> ActionResponse:
     """Finish this agent (only once every task has a demonstrated action) and go on."""
     session = session_for(action, session_id)

@@ -154,3 +154,49 @@ def test_each_step_needs_all_it_asks(page: Page, server: LiveServer) -> None:
     )
     assert len(rows) >= 7 and not [r for r in rows if env.is_goal(r.task, r.start_state)]
     watch.check()
+
+
+def test_the_tutorial_step_and_the_next_agent_s_page_are_kept_by_the_server(
+    page: Page, server: LiveServer
+) -> None:
+    """Another browser with the participant's cookie (nothing in its own storage) continues
+    the tutorial at the step reached; a reload of the next agent's introduction shows it
+    again, and teaching begins only from its button."""
+    watch = Watch(server.url).attach(page)
+    page.goto(f"{server.url}/study")
+    page.click('[data-action="agree"]')
+    page.click('[data-action="start"]')
+    study = Study(page)
+    expect(study.teach).to_have_attribute("data-kind", "tutorial", timeout=WAIT_MS)
+
+    def in_another_browser() -> None:
+        browser = page.context.browser
+        assert browser is not None
+        other = browser.new_context(viewport={"width": 1280, "height": 800})
+        try:
+            other.add_cookies(page.context.cookies())  # type: ignore[arg-type]
+            elsewhere = other.new_page()
+            elsewhere.goto(f"{server.url}/study")
+            expect(elsewhere.locator(".tutorial-card")).to_have_attribute(
+                "data-step", "demonstrate", timeout=WAIT_MS
+            )
+            expect(elsewhere.locator(".tutorial-count")).to_have_text("Tutorial step 2 of 10")
+        finally:
+            other.close()
+        page.reload()
+        Tutorial(page).at("demonstrate")
+        study.focus()
+
+    study.do_tutorial(begin=False, checkpoint=in_another_browser)
+    meet = page.locator("h1")
+    expect(meet).to_have_text(re.compile(r"Meet the .+ agent"))
+    name = meet.inner_text()
+    page.reload()
+    expect(page.locator("h1")).to_have_text(name, timeout=WAIT_MS)
+    expect(page.locator('[data-action="begin-agent"]')).to_be_visible()
+    expect(page.locator(".teach-page")).to_have_count(0)
+    page.click('[data-action="begin-agent"]')
+    expect(study.teach).to_have_attribute("data-kind", "study", timeout=WAIT_MS)
+    page.reload()
+    expect(study.teach).to_have_attribute("data-kind", "study", timeout=WAIT_MS)
+    watch.check()

@@ -1,6 +1,6 @@
 // The interactive tutorial: steps over the teaching page of the tutorial's agent, each done only
-// when the participant has done it. The step reached is kept in localStorage, so a reload
-// continues at the same step.
+// when the participant has done it. The step reached is kept on the server with the rest of the
+// participant's state, so that a reload, or another browser, continues at the same step.
 
 import { h } from "./dom.js";
 
@@ -98,8 +98,7 @@ export class Tutorial {
   constructor(teacher) {
     this.teacher = teacher;
     this.steps = steps(teacher);
-    this.key = `bam-tutorial:${teacher.participant.participant_id}:${teacher.sessionId}`;
-    this.index = Math.min(this.load(), this.steps.length - 1);
+    this.index = Math.min(teacher.participant.tutorial_step ?? 0, this.steps.length - 1);
     this.counters = {};
     this.skipSatisfied();
     teacher.on((event) => this.observe(event));
@@ -110,20 +109,11 @@ export class Tutorial {
     return this.index >= this.steps.length - 1;
   }
 
-  load() {
-    try {
-      return Number(window.localStorage.getItem(this.key) ?? 0) || 0;
-    } catch {
-      return 0; // storage blocked (some iframes): the tutorial starts at its first step
-    }
-  }
-
   save() {
-    try {
-      window.localStorage.setItem(this.key, String(this.index));
-    } catch {
-      // nothing to do: see load()
-    }
+    const step = this.index;
+    this.teacher.participant.tutorial_step = step;
+    this.teacher.seq.post("/api/participant/tutorial", () => (this.teacher.closed ? null : { step }))
+      .catch((error) => console.warn("could not keep the tutorial's step", error));
   }
 
   skipSatisfied() {

@@ -200,3 +200,36 @@ def test_the_tutorial_step_and_the_next_agent_s_page_are_kept_by_the_server(
     page.reload()
     expect(study.teach).to_have_attribute("data-kind", "study", timeout=WAIT_MS)
     watch.check()
+
+
+def test_a_second_tab_is_told_in_plain_words_and_brought_up_to_date(
+    page: Page, server: LiveServer
+) -> None:
+    watch = Watch(server.url).attach(page)
+    page.goto(f"{server.url}/study")
+    page.click('[data-action="agree"]')
+    page.click('[data-action="start"]')
+    first = Study(page)
+    expect(first.teach).to_have_attribute("data-kind", "tutorial", timeout=WAIT_MS)
+    other = page.context.new_page()
+    other.goto(f"{server.url}/study")
+    second = Study(other)
+    expect(second.teach).to_have_attribute("data-kind", "tutorial", timeout=WAIT_MS)
+    stale = second.seq()
+    page.bring_to_front()
+    first.focus()
+    first.idle_move()
+    other.bring_to_front()
+    second.focus()
+    state = second.state()
+    second.press("ArrowUp" if state % 2 else "ArrowDown")
+    status = other.locator(".status")
+    expect(status).to_contain_text(
+        "The study was continued in another tab or window; this page has been brought up to date."
+    )
+    assert "sequence number" not in status.inner_text()
+    # Brought up to date: the agent where the first tab left it, the next seq the server's.
+    second.wait_state(first.state())
+    expect(second.teach).not_to_have_attribute("data-seq", str(stale))
+    second.idle_move()  # and teaching goes on here
+    watch.check()

@@ -97,6 +97,12 @@ async function post(url, body = {}) {
   try {
     return await seq.post(url, body);
   } catch (error) {
+    if (error instanceof ApiError && error.resync) {
+      // Another tab moved the study on: show where it is now.
+      await refresh();
+      await route();
+      return null;
+    }
     failure(error);
     return null;
   }

@@ -405,6 +405,10 @@ export class Teacher {
       console.warn("could not refresh the session", refresh);
     }
     this.update();
+    if (error instanceof ApiError && error.resync) {
+      this.say("The study was continued in another tab or window; this page has been brought up to date. Please go on here, or in the other one, but not in both.", 8000);
+      return;
+    }
     this.say(error instanceof ApiError ? `Not done: ${error.detail}` : "Something went wrong; please try again.");
   }
 

@@ -59,8 +59,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         study = load_study_config(settings.study_config)
     except StudyConfigError as error:
-        where = f"BAM_STUDY_CONFIG={settings.study_config}: " if settings.study_config else ""
-        print(f"{PROG}: {where}{error}", file=sys.stderr)
+        problems = "; ".join(line.strip() for line in str(error).splitlines() if line.strip())
+        where = "BAM_STUDY_CONFIG: " if settings.study_config else ""
+        print(f"{PROG}: {where}{problems.replace(':;', ':')}", file=sys.stderr)
         return 2
     if args.lab:
         study = study.model_copy(update={"allow_anonymous": True})

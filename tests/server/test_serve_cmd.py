@@ -82,6 +82,19 @@ def test_bad_settings_are_one_line_naming_what_the_user_set(
     assert capsys.readouterr().err.splitlines() == [line]
 
 
+def test_a_bad_study_file_is_one_line_naming_the_variable(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    study = tmp_path / "study.toml"
+    study.write_text('title = "x"\nagents_per_environment = 0\n')
+    monkeypatch.setenv("BAM_STUDY_CONFIG", str(study))
+    assert main(["serve", "--port", "1"]) == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1
+    assert lines[0].startswith(f"bam-study serve: BAM_STUDY_CONFIG: {study} is not a valid study:")
+    assert "agents_per_environment" in lines[0]
+
+
 def test_the_console_says_who_may_enter_and_what_is_locked() -> None:
     paper = load_study_config()
     assert startup_notes(True, paper) == [

@@ -185,8 +185,12 @@ def exclude(participant_id: int, body: ExclusionRequest, state: StateDep) -> Adm
 
 
 @router.delete("/participants/{participant_id}/exclusion", response_model=AdminParticipantDetail)
-def include(participant_id: int, state: StateDep) -> AdminParticipantDetail:
-    """Undo an exclusion."""
+def include(
+    participant_id: int,
+    state: StateDep,
+    reason: Annotated[str | None, Query(min_length=1, max_length=2000)] = None,
+) -> AdminParticipantDetail:
+    """Undo an exclusion (``reason``, optional here, is kept in the status history)."""
     with state.db.write() as s:
         p = s.get(Participant, participant_id)
         if p is None:
@@ -195,7 +199,7 @@ def include(participant_id: int, state: StateDep) -> AdminParticipantDetail:
             raise ApiError(409, f"participant {participant_id} is not excluded")
         p.excluded_at = None
         p.exclusion_reason = None
-        s.add(StatusChange(participant_id=p.id, status="included", at=utcnow()))
+        s.add(StatusChange(participant_id=p.id, status="included", at=utcnow(), note=reason))
     with state.db.read() as s:
         return _participant_detail(s, participant_id)
 

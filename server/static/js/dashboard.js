@@ -2,7 +2,7 @@
 // return against episodes, the replica's MTurk submissions, and a replay of any session's
 // recorded events on the participants' grid drawing.
 
-import { getJSON } from "./api.js";
+import { ApiError, getJSON, postJSON } from "./api.js";
 import { environmentTitle, h } from "./dom.js";
 import { GridView, decodeState, svg } from "./grid.js";
 
@@ -77,6 +77,7 @@ async function showParticipant(id) {
         h("p", {}, h("strong", {}, "Worker "), h("span", { class: "mono" }, p.worker_id ?? "(none)")),
         h("p", {}, h("strong", {}, "Assignment "), h("span", { class: "mono" }, p.assignment_id ?? "(none)")),
         h("p", {}, h("strong", {}, "Domain "), p.domain ?? "(not yet)", h("strong", {}, "  Time "), `${p.minutes.toFixed(1)} min`),
+        exclusionForm(p),
         h("h3", {}, "Status history"),
         h("ol", { class: "history" }, p.status_changes.map((c) => h("li", {}, badge(c.status), " ", time(c.at), c.note ? ` (${c.note})` : "")))),
       sessions));
@@ -95,6 +96,39 @@ async function showParticipant(id) {
       card.querySelector(".curve-box").replaceChildren(curve(evaluations));
     });
   }
+}
+
+/** Exclude the participant from analysis, or include them again, with the reason. */
+function exclusionForm(p) {
+  const reason = h("input", { type: "text", id: "exclusion-reason", name: "reason", maxlength: 2000,
+    placeholder: p.excluded ? "Why include them again" : "Why exclude them (kept with the data)" });
+  const message = h("p", { class: "form-error", role: "alert", hidden: true });
+  const button = h("button", { class: "btn", type: "submit", "data-action": p.excluded ? "include" : "exclude" },
+    p.excluded ? "Include again" : "Exclude from analysis");
+  const form = h("form", { class: "exclusion" },
+    p.excluded
+      ? h("p", {}, h("strong", {}, "Excluded: "), p.exclusion_reason ?? "")
+      : h("p", { class: "muted" }, "Included in the analysis."),
+    h("label", { for: "exclusion-reason" }, "Reason"), reason, button, message);
+  form.addEventListener("submit", async (event) => {
+    event.preventDefault();
+    if (!reason.value.trim()) {
+      message.hidden = false;
+      message.textContent = "Give a reason: it is kept with the data.";
+      return;
+    }
+    button.disabled = true;
+    const what = p.excluded ? "inclusion" : "exclusion";
+    try {
+      await postJSON(`${API}/participants/${p.participant_id}/${what}`, { reason: reason.value.trim() });
+      await Promise.all([loadParticipants(), showParticipant(p.participant_id)]);
+    } catch (error) {
+      message.hidden = false;
+      message.textContent = error instanceof ApiError ? error.detail : "The server could not be reached.";
+      button.disabled = false;
+    }
+  });
+  return form;
 }
 
 /** Normalised return (0..1) after each update, against the episodes so far. */

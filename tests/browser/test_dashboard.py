@@ -59,3 +59,32 @@ def test_exclude_and_include_again_with_the_reasons(page: Page, server: LiveServ
         ("included", "the log shows real teaching"),
     ]
     watch.check()
+
+
+def test_the_replay_s_play_button_draws_its_pause_sign(page: Page, server: LiveServer) -> None:
+    """Debian's fonts lack the pause glyph: the button draws it."""
+    arrived = page.request.post(f"{server.url}/api/arrivals", data={})
+    assert arrived.status == 201, arrived.text()
+    for seq, path, body in ((1, "consent", {"agree": True}), (2, "start", {})):
+        answer = page.request.post(
+            f"{server.url}/api/participant/{path}", data={"seq": seq, **body}
+        )
+        assert answer.status == 200, answer.text()
+    session = answer.json()["participant"]["current_session_id"]
+    for seq, move in ((3, "UP"), (4, "DOWN"), (5, "LEFT")):
+        moved = page.request.post(
+            f"{server.url}/api/sessions/{session}/move", data={"seq": seq, "action": move}
+        )
+        assert moved.status == 200, moved.text()
+    watch = Watch(server.url).attach(page)
+    admin_login(page, server, "/dashboard")
+    page.locator("#participants tr[data-participant]").last.click()
+    page.locator('#detail [data-action="replay"]').first.click()
+    play = page.locator('#replay [data-action="play"]')
+    expect(play.locator('svg[data-icon="play"]')).to_have_count(1)
+    play.click()
+    expect(play.locator('svg[data-icon="pause"] rect')).to_have_count(2)
+    expect(play).to_have_text("Pause")
+    assert "⏸" not in play.inner_text()
+    expect(play.locator('svg[data-icon="play"]')).to_have_count(1, timeout=10_000)  # the end
+    watch.check()

@@ -58,7 +58,7 @@ async function loadSubmissions() {
         h("td", {}, time(x.submitted_at)),
         h("td", { class: "mono" }, x.assignment_id),
         h("td", { class: "mono" }, x.worker_id),
-        h("td", {}, Object.entries(x.fields).map(([k, v]) => h("span", { class: "mono field" }, `${k}=${v}`)))))
+        h("td", {}, h("ul", { class: "fields" }, Object.entries(x.fields).map(([k, v]) => h("li", { class: "mono field" }, `${k} = ${v}`))))))
     : [h("tr", {}, h("td", { colspan: 4, class: "muted" }, "Nothing submitted to the replica yet."))]));
 }
 
@@ -201,7 +201,19 @@ async function showReplay(sessionId) {
   const label = h("p", { class: "replay-event", role: "status" });
   const slider = h("input", { type: "range", min: 0, max: frames.length - 1, value: 0, "aria-label": "Event" });
   const log = h("ol", { start: 0 }, frames.map((f) => h("li", {}, f.text)));
-  const play = h("button", { class: "btn", type: "button", "data-action": "play" }, "▶ Play");
+  const play = h("button", { class: "btn", type: "button", "data-action": "play" });
+  // Drawn, not a font's glyph: Debian's fonts lack the pause sign.
+  const showPlaying = (on) => {
+    const icon = svg("svg", { viewBox: "0 0 10 10", class: "play-icon", "aria-hidden": "true", "data-icon": on ? "pause" : "play" });
+    if (on) {
+      svg("rect", { x: 1.5, y: 1, width: 2.5, height: 8 }, icon);
+      svg("rect", { x: 6, y: 1, width: 2.5, height: 8 }, icon);
+    } else {
+      svg("path", { d: "M2 1 L9 5 L2 9 Z" }, icon);
+    }
+    play.replaceChildren(icon, on ? " Pause" : " Play");
+  };
+  showPlaying(false);
   const button = (text, action, go) => h("button", { class: "btn quiet", type: "button", "data-action": action, onclick: go }, text);
   box.replaceChildren(
     h("div", { class: "card-head" }, h("h2", {}, `Replay: session ${sessionId}, ${environmentTitle(env.name)}, ${data.session.learner}`),
@@ -243,15 +255,15 @@ async function showReplay(sessionId) {
     if (replayTimer) {
       clearInterval(replayTimer);
       replayTimer = null;
-      play.textContent = "▶ Play";
+      showPlaying(false);
       return;
     }
-    play.textContent = "⏸ Pause";
+    showPlaying(true);
     replayTimer = setInterval(() => {
       if (index >= frames.length - 1) {
         clearInterval(replayTimer);
         replayTimer = null;
-        play.textContent = "▶ Play";
+        showPlaying(false);
         return;
       }
       go(index + 1);

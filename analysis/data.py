@@ -5,6 +5,13 @@ tables, the learning sessions and their evaluations. ``validate_tables`` does th
 and typing on tables given as data frames, so that another reader (a database, for example)
 can feed the same analysis. Every problem is an ``InputError`` whose message names the file,
 the row and the column.
+
+Empty episodes are not counted. Before the study server refused to start an episode on its
+task's goal, letting the agent try while it stood on the goal recorded an agent episode of one
+action that ended at once, on the goal where it began (``end_reason`` goal, ``start_state`` =
+``end_state``), and queued an update for it. Nothing was taught, but each counted as an
+episode (and an action) towards "episodes required". Where the episodes table is given, such
+episodes are taken out of the cumulative counts of the evaluations from their update on.
 """
 
 from __future__ import annotations
@@ -21,6 +28,16 @@ from analysis.options import InputError
 SESSIONS_FILE = "sessions.csv"
 EVALUATIONS_FILE = "evaluations.csv"
 PARTICIPANTS_FILE = "participants.csv"
+EPISODES_FILE = "episodes.csv"
+EPISODE_COLUMNS = (
+    "session_id",
+    "kind",
+    "start_state",
+    "end_state",
+    "end_reason",
+    "actions",
+    "update_index",
+)
 
 SESSION_COLUMNS = (
     "session_id",
@@ -87,10 +104,13 @@ def load_tables(
                 notes.append(f"participant statuses not checked: {error}")
     elif exclude_excluded:
         raise InputError(f"--exclude-excluded needs {PARTICIPANTS_FILE}, which is not in {folder}")
+    episodes_path = folder / EPISODES_FILE
+    episodes = read_csv(episodes_path) if episodes_path.exists() else None
     return validate_tables(
         sessions,
         evaluations,
         participants=participants,
+        episodes=episodes,
         exclude_excluded=exclude_excluded,
         notes=notes,
     )
@@ -138,9 +158,15 @@ def load_database(
         tables["sessions"],
         tables["evaluations"],
         participants=tables["participants"],
+        episodes=tables["episodes"],
         exclude_excluded=exclude_excluded,
         notes=notes,
-        sources=("the sessions table", "the evaluations table", "the participants table"),
+        sources=(
+            "the sessions table",
+            "the evaluations table",
+            "the participants table",
+            "the episodes table",
+        ),
     )
 
 
@@ -167,21 +193,30 @@ def validate_tables(
     evaluations: pd.DataFrame,
     *,
     participants: pd.DataFrame | None = None,
+    episodes: pd.DataFrame | None = None,
     exclude_excluded: bool = False,
     notes: list[str] | None = None,
-    sources: tuple[str, str, str] = (SESSIONS_FILE, EVALUATIONS_FILE, PARTICIPANTS_FILE),
+    sources: tuple[str, str, str, str] = (
+        SESSIONS_FILE,
+        EVALUATIONS_FILE,
+        PARTICIPANTS_FILE,
+        EPISODES_FILE,
+    ),
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Check and type the learning sessions and evaluations; see ``load_tables``.
+    """Check and type the learning sessions and evaluations; see ``load_tables``. With
+    ``episodes``, empty episodes are taken out of the evaluations' counts (module docstring);
+    without, the counts are taken as they are, and a note says so.
 
-    ``sources`` name the three tables in messages (file names, or table names for a
+    ``sources`` name the four tables in messages (file names, or table names for a
     database). Rows are counted from 1 in the order given.
     """
-    sessions_source, evaluations_source, participants_source = sources
+    sessions_source, evaluations_source, participants_source, episodes_source = sources
     notes = notes if notes is not None else []
     sessions = _validate_sessions(sessions.reset_index(drop=True), sessions_source)
     evaluations = _validate_evaluations(
         evaluations.reset_index(drop=True), evaluations_source, sessions, sessions_source, notes
     )
+
     excluded = _excluded_participants(participants, participants_source, exclude_excluded)
     if excluded is not None:
         dropped = sessions["participant_id"].isin(excluded)
@@ -205,6 +240,15 @@ def validate_tables(
                 f"{_count(int(dropped.sum()), 'learning session')} of participants marked "
                 f"excluded in {participants_source} are included (--exclude-excluded drops them)"
             )
+    if episodes is None:
+        notes.append(
+            f"no {episodes_source} given: episodes and actions are counted as the evaluations "
+            "give them (empty episodes, a try that ended at once on the goal, not looked for)"
+        )
+    else:
+        evaluations = discount_empty_episodes(
+            evaluations, episodes.reset_index(drop=True), episodes_source, notes
+        )
     return sessions, evaluations
 
 
@@ -340,6 +384,58 @@ def _validate_evaluations(
             "(no evaluation; the server's log says why)"
         )
     return out.loc[~failed, list(EVALUATION_COLUMNS)].reset_index(drop=True)
+
+
+def empty_episodes(episodes: pd.DataFrame, source: str = EPISODES_FILE) -> pd.Series:
+    """Which episodes are empty (module docstring): agent episodes of one action that ended
+    at the goal where they began."""
+    _require_columns(episodes, EPISODE_COLUMNS, source)
+    start, start_missing = _raw(episodes, "start_state")
+    end, _ = _raw(episodes, "end_state")
+    kind, _ = _raw(episodes, "kind")
+    reason, _ = _raw(episodes, "end_reason")
+    actions, _ = _raw(episodes, "actions")
+    return (
+        (kind == "agent") & (reason == "goal") & (actions == "1") & ~start_missing & (start == end)
+    )
+
+
+def discount_empty_episodes(
+    evaluations: pd.DataFrame, episodes: pd.DataFrame, source: str, notes: list[str]
+) -> pd.DataFrame:
+    """The evaluations with empty episodes taken out of their cumulative counts: an empty
+    episode ended by update u takes one episode and its action from every evaluation of its
+    session from update u on. Episodes of sessions that have no evaluations here (tutorials,
+    sessions left out) are ignored."""
+    empty = empty_episodes(episodes, source)
+    session_ids, _ = _raw(episodes, "session_id")
+    empty &= session_ids.isin(set(evaluations["session_id"]))
+    if not empty.any():
+        return evaluations
+    text, _ = _raw(episodes, "update_index")
+    numbers = pd.to_numeric(text, errors="coerce")
+    bad = empty & ~((numbers >= 0) & (numbers == np.round(numbers)))
+    _first_bad(
+        episodes,
+        "update_index",
+        source,
+        bad,
+        lambda value: f"{value!r} is not the update of an ended episode (a whole number >= 0)",
+    )
+    updates = numbers[empty].astype(np.int64)
+    out = evaluations.copy()
+    for session_id, update in zip(session_ids[empty], updates, strict=True):
+        later = (out["session_id"] == session_id) & (out["update_index"] >= update)
+        out.loc[later, "episodes"] -= 1
+        out.loc[later, "actions"] -= 1
+    count = int(empty.sum())
+    sessions = int(session_ids[empty].nunique())
+    notes.append(
+        f"{_count(count, 'empty episode')} in {_count(sessions, 'learning session')} not "
+        "counted (an agent's try from the goal that ended there at once: one action, "
+        "start_state = end_state, end_reason goal; the server no longer records these)"
+    )
+    return out
 
 
 def _excluded_participants(

@@ -55,6 +55,7 @@ def mean_and_standard_error(values: np.ndarray) -> tuple[np.ndarray, np.ndarray,
 def learning_curve_figure(analysis: Analysis, x: str) -> Figure:
     """The figure of normalised return against ``x`` ("episodes" or "actions")."""
     from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
 
     environments = analysis.environments
     columns = min(len(environments), 4)
@@ -66,6 +67,7 @@ def learning_curve_figure(analysis: Analysis, x: str) -> Figure:
         in_environment = evaluations.loc[evaluations["environment"] == environment]
         ax.set_title(environment_display(environment))
         ax.set_xlabel(AXIS_NAMES[x])
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # counts: no 2.5 episodes
         ax.set_ylim(0, 1.05)
         for threshold in analysis.thresholds:
             ax.axhline(threshold, color="0.6", linestyle=":", linewidth=0.9)

@@ -33,7 +33,12 @@ Baseline learner: `{analysis.baseline}`. Thresholds (percent of the optimal tota
 - `table1.md`, `table1.tex`: the paper's Table 1. Per environment and learner, the total
   learning sessions, the sessions whose normalised return reached each threshold, and the mean
   episodes and actions required (cumulative counts at the first evaluation that reached it,
-  averaged over the sessions that reached it). `*`: significantly worse than the baseline
+  averaged over the sessions that reached it). Episodes are demonstrations plus agent
+  episodes, actions the demonstrated plus the agent's; empty episodes are not counted: an
+  agent's try from the goal that ended there at once (one action, `start_state` =
+  `end_state`, `end_reason` goal in `episodes.csv`), which older versions of the study server
+  recorded when the agent was let try on the goal (the notes under the table say how many were
+  found, or that no `episodes.csv` was given). `*`: significantly worse than the baseline
   (p <= 0.05); `†`: still significant after the correction. The `.tex` file needs booktabs.
 - `appendix_all.md`, `appendix_all.tex`: p-values of the comparisons across all environments
   (Fisher's exact test on pooled success counts; type II ANOVA of the OLS model

@@ -18,14 +18,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pydantic import ValidationError
-
     from server.app import db as database
-    from server.app.settings import Settings
+    from server.app.settings import SettingsError, load_settings
 
     try:
-        settings = Settings(**({"database_url": args.database_url} if args.database_url else {}))
-    except ValidationError as error:
+        settings = load_settings({"database_url": ("--database-url", args.database_url)})
+    except SettingsError as error:
         print(f"bam-study db: {error}", file=sys.stderr)
         return 2
     engine = database.create_db_engine(

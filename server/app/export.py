@@ -68,6 +68,7 @@ DICTIONARY: dict[str, dict[str, str]] = {
         "minutes": "Minutes from arrival to completion (or to the latest request if not completed).",
         "agents": "Study agents (learning sessions) assigned.",
         "agents_finished": "Study agents the participant finished.",
+        "tutorial_step": "The tutorial step the participant reached (from 0).",
         "completion_code": "The completion code issued (left out when pseudonymised).",
     },
     "sessions": {
@@ -77,9 +78,10 @@ DICTIONARY: dict[str, dict[str, str]] = {
         "environment": "The environment taught.",
         "learner": "The agent's learning algorithm (bam, model-based, global-cost, cloning).",
         "position": "Order among the participant's study agents, from 0.",
-        "started_at": "When the participant began teaching this agent (UTC).",
+        "started_at": "When this agent's turn came (UTC).",
         "finished_at": "When the participant finished this agent (UTC; empty if not).",
         "completed": "True if the participant finished teaching this agent.",
+        "opened_at": "When the participant began teaching it, past its introduction page (UTC).",
         "colour": "The agent's colour on screen.",
         "seed": "Seed of the session's learner and of its random starts and dynamics.",
         "episodes": "Episodes ended (demonstrations plus agent episodes).",
@@ -102,7 +104,9 @@ DICTIONARY: dict[str, dict[str, str]] = {
         "kind": "demonstration or agent.",
         "task": "Index of the task selected during the episode.",
         "task_name": "Name of that task.",
-        "start_state": "State at the episode's first action.",
+        "start_state": "State before the episode's first action (never the task's goal in "
+        "data recorded since no episode may start there; before, a demonstration's start_state "
+        "was the state after its first move).",
         "end_state": "State when it ended (after the synthetic STAY, if any).",
         "started_at": "Time of the first action (UTC).",
         "ended_at": "When it ended (UTC; empty if still open).",
@@ -114,16 +118,19 @@ DICTIONARY: dict[str, dict[str, str]] = {
     "events": {
         "event_id": "Event number (database id; increasing in time).",
         "participant_id": "The participant.",
-        "session_id": "The learning session (empty for consent, start, submission).",
+        "session_id": "The learning session (empty for consent, start, tutorial, submission).",
         "seq": "The participant's sequence number of the request.",
-        "kind": "consent, start, submission, task, mode, move, agent_step, feedback, reset, "
-        "end_episode or finish.",
+        "kind": "consent, start, tutorial (a tutorial step reached), submission, open (teaching "
+        "begun after the agent's introduction page), task, mode, move, agent_step, feedback, "
+        "reset, end_episode or finish.",
         "created_at": "When the request was committed (UTC).",
         "task": "Task selected (for task: the new one).",
         "mode": "Mode after the event: idle, demonstrate or agent.",
         "state": "The agent's state before the event.",
         "action": "The action taken (move, agent_step): STAY, UP, DOWN, LEFT or RIGHT.",
-        "next_state": "The agent's state after the action (before a synthetic STAY).",
+        "next_state": "The agent's state after the event (before a synthetic STAY); differs "
+        "from state for a mode or task event when the agent stood on the selected task's goal "
+        "with a mode on and was put at a random start.",
         "feedback": "+1 or -1 (feedback events); 0 on agent steps.",
         "episode_index": "The episode the event belongs to or ended.",
         "record": "What the learner observed: demonstration, agent_step, transition (idle move) "
@@ -180,6 +187,7 @@ INTEGER_COLUMNS = frozenset(
         "actions",
         "agents",
         "agents_finished",
+        "tutorial_step",
         "demonstrations",
         "agent_episodes",
         "demonstrated_actions",
@@ -360,6 +368,7 @@ def load_tables(
             "minutes": round((end - p.created_at).total_seconds() / 60, 2),
             "agents": len(mine),
             "agents_finished": sum(1 for x in mine if x.completed),
+            "tutorial_step": p.tutorial_step,
             "completion_code": p.completion_code,
         }
         if pseudonymize:
@@ -382,6 +391,7 @@ def load_tables(
             "started_at": _iso(x.started_at),
             "finished_at": _iso(x.finished_at),
             "completed": bool(x.completed),
+            "opened_at": _iso(x.opened_at),
             "colour": x.colour_name,
             "seed": x.seed,
             "episodes": x.episodes,

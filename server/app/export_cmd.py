@@ -46,17 +46,15 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pydantic import ValidationError
-
     from server.app import db as database
     from server.app.config import DEFAULT_STUDY_CONFIG
     from server.app.export import load_tables, open_study_database, write_export
-    from server.app.settings import Settings
+    from server.app.settings import SettingsError, load_settings
     from server.rl.datasets import DatasetError, check_out_folder
 
     try:
-        settings = Settings(**({"database_url": args.database_url} if args.database_url else {}))
-    except ValidationError as error:
+        settings = load_settings({"database_url": ("--database-url", args.database_url)})
+    except SettingsError as error:
         print(f"bam-study export: {error}", file=sys.stderr)
         return 2
     minari = args.format == "minari"

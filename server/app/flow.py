@@ -16,6 +16,7 @@ import secrets
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
+from functools import cache
 from typing import Any
 
 import numpy as np
@@ -650,6 +651,7 @@ def start(action: Action) -> Record:
     if first is None:
         raise ApiError(409, "this participant has no learning sessions")
     activate(action, first)
+    first.opened_at = action.now  # the instructions were its introduction
     return first
 
 
@@ -684,7 +686,23 @@ def activate(action: Action, session: Record) -> None:
 def initial_state(session: Any) -> int:
     """Where the agent starts: a random start of the first task, from the session's seed."""
     env = make_environment(session.environment)
-    return env.sample_start(0, np.random.default_rng([session.seed, 0]), study=True)
+    return random_start(env.name, 0, np.random.default_rng([session.seed, 0]))
+
+
+@cache
+def _start_distribution(environment: str, task: int) -> np.ndarray:
+    env = make_environment(environment)
+    chosen = env.tasks[task]
+    start = np.where(chosen.reward > 0, 0.0, chosen.study_start_distribution)
+    return start / start.sum()
+
+
+def random_start(environment: str, task: int, rng: Any) -> int:
+    """A random start of ``task``: the study's start distribution without the task's goal. A
+    start on the goal would give an episode with nothing to do (an agent's try from there ends
+    at once, and its update would count as an episode)."""
+    start = _start_distribution(environment, task)
+    return int(rng.choice(len(start), p=start))
 
 
 def advance(action: Action, finished: Record) -> Record | None:
@@ -704,6 +722,21 @@ def complete(action: Action) -> None:
     else:
         participant.completion_code = "".join(_random.choice(CODE_ALPHABET) for _ in range(10))
     set_status(action.c, participant, "completed", action.now)
+
+
+def reach_tutorial_step(action: Action, step: int) -> None:
+    """The page's tutorial reached ``step``; the step kept never goes back (another tab may be
+    behind)."""
+    participant = action.participant
+    if participant.status != "tutorial":
+        raise ApiError(409, f"the tutorial is not in progress (status {participant.status})")
+    participant.tutorial_step = max(int(participant.tutorial_step), step)
+
+
+def open_session(action: Action, session: Record) -> None:
+    """The participant began teaching ``session`` (left its introduction page)."""
+    if session.opened_at is None:
+        session.opened_at = action.now
 
 
 def submission(action: Action) -> None:
@@ -762,6 +795,7 @@ def summary(session: Any) -> SessionSummary:
         environment=session.environment,
         colour={"name": session.colour_name, "hex": session.colour_hex},  # type: ignore[arg-type]
         status=session.status,
+        opened=session.opened_at is not None,
     )
 
 
@@ -782,4 +816,5 @@ def participant_state(c: Connection, participant: Any, study: StudyConfig) -> Pa
         completion=completion(participant, study),
         progress=Progress(agent=len(reached), of=len(study_sessions)),
         sessions=[summary(x) for x in sessions],
+        tutorial_step=participant.tutorial_step,
     )

@@ -101,6 +101,8 @@ class Participant(Base):
     domain: Mapped[str | None] = mapped_column(String(32))
     next_seq: Mapped[int] = mapped_column(Integer, default=1)
     completion_code: Mapped[str | None] = mapped_column(String(32))
+    # The tutorial's step reached (the page's steps, from 0), so that it continues anywhere.
+    tutorial_step: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     # Exclusion is the experimenter's judgement, beside the flow status, which it leaves as is.
     excluded_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     exclusion_reason: Mapped[str | None] = mapped_column(Text)
@@ -149,6 +151,8 @@ class LearningSession(Base):
     seed: Mapped[int] = mapped_column(BigInteger)
     status: Mapped[str] = mapped_column(String(16), default="pending")  # pending/active/finished
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    # When the participant began teaching it, past its introduction page (None: not yet).
+    opened_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     completed: Mapped[bool] = mapped_column(Boolean, default=False)
     # The live state of teaching.

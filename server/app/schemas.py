@@ -63,6 +63,10 @@ class MoveRequest(SeqRequest):
     action: Move = Field(description="The arrow pressed (STAY cannot be demonstrated).")
 
 
+class TutorialStepRequest(SeqRequest):
+    step: int = Field(ge=0, le=100, description="The tutorial step reached, from 0.")
+
+
 class FeedbackRequest(SeqRequest):
     feedback: Literal[1, -1] = Field(description="+1 (positive) or -1 (negative).")
 
@@ -134,6 +138,7 @@ class SessionSummary(BaseModel):
     environment: str
     colour: Colour
     status: Literal["pending", "active", "finished"]
+    opened: bool = Field(description="The participant began teaching it (past its introduction).")
 
 
 class Progress(BaseModel):
@@ -147,6 +152,7 @@ class ParticipantState(ParticipantBrief):
     domain: str | None
     progress: Progress
     sessions: list[SessionSummary]
+    tutorial_step: int = Field(description="The tutorial step reached, from 0.")
 
 
 class ArrivalResponse(BaseModel):
@@ -193,6 +199,11 @@ class Outcome(BaseModel):
     feedback: int | None = None
     episode_ended: str | None = Field(None, description="Why an episode ended, if one did.")
     goal_reached: bool = False
+    new_start: bool = Field(
+        False,
+        description="The agent stood on the selected task's goal with a mode on: it was put at "
+        "a random start of the task (from state to next_state) before any episode began.",
+    )
     update_queued: int | None = None
     learning_wait_seconds: float | None = None
 

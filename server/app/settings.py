@@ -11,7 +11,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, SecretStr, field_validator, model_validator
+from pydantic import Field, SecretStr, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from server.cores import available_cores
@@ -85,7 +85,7 @@ class Settings(BaseSettings):
     @classmethod
     def _known_backend(cls, value: str) -> str:
         if not value.startswith(("sqlite", "postgresql")):
-            raise ValueError("BAM_DATABASE_URL must be a sqlite:// or postgresql:// URL")
+            raise ValueError("must be a sqlite:// or postgresql:// URL")
         return value
 
     @model_validator(mode="after")
@@ -116,6 +116,30 @@ class Settings(BaseSettings):
         """The origins accepted in turkSubmitTo (HTTPS on the default port)."""
         hosts = (h.strip().lower() for h in self.mturk_submit_hosts.split(","))
         return frozenset(f"https://{host}" for host in hosts if host)
+
+
+class SettingsError(ValueError):
+    """Bad settings, in one line that names the flags or variables that were set."""
+
+
+def load_settings(flags: dict[str, tuple[str, object | None]] | None = None) -> Settings:
+    """The settings from the environment, with the command-line flags that were given on top
+    (``flags``: setting name -> (flag, value); a value of None is a flag not given). Raises
+    ``SettingsError`` naming each bad value by the flag or the ``BAM_*`` variable it came from."""
+    given = {name: value for name, (_, value) in (flags or {}).items() if value is not None}
+    try:
+        return Settings(**given)  # type: ignore[arg-type]
+    except ValidationError as error:
+        problems = []
+        for item in error.errors():
+            message = item["msg"].removeprefix("Value error, ")
+            if not item["loc"]:
+                problems.append(message)
+                continue
+            name = str(item["loc"][0])
+            source = (flags or {})[name][0] if name in given else f"BAM_{name.upper()}"
+            problems.append(f"{source}={item['input']!r}: {message}")
+        raise SettingsError("; ".join(problems)) from None
 
 
 @lru_cache

@@ -314,7 +314,9 @@ class SimulatedParticipant:
             state = self.act(f"{base}/reset", "reset")["session"]["agent"]["state"]
         else:
             return state  # every start drawn was a goal: nothing to demonstrate
-        self.act(f"{base}/mode", "mode", mode="demonstrate")
+        # (On the goal, turning a mode on puts the agent at a random start first.)
+        data = self.act(f"{base}/mode", "mode", mode="demonstrate")
+        state = data["session"]["agent"]["state"]
         for _ in range(env.horizon):
             action = teacher.next_action(task, state)
             self._pause(self.plan.think_seconds)

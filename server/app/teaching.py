@@ -11,6 +11,12 @@ goal or the horizon, or implicitly when the participant changes mode or task, re
 the agent (no STAY: the demonstration was abandoned, not completed). Each ended episode queues
 one learner update. An episode end by the participant, the goal or the horizon stops the agent
 (mode idle): the participant is then prompted to reset.
+
+No episode starts on the selected task's goal: there the task is done already, so a try would
+end at its first step (and count as an episode, with an update) and a demonstration would show a
+move away from the goal. Turning a mode on (demonstrate or let the agent try), or selecting a
+task while one is on, with the agent on that task's goal first puts the agent at a random start
+of the task, as Reset does (``Outcome.new_start``); Reset never draws the goal itself.
 """
 
 from __future__ import annotations
@@ -205,40 +211,61 @@ def end_episode(
     return action.queue_update(session)
 
 
+def _leave_goal(action: Action, session: Record, env: Environment) -> bool:
+    """With a mode on and no episode open, an agent on the selected task's goal goes to a
+    random start of the task first (module docstring); returns whether it did."""
+    if session.mode == "idle" or session.open_episode is not None:
+        return False
+    if not env.is_goal(session.task, int(session.state)):
+        return False
+    session.state = flow.random_start(env.name, session.task, action.rng(session.seed))
+    session.last_action = None
+    return True
+
+
+def _switched(
+    action: Action, session: Record, env: Environment, state: int, queued: int | None
+) -> ActionResponse:
+    """The answer to a task or mode change (from ``state``), once the agent is off the goal."""
+    moved = _leave_goal(action, session, env)
+    action.event.update(task=session.task, mode=session.mode, state=state, next_state=session.state)
+    return respond(
+        action,
+        session,
+        Outcome(
+            episode_ended=action.event.get("episode_end"),
+            update_queued=queued,
+            new_start=moved,
+            state=state if moved else None,
+            next_state=session.state if moved else None,
+        ),
+    )
+
+
 # -- handlers -------------------------------------------------------------------------------
 def set_task(action: Action, session_id: int, task: int) -> ActionResponse:
     session = session_for(action, session_id)
     env = make_environment(session.environment)
     if task >= len(env.tasks):
         raise ApiError(400, f"task {task} does not exist here: tasks are 0..{len(env.tasks) - 1}")
-    action.event.update(state=session.state, next_state=session.state)
+    state = int(session.state)
     queued = None
     if task != session.task:
         queued = end_episode(action, session, env, "task", stay=False)
         session.task = task
         session.last_action = None  # feedback belongs to the task selected when it is given
-    action.event.update(task=task, mode=session.mode)
-    return respond(
-        action,
-        session,
-        Outcome(episode_ended=action.event.get("episode_end"), update_queued=queued),
-    )
+    return _switched(action, session, env, state, queued)
 
 
 def set_mode(action: Action, session_id: int, mode: str) -> ActionResponse:
     session = session_for(action, session_id)
     env = make_environment(session.environment)
-    action.event.update(state=session.state, next_state=session.state, task=session.task)
+    state = int(session.state)
     queued = None
     if mode != session.mode:
         queued = end_episode(action, session, env, "mode", stay=False)
         session.mode = mode
-    action.event["mode"] = mode
-    return respond(
-        action,
-        session,
-        Outcome(episode_ended=action.event.get("episode_end"), update_queued=queued),
-    )
+    return _switched(action, session, env, state, queued)
 
 
 def move(action: Action, session_id: int, name: str) -> ActionResponse:
@@ -251,15 +278,15 @@ def move(action: Action, session_id: int, name: str) -> ActionResponse:
     state = int(session.state)
     next_state = env.step(state, act, action.rng(session.seed))
     action.event.update(mode=session.mode, state=state, action=act, next_state=next_state)
-    if session.mode == "demonstrate":
-        _open_episode(action, session, "demonstration")  # starts where the move starts
-    session.state = next_state
     outcome = Outcome(state=state, action=name, next_state=next_state)
     if session.mode == "idle":
+        session.state = next_state
         _observe(action, session, "transition")
         session.idle_moves += 1
         session.last_action = "idle"
         return respond(action, session, outcome)
+    _open_episode(action, session, "demonstration")  # starts where the first move starts
+    session.state = next_state
     _observe(action, session, "demonstration", episode_index=session.open_episode)
     session.episode_actions += 1
     session.actions += 1
@@ -320,12 +347,12 @@ def feedback(action: Action, session_id: int, value: int) -> ActionResponse:
 
 
 def reset(action: Action, session_id: int) -> ActionResponse:
-    """A random start of the selected task (the study's start distribution)."""
+    """A random start of the selected task (the study's start distribution, never its goal)."""
     session = session_for(action, session_id)
     env = make_environment(session.environment)
     queued = end_episode(action, session, env, "reset", stay=False)
     state = int(session.state)
-    session.state = env.sample_start(session.task, action.rng(session.seed), study=True)
+    session.state = flow.random_start(env.name, session.task, action.rng(session.seed))
     session.last_action = None
     action.event.update(task=session.task, mode=session.mode, state=state, next_state=session.state)
     return respond(
@@ -352,6 +379,16 @@ def finish_episode(action: Action, session_id: int) -> ActionResponse:
     queued = end_episode(action, session, env, "end", stay=True)
     session.mode = "idle"
     return respond(action, session, Outcome(episode_ended="end", update_queued=queued))
+
+
+def open_session(action: Action, session_id: int) -> ActionResponse:
+    """Past the agent's introduction page (a reload before this shows that page again)."""
+    session = session_for(action, session_id)
+    flow.open_session(action, session)
+    action.event.update(
+        state=session.state, next_state=session.state, task=session.task, mode=session.mode
+    )
+    return respond(action, session, Outcome())
 
 
 def finish_session(action: Action, session_id: int) -> ActionResponse:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from analysis.data import EVALUATION_COLUMNS, SESSION_COLUMNS
+from analysis.data import EPISODE_COLUMNS, EVALUATION_COLUMNS, SESSION_COLUMNS
 
 # (session_id, participant_id, environment, learner, position,
 #  evaluations as (episodes, actions, normalized_return) in update order)
@@ -79,9 +79,11 @@ def write_export(
     sessions: Sequence[Session],
     *,
     participants: dict[str, str] | None = None,
+    episodes: Sequence[dict[str, object]] = (),
 ) -> Path:
-    """Write sessions.csv and evaluations.csv (and participants.csv with a status per
-    participant when given) into ``folder``."""
+    """Write sessions.csv, evaluations.csv and episodes.csv (with ``episodes``' rows only; the
+    analysis reads it for empty episodes), and participants.csv with a status per participant
+    when given, into ``folder``."""
     folder.mkdir(parents=True, exist_ok=True)
     session_rows = []
     evaluation_rows = []
@@ -102,18 +104,19 @@ def write_export(
                 "completed": "true",
             }
         )
-        for update, (episodes, actions, value) in enumerate(points):
+        for update, (count, actions, value) in enumerate(points):
             evaluation_rows.append(
                 {
                     **shared,
                     "update_index": update,
-                    "episodes": episodes,
+                    "episodes": count,
                     "actions": actions,
                     "normalized_return": value,
                 }
             )
     write_csv(folder / "sessions.csv", SESSION_COLUMNS, session_rows)
     write_csv(folder / "evaluations.csv", EVALUATION_COLUMNS, evaluation_rows)
+    write_csv(folder / "episodes.csv", EPISODE_COLUMNS, episodes)
     if participants is not None:
         write_csv(
             folder / "participants.csv",

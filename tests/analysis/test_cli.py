@@ -474,3 +474,36 @@ def test_the_subcommand_is_registered_without_loading_the_analysis_libraries() -
         [sys.executable, "-c", code], capture_output=True, text=True, check=True
     )
     assert result.stdout.strip() == "[]"
+
+
+def test_the_report_says_how_many_empty_episodes_it_left_out(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    study = small_study()
+    first = study[0]
+    # Two tries from the goal in the first session (updates 2 and 3 of its curve).
+    empty = [
+        {
+            "session_id": first[0],
+            "kind": "agent",
+            "start_state": 5,
+            "end_state": 5,
+            "end_reason": "goal",
+            "actions": 1,
+            "update_index": update,
+        }
+        for update in (2, 3)
+    ]
+    export = write_export(tmp_path / "export", study, episodes=empty)
+    code, out, err = analyze(capsys, "--data", export, "--out", tmp_path / "out")
+    assert code == 0, err
+    table = (tmp_path / "out" / "table1.md").read_text()
+    assert "- 2 empty episodes in 1 learning session not counted" in table
+    assert "2 empty episodes in 1 learning session not counted" in out
+    readme = (tmp_path / "out" / "README.md").read_text()
+    assert "empty episodes are not counted" in readme
+    summary = {r["session_id"]: r for r in read_rows(tmp_path / "out" / "sessions_summary.csv")}
+    # 50% at update 1 (before the empty episodes), 80% at update 2: 3 episodes as exported,
+    # of which the one ended by update 2 was empty.
+    assert (summary[first[0]]["episodes_50"], summary[first[0]]["episodes_80"]) == ("2", "2")
+    assert summary[first[0]]["actions_80"] == "38"

@@ -57,3 +57,20 @@ def test_one_panel_per_environment_with_a_curve_per_learner(export: Path) -> Non
     # Doorway's cloning curve counts only the 3 sessions with evaluations.
     doorway_labels = [line.get_label() for line in panels[1].get_lines()]
     assert "Behavioral Cloning (n=3)" in doorway_labels
+
+
+def test_the_count_axes_have_whole_number_ticks(tmp_path: Path) -> None:
+    """Few episodes (0 to 3) would otherwise get ticks at 0.5, 1.5, ..."""
+    from .conftest import write_export
+
+    curve = [(0, 0, 0.1), (1, 3, 0.4), (2, 5, 0.6), (3, 7, 0.9)]
+    study = [
+        ("a", "p1", "two-rooms", "bam", 0, curve),
+        ("b", "p1", "two-rooms", "cloning", 1, curve[:3]),
+    ]
+    sessions, evaluations = load_tables(write_export(tmp_path / "export", study))
+    analysis = analyze(sessions, evaluations)
+    for x in ("episodes", "actions"):
+        figure = learning_curve_figure(analysis, x)
+        ticks = figure.axes[0].get_xticks()
+        assert len(ticks) >= 2 and all(float(t).is_integer() for t in ticks), (x, ticks)

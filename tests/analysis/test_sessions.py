@@ -152,3 +152,77 @@ def test_failed_learner_updates_are_left_out_with_a_note(tmp_path: Path) -> None
     frame.to_csv(path, index=False)
     with pytest.raises(InputError, match=r"row 3 \(line 4\), column 'normalized_return'"):
         load_tables(folder)
+
+
+def _episode(
+    session: str, update: int, kind: str, start: int, end: int, reason: str, actions: int
+) -> dict[str, object]:
+    return {
+        "session_id": session,
+        "kind": kind,
+        "start_state": start,
+        "end_state": end,
+        "end_reason": reason,
+        "actions": actions,
+        "update_index": update,
+    }
+
+
+def test_empty_episodes_in_older_data_are_not_counted(tmp_path: Path) -> None:
+    """Older servers recorded a try from the goal as an agent episode of one action that ended
+    at once where it began, with its own update. Episodes and actions required leave them out;
+    look-alikes that taught something still count."""
+    curve = [
+        (0, 0, 0.1),  # update 0: the untrained learner
+        (1, 10, 0.3),  # a demonstration of 10 moves
+        (2, 11, 0.3),  # empty: T on the goal
+        (3, 12, 0.3),  # empty again
+        (4, 20, 0.6),  # a demonstration of 8 moves reaches 50%
+        (5, 21, 0.6),  # an agent's one step onto the goal from elsewhere: counts
+        (6, 22, 0.6),  # one step that stayed put, stopped by the participant: counts
+        (7, 23, 0.9),  # a one-move demonstration (older data: start_state after the move)
+    ]
+    episodes = [
+        _episode("a", 1, "demonstration", 40, 7, "goal", 10),
+        _episode("a", 2, "agent", 7, 7, "goal", 1),
+        _episode("a", 3, "agent", 7, 7, "goal", 1),
+        _episode("a", 4, "demonstration", 33, 7, "goal", 8),
+        _episode("a", 5, "agent", 8, 7, "goal", 1),
+        _episode("a", 6, "agent", 12, 12, "end", 1),
+        _episode("a", 7, "demonstration", 7, 7, "goal", 1),
+        _episode("tutorial", 1, "agent", 3, 3, "goal", 1),  # not a study session
+        {**_episode("a", 8, "agent", 9, 9, "", 1), "end_reason": ""},  # still open
+    ]
+    folder = write_export(
+        tmp_path / "export", [("a", "p1", "two-rooms", "bam", 0, curve)], episodes=episodes
+    )
+    notes: list[str] = []
+    sessions, evaluations = load_tables(folder, notes=notes)
+    assert evaluations["episodes"].tolist() == [0, 1, 1, 1, 2, 3, 4, 5]
+    assert evaluations["actions"].tolist() == [0, 10, 10, 10, 18, 19, 20, 21]
+    assert notes == [
+        "2 empty episodes in 1 learning session not counted (an agent's try from the goal "
+        "that ended there at once: one action, start_state = end_state, end_reason goal; the "
+        "server no longer records these)"
+    ]
+    row = session_measures(sessions, evaluations, (0.5, 0.8)).set_index("session_id").loc["a"]
+    assert (row["episodes_50"], row["actions_50"]) == (2, 18)
+    assert (row["episodes_80"], row["actions_80"]) == (5, 21)
+
+    # Without episodes.csv the counts are as exported, and a note says so.
+    (folder / "episodes.csv").unlink()
+    notes = []
+    _, evaluations = load_tables(folder, notes=notes)
+    assert evaluations["episodes"].tolist() == [0, 1, 2, 3, 4, 5, 6, 7]
+    assert notes and "no episodes.csv given" in notes[0]
+
+
+def test_an_empty_episode_without_its_update_is_a_clear_error(tmp_path: Path) -> None:
+    episodes = [{**_episode("a", 1, "agent", 7, 7, "goal", 1), "update_index": "x"}]
+    folder = write_export(
+        tmp_path / "export",
+        [("a", "p1", "two-rooms", "bam", 0, [(0, 0, 0.1), (1, 1, 0.2)])],
+        episodes=episodes,
+    )
+    with pytest.raises(InputError, match=r"episodes.csv, row 1 \(line 2\), column 'update_index'"):
+        load_tables(folder)

@@ -14,7 +14,7 @@ import socket
 import threading
 import time
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -440,8 +440,15 @@ class Study:
         expect(self.teach).to_be_visible()
         assert self.session != session
 
-    def do_tutorial(self, screenshot: Path | None = None) -> None:
-        """Every step of the tutorial, as it asks."""
+    def do_tutorial(
+        self,
+        screenshot: Path | None = None,
+        *,
+        begin: bool = True,
+        checkpoint: Callable[[], None] | None = None,
+    ) -> None:
+        """Every step of the tutorial, as it asks; ``checkpoint`` is called at its second step,
+        and without ``begin`` it stops at the next agent's introduction page."""
         card = self.frame.locator(".tutorial-card")
         expect(self.frame.locator('[data-action="next"]')).to_be_disabled()
 
@@ -453,6 +460,8 @@ class Study:
         for _ in range(3):
             self.idle_move()
         step("demonstrate")
+        if checkpoint is not None:
+            checkpoint()
         self.keep_away_from_goal(0, 3)
         self.press("d")
         self.wait_for("mode", "demonstrate")
@@ -486,8 +495,9 @@ class Study:
         next_button = self.frame.locator('[data-action="next"]')
         expect(next_button).to_be_enabled()
         self.press("n")
-        begin = self.frame.locator('[data-action="begin-agent"]')
-        expect(begin).to_be_visible(timeout=WAIT_MS)
+        expect(self.frame.locator('[data-action="begin-agent"]')).to_be_visible(timeout=WAIT_MS)
+        if not begin:
+            return
         self.press("Enter")
         expect(self.teach).to_have_attribute("data-kind", "study")
 

@@ -265,6 +265,8 @@ def test_the_dashboard_shows_the_runs_and_replays_a_session(
     expect(charlie).to_have_attribute("data-status", "submitted")
     expect(charlie).to_contain_text("2 / 2")
     expect(page.locator("#mturk-submissions tbody tr")).to_have_count(2)
+    # Each submitted field on its own line (assignmentId, completionCode).
+    expect(page.locator("#mturk-submissions tbody tr").first.locator("li.field")).to_have_count(2)
     charlie.click()
     cards = page.locator("#detail .session-card")
     expect(cards).to_have_count(3)  # the tutorial and two agents

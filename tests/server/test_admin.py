@@ -225,3 +225,36 @@ def test_the_dashboard_cookie_is_a_session_that_expires_and_is_revoked(
     now = time.time()
     state.admin_sessions.clock = lambda: now + SESSION_SECONDS + 1
     assert other.get("/dashboard/api/participants").status_code == 401
+
+
+def test_the_dashboard_excludes_and_includes_again_with_the_reasons(
+    client: TestClient, db: Database
+) -> None:
+    teaching_participant(client)
+    base = "/dashboard/api/participants"
+    assert client.post(f"{base}/1/exclusion", json={"reason": "x"}).status_code == 401
+    excluded = client.post(
+        f"{base}/1/exclusion", json={"reason": "pressed keys at random"}, headers=ADMIN
+    )
+    assert excluded.status_code == 200, excluded.text
+    assert excluded.json()["excluded"] is True
+    assert excluded.json()["exclusion_reason"] == "pressed keys at random"
+    again = client.post(f"{base}/1/exclusion", json={"reason": "twice"}, headers=ADMIN)
+    assert again.status_code == 409 and "already excluded" in again.text
+    for body in ({"reason": ""}, {}, {"reason": "x", "extra": 1}):
+        assert client.post(f"{base}/1/inclusion", json=body, headers=ADMIN).status_code == 422
+    assert (
+        client.post(f"{base}/99/exclusion", json={"reason": "x"}, headers=ADMIN).status_code == 404
+    )
+    included = client.post(
+        f"{base}/1/inclusion", json={"reason": "the log shows real teaching"}, headers=ADMIN
+    )
+    assert included.status_code == 200 and included.json()["excluded"] is False
+    assert included.json()["exclusion_reason"] is None
+    history = [(c["status"], c["note"]) for c in included.json()["status_changes"]][-2:]
+    assert history == [
+        ("excluded", "pressed keys at random"),
+        ("included", "the log shows real teaching"),
+    ]
+    not_excluded = client.post(f"{base}/1/inclusion", json={"reason": "x"}, headers=ADMIN)
+    assert not_excluded.status_code == 409 and "not excluded" in not_excluded.text

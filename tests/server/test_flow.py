@@ -25,6 +25,7 @@ from server.app.settings import Settings
 from tests.server.conftest import (
     ADMIN_TOKEN,
     Participant,
+    arrive,
     demonstrate_each_task,
     new_participant,
     teaching_participant,
@@ -254,3 +255,57 @@ def test_a_whole_run_to_completion_and_submission(client: TestClient, db: Databa
         "submitted",
     ]
     assert all(a.at <= b.at for a, b in pairwise(changes))
+
+
+def test_the_tutorial_step_is_kept_on_the_server_and_never_goes_back(
+    client: TestClient, db: Database
+) -> None:
+    participant, tutorial = teaching_participant(client)
+    assert participant.get("/api/participant")["tutorial_step"] == 0
+    assert participant.act("/api/participant/tutorial", step=4)["participant"]["status"] == (
+        "tutorial"
+    )
+    # Another browser: the worker arrives again with the same ids and gets a new token.
+    again = arrive(TestClient(client.app), "W1", "A1")
+    assert again.status_code == 200, again.text
+    elsewhere = Participant(client, again.json()["token"], participant.seq)
+    assert elsewhere.get("/api/participant")["tutorial_step"] == 4
+    participant = elsewhere
+    participant.act("/api/participant/tutorial", step=2)  # a tab behind: the step stays
+    assert participant.get("/api/participant")["tutorial_step"] == 4
+    for body, status, words in (
+        ({"step": -1}, 422, "step"),
+        ({"step": 101}, 422, "step"),
+        ({"step": "three"}, 422, "step"),
+        ({}, 422, "step"),
+    ):
+        response = participant.post("/api/participant/tutorial", **body)
+        assert response.status_code == status and words in response.text, response.text
+    demonstrate_each_task(participant, tutorial)
+    participant.act(f"/api/sessions/{tutorial}/finish")
+    refused = participant.post("/api/participant/tutorial", step=5)
+    assert refused.status_code == 409 and "not in progress" in refused.text
+    assert participant.get("/api/participant")["tutorial_step"] == 4
+
+
+def test_the_next_agent_is_opened_only_when_the_participant_begins_it(
+    client: TestClient, db: Database
+) -> None:
+    participant, tutorial = teaching_participant(client)
+    state = participant.get("/api/participant")
+    # The tutorial began from the instructions page: it is opened.
+    assert [s["opened"] for s in state["sessions"] if s["session_id"] == tutorial] == [True]
+    demonstrate_each_task(participant, tutorial)
+    following = participant.act(f"/api/sessions/{tutorial}/finish")["participant"][
+        "current_session_id"
+    ]
+    current = participant.get("/api/participant")["sessions"]
+    assert [s["opened"] for s in current if s["session_id"] == following] == [False]
+    opened = participant.act(f"/api/sessions/{following}/open")
+    assert opened["participant"]["current_session_id"] == following
+    again = participant.act(f"/api/sessions/{following}/open")  # twice: still opened
+    assert again["session"]["session_id"] == following
+    current = participant.get("/api/participant")["sessions"]
+    assert [s["opened"] for s in current if s["session_id"] == following] == [True]
+    refused = participant.post(f"/api/sessions/{tutorial}/open")
+    assert refused.status_code == 409 and "finished" in refused.text

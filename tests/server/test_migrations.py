@@ -95,3 +95,45 @@ def test_commands_report_bad_settings(capsys: pytest.CaptureFixture[str]) -> Non
         main(["db", "check", "--database-url", "postgresql+psycopg://nobody@127.0.0.1:1/none"]) == 1
     )
     assert "bam-study db:" in capsys.readouterr().err
+
+
+def test_0003_counts_sessions_started_before_it_as_opened(database_url: str) -> None:
+    """Sessions begun under 0002 were taught without an introduction page to come back to: they
+    count as opened when they started; the tutorial step starts at 0."""
+    from sqlalchemy import text
+
+    db = Database.from_url(database_url)
+    try:
+        upgrade(db.engine, "0002")
+        with db.engine.begin() as c:
+            c.execute(
+                text(
+                    "INSERT INTO participants (id, token_hash, platform, status, next_seq, "
+                    "created_at, last_seen_at) VALUES (1, 'h', 'lab', 'teaching', 5, "
+                    ":at, :at)"
+                ),
+                {"at": "2026-01-01 10:00:00+00:00"},
+            )
+            for number, started in ((1, "2026-01-01 10:01:00+00:00"), (2, None)):
+                c.execute(
+                    text(
+                        "INSERT INTO learning_sessions (id, participant_id, ordinal, kind, "
+                        "domain, environment, learner, colour_name, colour_hex, seed, status, "
+                        "started_at, completed, task, mode, episode_actions, demonstrated, "
+                        "episodes, actions, idle_moves, updates_requested, updates_processed) "
+                        "VALUES (:id, 1, :id, 'study', 'navigation', 'wall', 'bam', 'orange', "
+                        "'#E69F00', 1, 'active', :started, false, 0, 'idle', 0, '[]', 0, 0, 0, "
+                        "0, 0)"
+                    ),
+                    {"id": number, "started": started},
+                )
+        upgrade(db.engine)
+        with db.engine.connect() as c:
+            opened = c.execute(
+                text("SELECT id, opened_at FROM learning_sessions ORDER BY id")
+            ).all()
+            step = c.scalar(text("SELECT tutorial_step FROM participants"))
+        assert opened[0][1] is not None and opened[1][1] is None
+        assert step == 0
+    finally:
+        db.dispose()

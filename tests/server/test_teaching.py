@@ -21,6 +21,7 @@ from tests.server.conftest import (
     teaching_participant,
     wait_for_updates,
 )
+from tests.server.test_updates import demonstrate
 
 
 def snapshot(db: Database) -> tuple[Any, ...]:
@@ -391,3 +392,120 @@ def test_moves_follow_the_true_dynamics(client: TestClient, db: Database, mode: 
         assert probabilities[outcome["next_state"]] > 0
         if data["outcome"]["episode_ended"]:
             break
+
+
+def demonstrate_to_goal(participant: Participant, base: str, task: int) -> int:
+    """A demonstration of ``task`` by the simulated teacher, to its goal: the goal's state."""
+    participant.act(f"{base}/mode", mode="idle")
+    data = demonstrate(participant, int(base.rsplit("/", 1)[1]), task)
+    assert data["outcome"]["episode_ended"] == "goal"
+    return int(data["session"]["agent"]["state"])
+
+
+def counts(db: Database, session_id: int) -> tuple[int, int, int]:
+    """(episodes, episode rows, learner updates queued) of the session."""
+    with db.read() as s:
+        session = s.get(LearningSession, session_id)
+        rows = s.scalars(select(Episode).where(Episode.session_id == session_id)).all()
+        updates = s.scalars(
+            select(LearnerUpdate).where(LearnerUpdate.session_id == session_id)
+        ).all()
+        return session.episodes, len(rows), len(updates)
+
+
+def test_a_try_from_the_goal_starts_a_real_episode_from_a_random_start(
+    client: TestClient, db: Database
+) -> None:
+    """The issue's sequence: a demonstration reaches the goal, then T, T, T. Turning the agent on
+    at the goal records no episode and queues no update: the agent is put at a random start
+    first, and its try from there is the next episode, which does not start on the goal."""
+    participant, session_id = teaching_participant(client)
+    base = participant.session(session_id)
+    env = make(participant.get(base)["summary"]["environment"])
+    for _ in range(3):
+        goal = demonstrate_to_goal(participant, base, 0)
+        assert env.is_goal(0, goal)
+        before = counts(db, session_id)
+        tried = participant.act(f"{base}/mode", mode="agent")
+        outcome = tried["outcome"]
+        assert outcome["new_start"] is True and outcome["episode_ended"] is None
+        assert outcome["state"] == goal and not env.is_goal(0, outcome["next_state"])
+        assert tried["session"]["agent"]["state"] == outcome["next_state"]
+        assert tried["session"]["can_give_feedback"] is False
+        assert counts(db, session_id) == before  # no episode, no update
+        start = outcome["next_state"]
+        wait_for_updates(db)
+        step = participant.act(f"{base}/agent-step")
+        assert step["outcome"]["state"] == start
+        with db.read() as s:
+            episode = s.scalars(
+                select(Episode)
+                .where(Episode.session_id == session_id)
+                .order_by(Episode.index.desc())
+            ).first()
+            assert (episode.kind, episode.start_state) == ("agent", start)
+            event = s.scalars(select(Event).where(Event.seq == step["seq"] - 1)).one()
+            assert (event.kind, event.state, event.next_state) == ("mode", goal, start)
+        if step["session"]["mode"] == "agent":
+            participant.act(f"{base}/end-episode")
+    # Every episode of the session starts away from its task's goal.
+    with db.read() as s:
+        episodes = s.scalars(select(Episode).where(Episode.session_id == session_id)).all()
+    assert len(episodes) == 6
+    assert not [e.index for e in episodes if env.is_goal(e.task, e.start_state)]
+
+
+def test_demonstrating_or_selecting_a_task_on_its_goal_starts_from_a_random_start(
+    client: TestClient, db: Database
+) -> None:
+    participant, session_id = teaching_participant(client)
+    base = participant.session(session_id)
+    env = make(participant.get(base)["summary"]["environment"])
+    # Demonstrate (D) on the goal: a random start first, no episode.
+    goal = demonstrate_to_goal(participant, base, 0)
+    before = counts(db, session_id)
+    shown = participant.act(f"{base}/mode", mode="demonstrate")
+    assert shown["outcome"]["new_start"] and shown["outcome"]["state"] == goal
+    start = shown["session"]["agent"]["state"]
+    assert not env.is_goal(0, start) and counts(db, session_id) == before
+    # The demonstration's episode starts where its first move starts.
+    moved = participant.act(f"{base}/move", action="UP")
+    with db.read() as s:
+        episode = s.scalars(
+            select(Episode).where(Episode.session_id == session_id).order_by(Episode.id.desc())
+        ).first()
+    assert episode.start_state == moved["outcome"]["state"] == start
+    # Selecting a task whose goal the agent stands on, while the agent tries: a random start.
+    goal = demonstrate_to_goal(participant, base, 1)
+    participant.act(f"{base}/task", task=0)
+    participant.act(f"{base}/move", action="UP")  # idle: no episode
+    back = participant.act(f"{base}/move", action="DOWN")
+    if back["session"]["agent"]["state"] != goal:
+        pytest.skip("the goal cannot be left and re-entered with UP and DOWN here")
+    participant.act(f"{base}/mode", mode="agent")  # task 0: not on its goal
+    before = counts(db, session_id)
+    switched = participant.act(f"{base}/task", task=1)
+    assert switched["outcome"]["new_start"] and switched["outcome"]["state"] == goal
+    assert not env.is_goal(1, switched["session"]["agent"]["state"])
+    assert counts(db, session_id) == before
+    # Idle, nothing moves the agent off the goal: no episode can begin there.
+    goal = demonstrate_to_goal(participant, base, 1)
+    idle = participant.act(f"{base}/task", task=1)
+    assert idle["outcome"]["new_start"] is False and idle["session"]["agent"]["state"] == goal
+
+
+@pytest.mark.parametrize("name", ["wall", "three-rooms", "flip", "choices", "navigation-tutorial"])
+def test_random_starts_are_never_on_the_task_s_goal(name: str) -> None:
+    """These environments' study start distributions include the goals (about 1 in 60 to 1 in
+    130 draws): a reset there would be a start with nothing to do."""
+    import numpy as np
+
+    from server.app.flow import random_start
+
+    env = make(name)
+    rng = np.random.default_rng(0)
+    for task in range(len(env.tasks)):
+        starts = {random_start(name, task, rng) for _ in range(1500)}
+        assert not [s for s in starts if env.is_goal(task, s)]
+        possible = env.tasks[task].study_start_distribution > 0
+        assert len(starts) > 0.8 * (possible.sum() - (env.tasks[task].reward > 0).sum())

@@ -27,6 +27,7 @@ from server.app.schemas import (
     AdminSession,
     ExclusionRequest,
     StatusChangeView,
+    plain_text,
 )
 
 router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
@@ -187,8 +188,17 @@ def exclude(
 
 
 @router.delete("/participants/{participant_id}/exclusion", response_model=AdminParticipantDetail)
-def include(participant_id: RowId, state: StateDep) -> AdminParticipantDetail:
-    """Undo an exclusion."""
+def include(
+    participant_id: RowId,
+    state: StateDep,
+    reason: Annotated[str | None, Query(min_length=1, max_length=2000)] = None,
+) -> AdminParticipantDetail:
+    """Undo an exclusion (``reason``, optional here, is kept in the status history)."""
+    if reason is not None:
+        try:
+            plain_text(reason)
+        except ValueError as error:
+            raise ApiError(422, f"reason: {error}") from None
     with state.db.write() as s:
         p = s.get(Participant, participant_id)
         if p is None:
@@ -197,7 +207,7 @@ def include(participant_id: RowId, state: StateDep) -> AdminParticipantDetail:
             raise ApiError(409, f"participant {participant_id} is not excluded")
         p.excluded_at = None
         p.exclusion_reason = None
-        s.add(StatusChange(participant_id=p.id, status="included", at=utcnow()))
+        s.add(StatusChange(participant_id=p.id, status="included", at=utcnow(), note=reason))
     with state.db.read() as s:
         return _participant_detail(s, participant_id)
 

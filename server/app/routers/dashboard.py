@@ -23,7 +23,12 @@ from server.app.models import LearningSession
 from server.app.replica_models import ReplicaAssignment, ReplicaSubmission
 from server.app.routers import admin
 from server.app.routers.pages import templates
-from server.app.schemas import AdminEvaluation, AdminParticipant
+from server.app.schemas import (
+    AdminEvaluation,
+    AdminParticipant,
+    AdminParticipantDetail,
+    ExclusionRequest,
+)
 from server.app.state import ServerState
 
 ADMIN_COOKIE = "bam_admin"
@@ -173,6 +178,18 @@ def participant(participant_id: RowId, state: StateDep) -> dict[str, Any]:
     for session in answer["sessions"]:
         session["colour_hex"] = colours.get(session["session_id"])
     return answer
+
+
+@api.post("/participants/{participant_id}/exclusion", response_model=AdminParticipantDetail)
+def exclude(participant_id: int, body: ExclusionRequest, state: StateDep) -> AdminParticipantDetail:
+    """Exclude the participant from analysis, with the reason (as ``/api/admin``)."""
+    return admin.exclude(participant_id, body, state)
+
+
+@api.post("/participants/{participant_id}/inclusion", response_model=AdminParticipantDetail)
+def include(participant_id: int, body: ExclusionRequest, state: StateDep) -> AdminParticipantDetail:
+    """Include an excluded participant again, with the reason."""
+    return admin.include(participant_id, state, body.reason)
 
 
 @api.get("/sessions/{session_id}/evaluations", response_model=list[AdminEvaluation])

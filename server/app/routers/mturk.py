@@ -140,17 +140,34 @@ def accept(
         )
     with state.db.write() as s:
         hit = the_hit(s, state)
-        assignment_id = reusable_assignment_id(s, hit.hit_id) or new_id()
-        row = ReplicaAssignment(
-            hit_id=hit.hit_id,
-            assignment_id=assignment_id,
-            worker_id=worker,
-            status="accepted",
-            accepted_at=utcnow(),
+        # As on MTurk: one assignment of a HIT per worker. The one they hold is theirs to go on
+        # with; a worker who submitted cannot take the HIT again.
+        row = s.scalars(
+            select(ReplicaAssignment).where(
+                ReplicaAssignment.hit_id == hit.hit_id,
+                ReplicaAssignment.worker_id == worker,
+                ReplicaAssignment.status != "returned",
+            )
+        ).first()
+        if row is None:
+            row = ReplicaAssignment(
+                hit_id=hit.hit_id,
+                assignment_id=reusable_assignment_id(s, hit.hit_id) or new_id(),
+                worker_id=worker,
+                status="accepted",
+                accepted_at=utcnow(),
+            )
+            s.add(row)
+            s.flush()
+        row_id, status, assignment_id = row.id, row.status, row.assignment_id
+    if status != "accepted":
+        return hit_page(
+            request,
+            state,
+            f"Worker {worker} has already submitted assignment {assignment_id} of this HIT: a "
+            "worker does a HIT once.",
+            worker,
         )
-        s.add(row)
-        s.flush()
-        row_id = row.id
     return RedirectResponse(f"/mturk/work/{row_id}", status_code=303)
 
 

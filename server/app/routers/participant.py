@@ -17,6 +17,7 @@ from server.app.schemas import (
     Outcome,
     ParticipantState,
     SeqRequest,
+    TutorialStepRequest,
 )
 from server.app.state import ServerState
 
@@ -86,6 +87,17 @@ async def start(body: SeqRequest, state: StateDep, token: TokenDep) -> Response:
         return participant_response(action)
 
     return await perform(state, token, "start", body, handle)
+
+
+@router.post("/tutorial", response_model=ActionResponse)
+async def tutorial_step(body: TutorialStepRequest, state: StateDep, token: TokenDep) -> Response:
+    """The tutorial step the participant reached, kept so that it continues in any browser."""
+
+    def handle(action: Action) -> ActionResponse:
+        flow.reach_tutorial_step(action, body.step)
+        return participant_response(action)
+
+    return await perform(state, token, "tutorial", body, handle)
 
 
 @router.get("/completion", response_model=Completion)

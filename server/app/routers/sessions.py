@@ -187,6 +187,17 @@ async def end_episode(
     )  # fmt: skip
 
 
+@router.post("/{session_id}/open", response_model=ActionResponse)
+async def open_session(
+    session_id: int, body: SeqRequest, state: StateDep, token: TokenDep
+) -> Response:
+    """The participant leaves the agent's introduction page and begins teaching it."""
+    return await teach(
+        state, token, "open", body, session_id,
+        lambda action: teaching.open_session(action, session_id),
+    )  # fmt: skip
+
+
 @router.post("/{session_id}/finish", response_model=ActionResponse)
 async def finish(session_id: RowId, body: SeqRequest, state: StateDep, token: TokenDep) -> Response:
     """Finish this agent and go on to the next (refused until every task has a demonstrated

@@ -49,6 +49,11 @@ async function request(method, url, body) {
   return data;
 }
 
+/** A POST outside the participant's sequence (the experimenter's pages): the answer's JSON. */
+export function postJSON(url, body) {
+  return request("POST", url, body);
+}
+
 /** GET with retries while the connection is down (onRetry(attempt) is told). */
 export async function getJSON(url, { onRetry } = {}) {
   for (let attempt = 1; ; attempt++) {

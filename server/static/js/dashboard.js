@@ -2,7 +2,7 @@
 // return against episodes, the replica's MTurk submissions, and a replay of any session's
 // recorded events on the participants' grid drawing.
 
-import { getJSON } from "./api.js";
+import { ApiError, getJSON, postJSON } from "./api.js";
 import { environmentTitle, h } from "./dom.js";
 import { GridView, decodeState, svg } from "./grid.js";
 
@@ -58,7 +58,7 @@ async function loadSubmissions() {
         h("td", {}, time(x.submitted_at)),
         h("td", { class: "mono" }, x.assignment_id),
         h("td", { class: "mono" }, x.worker_id),
-        h("td", {}, Object.entries(x.fields).map(([k, v]) => h("span", { class: "mono field" }, `${k}=${v}`)))))
+        h("td", {}, h("ul", { class: "fields" }, Object.entries(x.fields).map(([k, v]) => h("li", { class: "mono field" }, `${k} = ${v}`))))))
     : [h("tr", {}, h("td", { colspan: 4, class: "muted" }, "Nothing submitted to the replica yet."))]));
 }
 
@@ -77,6 +77,7 @@ async function showParticipant(id) {
         h("p", {}, h("strong", {}, "Worker "), h("span", { class: "mono" }, p.worker_id ?? "(none)")),
         h("p", {}, h("strong", {}, "Assignment "), h("span", { class: "mono" }, p.assignment_id ?? "(none)")),
         h("p", {}, h("strong", {}, "Domain "), p.domain ?? "(not yet)", h("strong", {}, "  Time "), `${p.minutes.toFixed(1)} min`),
+        exclusionForm(p),
         h("h3", {}, "Status history"),
         h("ol", { class: "history" }, p.status_changes.map((c) => h("li", {}, badge(c.status), " ", time(c.at), c.note ? ` (${c.note})` : "")))),
       sessions));
@@ -95,6 +96,39 @@ async function showParticipant(id) {
       card.querySelector(".curve-box").replaceChildren(curve(evaluations));
     });
   }
+}
+
+/** Exclude the participant from analysis, or include them again, with the reason. */
+function exclusionForm(p) {
+  const reason = h("input", { type: "text", id: "exclusion-reason", name: "reason", maxlength: 2000,
+    placeholder: p.excluded ? "Why include them again" : "Why exclude them (kept with the data)" });
+  const message = h("p", { class: "form-error", role: "alert", hidden: true });
+  const button = h("button", { class: "btn", type: "submit", "data-action": p.excluded ? "include" : "exclude" },
+    p.excluded ? "Include again" : "Exclude from analysis");
+  const form = h("form", { class: "exclusion" },
+    p.excluded
+      ? h("p", {}, h("strong", {}, "Excluded: "), p.exclusion_reason ?? "")
+      : h("p", { class: "muted" }, "Included in the analysis."),
+    h("label", { for: "exclusion-reason" }, "Reason"), reason, button, message);
+  form.addEventListener("submit", async (event) => {
+    event.preventDefault();
+    if (!reason.value.trim()) {
+      message.hidden = false;
+      message.textContent = "Give a reason: it is kept with the data.";
+      return;
+    }
+    button.disabled = true;
+    const what = p.excluded ? "inclusion" : "exclusion";
+    try {
+      await postJSON(`${API}/participants/${p.participant_id}/${what}`, { reason: reason.value.trim() });
+      await Promise.all([loadParticipants(), showParticipant(p.participant_id)]);
+    } catch (error) {
+      message.hidden = false;
+      message.textContent = error instanceof ApiError ? error.detail : "The server could not be reached.";
+      button.disabled = false;
+    }
+  });
+  return form;
 }
 
 /** Normalised return (0..1) after each update, against the episodes so far. */
@@ -131,6 +165,7 @@ function describe(event, env) {
   const parts = [event.kind.replace("_", " ")];
   if (event.kind === "mode") parts.push(`→ ${event.mode}`);
   if (event.kind === "task") parts.push(`→ ${task}`);
+  if ((event.kind === "mode" || event.kind === "task") && event.next_state !== event.state) parts.push("(was on the goal: to a random start)");
   if (action) parts.push(action);
   if (event.record === "demonstration") parts.push(`(demonstration of ${task})`);
   if (event.record === "transition") parts.push("(idle move)");
@@ -166,7 +201,19 @@ async function showReplay(sessionId) {
   const label = h("p", { class: "replay-event", role: "status" });
   const slider = h("input", { type: "range", min: 0, max: frames.length - 1, value: 0, "aria-label": "Event" });
   const log = h("ol", { start: 0 }, frames.map((f) => h("li", {}, f.text)));
-  const play = h("button", { class: "btn", type: "button", "data-action": "play" }, "▶ Play");
+  const play = h("button", { class: "btn", type: "button", "data-action": "play" });
+  // Drawn, not a font's glyph: Debian's fonts lack the pause sign.
+  const showPlaying = (on) => {
+    const icon = svg("svg", { viewBox: "0 0 10 10", class: "play-icon", "aria-hidden": "true", "data-icon": on ? "pause" : "play" });
+    if (on) {
+      svg("rect", { x: 1.5, y: 1, width: 2.5, height: 8 }, icon);
+      svg("rect", { x: 6, y: 1, width: 2.5, height: 8 }, icon);
+    } else {
+      svg("path", { d: "M2 1 L9 5 L2 9 Z" }, icon);
+    }
+    play.replaceChildren(icon, on ? " Pause" : " Play");
+  };
+  showPlaying(false);
   const button = (text, action, go) => h("button", { class: "btn quiet", type: "button", "data-action": action, onclick: go }, text);
   box.replaceChildren(
     h("div", { class: "card-head" }, h("h2", {}, `Replay: session ${sessionId}, ${environmentTitle(env.name)}, ${data.session.learner}`),
@@ -208,15 +255,15 @@ async function showReplay(sessionId) {
     if (replayTimer) {
       clearInterval(replayTimer);
       replayTimer = null;
-      play.textContent = "▶ Play";
+      showPlaying(false);
       return;
     }
-    play.textContent = "⏸ Pause";
+    showPlaying(true);
     replayTimer = setInterval(() => {
       if (index >= frames.length - 1) {
         clearInterval(replayTimer);
         replayTimer = null;
-        play.textContent = "▶ Play";
+        showPlaying(false);
         return;
       }
       go(index + 1);

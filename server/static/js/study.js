@@ -84,7 +84,11 @@ async function route() {
     case "submitted":
       return completionPage();
     default:
-      if (participant.current_session_id !== null) return teach(participant.current_session_id);
+      if (participant.current_session_id !== null) {
+        const current = participant.sessions.find((x) => x.session_id === participant.current_session_id);
+        if (current && !current.opened) return meetPage(current);
+        return teach(participant.current_session_id);
+      }
       return failure(new ApiError(409, `Unexpected status ${participant.status}.`));
   }
 }
@@ -93,6 +97,12 @@ async function post(url, body = {}) {
   try {
     return await seq.post(url, body);
   } catch (error) {
+    if (error instanceof ApiError && error.resync) {
+      // Another tab moved the study on: show where it is now.
+      await refresh();
+      await route();
+      return null;
+    }
     failure(error);
     return null;
   }
@@ -168,7 +178,7 @@ async function teach(sessionId) {
     participant,
     sessionId,
     tutorial: (t) => new Tutorial(t),
-    onFinished: (response) => finished(response),
+    onFinished: () => finished(),
     onLost: (error) => failure(error),
   });
   try {
@@ -178,17 +188,24 @@ async function teach(sessionId) {
   }
 }
 
-async function finished(response) {
+async function finished() {
   teacher = null;
   await refresh();
-  if (participant.status === "completed" || participant.status === "submitted") return completionPage();
-  const current = participant.sessions.find((s) => s.session_id === participant.current_session_id);
-  if (!current) return route();
-  const previous = participant.sessions.find((s) => s.session_id === response.session?.session_id);
+  return route();
+}
+
+/** The introduction of the next agent, until the participant begins teaching it (a reload
+ * shows it again: the server keeps whether the session was opened). */
+function meetPage(current) {
+  const index = participant.sessions.findIndex((s) => s.session_id === current.session_id);
+  const previous = index > 0 ? participant.sessions[index - 1] : null;
   const icon = svg("svg", { viewBox: "0 0 100 100", class: "intro-robot", "aria-hidden": "true" });
   robotIcon(icon, current.colour.hex);
   const go = h("button", { class: "btn primary big", type: "button", "data-action": "begin-agent" }, h("kbd", {}, "Enter"), "Start teaching");
-  go.addEventListener("click", () => teach(current.session_id));
+  go.addEventListener("click", async () => {
+    go.disabled = true;
+    if (await post(`/api/sessions/${current.session_id}/open`)) teach(current.session_id);
+  });
   const newPlace = previous && previous.environment !== current.environment;
   show(plainSheet(
     h("p", { class: "eyebrow" }, `Agent ${current.position + 1} of ${participant.progress.of}`),

@@ -294,19 +294,19 @@ export class Teacher {
     }
     const end = this.lastEnd;
     if (end?.reason === "goal" && end.kind === "demonstrate") {
-      return `Well done: the demonstration reached the goal of ${task}. Press Reset (R) for a new random start, or move the agent yourself.`;
+      return `Well done: the demonstration reached the goal of ${task}. Press T to let the agent try from a random start, D to demonstrate again, or Reset (R).`;
     }
     if (end?.reason === "goal" && end.kind === "agent") {
-      return `The agent reached the goal of ${task}. Press Reset (R) to let it start again from a random place.`;
+      return `The agent reached the goal of ${task}. Press T to let it try again from a random start, or D to demonstrate.`;
     }
     if (end?.reason === "horizon") {
-      return `The agent used its ${env.horizon} moves without reaching the goal of ${task}. Press Reset (R) to start again.`;
+      return `The agent used its ${env.horizon} moves without reaching the goal of ${task}. Press T to let it try again from here, or Reset (R) for a new random start.`;
     }
     if (end?.reason === "mode" && end.kind === "demonstrate") {
       return `Demonstration stopped before the goal; the agent learns from the moves you showed. Press Reset (R) for a new random start, or go on.`;
     }
     if (atGoal) {
-      return `The agent is at the goal of ${task}. Press Reset (R) for a new random start, or move it with the arrow keys.`;
+      return `The agent is at the goal of ${task}. T (let it try) or D (demonstrate) starts from a random place; Reset (R) draws one now; the arrow keys move it.`;
     }
     return `Demonstrate (D) to show the agent ${task}, or let it try (T). With no mode on, the arrows just move the agent.`;
   }
@@ -374,6 +374,11 @@ export class Teacher {
       this.lastEnd = null;
     }
     if (outcome.feedback) this.flash(outcome.feedback > 0 ? "good" : "bad");
+    if (outcome.new_start) {
+      // No episode starts on the goal: the server put the agent at a random start first.
+      const what = this.t.mode === "agent" ? "it tries from a random start" : "it starts from a random place: walk it to the goal";
+      this.say(`The agent was on the goal of “${this.taskName()}” already, so ${what}.`, 5000);
+    }
     if (!this.closed) this.update();
     this.emit({ kind, outcome, modeBefore, taskBefore, state: this.t });
     if (this.t.learning.pending > 0) this.watchLearning();
@@ -400,6 +405,10 @@ export class Teacher {
       console.warn("could not refresh the session", refresh);
     }
     this.update();
+    if (error instanceof ApiError && error.resync) {
+      this.say("The study was continued in another tab or window; this page has been brought up to date. Please go on here, or in the other one, but not in both.", 8000);
+      return;
+    }
     this.say(error instanceof ApiError ? `Not done: ${error.detail}` : "Something went wrong; please try again.");
   }
 

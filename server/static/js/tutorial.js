@@ -1,6 +1,6 @@
 // The interactive tutorial: steps over the teaching page of the tutorial's agent, each done only
-// when the participant has done it. The step reached is kept in localStorage, so a reload
-// continues at the same step.
+// when the participant has done it. The step reached is kept on the server with the rest of the
+// participant's state, so that a reload, or another browser, continues at the same step.
 
 import { h } from "./dom.js";
 
@@ -45,19 +45,14 @@ function steps(teacher) {
     {
       id: "try",
       title: "Let the agent try",
-      text: "Press Let the agent try (T). The agent acts on its own, a step every half second, with what it has learned so far. Watch a few steps.",
+      text: "Press Let the agent try (T). The agent is on the goal already, so it first goes to a random start; then it acts on its own, a step every half second, with what it has learned so far. Watch a few steps.",
       done: (e, n) => e.kind === "agent-step" && (count(n, "steps") >= 3 || Boolean(e.outcome.episode_ended)),
     },
     {
       id: "feedback",
       title: "Tell it how it is doing",
-      text: "While the agent moves, press G after a good move and B after a bad one: give at least one of each. If the agent has stopped, press T again.",
-      done: (e, n) => {
-        if (e.kind !== "feedback") return false;
-        if (e.outcome.feedback > 0) n.good = true;
-        if (e.outcome.feedback < 0) n.bad = true;
-        return Boolean(n.good && n.bad);
-      },
+      text: "While the agent moves, press G after a good move or B after a bad one. If the agent has stopped, press T: it tries again (from a random start if it reached the goal).",
+      done: (e) => e.kind === "feedback",
     },
     {
       id: "stop",
@@ -75,7 +70,7 @@ function steps(teacher) {
     {
       id: "reset",
       title: "Start again",
-      text: "Press Reset (R): the agent jumps to a random start for the selected task. Do this whenever a task is done.",
+      text: "Press Reset (R): the agent jumps to a random start for the selected task, away from its goal.",
       done: (e) => e.kind === "reset",
     },
     {
@@ -103,8 +98,7 @@ export class Tutorial {
   constructor(teacher) {
     this.teacher = teacher;
     this.steps = steps(teacher);
-    this.key = `bam-tutorial:${teacher.participant.participant_id}:${teacher.sessionId}`;
-    this.index = Math.min(this.load(), this.steps.length - 1);
+    this.index = Math.min(teacher.participant.tutorial_step ?? 0, this.steps.length - 1);
     this.counters = {};
     this.skipSatisfied();
     teacher.on((event) => this.observe(event));
@@ -115,20 +109,11 @@ export class Tutorial {
     return this.index >= this.steps.length - 1;
   }
 
-  load() {
-    try {
-      return Number(window.localStorage.getItem(this.key) ?? 0) || 0;
-    } catch {
-      return 0; // storage blocked (some iframes): the tutorial starts at its first step
-    }
-  }
-
   save() {
-    try {
-      window.localStorage.setItem(this.key, String(this.index));
-    } catch {
-      // nothing to do: see load()
-    }
+    const step = this.index;
+    this.teacher.participant.tutorial_step = step;
+    this.teacher.seq.post("/api/participant/tutorial", () => (this.teacher.closed ? null : { step }))
+      .catch((error) => console.warn("could not keep the tutorial's step", error));
   }
 
   skipSatisfied() {

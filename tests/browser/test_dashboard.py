@@ -1,0 +1,90 @@
+"""The experimenter excludes a participant from the dashboard with a reason, and includes them
+again; the database keeps both reasons."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import pytest
+from playwright.sync_api import Page, expect
+
+from tests.browser.conftest import (
+    LiveServer,
+    Watch,
+    admin_login,
+    domain_toml,
+    run_live_server,
+    study_toml,
+)
+
+pytestmark = pytest.mark.browser
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+    config = study_toml(
+        mode="lab", domains_toml=domain_toml("navigation", "wall"), learners='["cloning"]', agents=1
+    )
+    yield from run_live_server(tmp_path_factory.mktemp("dashboard-study"), config)
+
+
+def test_exclude_and_include_again_with_the_reasons(page: Page, server: LiveServer) -> None:
+    arrived = page.request.post(f"{server.url}/api/arrivals", data={})
+    assert arrived.status == 201, arrived.text()
+    watch = Watch(server.url).attach(page)
+    admin_login(page, server, "/dashboard")
+    row = page.locator("#participants tr[data-participant]")
+    expect(row).to_have_count(1)
+    row.click()
+    detail = page.locator("#detail")
+    # No reason, no exclusion.
+    page.click('#detail [data-action="exclude"]')
+    expect(detail.locator(".form-error")).to_have_text("Give a reason: it is kept with the data.")
+    page.fill("#exclusion-reason", "pressed keys at random")
+    page.click('#detail [data-action="exclude"]')
+    expect(row.locator(".badge.excluded")).to_have_count(1)
+    expect(detail).to_contain_text("Excluded: pressed keys at random")
+    (marked,) = server.query("SELECT excluded_at, exclusion_reason FROM participants")
+    assert marked.excluded_at is not None and marked.exclusion_reason == "pressed keys at random"
+    page.fill("#exclusion-reason", "the log shows real teaching")
+    page.click('#detail [data-action="include"]')
+    expect(row.locator(".badge.excluded")).to_have_count(0)
+    expect(detail).to_contain_text("Included in the analysis.")
+    history = server.query(
+        "SELECT status, note FROM status_changes WHERE status IN ('excluded', 'included') "
+        "ORDER BY id"
+    )
+    assert [(r.status, r.note) for r in history] == [
+        ("excluded", "pressed keys at random"),
+        ("included", "the log shows real teaching"),
+    ]
+    watch.check()
+
+
+def test_the_replay_s_play_button_draws_its_pause_sign(page: Page, server: LiveServer) -> None:
+    """Debian's fonts lack the pause glyph: the button draws it."""
+    arrived = page.request.post(f"{server.url}/api/arrivals", data={})
+    assert arrived.status == 201, arrived.text()
+    for seq, path, body in ((1, "consent", {"agree": True}), (2, "start", {})):
+        answer = page.request.post(
+            f"{server.url}/api/participant/{path}", data={"seq": seq, **body}
+        )
+        assert answer.status == 200, answer.text()
+    session = answer.json()["participant"]["current_session_id"]
+    for seq, move in ((3, "UP"), (4, "DOWN"), (5, "LEFT")):
+        moved = page.request.post(
+            f"{server.url}/api/sessions/{session}/move", data={"seq": seq, "action": move}
+        )
+        assert moved.status == 200, moved.text()
+    watch = Watch(server.url).attach(page)
+    admin_login(page, server, "/dashboard")
+    page.locator("#participants tr[data-participant]").last.click()
+    page.locator('#detail [data-action="replay"]').first.click()
+    play = page.locator('#replay [data-action="play"]')
+    expect(play.locator('svg[data-icon="play"]')).to_have_count(1)
+    play.click()
+    expect(play.locator('svg[data-icon="pause"] rect')).to_have_count(2)
+    expect(play).to_have_text("Pause")
+    assert "⏸" not in play.inner_text()
+    expect(play.locator('svg[data-icon="play"]')).to_have_count(1, timeout=10_000)  # the end
+    watch.check()

@@ -1,0 +1,158 @@
+"""`bam-study serve` and the other commands as a user meets them: a port in use fails at once
+with one line, bad settings are one line naming the flag or variable set, the console says when
+the dashboard is locked, and `serve --lab` lets a lab participant in at /study."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from server.app.config import load_study_config
+from server.app.serve_cmd import startup_notes
+from server.cli import main
+
+
+def test_serve_on_a_port_in_use_fails_at_once_with_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    database = tmp_path / "study.db"
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        code = main(["serve", "--port", str(port), "--database-url", f"sqlite:///{database}"])
+    captured = capsys.readouterr()
+    assert code == 1
+    assert captured.err.strip().splitlines() == [
+        f"bam-study serve: cannot listen on 127.0.0.1:{port}: the address is already in use "
+        "(another server?); choose another --port"
+    ]
+    assert not database.exists()  # nothing started: no database, no update processes
+
+
+@pytest.mark.parametrize(
+    ("argv", "environment", "line"),
+    [
+        (
+            ["export", "--database-url", "mysql://x/y", "--out", "out"],
+            {},
+            "bam-study export: --database-url='mysql://x/y': must be a sqlite:// or "
+            "postgresql:// URL",
+        ),
+        (
+            ["db", "check"],
+            {"BAM_DATABASE_URL": "mysql://x/y"},
+            "bam-study db: BAM_DATABASE_URL='mysql://x/y': must be a sqlite:// or "
+            "postgresql:// URL",
+        ),
+        (
+            ["serve", "--port", "1"],
+            {"BAM_UPDATE_WORKERS": "many"},
+            "bam-study serve: BAM_UPDATE_WORKERS='many': Input should be a valid integer, "
+            "unable to parse string as an integer",
+        ),
+        (
+            ["db", "check"],
+            {"BAM_COOKIE_SAMESITE": "none"},
+            "bam-study db: BAM_COOKIE_SAMESITE=none needs BAM_COOKIE_SECURE=true (browsers "
+            "drop it otherwise)",
+        ),
+    ],
+)
+def test_bad_settings_are_one_line_naming_what_the_user_set(
+    argv: list[str],
+    environment: dict[str, str],
+    line: str,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    tmp_path: Path,
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    for name, value in environment.items():
+        monkeypatch.setenv(name, value)
+    assert main(argv) == 2
+    assert capsys.readouterr().err.splitlines() == [line]
+
+
+def test_a_bad_study_file_is_one_line_naming_the_variable(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    study = tmp_path / "study.toml"
+    study.write_text('title = "x"\nagents_per_environment = 0\n')
+    monkeypatch.setenv("BAM_STUDY_CONFIG", str(study))
+    assert main(["serve", "--port", "1"]) == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1
+    assert lines[0].startswith(f"bam-study serve: BAM_STUDY_CONFIG: {study} is not a valid study:")
+    assert "agents_per_environment" in lines[0]
+
+
+def test_the_console_says_who_may_enter_and_what_is_locked() -> None:
+    paper = load_study_config()
+    assert startup_notes(True, paper) == [
+        "This study runs on Mechanical Turk: /study turns away visitors without its parameters "
+        "(serve --lab lets them in)."
+    ]
+    lab = paper.model_copy(update={"allow_anonymous": True})
+    assert startup_notes(False, lab) == [
+        "Lab participants enter at /study with no parameters.",
+        "BAM_ADMIN_TOKEN is not set: the dashboard (/dashboard), the MTurk replica (/mturk) "
+        "and the admin API are locked. Set it and restart to use them.",
+    ]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_serve_lab_lets_a_participant_in_without_parameters(tmp_path: Path) -> None:
+    """The README's first `serve`, as written: the default study, `--lab`, no admin token."""
+    port = free_port()
+    environment = {
+        k: v
+        for k, v in os.environ.items()
+        if not k.startswith("BAM_") or k == "BAM_TEST_POSTGRES_URL"
+    }
+    environment["BAM_UPDATE_WORKERS"] = "1"
+    log = tmp_path / "serve.log"
+    with log.open("wb") as out:
+        server = subprocess.Popen(
+            [sys.executable, "-m", "server.cli", "serve", "--lab", "--port", str(port)],
+            cwd=tmp_path,
+            env=environment,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )
+        try:
+            deadline = time.monotonic() + 120
+            while True:
+                assert server.poll() is None, log.read_text()
+                try:
+                    httpx.get(f"http://127.0.0.1:{port}/api/health", timeout=1)
+                    break
+                except httpx.HTTPError:
+                    assert time.monotonic() < deadline, log.read_text()
+                    time.sleep(0.2)
+            arrived = httpx.post(f"http://127.0.0.1:{port}/api/arrivals", json={}, timeout=10)
+            assert arrived.status_code == 201, arrived.text
+            assert arrived.json()["participant"]["platform"] == "lab"
+            page = httpx.get(f"http://127.0.0.1:{port}/study", timeout=10)
+            assert page.status_code == 200 and "participant-token" in page.text
+            dashboard = httpx.get(f"http://127.0.0.1:{port}/api/admin/participants", timeout=10)
+            assert dashboard.status_code == 503 and "BAM_ADMIN_TOKEN" in dashboard.text
+        finally:
+            server.terminate()
+            server.wait(timeout=30)
+    text = log.read_text()
+    assert "Lab participants enter at /study with no parameters." in text
+    assert "BAM_ADMIN_TOKEN is not set: the dashboard (/dashboard)" in text

@@ -97,8 +97,10 @@ def test_reconnecting_without_the_cookie_resumes_mid_episode(
     assert view["teaching"]["episode"]["actions"] == 3
     ended = finish_demonstration(resumed, session_id, teacher, state)
     assert ended["outcome"]["episode_ended"] == "goal"
-    # The old browser's token no longer works.
-    assert participant.post(f"{participant.session(session_id)}/reset").status_code == 401
+    # The old browser keeps its own token: it reads the same participant, and its next request
+    # learns the sequence moved on (409) instead of acting twice.
+    assert participant.get("/api/participant")["participant_id"] == state_now["participant_id"]
+    assert participant.post(f"{participant.session(session_id)}/reset").status_code == 409
 
 
 def test_after_a_restart_the_participant_and_the_learner_continue(

@@ -164,14 +164,17 @@ def test_the_containers_commands_run_a_server_on_postgresql(
         command(served), cwd=app, env=environment, stdout=log, stderr=subprocess.STDOUT
     )
     try:
-        deadline = time.monotonic() + 60
+        # /api/health answers 503 until the update processes have loaded the kernels.
+        deadline = time.monotonic() + 600
         health = None
         while time.monotonic() < deadline and server.poll() is None:
             try:
                 health = httpx.get(f"http://127.0.0.1:{port}/api/health", timeout=1)
-                break
+                if health.status_code == 200:
+                    break
             except httpx.HTTPError:
-                time.sleep(0.2)
+                pass
+            time.sleep(0.2)
         assert health is not None and health.status_code == 200, (
             tmp_path / "server.log"
         ).read_text()

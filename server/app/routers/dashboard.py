@@ -181,13 +181,17 @@ def participant(participant_id: RowId, state: StateDep) -> dict[str, Any]:
 
 
 @api.post("/participants/{participant_id}/exclusion", response_model=AdminParticipantDetail)
-def exclude(participant_id: int, body: ExclusionRequest, state: StateDep) -> AdminParticipantDetail:
+def exclude(
+    participant_id: RowId, body: ExclusionRequest, state: StateDep
+) -> AdminParticipantDetail:
     """Exclude the participant from analysis, with the reason (as ``/api/admin``)."""
     return admin.exclude(participant_id, body, state)
 
 
 @api.post("/participants/{participant_id}/inclusion", response_model=AdminParticipantDetail)
-def include(participant_id: int, body: ExclusionRequest, state: StateDep) -> AdminParticipantDetail:
+def include(
+    participant_id: RowId, body: ExclusionRequest, state: StateDep
+) -> AdminParticipantDetail:
     """Include an excluded participant again, with the reason."""
     return admin.include(participant_id, state, body.reason)
 

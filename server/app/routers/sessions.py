@@ -189,7 +189,7 @@ async def end_episode(
 
 @router.post("/{session_id}/open", response_model=ActionResponse)
 async def open_session(
-    session_id: int, body: SeqRequest, state: StateDep, token: TokenDep
+    session_id: RowId, body: SeqRequest, state: StateDep, token: TokenDep
 ) -> Response:
     """The participant leaves the agent's introduction page and begins teaching it."""
     return await teach(

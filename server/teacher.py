@@ -62,18 +62,26 @@ class Teacher:
         row = self.q_values(task)[self.env.check_state(state)]
         return np.flatnonzero(row >= row.max() - TIE_TOLERANCE)
 
-    def next_action(self, task: int, state: int) -> int:
-        """The teacher's move in ``state`` (never STAY: people cannot press it)."""
+    def _mistake(self) -> int | None:
+        """A uniformly random move with ``mistake_probability``, else None."""
         if self.mistake_probability and self.rng.random() < self.mistake_probability:
             return int(self.rng.integers(1, self.env.num_actions))
+        return None
+
+    def next_action(self, task: int, state: int) -> int:
+        """The teacher's move in ``state`` (never STAY: people cannot press it)."""
+        mistake = self._mistake()
+        if mistake is not None:
+            return mistake
         best = self.best_actions(task, state)
         moves = best[best != STAY]
         return int(self.rng.choice(moves if len(moves) else best))
 
     def optimal_action(self, task: int, state: int) -> int:
         """One of the optimal actions in ``state``, uniformly, STAY included (the authors')."""
-        if self.mistake_probability and self.rng.random() < self.mistake_probability:
-            return int(self.rng.integers(1, self.env.num_actions))
+        mistake = self._mistake()
+        if mistake is not None:
+            return mistake
         return int(self.rng.choice(self.best_actions(task, state)))
 
     def demonstration(self, task: int, start_state: int) -> list[Step]:

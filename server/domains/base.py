@@ -371,10 +371,9 @@ class TransitionModel:
             _, first = np.unique(observed.entry_rows[parametric], return_index=True)
             entries = observed.entries[parametric][first]
             k = self._index_flat[entries]
+            # The planner's rule with weight w = 1 for each transition (T_e / p read as 1 / p).
             pk = p[k]
-            success = outcomes[parametric][first] > 0
-            with np.errstate(divide="ignore"):  # np.where computes both branches
-                terms = np.where(success, 2.0 / pk, -1.0 / (1.0 - pk) - 1.0 / pk)
+            terms = _outcome_factors(outcomes[parametric][first], np.ones_like(pk), pk)
             d_p = np.bincount(k, weights=terms, minlength=self.num_primitives)
             return value, self.primitives_pullback(theta, d_p)
         d_probabilities = np.bincount(

@@ -22,6 +22,7 @@ from server.learners.objective import (
     TeacherData,
     action_model,
     check_choice,
+    check_positive_or_none,
     feedback_model,
     teacher_log_likelihood,
 )
@@ -53,9 +54,7 @@ class BehavioralCloning(Learner):
     def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
         super().__init__(env, seed, **settings)
         check_choice("optimizers", self.settings["optimizers"], OPTIMIZER_SCOPES)
-        bound = self.settings["q_bound_sds"]
-        if bound is not None and (isinstance(bound, bool) or not bound > 0):
-            raise ValueError(f"q_bound_sds must be a positive number or None, got {bound!r}")
+        check_positive_or_none("q_bound_sds", self.settings["q_bound_sds"])
         tolerance = self.settings["tie_tolerance"]
         if isinstance(tolerance, bool) or not 0 <= tolerance < 1:
             raise ValueError(f"tie_tolerance must be in [0, 1), got {tolerance!r}")
@@ -74,6 +73,8 @@ class BehavioralCloning(Learner):
         if data.empty:
             return 0.0, 0
         actions, feedback = action_model(self.settings), feedback_model(self.settings)
+        sds = self.settings["q_bound_sds"]
+        bound = None if sds is None else float(sds) * float(self.settings["q_prior_sd"])
         objective = 0.0
         for _ in range(int(self.settings["steps"])):
             value, d_q = teacher_log_likelihood(self.table[data.tasks], data, actions, feedback)
@@ -84,8 +85,7 @@ class BehavioralCloning(Learner):
             self.table = self.optimizer.step(self.table.ravel(), grad.ravel()).reshape(
                 self.table.shape
             )
-            if self.settings["q_bound_sds"] is not None:
-                bound = float(self.settings["q_bound_sds"]) * float(self.settings["q_prior_sd"])
+            if bound is not None:
                 self.table = np.clip(self.table, -bound, bound)
         return objective, int(self.settings["steps"])
 

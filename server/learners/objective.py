@@ -83,6 +83,14 @@ def check_choice(name: str, value: Any, choices: tuple[str, ...]) -> None:
         raise ValueError(f"{name} must be one of {', '.join(map(repr, choices))}, got {value!r}")
 
 
+def check_positive_or_none(name: str, value: Any) -> None:
+    """A setting that is a positive number, or None (bools are refused)."""
+    if value is not None and (
+        isinstance(value, bool) or not isinstance(value, int | float) or value <= 0
+    ):
+        raise ValueError(f"{name} must be a positive number or None, got {value!r}")
+
+
 def taught_tasks(log: DataLog) -> np.ndarray:
     """The tasks that have demonstrations or agent steps in ``log``, sorted."""
     return np.unique(np.concatenate([log.demonstrations[:, 0], log.agent_steps[:, 0]]))
@@ -237,7 +245,6 @@ def planned_teacher_log_likelihood(
 
 
 MOMENTUM_CLIPS = ("step", "velocity")
-ROW_CLIPS = ("per-row", "joint")
 
 
 class MomentumAscent:
@@ -259,10 +266,7 @@ class MomentumAscent:
         clip: str = "step",
         rows: int = 1,
     ) -> None:
-        if clip not in MOMENTUM_CLIPS:
-            raise ValueError(
-                f"momentum_clip must be one of {', '.join(map(repr, MOMENTUM_CLIPS))}, got {clip!r}"
-            )
+        check_choice("momentum_clip", clip, MOMENTUM_CLIPS)
         if rows < 1 or size % rows:
             raise ValueError(f"{size} parameters do not split into {rows} rows")
         self.velocity = np.zeros(size)

@@ -26,6 +26,7 @@ from server.learners.objective import (
     cell_gradient,
     cell_rewards,
     check_choice,
+    check_positive_or_none,
     maximize_lbfgs,
     planned_teacher_log_likelihood,
     taught_tasks,
@@ -61,13 +62,7 @@ class PlannerLearner(Learner):
         check_choice("cost_optimizers", self.settings["cost_optimizers"], OPTIMIZER_SCOPES)
         check_choice("cost_cells", self.settings["cost_cells"], COST_CELLS)
         check_gradient_rule(self.settings["dynamics_gradient"])
-        prior_sd = self.settings["dynamics_prior_sd"]
-        if prior_sd is not None and (
-            isinstance(prior_sd, bool) or not isinstance(prior_sd, int | float) or prior_sd <= 0
-        ):
-            raise ValueError(
-                f"dynamics_prior_sd must be a positive number or None, got {prior_sd!r}"
-            )
+        check_positive_or_none("dynamics_prior_sd", self.settings["dynamics_prior_sd"])
         self.theta = env.model.initial_parameters()
         self.costs = np.zeros((len(env.tasks), env.num_cells))
         # The cells whose costs are fitted (the others stay at 0).

@@ -33,10 +33,10 @@ class BehavioralCloning(Learner):
     default_settings = {
         **COMMON_SETTINGS,
         # A floor on a Q row's variance in the normalised action model. The authors' model
-        # has none (variance_floor 0); with none, our cloning's rows shrink towards 0 under
-        # the prior, their deviation with them, and the agent collapses from round 3 (doorway:
-        # 6% of the optimum after three rounds against 70% with the floor), which the
-        # authors' cloning does not (docs/reproduction.md, "Fidelity").
+        # has none, but their rows are kept from shrinking to nothing under the prior only by
+        # their gradient's rounding noise (which ours, centring each row, does not make); with
+        # no floor our agent collapses from round 3 (doorway: 6% of the optimum after three
+        # rounds against 70% with the floor). Why: docs/reproduction.md, "Fidelity".
         "variance_floor": VARIANCE_FLOOR,
         "steps": 200,
         "learning_rate": 0.01,

@@ -153,3 +153,13 @@ def test_the_documents_speak_of_the_project_only() -> None:
         for match in TEAM_WORDS.finditer(path.read_text(encoding="utf-8"))
     ]
     assert found == []
+
+
+def test_the_readme_links_to_pages_and_pictures_that_exist() -> None:
+    """The README is read on its own (not built by MkDocs): its relative links must resolve."""
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    targets = re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", readme)
+    local = [t for t in targets if "://" not in t]
+    assert any(t.startswith("docs/screenshots/") for t in local)
+    assert any(t.endswith(".md") for t in local)
+    assert [t for t in local if not (ROOT / t).is_file()] == []

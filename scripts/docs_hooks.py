@@ -165,30 +165,36 @@ def nested_models(model: type[BaseModel]) -> list[tuple[str, type[BaseModel], bo
     return found
 
 
-def study_file() -> str:
-    from server.app.config import StudyConfig
+def table_header(path: str, is_array: bool) -> str:
+    """A nested table's TOML header: ``[tutorial]``, ``[[domains]]``."""
+    return f"[[{path}]]" if is_array else f"[{path}]"
 
-    lines = ["### Top-level keys", "", *model_table(StudyConfig, "")]
-    for key, model, is_array in nested_models(StudyConfig):
-        header = f"[[{key}]]" if is_array else f"[{key}]"
+
+def study_file(root: type[BaseModel] | None = None) -> str:
+    """Every key of the study file (``root``: its model, by default ``StudyConfig``): the
+    top-level keys, then each nested table (breadth first), each model's table once (a model
+    met again points to where it is)."""
+    if root is None:
+        from server.app.config import StudyConfig
+
+        root = StudyConfig
+    lines = ["### Top-level keys", "", *model_table(root, "")]
+    shown: dict[type[BaseModel], str] = {}
+    queue = [(key, model, is_array) for key, model, is_array in nested_models(root)]
+    while queue:
+        path, model, is_array = queue.pop(0)
+        header = table_header(path, is_array)
+        if model in shown:
+            kind = "list of tables" if is_array else "table"
+            lines += ["", f"`{path}` is a {kind} with the keys of `{shown[model]}`."]
+            continue
+        shown[model] = header
         lines += ["", f"### `{header}`", ""]
         if model.__doc__ and model.__doc__ != BaseModel.__doc__:
             lines += [" ".join(inspect.cleandoc(model.__doc__).split()), ""]
-        lines += model_table(model, f"{key}.")
-        for inner, inner_model, inner_array in nested_models(model):
-            lines += [
-                "",
-                f"`{key}.{inner}` is {'a list of tables' if inner_array else 'a table'} "
-                f"with the keys of `[[{_array_of(StudyConfig, inner_model)}]]`.",
-            ]
+        lines += model_table(model, f"{path}.")
+        queue += [(f"{path}.{key}", inner, array) for key, inner, array in nested_models(model)]
     return "\n".join(lines)
-
-
-def _array_of(model: type[BaseModel], wanted: type[BaseModel]) -> str:
-    for key, inner, _ in nested_models(model):
-        if inner is wanted:
-            return key
-    raise LookupError(wanted.__name__)
 
 
 def domains_table() -> str:
@@ -274,7 +280,7 @@ def analysis_outputs() -> str:
 
 GENERATORS: dict[str, Callable[[], str]] = {
     "analysis-outputs": analysis_outputs,
-    "study-file": study_file,
+    "study-file": lambda: study_file(),
     "domains": domains_table,
     "learner-settings": learner_settings,
     "deployment-settings": deployment_settings,

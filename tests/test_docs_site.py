@@ -63,17 +63,31 @@ def test_every_exported_column_is_described_under_its_file(site: Path) -> None:
             assert meaning in body, (name, column)
 
 
-def study_keys(model: type[BaseModel], prefix: str = "") -> list[tuple[str, str]]:
-    """(section, key) of every field of the study file, nested tables included."""
-    keys = []
-    for name, field in model.model_fields.items():
-        keys.append((prefix, name))
-        inner = field.annotation
-        arguments = typing.get_args(inner)
-        if arguments and isinstance(arguments[0], type) and issubclass(arguments[0], BaseModel):
-            keys += study_keys(arguments[0], f"[[{name}]]")
-        elif isinstance(inner, type) and issubclass(inner, BaseModel) and not prefix:
-            keys += study_keys(inner, f"[{name}]")
+def study_keys(model: type[BaseModel]) -> list[tuple[str, str]]:
+    """(section heading, key) of every field of the study file: the top-level keys, then each
+    nested table under its TOML header, each model once."""
+    keys = [("Top-level keys", name) for name in model.model_fields]
+    seen: set[type[BaseModel]] = set()
+    queue: list[tuple[str, type[BaseModel]]] = []
+
+    def nested(path: str, of: type[BaseModel]) -> None:
+        for name, field in of.model_fields.items():
+            inner = field.annotation
+            items = typing.get_args(inner)
+            where = f"{path}.{name}" if path else name
+            if items and isinstance(items[0], type) and issubclass(items[0], BaseModel):
+                queue.append((f"[[{where}]]", items[0]))
+            elif isinstance(inner, type) and issubclass(inner, BaseModel):
+                queue.append((f"[{where}]", inner))
+
+    nested("", model)
+    while queue:
+        header, inner = queue.pop(0)
+        if inner in seen:
+            continue
+        seen.add(inner)
+        keys += [(header, name) for name in inner.model_fields]
+        nested(header.strip("[]"), inner)
     return keys
 
 
@@ -84,7 +98,7 @@ def test_every_study_file_key_is_described_in_its_table(site: Path) -> None:
     keys = study_keys(StudyConfig)
     assert len(keys) > 20
     for section, key in keys:
-        body = found[section or "Top-level keys"]
+        body = found[section]
         row = re.search(rf"<td><code>{re.escape(key)}</code></td>(.*?)</tr>", body, re.S)
         assert row is not None, (section, key)
         meaning = re.findall(r"<td>(.*?)</td>", row.group(1), re.S)[-1]
@@ -113,6 +127,27 @@ def test_the_api_reference_renders_the_learners_docstrings(site: Path) -> None:
     first_line = Learner.__doc__.strip().splitlines()[0]
     assert first_line in api
     assert 'id="server.learners.bam.BAM"' in api
+
+
+class Leaf(BaseModel):
+    depth: int = Field(3, description="The third level.")
+
+
+class Branch(BaseModel):
+    leaves: tuple[Leaf, ...] = Field(description="Tables two levels down.")
+    again: Leaf = Field(Leaf(), description="A model already shown.")
+
+
+class Root(BaseModel):
+    branch: Branch = Field(description="A table.")
+
+
+def test_tables_nested_deeper_get_their_own_section_once() -> None:
+    text = hooks.study_file(Root)
+    headers = re.findall(r"^### `(.*)`$", text, re.MULTILINE)
+    assert headers == ["[branch]", "[[branch.leaves]]"]
+    assert "`branch.again` is a table with the keys of `[[branch.leaves]]`." in text
+    assert "| `depth` | integer | `3` |  | The third level. |" in text
 
 
 class Undescribed(BaseModel):

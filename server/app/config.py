@@ -29,14 +29,26 @@ class _Strict(BaseModel):
 class Colour(_Strict):
     """An agent's colour: a name participants can read and the colour to draw."""
 
-    name: str = Field(min_length=1, max_length=40)
-    hex: str = Field(pattern=r"^#[0-9A-Fa-f]{6}$")
+    name: str = Field(
+        min_length=1, max_length=40, description="The colour's name, shown to participants."
+    )
+    hex: str = Field(pattern=r"^#[0-9A-Fa-f]{6}$", description="The colour drawn, as #RRGGBB.")
 
 
 class Domain(_Strict):
-    name: str
-    environments: tuple[str, ...] = Field(min_length=1)
-    tutorial: str | None = Field(None, description="Defaults to the domain's tutorial environment.")
+    """A domain participants may be assigned to (least-filled first), and what they teach in it."""
+
+    name: str = Field(description="The domain: navigation, farming or gravity.")
+    environments: tuple[str, ...] = Field(
+        min_length=1,
+        description="The domain's environments taught, in this order (each once), e.g. "
+        '["two-rooms", "doorway"].',
+    )
+    tutorial: str | None = Field(
+        None,
+        description="The tutorial's environment (one of the domain's); unset: the domain's own "
+        "tutorial environment.",
+    )
 
     @model_validator(mode="after")
     def _known(self) -> Domain:
@@ -65,9 +77,16 @@ class Domain(_Strict):
 
 
 class Tutorial(_Strict):
-    enabled: bool = True
-    learner: str = "cloning"
-    colour: Colour = Colour(name="black", hex="#000000")
+    """The tutorial before the study's agents (its learning session is kept apart and not
+    analysed)."""
+
+    enabled: bool = Field(True, description="Run the tutorial before the study's agents.")
+    learner: str = Field(
+        "cloning", description="The tutorial agent's learner (one of the learner names)."
+    )
+    colour: Colour = Field(
+        Colour(name="black", hex="#000000"), description="The tutorial agent's colour."
+    )
 
     @field_validator("learner")
     @classmethod
@@ -78,9 +97,21 @@ class Tutorial(_Strict):
 class Completion(_Strict):
     """How a participant finishes: MTurk's externalSubmit, Prolific's redirect, or a code page."""
 
-    mode: Literal["mturk", "prolific", "lab"]
-    prolific_code: str | None = Field(None, pattern=r"^[A-Za-z0-9_\-]{1,64}$")
-    prolific_url: str = "https://app.prolific.com/submissions/complete?cc={code}"
+    mode: Literal["mturk", "prolific", "lab"] = Field(
+        description="mturk: the page submits to MTurk's externalSubmit (turkSubmitTo); "
+        "prolific: the page sends the participant to prolific_url; lab: the page shows a "
+        "completion code to hand to the experimenter."
+    )
+    prolific_code: str | None = Field(
+        None,
+        pattern=r"^[A-Za-z0-9_\-]{1,64}$",
+        description="The study's Prolific completion code (required with mode prolific).",
+    )
+    prolific_url: str = Field(
+        "https://app.prolific.com/submissions/complete?cc={code}",
+        description="Where a Prolific participant is sent at the end: an https URL with "
+        "{code}, which is replaced by prolific_code.",
+    )
 
     @model_validator(mode="after")
     def _prolific_needs_code(self) -> Completion:
@@ -96,19 +127,44 @@ class Completion(_Strict):
 
 
 class StudyConfig(_Strict):
-    title: str = Field(min_length=1, max_length=200)
-    consent: str = Field(min_length=1)
-    payment: str = Field(min_length=1)
-    completion: Completion
-    domains: tuple[Domain, ...] = Field(min_length=1)
-    learners: tuple[str, ...] = Field(min_length=1)
+    title: str = Field(
+        min_length=1, max_length=200, description="The study's title, shown on every page."
+    )
+    consent: str = Field(
+        min_length=1,
+        description="The consent text participants agree to (paragraphs separated by blank lines).",
+    )
+    payment: str = Field(min_length=1, description="The payment text shown with the consent.")
+    completion: Completion = Field(description="How participants finish (the table below).")
+    domains: tuple[Domain, ...] = Field(
+        min_length=1,
+        description="The domains; each participant is assigned one at consent, the "
+        "least-filled first.",
+    )
+    learners: tuple[str, ...] = Field(
+        min_length=1,
+        description="The learners taught in each environment, in an order randomised per "
+        "participant and environment: bam, model-based, global-cost or cloning.",
+    )
     agents_per_environment: int | None = Field(
         None, ge=1, le=12, description="Defaults to one agent per learner."
     )
-    learner_settings: dict[str, dict[str, Any]] = Field(default_factory=dict)
-    tutorial: Tutorial = Tutorial()
-    colours: tuple[Colour, ...] = Field(min_length=1)
-    allow_repeat_workers: bool = False
+    learner_settings: dict[str, dict[str, Any]] = Field(
+        default_factory=dict,
+        description="Settings that override a learner's defaults, one table per learner: "
+        "[learner_settings.bam] with alternations = 10, say.",
+    )
+    tutorial: Tutorial = Field(Tutorial(), description="The tutorial (the table below).")
+    colours: tuple[Colour, ...] = Field(
+        min_length=1,
+        description="The agents' colours, by position among a participant's agents: at least "
+        "as many as a participant's agents.",
+    )
+    allow_repeat_workers: bool = Field(
+        False,
+        description="Let a worker (the same MTurk or Prolific id) take part again after a "
+        "participation that was not returned or declined.",
+    )
     allow_anonymous: bool = Field(
         False, description="Accept arrivals without platform ids (a lab participant)."
     )

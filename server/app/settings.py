@@ -29,7 +29,9 @@ class Settings(BaseSettings):
         description="SQLAlchemy URL; the default is a SQLite file in the working folder.",
     )
     admin_token: SecretStr | None = Field(
-        None, description="Bearer token for the /api/admin endpoints; unset disables them."
+        None,
+        description="The experimenter's token (16 characters or more): signs in to /dashboard "
+        "and /mturk, and is the bearer token of /api/admin; unset locks them all.",
     )
     study_config: Path | None = Field(
         None, description="The study configuration (TOML); unset uses the paper's study."
@@ -63,7 +65,11 @@ class Settings(BaseSettings):
     max_body_bytes: int = Field(
         4096, ge=256, le=1_048_576, description="Largest request body accepted."
     )
-    cookie_name: str = Field("bam_participant", pattern=r"^[A-Za-z0-9_\-]+$")
+    cookie_name: str = Field(
+        "bam_participant",
+        pattern=r"^[A-Za-z0-9_\-]+$",
+        description="Name of the participant's cookie (it holds the participant's token).",
+    )
     cookie_samesite: Literal["lax", "strict", "none"] = Field(
         "lax",
         description="'none' (with BAM_COOKIE_SECURE) lets the cookie work inside the MTurk iframe.",
@@ -74,7 +80,9 @@ class Settings(BaseSettings):
         description="Hosts accepted in turkSubmitTo (comma-separated; the server's own host is "
         "always accepted, for a local replica).",
     )
-    sqlite_busy_timeout_ms: int = Field(10_000, ge=0)
+    sqlite_busy_timeout_ms: int = Field(
+        10_000, ge=0, description="How long a SQLite connection waits for a lock held elsewhere."
+    )
     sqlite_synchronous: Literal["full", "normal"] = Field(
         "full",
         description="SQLite's synchronous mode (WAL): 'full' keeps every acknowledged request "

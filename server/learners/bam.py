@@ -15,6 +15,8 @@ from server.learners.planner_learner import PlannerLearner, check_count
 
 
 class BAM(PlannerLearner):
+    """Behavior Aware Modeling, ``learners.make("bam", env)`` (the module docstring)."""
+
     name = "bam"
     default_settings = {
         **PlannerLearner.default_settings,

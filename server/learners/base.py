@@ -145,12 +145,15 @@ class Learner(ABC):
         )
 
     def record_demonstration(self, task: int, state: int, action: int, next_state: int) -> None:
+        """Record a teacher's action for ``task`` and the transition it made."""
         task = self.env.check_task(task)
         self.data._demonstrations.append((task, *self._check_step(state, action, next_state)))
 
     def record_agent_step(
         self, task: int, state: int, action: int, next_state: int, feedback: int = 0
     ) -> None:
+        """Record the agent's own action for ``task``, the transition it made and the teacher's
+        feedback on it (+1, -1, or 0 for none)."""
         task = self.env.check_task(task)
         if feedback not in (-1, 0, 1):
             raise ValueError(f"feedback must be +1, -1 or 0 (none), got {feedback!r}")
@@ -168,10 +171,12 @@ class Learner(ABC):
         self.data._agent_steps[-1] = (*step, int(feedback))
 
     def record_transition(self, state: int, action: int, next_state: int) -> None:
+        """Record a transition alone (the agent moved without a demonstration): dynamics only."""
         self.data._transitions.append(self._check_step(state, action, next_state))
 
     # -- learning -------------------------------------------------------------------------
     def update(self) -> UpdateResult:
+        """Fit to everything recorded so far, warm-started from the previous update."""
         started = time.perf_counter()
         with one_blas_thread():
             objective, steps = self._fit()
@@ -200,6 +205,8 @@ class Learner(ABC):
 
     # -- persistence ----------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
+        """The whole learner (data, parameters, optimiser state, random generator), for
+        ``from_state_dict`` or ``dumps``."""
         return {
             "learner": self.name,
             "environment": self.env.name,
@@ -221,6 +228,7 @@ class Learner(ABC):
 
     @classmethod
     def from_state_dict(cls, env: Environment, state: dict[str, Any]) -> Learner:
+        """The learner ``state_dict`` captured, restored exactly (its data checked again)."""
         if state.get("learner") != cls.name:
             raise ValueError(f"state is for learner {state.get('learner')!r}, not {cls.name!r}")
         if state.get("environment") != env.name:

@@ -29,6 +29,8 @@ from server.learners.objective import (
 
 
 class BehavioralCloning(Learner):
+    """Behavioural cloning, ``learners.make("cloning", env)`` (the module docstring)."""
+
     name = "cloning"
     default_settings = {
         **COMMON_SETTINGS,

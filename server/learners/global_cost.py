@@ -15,6 +15,9 @@ from server.learners.planning import TransitionOperator
 
 
 class GlobalCostIRL(ModelBasedIRL):
+    """Model-based IRL with a global cost, ``learners.make("global-cost", env)`` (the module
+    docstring)."""
+
     name = "global-cost"
     default_settings = {**ModelBasedIRL.default_settings, "global_prior_sd": 1.0}
 

@@ -8,6 +8,8 @@ from server.learners.planner_learner import PlannerLearner
 
 
 class ModelBasedIRL(PlannerLearner):
+    """Model-based IRL, ``learners.make("model-based", env)`` (the module docstring)."""
+
     name = "model-based"
     default_settings = {
         **PlannerLearner.default_settings,

@@ -1,0 +1,306 @@
+"""MkDocs hook: the reference tables that are generated from the code at build time.
+
+A page asks for one with a line ``<!-- generated: NAME -->``; ``on_page_markdown`` puts the
+table in its place. NAME is one of ``GENERATORS``:
+
+- ``study-file``: every key of the study file, from the pydantic models in
+  ``server/app/config.py`` (their field types, defaults and descriptions);
+- ``domains``: the domains, their environments and tutorials, from ``server.domains``;
+- ``learner-settings``: every learner's settings and their defaults, from the learners'
+  ``default_settings``;
+- ``deployment-settings``: every ``BAM_*`` variable, from ``server/app/settings.py``;
+- ``export-tables``: every exported file and column, from ``DICTIONARY`` and ``DESCRIPTIONS``
+  in ``server/app/export.py`` (the definitions the export writes ``data_dictionary.csv`` from);
+- ``minari-infos``: the per-step ``infos`` of the Minari export, from ``INFOS`` in
+  ``server/app/minari_export.py``;
+- ``analysis-outputs``: the files ``bam-study analyze`` writes, from the README it writes
+  beside them (``analysis/report.py``).
+
+A key without a description, or an unknown NAME, is logged as a warning, so that
+``mkdocs build --strict`` fails until it is described.
+"""
+
+from __future__ import annotations
+
+import inspect
+import logging
+import re
+import types
+import typing
+from collections.abc import Callable
+from typing import Any
+
+from pydantic import BaseModel
+from pydantic.fields import FieldInfo
+from pydantic_core import PydanticUndefined
+
+log = logging.getLogger("mkdocs.hooks.generated")
+MARKER = re.compile(r"^<!-- generated: ([a-z-]+) -->$", re.MULTILINE)
+
+
+def cell(text: object) -> str:
+    """Text for a markdown table cell."""
+    return str(text).replace("|", "\\|").replace("\n", " ")
+
+
+def code(value: object) -> str:
+    return f"`{value}`" if value != "" else ""
+
+
+TYPE_WORDS = {
+    "str": "string",
+    "SecretStr": "string (secret)",
+    "Path": "file path",
+    "bool": "boolean",
+    "int": "integer",
+    "float": "number",
+    "Any": "any",
+}
+
+
+def type_name(annotation: Any) -> str:
+    """A field's type in the words of TOML and environment variables."""
+    if annotation is type(None):
+        return "unset"
+    origin = typing.get_origin(annotation)
+    if origin is None:
+        if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+            return "table"
+        name = getattr(annotation, "__name__", str(annotation))
+        return TYPE_WORDS.get(name, name)
+    arguments = typing.get_args(annotation)
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(type_name(a) for a in arguments)
+    if origin is typing.Literal:
+        return "one of " + ", ".join(f'"{a}"' if isinstance(a, str) else str(a) for a in arguments)
+    if origin in (tuple, list):
+        item = arguments[0]
+        if isinstance(item, type) and issubclass(item, BaseModel):
+            return "list of tables"
+        return f"list of {type_name(item)}s"
+    if origin is dict:
+        inner = arguments[1]
+        return "table of tables" if typing.get_origin(inner) is dict else "table"
+    return str(annotation)
+
+
+def toml_value(value: object) -> str:
+    """A default as it is written in TOML (None: the setting is left unset)."""
+    if value is None:
+        return "unset"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{k} = {toml_value(v)}" for k, v in value.items()) + " }"
+    return str(value)
+
+
+def default_text(field: FieldInfo) -> str:
+    if field.is_required():
+        return "required"
+    if field.default_factory is not None:
+        made = field.default_factory()  # type: ignore[call-arg]
+        if isinstance(made, int):
+            return "the number of cores"
+        return "empty" if not made else code(made)
+    if field.default is PydanticUndefined or field.default is None:
+        return "unset"
+    if isinstance(field.default, BaseModel):
+        return code(toml_value(field.default.model_dump()))
+    return code(toml_value(field.default))
+
+
+def constraints(field: FieldInfo) -> str:
+    """The field's bounds and pattern, as the model checks them."""
+    words = []
+    unit = "items" if typing.get_origin(field.annotation) in (tuple, list) else "characters"
+    for item in field.metadata:
+        for name, sign in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<")):
+            if getattr(item, name, None) is not None:
+                words.append(f"{sign} {getattr(item, name)}")
+        for name, what in (("min_length", "at least"), ("max_length", "at most")):
+            if getattr(item, name, None) is not None:
+                count = getattr(item, name)
+                words.append(
+                    "not empty" if (name, count) == ("min_length", 1) else f"{what} {count} {unit}"
+                )
+        if getattr(item, "pattern", None) is not None:
+            words.append(f"matches `{item.pattern}`")
+    return "; ".join(words)
+
+
+def described(where: str, field: FieldInfo) -> str:
+    if not field.description:
+        log.warning("%s has no description: give its Field a description", where)
+        return ""
+    return field.description
+
+
+def model_table(
+    model: type[BaseModel], prefix: str, name_of: Callable[[str], str] = lambda n: n
+) -> list[str]:
+    rows = ["| key | type | default | rules | meaning |", "| --- | --- | --- | --- | --- |"]
+    for name, field in model.model_fields.items():
+        key = name_of(name)
+        rows.append(
+            f"| `{key}` | {cell(type_name(field.annotation))} "
+            f"| {cell(default_text(field))} | {cell(constraints(field))} "
+            f"| {cell(described(f'{prefix}{key}', field))} |"
+        )
+    return rows
+
+
+def nested_models(model: type[BaseModel]) -> list[tuple[str, type[BaseModel], bool]]:
+    """The (key, model, is_array) of the model's fields that are tables of their own."""
+    found = []
+    for name, field in model.model_fields.items():
+        annotation = field.annotation
+        arguments = typing.get_args(annotation)
+        if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+            found.append((name, annotation, False))
+        elif arguments and isinstance(arguments[0], type) and issubclass(arguments[0], BaseModel):
+            found.append((name, arguments[0], True))
+    return found
+
+
+def table_header(path: str, is_array: bool) -> str:
+    """A nested table's TOML header: ``[tutorial]``, ``[[domains]]``."""
+    return f"[[{path}]]" if is_array else f"[{path}]"
+
+
+def study_file(root: type[BaseModel] | None = None) -> str:
+    """Every key of the study file (``root``: its model, by default ``StudyConfig``): the
+    top-level keys, then each nested table (breadth first), each model's table once (a model
+    met again points to where it is)."""
+    if root is None:
+        from server.app.config import StudyConfig
+
+        root = StudyConfig
+    lines = ["### Top-level keys", "", *model_table(root, "")]
+    shown: dict[type[BaseModel], str] = {}
+    queue = [(key, model, is_array) for key, model, is_array in nested_models(root)]
+    while queue:
+        path, model, is_array = queue.pop(0)
+        header = table_header(path, is_array)
+        if model in shown:
+            kind = "list of tables" if is_array else "table"
+            lines += ["", f"`{path}` is a {kind} with the keys of `{shown[model]}`."]
+            continue
+        shown[model] = header
+        lines += ["", f"### `{header}`", ""]
+        if model.__doc__ and model.__doc__ != BaseModel.__doc__:
+            lines += [" ".join(inspect.cleandoc(model.__doc__).split()), ""]
+        lines += model_table(model, f"{path}.")
+        queue += [(f"{path}.{key}", inner, array) for key, inner, array in nested_models(model)]
+    return "\n".join(lines)
+
+
+def domains_table() -> str:
+    from server import domains
+
+    lines = ["| domain | environments | tutorial environment |", "| --- | --- | --- |"]
+    for name, environments in domains.DOMAINS.items():
+        listed = ", ".join(f"`{e}`" for e in environments)
+        lines.append(f"| `{name}` | {listed} | `{domains.TUTORIALS[name]}` |")
+    return "\n".join(lines)
+
+
+def learner_settings() -> str:
+    from server.learners import DISPLAY_NAMES, LEARNERS
+
+    names = sorted({key for cls in LEARNERS.values() for key in cls.default_settings})
+    lines = [
+        "| setting | " + " | ".join(f"`{name}`" for name in LEARNERS) + " |",
+        "| --- |" + " --- |" * len(LEARNERS),
+    ]
+    for setting in names:
+        values = []
+        for cls in LEARNERS.values():
+            if setting not in cls.default_settings:
+                values.append("")
+                continue
+            values.append(code(toml_value(cls.default_settings[setting])))
+        lines.append(f"| `{setting}` | " + " | ".join(values) + " |")
+    legend = ", ".join(f"`{name}`: {DISPLAY_NAMES[name]}" for name in LEARNERS)
+    return "\n".join([*lines, "", f"Learners: {legend}. An empty cell: not a setting of it."])
+
+
+def deployment_settings() -> str:
+    from server.app.settings import Settings
+
+    prefix = str(Settings.model_config.get("env_prefix", ""))
+    return "\n".join(model_table(Settings, "", lambda name: f"{prefix}{name.upper()}"))
+
+
+def export_tables() -> str:
+    from server.app.export import DESCRIPTIONS, DICTIONARY, INTEGER_COLUMNS
+
+    lines: list[str] = []
+    for name, columns in DICTIONARY.items():
+        lines += [f"### `{name}.csv`", ""]
+        if name not in DESCRIPTIONS:
+            log.warning("export table %s has no entry in DESCRIPTIONS", name)
+        else:
+            lines += [DESCRIPTIONS[name], ""]
+        lines += ["| column | kind | meaning |", "| --- | --- | --- |"]
+        for column, meaning in columns.items():
+            kind = "integer" if column in INTEGER_COLUMNS else ""
+            if not meaning:
+                log.warning("export column %s.%s has no description", name, column)
+            lines.append(f"| `{column}` | {kind} | {cell(meaning)} |")
+        lines.append("")
+    lines += ["### `data_dictionary.csv`", "", DESCRIPTIONS["data_dictionary"]]
+    return "\n".join(lines)
+
+
+def minari_infos() -> str:
+    from server.app.minari_export import INFOS
+
+    lines = ["| key of `infos` | meaning |", "| --- | --- |"]
+    lines += [f"| `{key}` | {cell(meaning)} |" for key, meaning in INFOS.items()]
+    return "\n".join(lines)
+
+
+def analysis_outputs() -> str:
+    """What ``bam-study analyze`` writes, from the README it writes beside its outputs (with
+    the default baseline, thresholds and false discovery rate)."""
+    from types import SimpleNamespace
+
+    from analysis.options import DEFAULT_BASELINE, DEFAULT_FDR, DEFAULT_THRESHOLDS
+    from analysis.report import describe_outputs
+
+    defaults = SimpleNamespace(
+        baseline=DEFAULT_BASELINE, thresholds=DEFAULT_THRESHOLDS, fdr=DEFAULT_FDR
+    )
+    text = describe_outputs(defaults)  # type: ignore[arg-type]
+    return text.split("\n", 1)[1].strip()
+
+
+GENERATORS: dict[str, Callable[[], str]] = {
+    "analysis-outputs": analysis_outputs,
+    "study-file": lambda: study_file(),
+    "domains": domains_table,
+    "learner-settings": learner_settings,
+    "deployment-settings": deployment_settings,
+    "export-tables": export_tables,
+    "minari-infos": minari_infos,
+}
+
+
+def render(markdown: str, where: str = "a page") -> str:
+    """``markdown`` with every ``<!-- generated: NAME -->`` line replaced by its table."""
+
+    def replace(match: re.Match[str]) -> str:
+        name = match.group(1)
+        if name not in GENERATORS:
+            log.warning("%s asks for an unknown generated table %r", where, name)
+            return match.group(0)
+        return GENERATORS[name]()
+
+    return MARKER.sub(replace, markdown)
+
+
+def on_page_markdown(markdown: str, page: Any, **_: Any) -> str:
+    return render(markdown, page.file.src_path)

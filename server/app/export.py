@@ -183,7 +183,8 @@ DICTIONARY: dict[str, dict[str, str]] = {
         "assignment_id": "The MTurk assignmentId reviewed (pseudonymised as in participants.csv).",
         "worker_id": "The worker (pseudonymised as in participants.csv).",
         "decision": "approved or rejected (final; sent to the review backend).",
-        "feedback": "The feedback sent to the worker with the decision (RequesterFeedback).",
+        "requester_feedback": "The feedback sent to the worker with the decision (MTurk's "
+        "RequesterFeedback).",
         "backend": "Where the decision was sent: replica (the local MTurk replica) or mturk.",
         "decided_at": "When the platform took the decision (UTC).",
     },
@@ -432,7 +433,7 @@ def load_tables(
             "participant_id": r.participant_id,
             **platform_ids(r.worker_id, r.assignment_id),
             "decision": r.decision,
-            "feedback": r.feedback,
+            "requester_feedback": r.feedback,
             "backend": r.backend,
             "decided_at": _iso(r.decided_at),
         }

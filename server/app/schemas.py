@@ -279,6 +279,7 @@ class BonusRequest(Body):
         le=MAX_BONUS_USD,
         decimal_places=2,
         allow_inf_nan=False,
+        strict=False,  # a JSON number or a string of one
         description=f'US dollars, 0.01 to {MAX_BONUS_USD} (a number or a string like "1.50").',
     )
     reason: str = Field(min_length=1, max_length=1024, description="Shown to the worker.")

@@ -25,7 +25,7 @@ from sqlalchemy.exc import IntegrityError
 
 from server.app.config import LikertQuestion, Question, StudyConfig, TextQuestion
 from server.app.db import Database
-from server.app.errors import ApiError, TurnedAway
+from server.app.errors import ApiError, InvalidInput, TurnedAway
 from server.app.models import (
     Event,
     LearnerUpdate,
@@ -739,7 +739,10 @@ def answer_questionnaire(action: Action, answers: dict[str, int | str]) -> None:
     questions = {question.id: question for question in action.study.questionnaire.questions}
     unknown = sorted(set(answers) - set(questions))
     if unknown:
-        raise ApiError(422, f"no question {', '.join(map(repr, unknown))} in this questionnaire")
+        raise InvalidInput(
+            ("body", "answers", unknown[0]),
+            f"no question {', '.join(map(repr, unknown))} in this questionnaire",
+        )
     rows = []
     for question_id, question in questions.items():
         value = answers.get(question_id)
@@ -747,7 +750,9 @@ def answer_questionnaire(action: Action, answers: dict[str, int | str]) -> None:
             value = None
         if value is None:
             if question.required:
-                raise ApiError(422, f"question {question_id!r} needs an answer")
+                raise InvalidInput(
+                    ("body", "answers", question_id), f"question {question_id!r} needs an answer"
+                )
             continue
         rows.append(
             {
@@ -767,21 +772,22 @@ def answer_questionnaire(action: Action, answers: dict[str, int | str]) -> None:
 def checked_answer(question: Question, value: int | str) -> dict[str, str | None]:
     """The answer's ``answer`` and ``label`` columns; 422 for an answer the question does not
     take."""
+    loc = ("body", "answers", question.id)
     where = f"question {question.id!r}"
     if isinstance(question, TextQuestion):
         if not isinstance(value, str):
-            raise ApiError(422, f"{where} takes text")
+            raise InvalidInput(loc, f"{where} takes text")
         if len(value) > question.max_length:
-            raise ApiError(422, f"{where}: at most {question.max_length} characters")
+            raise InvalidInput(loc, f"{where}: at most {question.max_length} characters")
         return {"answer": value, "label": None}
     if isinstance(question, LikertQuestion):
         points = len(question.labels)
         if not isinstance(value, int) or not 1 <= value <= points:
-            raise ApiError(422, f"{where} takes a point of its scale, 1 to {points}")
+            raise InvalidInput(loc, f"{where} takes a point of its scale, 1 to {points}")
         return {"answer": str(value), "label": question.labels[value - 1]}
     if not isinstance(value, str) or value not in question.choices:
-        raise ApiError(
-            422, f"{where} takes one of its choices: {', '.join(map(repr, question.choices))}"
+        raise InvalidInput(
+            loc, f"{where} takes one of its choices: {', '.join(map(repr, question.choices))}"
         )
     return {"answer": value, "label": None}
 

@@ -20,7 +20,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from server.app import flow
 from server.app.config import StudyConfig, load_study_config
 from server.app.db import Database, SchemaError, current_revision, head_revision
-from server.app.errors import ApiError, TurnedAway
+from server.app.errors import ApiError, InvalidInput, TurnedAway
 from server.app.routers import (
     admin,
     arrivals,
@@ -157,6 +157,9 @@ def create_app(
     @app.exception_handler(ApiError)
     async def api_error(request: Request, error: ApiError) -> JSONResponse:
         content: dict[str, Any] = {"detail": error.message}
+        if isinstance(error, InvalidInput):
+            problem = {"type": "value_error", "loc": list(error.loc), "msg": error.message}
+            content = {"detail": [problem]}
         if isinstance(error, TurnedAway):
             content["turned_away"] = True
         return JSONResponse(content, status_code=error.status, headers=error.headers)

@@ -22,7 +22,7 @@ from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 
 from server.app.db import Database
-from server.app.errors import ApiError
+from server.app.errors import ApiError, InvalidInput
 from server.app.models import AssignmentReview, Bonus, Participant, utcnow
 from server.app.replica_models import ReplicaAssignment, ReplicaBonus
 from server.app.settings import Settings
@@ -245,7 +245,9 @@ def review_submission(
             409, f"assignment {who.assignment_id} was already {earlier}: a decision is final"
         )
     if decision == "rejected" and not feedback:
-        raise ApiError(422, "a rejection needs feedback: MTurk shows the worker why")
+        raise InvalidInput(
+            ("body", "feedback"), "a rejection needs feedback: MTurk shows the worker why"
+        )
     if decision == "approved":
         _platform(lambda: backend.approve_assignment(who.assignment_id, feedback))
     else:

@@ -120,6 +120,7 @@ ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
         409: "Not now: a sequence number out of order, or a step the flow is not at.",
         413: "The request body is too large.",
         429: "Too many failed sign-ins from this address: wait Retry-After seconds.",
+        502: "The review backend (MTurk) could not be reached or failed; nothing was recorded.",
         503: "Not available: the admin token is not set, or the agent is still learning.",
     }.items()
 }

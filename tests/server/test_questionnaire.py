@@ -95,6 +95,15 @@ def test_the_questionnaire_comes_before_the_completion_code(
     refused({**GOOD, "comments": "a\x00b"}, "NUL")
     refused({**GOOD, "age": "40"}, "no question 'age'")
     refused([4, "x"], "answers")
+    # Shaped as FastAPI's own 422s: the problem, and where it is.
+    shaped = participant.post("/api/participant/questionnaire", answers={**GOOD, "difficulty": 9})
+    assert shaped.json()["detail"] == [
+        {
+            "type": "value_error",
+            "loc": ["body", "answers", "difficulty"],
+            "msg": "question 'difficulty' takes a point of its scale, 1 to 5",
+        }
+    ]
 
     # The optional question may be left out; a long answer in any script goes through.
     answers = {"difficulty": 2, "best_agent": "The first agent"}

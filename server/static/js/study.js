@@ -271,6 +271,12 @@ function questionnairePage() {
   const message = h("p", { class: "form-error", role: "alert", hidden: true });
   const submit = h("button", { class: "btn primary big", type: "submit", "data-action": "submit-questionnaire" }, "Send the answers");
   const form = h("form", { class: "questionnaire", novalidate: true }, fields.map((f) => f.element), message, h("div", { class: "actions" }, submit));
+  for (const field of fields) {
+    field.element.addEventListener("input", () => {
+      field.invalid(false);
+      field.error.hidden = true;
+    });
+  }
   const complain = (text) => {
     message.hidden = false;
     message.textContent = text;

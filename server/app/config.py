@@ -98,6 +98,12 @@ class Completion(_Strict):
 QUESTION_ID = r"^[a-z][a-z0-9_]{0,63}$"
 
 
+def _distinct_texts(value: tuple[str, ...], problem: str) -> tuple[str, ...]:
+    if any(not text.strip() for text in value) or len(set(value)) != len(value):
+        raise ValueError(problem)
+    return value
+
+
 class _Question(_Strict):
     id: str = Field(
         pattern=QUESTION_ID,
@@ -129,9 +135,7 @@ class LikertQuestion(_Question):
     @field_validator("labels")
     @classmethod
     def _distinct(cls, value: tuple[str, ...]) -> tuple[str, ...]:
-        if any(not label.strip() for label in value) or len(set(value)) != len(value):
-            raise ValueError("each point of the scale needs its own, non-empty label")
-        return value
+        return _distinct_texts(value, "each point of the scale needs its own, non-empty label")
 
 
 class ChoiceQuestion(_Question):
@@ -145,9 +149,7 @@ class ChoiceQuestion(_Question):
     @field_validator("choices")
     @classmethod
     def _distinct(cls, value: tuple[str, ...]) -> tuple[str, ...]:
-        if any(not choice.strip() for choice in value) or len(set(value)) != len(value):
-            raise ValueError("each choice must be a different, non-empty text")
-        return value
+        return _distinct_texts(value, "each choice must be a different, non-empty text")
 
 
 Question = Annotated[TextQuestion | LikertQuestion | ChoiceQuestion, Field(discriminator="kind")]

@@ -225,6 +225,15 @@ def _platform(call: Any) -> None:
         raise ApiError(502, str(error)) from None
 
 
+def _record(db: Database, row: AssignmentReview | Bonus, conflict: str) -> None:
+    """Store what the platform took; a request that raced this one is answered 409."""
+    try:
+        with db.write() as s:
+            s.add(row)
+    except IntegrityError:
+        raise ApiError(409, conflict) from None
+
+
 def review_submission(
     db: Database,
     backend: ReviewBackend,
@@ -252,21 +261,16 @@ def review_submission(
         _platform(lambda: backend.approve_assignment(who.assignment_id, feedback))
     else:
         _platform(lambda: backend.reject_assignment(who.assignment_id, feedback or ""))
-    try:
-        with db.write() as s:
-            s.add(
-                AssignmentReview(
-                    participant_id=participant_id,
-                    assignment_id=who.assignment_id,
-                    worker_id=who.worker_id,
-                    decision=decision,
-                    feedback=feedback,
-                    backend=backend.name,
-                    decided_at=utcnow(),
-                )
-            )
-    except IntegrityError:
-        raise ApiError(409, f"assignment {who.assignment_id} was decided meanwhile") from None
+    decided = AssignmentReview(
+        participant_id=participant_id,
+        assignment_id=who.assignment_id,
+        worker_id=who.worker_id,
+        decision=decision,
+        feedback=feedback,
+        backend=backend.name,
+        decided_at=utcnow(),
+    )
+    _record(db, decided, f"assignment {who.assignment_id} was decided meanwhile")
 
 
 def dollars(cents: int) -> str:
@@ -302,20 +306,15 @@ def pay_bonus(
             who.worker_id, who.assignment_id, dollars(cents), reason, unique_token
         )
     )
-    try:
-        with db.write() as s:
-            s.add(
-                Bonus(
-                    participant_id=participant_id,
-                    assignment_id=who.assignment_id,
-                    worker_id=who.worker_id,
-                    amount_cents=cents,
-                    reason=reason,
-                    unique_token=unique_token,
-                    backend=backend.name,
-                    paid_at=utcnow(),
-                )
-            )
-    except IntegrityError:
-        raise ApiError(409, f"the request token {unique_token} was used meanwhile") from None
+    paid = Bonus(
+        participant_id=participant_id,
+        assignment_id=who.assignment_id,
+        worker_id=who.worker_id,
+        amount_cents=cents,
+        reason=reason,
+        unique_token=unique_token,
+        backend=backend.name,
+        paid_at=utcnow(),
+    )
+    _record(db, paid, f"the request token {unique_token} was used meanwhile")
     return True

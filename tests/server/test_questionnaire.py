@@ -140,6 +140,29 @@ def test_the_questionnaire_comes_before_the_completion_code(
     assert set(rows.columns) <= set(described["column"])
 
 
+@pytest.mark.parametrize("database_url", ["sqlite"], indirect=True)
+def test_simulated_participants_answer_the_questionnaire(db: Database, executor: Any) -> None:
+    from server.app.main import create_app
+    from server.app.simulated import SimulatedParticipant, TeachingPlan
+    from tests.server.conftest import make_settings
+
+    mturk = parse_study_config(
+        example_data(
+            learners=["cloning"], tutorial={"enabled": False}, completion={"mode": "mturk"}
+        )
+    )
+    url = db.engine.url.render_as_string(hide_password=False)
+    app = create_app(make_settings(url), mturk, db=db, executor=executor)
+    plan = TeachingPlan(min_rounds=1, max_rounds=1, agent_try_probability=0.0)
+    with TestClient(app) as client:
+        run = SimulatedParticipant("http://testserver", 0, 3, plan, client=client).take_part()
+    assert run.error is None and run.completed
+    rows = load_tables(db)["questionnaire_answers"]
+    assert list(rows["question_id"]) == ["difficulty", "best_agent", "comments"]
+    assert 1 <= int(rows["answer"].iloc[0]) <= 5
+    assert rows["answer"].iloc[1] in mturk.questionnaire.questions[1].choices  # type: ignore[union-attr]
+
+
 def test_the_papers_study_has_no_questionnaire() -> None:
     """The default study file asks nothing after teaching: its last agent completes the study
     (the whole run is in test_flow.py)."""

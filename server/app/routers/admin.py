@@ -35,6 +35,7 @@ from server.app.schemas import (
     StatusChangeView,
     plain_text,
 )
+from server.app.state import ServerState
 
 router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
 
@@ -241,19 +242,20 @@ def include(
 @router.post("/participants/{participant_id}/approval", response_model=AdminParticipantDetail)
 def approve(participant_id: RowId, body: ReviewRequest, state: StateDep) -> AdminParticipantDetail:
     """Approve the participant's submitted MTurk assignment (``BAM_REVIEW_BACKEND``), once."""
-    review.review_submission(
-        state.db, state.review_backend(), participant_id, "approved", body.feedback
-    )
-    with state.db.read() as s:
-        return _participant_detail(s, participant_id)
+    return _decide(participant_id, "approved", body, state)
 
 
 @router.post("/participants/{participant_id}/rejection", response_model=AdminParticipantDetail)
 def reject(participant_id: RowId, body: ReviewRequest, state: StateDep) -> AdminParticipantDetail:
     """Reject the participant's submitted MTurk assignment, with feedback, once."""
-    review.review_submission(
-        state.db, state.review_backend(), participant_id, "rejected", body.feedback
-    )
+    return _decide(participant_id, "rejected", body, state)
+
+
+def _decide(
+    participant_id: int, decision: review.Decision, body: ReviewRequest, state: ServerState
+) -> AdminParticipantDetail:
+    backend = state.review_backend()
+    review.review_submission(state.db, backend, participant_id, decision, body.feedback)
     with state.db.read() as s:
         return _participant_detail(s, participant_id)
 

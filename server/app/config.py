@@ -117,7 +117,7 @@ class _Question(_Strict):
 class TextQuestion(_Question):
     """A free-text answer."""
 
-    kind: Literal["text"]
+    kind: Literal["text"] = Field(description="text: free text.")
     max_length: int = Field(1000, ge=1, le=10_000, description="Longest answer, in characters.")
     lines: int = Field(4, ge=1, le=20, description="Height of the answer box, in lines.")
 
@@ -125,7 +125,7 @@ class TextQuestion(_Question):
 class LikertQuestion(_Question):
     """A point on a scale, each point with its label, stored as 1 to the number of points."""
 
-    kind: Literal["likert"]
+    kind: Literal["likert"] = Field(description="likert: a point on a labelled scale.")
     labels: tuple[str, ...] = Field(
         min_length=2,
         max_length=11,
@@ -141,7 +141,7 @@ class LikertQuestion(_Question):
 class ChoiceQuestion(_Question):
     """One of a few answers (multiple choice), stored as the text of the one picked."""
 
-    kind: Literal["choice"]
+    kind: Literal["choice"] = Field(description="choice: one of the choices.")
     choices: tuple[str, ...] = Field(
         min_length=2, max_length=20, description="The answers offered, in the order shown."
     )
@@ -289,6 +289,8 @@ def _format_errors(error: ValidationError) -> str:
     for item in error.errors():
         where = ".".join(str(part) for part in item["loc"]) or "(top level)"
         message = item["msg"].removeprefix("Value error, ")
+        if item["type"] == "union_tag_not_found":  # a question without its kind
+            message = "needs kind = 'text', 'likert' or 'choice'"
         lines.append(f"  {where}: {message}")
     return "\n".join(lines)
 

@@ -138,8 +138,9 @@ class MTurkClientBackend:
         except Exception as error:
             # botocore's ClientError carries MTurk's error code: RequestError is a refusal,
             # ServiceFault (and anything else: no connection, no credentials) a failure.
-            code = getattr(error, "response", {}).get("Error", {}).get("Code")
-            message = getattr(error, "response", {}).get("Error", {}).get("Message") or str(error)
+            response = getattr(error, "response", None)
+            details = response.get("Error", {}) if isinstance(response, dict) else {}
+            code, message = details.get("Code"), details.get("Message") or str(error)
             if code == "RequestError":
                 raise ReviewRefused(f"MTurk refused {method}: {message}") from None
             raise ReviewUnavailable(f"MTurk's {method} failed: {message}") from None

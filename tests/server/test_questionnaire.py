@@ -163,11 +163,20 @@ def test_simulated_participants_answer_the_questionnaire(db: Database, executor:
     assert rows["answer"].iloc[1] in mturk.questionnaire.questions[1].choices  # type: ignore[union-attr]
 
 
-def test_the_papers_study_has_no_questionnaire() -> None:
-    """The default study file asks nothing after teaching: its last agent completes the study
-    (the whole run is in test_flow.py)."""
-    assert load_study_config(DEFAULT_STUDY_CONFIG).questionnaire.questions == ()
-    assert load_study_config(DEFAULT_STUDY_CONFIG).public()["questionnaire"] is None
+@pytest.mark.parametrize("database_url", ["sqlite"], indirect=True)
+def test_the_papers_study_has_no_questionnaire(db: Database, executor: Any) -> None:
+    """The default study file asks nothing after teaching: the page is told of no
+    questionnaire (``/api/study``, the page's study data), and its last agent completes the study (the whole run, status by status,
+    is test_flow.py::test_a_whole_run_to_completion_and_submission)."""
+    from server.app.main import create_app
+    from tests.server.conftest import make_settings
+
+    default = load_study_config(DEFAULT_STUDY_CONFIG)
+    assert default.questionnaire.questions == ()
+    url = db.engine.url.render_as_string(hide_password=False)
+    app = create_app(make_settings(url), default, db=db, executor=executor)
+    with TestClient(app) as client:
+        assert client.get("/api/study").json()["questionnaire"] is None
 
 
 @pytest.mark.parametrize("database_url", ["sqlite"], indirect=True)

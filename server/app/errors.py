@@ -26,3 +26,12 @@ class LearnerBusy(Exception):
         super().__init__(f"session {session_id} waits for update {target}")
         self.session_id = session_id
         self.target = target
+
+
+class InvalidInput(ApiError):
+    """A 422 for a value the request's schema allows but the study does not (an answer the
+    question does not take): answered in the shape of FastAPI's own 422s, with ``loc``."""
+
+    def __init__(self, loc: tuple[str | int, ...], message: str) -> None:
+        super().__init__(422, message)
+        self.loc = loc

@@ -23,12 +23,15 @@ from sqlalchemy.engine import make_url
 
 from server.app.db import Database
 from server.app.models import (
+    AssignmentReview,
+    Bonus,
     Episode,
     Event,
     Installation,
     LearnerUpdate,
     LearningSession,
     Participant,
+    QuestionnaireAnswer,
     StatusChange,
 )
 from server.domains import make as make_environment
@@ -40,6 +43,7 @@ STATUS_COLUMNS = (
     "declined",
     "tutorial",
     "teaching",
+    "questionnaire",
     "completed",
     "submitted",
     "returned",
@@ -54,8 +58,9 @@ DICTIONARY: dict[str, dict[str, str]] = {
         "worker_id": "MTurk workerId or Prolific PROLIFIC_PID (pseudonymised: w_ + salted hash).",
         "assignment_id": "MTurk assignmentId or Prolific SESSION_ID (pseudonymised: a_ + hash).",
         "hit_id": "MTurk hitId or Prolific STUDY_ID.",
-        "status": "Latest status: arrived, consented, declined, tutorial, teaching, completed, "
-        "submitted, returned (MTurk HIT returned) or abandoned (idle too long).",
+        "status": "Latest status: arrived, consented, declined, tutorial, teaching, "
+        "questionnaire (answering the post-study questionnaire), completed, submitted, returned "
+        "(MTurk HIT returned) or abandoned (idle too long).",
         "domain": "Domain assigned at consent (empty before).",
         "excluded": "True if the experimenter excluded the participant from analysis.",
         "exclusion_reason": "The experimenter's reason for the exclusion.",
@@ -162,6 +167,37 @@ DICTIONARY: dict[str, dict[str, str]] = {
         "at": "When (UTC).",
         "note": "Details (the session begun, the reason for an exclusion, ...).",
     },
+    "questionnaire_answers": {
+        "participant_id": "The participant.",
+        "question_id": "The question's id in the study file ([[questionnaire.questions]] id).",
+        "kind": "text (free text), likert (a point on a labelled scale) or choice (one of the "
+        "choices offered).",
+        "question": "The question as it was shown.",
+        "answer": "The text typed, the choice picked, or the Likert point (1 to the number of "
+        "labels).",
+        "label": "Likert: the label of the point picked (empty for the other kinds).",
+        "answered_at": "When the questionnaire was submitted (UTC).",
+    },
+    "reviews": {
+        "participant_id": "The participant.",
+        "assignment_id": "The MTurk assignmentId reviewed (pseudonymised as in participants.csv).",
+        "worker_id": "The worker (pseudonymised as in participants.csv).",
+        "decision": "approved or rejected (final; sent to the review backend).",
+        "requester_feedback": "The feedback sent to the worker with the decision (MTurk's "
+        "RequesterFeedback).",
+        "backend": "Where the decision was sent: replica (the local MTurk replica) or mturk.",
+        "decided_at": "When the platform took the decision (UTC).",
+    },
+    "bonuses": {
+        "participant_id": "The participant.",
+        "assignment_id": "The MTurk assignmentId the bonus was paid for (pseudonymised).",
+        "worker_id": "The worker paid (pseudonymised).",
+        "amount_usd": "The bonus, in US dollars.",
+        "reason": "The reason sent to the worker with the bonus.",
+        "unique_token": "The request's UniqueRequestToken (a retry with it pays nothing more).",
+        "backend": "Where the bonus was sent: replica or mturk.",
+        "paid_at": "When the platform took the bonus (UTC).",
+    },
 }
 # Integer columns, some of them with empty cells (written without a decimal point).
 INTEGER_COLUMNS = frozenset(
@@ -208,6 +244,10 @@ DESCRIPTIONS = {
     "events": "One row per acknowledged participant request, in order (append-only log).",
     "evaluations": "One row per processed learner update of the study's sessions.",
     "status_changes": "One row per change of a participant's status.",
+    "questionnaire_answers": "One row per question answered in the post-study questionnaire "
+    "(an optional question left unanswered has none; a study without a questionnaire, none).",
+    "reviews": "One row per submitted MTurk assignment the experimenter approved or rejected.",
+    "bonuses": "One row per bonus paid to a participant's worker.",
     "data_dictionary": "Every file's columns. In every file, a text cell that begins with =, +, "
     "-, @, a tab or a carriage return is written with an apostrophe (') before it, so that a "
     "spreadsheet shows it as text instead of running it as a formula; remove that first "
@@ -282,6 +322,9 @@ def load_tables(
     with db.read() as s:
         participants = s.scalars(select(Participant).order_by(Participant.id)).all()
         changes = s.scalars(select(StatusChange).order_by(StatusChange.id)).all()
+        answers = s.scalars(select(QuestionnaireAnswer).order_by(QuestionnaireAnswer.id)).all()
+        reviews = s.scalars(select(AssignmentReview).order_by(AssignmentReview.id)).all()
+        bonuses = s.scalars(select(Bonus).order_by(Bonus.id)).all()
         sessions = s.scalars(select(LearningSession).order_by(LearningSession.id)).all()
         episodes = s.scalars(select(Episode).order_by(Episode.id)).all()
         updates = s.execute(
@@ -348,6 +391,15 @@ def load_tables(
         if update.update_index > 0:
             processed[update.session_id] = processed.get(update.session_id, 0) + 1
 
+    def platform_ids(worker_id: str | None, assignment_id: str | None) -> dict[str, str | None]:
+        if not pseudonymize:
+            return {"worker_id": worker_id, "assignment_id": assignment_id}
+        assert secret is not None
+        return {
+            "worker_id": pseudonym(secret, worker_id, "w"),
+            "assignment_id": pseudonym(secret, assignment_id, "a"),
+        }
+
     def participant_row(p: Participant) -> dict[str, Any]:
         at = first_at.get(p.id, {})
         mine = [x for x in sessions if x.participant_id == p.id and x.kind == "study"]
@@ -372,11 +424,41 @@ def load_tables(
             "completion_code": p.completion_code,
         }
         if pseudonymize:
-            assert secret is not None
-            row["worker_id"] = pseudonym(secret, p.worker_id, "w")
-            row["assignment_id"] = pseudonym(secret, p.assignment_id, "a")
+            row.update(platform_ids(p.worker_id, p.assignment_id))
             row["completion_code"] = None
         return row
+
+    def review_row(r: AssignmentReview) -> dict[str, Any]:
+        return {
+            "participant_id": r.participant_id,
+            **platform_ids(r.worker_id, r.assignment_id),
+            "decision": r.decision,
+            "requester_feedback": r.feedback,
+            "backend": r.backend,
+            "decided_at": _iso(r.decided_at),
+        }
+
+    def bonus_row(b: Bonus) -> dict[str, Any]:
+        return {
+            "participant_id": b.participant_id,
+            **platform_ids(b.worker_id, b.assignment_id),
+            "amount_usd": b.amount_cents / 100,
+            "reason": b.reason,
+            "unique_token": b.unique_token,
+            "backend": b.backend,
+            "paid_at": _iso(b.paid_at),
+        }
+
+    def answer_row(a: QuestionnaireAnswer) -> dict[str, Any]:
+        return {
+            "participant_id": a.participant_id,
+            "question_id": a.question_id,
+            "kind": a.kind,
+            "question": a.question,
+            "answer": a.answer,
+            "label": a.label,
+            "answered_at": _iso(a.answered_at),
+        }
 
     def session_row(x: LearningSession) -> dict[str, Any]:
         c = counts.get(x.id, {"demo": 0, "agent": 0, "feedback": 0})
@@ -497,6 +579,9 @@ def load_tables(
                 for c in changes
             ),
         ),
+        "questionnaire_answers": _frame("questionnaire_answers", map(answer_row, answers)),
+        "reviews": _frame("reviews", map(review_row, reviews)),
+        "bonuses": _frame("bonuses", map(bonus_row, bonuses)),
     }
     for frame in tables.values():
         for column in frame.columns:

@@ -23,15 +23,16 @@ import numpy as np
 from sqlalchemy import Connection, and_, bindparam, func, insert, or_, select
 from sqlalchemy.exc import IntegrityError
 
-from server.app.config import StudyConfig
+from server.app.config import LikertQuestion, Question, StudyConfig, TextQuestion
 from server.app.db import Database
-from server.app.errors import ApiError, TurnedAway
+from server.app.errors import ApiError, InvalidInput, TurnedAway
 from server.app.models import (
     Event,
     LearnerUpdate,
     LearningSession,
     Participant,
     ParticipantToken,
+    QuestionnaireAnswer,
     StatusChange,
     utcnow,
 )
@@ -52,8 +53,17 @@ from server.domains import make as make_environment
 PREVIEW_ASSIGNMENT = "ASSIGNMENT_ID_NOT_AVAILABLE"
 # Flow statuses, in order; "returned" (MTurk: the HIT was returned), "abandoned" (idle too long)
 # and "declined" (no consent) end the flow; exclusion is a separate mark.
-FLOW_STATUSES = ("arrived", "consented", "tutorial", "teaching", "completed", "submitted")
-IN_PROGRESS = ("arrived", "consented", "tutorial", "teaching")
+# "questionnaire": the post-study questionnaire is being answered (a study file with one).
+FLOW_STATUSES = (
+    "arrived",
+    "consented",
+    "tutorial",
+    "teaching",
+    "questionnaire",
+    "completed",
+    "submitted",
+)
+IN_PROGRESS = ("arrived", "consented", "tutorial", "teaching", "questionnaire")
 STATUSES = (*FLOW_STATUSES, "declined", "returned", "abandoned")
 CODE_ALPHABET = "ABCDEFGHJKLMNPQRSTUVWXYZ23456789"
 TOKEN_HEADER = "X-Participant-Token"
@@ -64,6 +74,7 @@ EVENTS = table_of(Event)
 UPDATES = table_of(LearnerUpdate)
 STATUS_CHANGES = table_of(StatusChange)
 TOKENS = table_of(ParticipantToken)
+ANSWERS = table_of(QuestionnaireAnswer)
 
 _random = secrets.SystemRandom()
 # Prepared: every request looks its participant up by token.
@@ -706,13 +717,79 @@ def random_start(environment: str, task: int, rng: Any) -> int:
 
 
 def advance(action: Action, finished: Record) -> Record | None:
-    """After ``finished``: the next session begins, or the participant has completed."""
+    """After ``finished``: the next session begins, or the questionnaire (if the study has
+    one), or the participant has completed."""
     following = _next_session(action.c, action.participant.id, finished.ordinal)
     if following is not None:
         activate(action, following)
         return following
-    complete(action)
+    if action.study.questionnaire.questions:
+        set_status(action.c, action.participant, "questionnaire", action.now)
+    else:
+        complete(action)
     return None
+
+
+def answer_questionnaire(action: Action, answers: dict[str, int | str]) -> None:
+    """Store the answers to the post-study questionnaire (all of them valid, every required
+    question answered: 422 otherwise, nothing stored), then the participant has completed."""
+    status = action.participant.status
+    if status != "questionnaire":
+        raise ApiError(409, f"the questionnaire is not being answered now (status {status})")
+    questions = {question.id: question for question in action.study.questionnaire.questions}
+    unknown = sorted(set(answers) - set(questions))
+    if unknown:
+        raise InvalidInput(
+            ("body", "answers", unknown[0]),
+            f"no question {', '.join(map(repr, unknown))} in this questionnaire",
+        )
+    rows = []
+    for question_id, question in questions.items():
+        value = answers.get(question_id)
+        if isinstance(value, str) and not value.strip():
+            value = None
+        if value is None:
+            if question.required:
+                raise InvalidInput(
+                    ("body", "answers", question_id), f"question {question_id!r} needs an answer"
+                )
+            continue
+        rows.append(
+            {
+                "participant_id": action.participant.id,
+                "question_id": question_id,
+                "kind": question.kind,
+                "question": question.text,
+                "answered_at": action.now,
+                **checked_answer(question, value),
+            }
+        )
+    for row in rows:
+        add(action.c, ANSWERS, **row)
+    complete(action)
+
+
+def checked_answer(question: Question, value: int | str) -> dict[str, str | None]:
+    """The answer's ``answer`` and ``label`` columns; 422 for an answer the question does not
+    take."""
+    loc = ("body", "answers", question.id)
+    where = f"question {question.id!r}"
+    if isinstance(question, TextQuestion):
+        if not isinstance(value, str):
+            raise InvalidInput(loc, f"{where} takes text")
+        if len(value) > question.max_length:
+            raise InvalidInput(loc, f"{where}: at most {question.max_length} characters")
+        return {"answer": value, "label": None}
+    if isinstance(question, LikertQuestion):
+        points = len(question.labels)
+        if not isinstance(value, int) or not 1 <= value <= points:
+            raise InvalidInput(loc, f"{where} takes a point of its scale, 1 to {points}")
+        return {"answer": str(value), "label": question.labels[value - 1]}
+    if not isinstance(value, str) or value not in question.choices:
+        raise InvalidInput(
+            loc, f"{where} takes one of its choices: {', '.join(map(repr, question.choices))}"
+        )
+    return {"answer": value, "label": None}
 
 
 def complete(action: Action) -> None:

@@ -20,7 +20,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from server.app import flow
 from server.app.config import StudyConfig, load_study_config
 from server.app.db import Database, SchemaError, current_revision, head_revision
-from server.app.errors import ApiError, TurnedAway
+from server.app.errors import ApiError, InvalidInput, TurnedAway
 from server.app.routers import (
     admin,
     arrivals,
@@ -42,20 +42,22 @@ SWEEP_SECONDS = 60.0
 
 
 class BodyLimit:
-    """413 for request bodies over ``limit`` bytes, declared or streamed: the body is read
-    (it is small) before the app sees it."""
+    """413 for request bodies over ``limit`` bytes (or the path's own limit in ``larger``),
+    declared or streamed: the body is read (it is small) before the app sees it."""
 
-    def __init__(self, app: ASGIApp, limit: int) -> None:
+    def __init__(self, app: ASGIApp, limit: int, larger: dict[str, int] | None = None) -> None:
         self.app = app
-        self.limit = limit
+        self.default_limit = limit
+        self.larger = larger or {}
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        limit = max(self.default_limit, self.larger.get(scope["path"], 0))
         for name, value in scope["headers"]:
-            if name == b"content-length" and (not value.isdigit() or int(value) > self.limit):
-                await self._refuse(scope, send)
+            if name == b"content-length" and (not value.isdigit() or int(value) > limit):
+                await self._refuse(scope, send, limit)
                 return
         body = bytearray()
         while True:
@@ -63,8 +65,8 @@ class BodyLimit:
             if message["type"] != "http.request":
                 break
             body += message.get("body", b"")
-            if len(body) > self.limit:
-                await self._refuse(scope, send)
+            if len(body) > limit:
+                await self._refuse(scope, send, limit)
                 return
             if not message.get("more_body", False):
                 message = {"type": "http.request", "body": bytes(body), "more_body": False}
@@ -80,9 +82,9 @@ class BodyLimit:
 
         await self.app(scope, replay, send)
 
-    async def _refuse(self, scope: Scope, send: Send) -> None:
+    async def _refuse(self, scope: Scope, send: Send, limit: int) -> None:
         response = JSONResponse(
-            {"detail": f"request body too large (more than {self.limit} bytes)"}, status_code=413
+            {"detail": f"request body too large (more than {limit} bytes)"}, status_code=413
         )
         await response(scope, _no_receive, send)
 
@@ -148,11 +150,16 @@ def create_app(
         responses=ERROR_RESPONSES,
     )
     app.state.server = state
-    app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
+    # The questionnaire's answers may be longer than any other request (free text).
+    answers = {"/api/participant/questionnaire": study_config.questionnaire.largest_answers_bytes()}
+    app.add_middleware(BodyLimit, limit=settings.max_body_bytes, larger=answers)
 
     @app.exception_handler(ApiError)
     async def api_error(request: Request, error: ApiError) -> JSONResponse:
         content: dict[str, Any] = {"detail": error.message}
+        if isinstance(error, InvalidInput):
+            problem = {"type": "value_error", "loc": list(error.loc), "msg": error.message}
+            content = {"detail": [problem]}
         if isinstance(error, TurnedAway):
             content["turned_away"] = True
         return JSONResponse(content, status_code=error.status, headers=error.headers)

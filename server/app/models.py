@@ -6,6 +6,9 @@ participants ─< status_changes
              ─< learning_sessions ─< episodes
                                   ─< learner_updates   (one per update: learner state + evaluation)
              ─< events            (append-only, one per acknowledged request, keyed by seq)
+             ─< questionnaire_answers
+             ─< assignment_reviews (the experimenter's approval or rejection of the submission)
+             ─< bonuses
 """
 
 from __future__ import annotations
@@ -256,3 +259,56 @@ class LearnerUpdate(Base):
     learner_state: Mapped[bytes | None] = mapped_column(LargeBinary)
     greedy_policy: Mapped[bytes | None] = mapped_column(LargeBinary)
     error: Mapped[str | None] = mapped_column(Text)
+
+
+class QuestionnaireAnswer(Base):
+    """One answer to a question of the post-study questionnaire (the study file's
+    ``[questionnaire]``). A question left unanswered (an optional one) has no row. The
+    question's kind and text are kept with the answer, as they were asked."""
+
+    __tablename__ = "questionnaire_answers"
+    __table_args__ = (UniqueConstraint("participant_id", "question_id"),)
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"))
+    question_id: Mapped[str] = mapped_column(String(64))
+    kind: Mapped[str] = mapped_column(String(16))  # text, likert or choice
+    question: Mapped[str] = mapped_column(Text)
+    # The text typed, the choice picked, or the Likert point (1 to the scale's length).
+    answer: Mapped[str] = mapped_column(Text)
+    # Likert: the label of the point picked.
+    label: Mapped[str | None] = mapped_column(Text)
+    answered_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class AssignmentReview(Base):
+    """The experimenter's decision on a participant's submitted MTurk assignment, as sent to
+    the review backend (``review.py``): one per assignment, final."""
+
+    __tablename__ = "assignment_reviews"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), unique=True)
+    assignment_id: Mapped[str] = mapped_column(String(128), unique=True)
+    worker_id: Mapped[str] = mapped_column(String(128))
+    decision: Mapped[str] = mapped_column(String(16))  # approved or rejected
+    feedback: Mapped[str | None] = mapped_column(Text)  # RequesterFeedback, shown to the worker
+    backend: Mapped[str] = mapped_column(String(16))  # replica or mturk
+    decided_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class Bonus(Base):
+    """A bonus paid to a participant's worker for an assignment. ``unique_token`` is sent as
+    MTurk's UniqueRequestToken: a retried request with the same token pays nothing more."""
+
+    __tablename__ = "bonuses"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), index=True)
+    assignment_id: Mapped[str] = mapped_column(String(128))
+    worker_id: Mapped[str] = mapped_column(String(128))
+    amount_cents: Mapped[int] = mapped_column(Integer)  # US cents
+    reason: Mapped[str] = mapped_column(Text)  # shown to the worker
+    unique_token: Mapped[str] = mapped_column(String(64), unique=True)
+    backend: Mapped[str] = mapped_column(String(16))
+    paid_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)

@@ -1,5 +1,6 @@
 """Tables of the local Mechanical Turk replica (``routers/mturk.py``): the study's HIT, the
-assignments workers accepted, returned or submitted, and what each submission posted.
+assignments workers accepted, returned or submitted (and the requester approved or rejected),
+what each submission posted, and the bonuses the requester paid.
 
 They live beside the study's tables (same declarative ``Base``, created by migration 0002) but
 hold the platform's side only: the study's own data never refers to them.
@@ -10,12 +11,12 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import JSON, ForeignKey, Index, Integer, String
+from sqlalchemy import JSON, ForeignKey, Index, Integer, String, Text
 from sqlalchemy.orm import Mapped, mapped_column
 
 from server.app.models import Base, UTCDateTime, utcnow
 
-ASSIGNMENT_STATUSES = ("accepted", "returned", "submitted")
+ASSIGNMENT_STATUSES = ("accepted", "returned", "submitted", "approved", "rejected")
 
 
 class ReplicaHit(Base):
@@ -40,10 +41,13 @@ class ReplicaAssignment(Base):
     hit_id: Mapped[str] = mapped_column(String(64))
     assignment_id: Mapped[str] = mapped_column(String(64))
     worker_id: Mapped[str] = mapped_column(String(128))
-    status: Mapped[str] = mapped_column(String(16))  # accepted, returned or submitted
+    # accepted, returned, submitted, then approved or rejected by the requester
+    status: Mapped[str] = mapped_column(String(16))
     accepted_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     returned_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     submitted_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    reviewed_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    requester_feedback: Mapped[str | None] = mapped_column(Text)
 
 
 class ReplicaSubmission(Base):
@@ -60,3 +64,17 @@ class ReplicaSubmission(Base):
     worker_id: Mapped[str] = mapped_column(String(128))
     fields: Mapped[dict[str, Any]] = mapped_column(JSON)
     submitted_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class ReplicaBonus(Base):
+    """A bonus the requester sent (``send_bonus``); a UniqueRequestToken is used once."""
+
+    __tablename__ = "mturk_replica_bonuses"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    assignment_id: Mapped[str] = mapped_column(String(64), index=True)
+    worker_id: Mapped[str] = mapped_column(String(128))
+    amount: Mapped[str] = mapped_column(String(16))  # BonusAmount, US dollars as text
+    reason: Mapped[str] = mapped_column(Text)
+    unique_request_token: Mapped[str] = mapped_column(String(64), unique=True)
+    granted_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)

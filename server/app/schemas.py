@@ -8,6 +8,7 @@ with the stored response, a request out of order gets 409.
 from __future__ import annotations
 
 from datetime import datetime
+from decimal import Decimal
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
@@ -67,6 +68,22 @@ class TutorialStepRequest(SeqRequest):
     step: int = Field(ge=0, le=100, description="The tutorial step reached, from 0.")
 
 
+class QuestionnaireRequest(SeqRequest):
+    answers: dict[str, int | str] = Field(
+        max_length=50,
+        description="Question id -> answer: the text typed, the choice's text, or the Likert "
+        "point (1 to the number of labels). An optional question may be left out.",
+    )
+
+    @field_validator("answers", mode="after")
+    @classmethod
+    def _plain_answers(cls, value: dict[str, int | str]) -> dict[str, int | str]:
+        for answer in value.values():
+            if isinstance(answer, str):
+                plain_text(answer)
+        return value
+
+
 class FeedbackRequest(SeqRequest):
     feedback: Literal[1, -1] = Field(description="+1 (positive) or -1 (negative).")
 
@@ -103,6 +120,7 @@ ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
         409: "Not now: a sequence number out of order, or a step the flow is not at.",
         413: "The request body is too large.",
         429: "Too many failed sign-ins from this address: wait Retry-After seconds.",
+        502: "The review backend (MTurk) could not be reached or failed; nothing was recorded.",
         503: "Not available: the admin token is not set, or the agent is still learning.",
     }.items()
 }
@@ -231,11 +249,60 @@ class PublicStudy(BaseModel):
     tutorial: bool
     agents_per_environment: int
     reveal_gravity: bool
+    questionnaire: dict[str, Any] | None = Field(
+        None, description="The post-study questionnaire (intro and questions); None: none."
+    )
 
 
 # -- admin ----------------------------------------------------------------------------------
 class ExclusionRequest(Body):
     reason: str = Field(min_length=1, max_length=2000)
+
+
+class ReviewRequest(Body):
+    """Approve or reject the participant's submitted MTurk assignment."""
+
+    feedback: str | None = Field(
+        None,
+        max_length=1024,
+        description="RequesterFeedback, shown to the worker (needed for a rejection).",
+    )
+
+
+MAX_BONUS_USD = 100
+
+
+class BonusRequest(Body):
+    """Pay the participant's worker a bonus for the submitted assignment."""
+
+    amount: Decimal = Field(
+        gt=0,
+        le=MAX_BONUS_USD,
+        decimal_places=2,
+        allow_inf_nan=False,
+        strict=False,  # a JSON number or a string of one
+        description=f'US dollars, 0.01 to {MAX_BONUS_USD} (a number or a string like "1.50").',
+    )
+    reason: str = Field(min_length=1, max_length=1024, description="Shown to the worker.")
+    unique_token: str = Field(
+        pattern=r"^[A-Za-z0-9_\-]{8,64}$",
+        description="MTurk's UniqueRequestToken: a retry with the same token pays nothing more.",
+    )
+
+
+class ReviewView(BaseModel):
+    decision: Literal["approved", "rejected"]
+    feedback: str | None
+    backend: str
+    decided_at: datetime
+
+
+class BonusView(BaseModel):
+    amount: str = Field(description="US dollars.")
+    reason: str
+    unique_token: str
+    backend: str
+    paid_at: datetime
 
 
 class StatusChangeView(BaseModel):
@@ -286,6 +353,8 @@ class AdminSession(BaseModel):
 class AdminParticipantDetail(AdminParticipant):
     status_changes: list[StatusChangeView]
     sessions: list[AdminSession]
+    review: ReviewView | None = Field(None, description="The approval or rejection, if any.")
+    bonuses: list[BonusView] = Field(default_factory=list)
 
 
 class AdminEvaluation(BaseModel):

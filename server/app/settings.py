@@ -80,6 +80,23 @@ class Settings(BaseSettings):
         description="Hosts accepted in turkSubmitTo (comma-separated; the server's own host is "
         "always accepted, for a local replica).",
     )
+    review_backend: Literal["replica", "mturk"] = Field(
+        "replica",
+        description="Where the dashboard's approvals, rejections and bonuses go: 'replica' (the "
+        "local MTurk replica's assignments, at /mturk) or 'mturk' (Mechanical Turk through "
+        "boto3's client, which must be installed; credentials as boto3 finds them).",
+    )
+    mturk_endpoint_url: str = Field(
+        "https://mturk-requester-sandbox.us-east-1.amazonaws.com",
+        pattern=r"^https://[A-Za-z0-9.-]+(:[0-9]+)?/?$",
+        description="MTurk's requester API for BAM_REVIEW_BACKEND=mturk: the sandbox by "
+        "default; https://mturk-requester.us-east-1.amazonaws.com pays real money.",
+    )
+    mturk_region: str = Field(
+        "us-east-1",
+        pattern=r"^[a-z0-9-]+$",
+        description="AWS region of MTurk's requester API (MTurk runs in us-east-1).",
+    )
     sqlite_busy_timeout_ms: int = Field(
         10_000, ge=0, description="How long a SQLite connection waits for a lock held elsewhere."
     )

@@ -259,6 +259,9 @@ class SimulatedParticipant:
             finish = self.teach(current)
             self.run.sessions += 1
             current = finish["participant"]["current_session_id"]
+        if finish["participant"]["status"] == "questionnaire":
+            answers = self.questionnaire_answers()
+            finish = self.act("/api/participant/questionnaire", "questionnaire", answers=answers)
         code = finish["participant"]["completion"]["code"]
         shown = self.request("GET", "/api/participant/completion", "completion")
         if shown["code"] != code:
@@ -266,6 +269,22 @@ class SimulatedParticipant:
         self.act("/api/participant/submission", "submission")
         self.run.completed = True
         self.run.completion_code = code
+
+    def questionnaire_answers(self) -> dict[str, int | str]:
+        """An answer to each question of the study's questionnaire, drawn at random (a text
+        question gets a sentence saying who answered)."""
+        questions = self.request("GET", "/api/study", "study")["questionnaire"]["questions"]
+        answers: dict[str, int | str] = {}
+        for question in questions:
+            if question["kind"] == "likert":
+                answers[question["id"]] = int(self.rng.integers(1, len(question["labels"]) + 1))
+            elif question["kind"] == "choice":
+                choices = question["choices"]
+                answers[question["id"]] = choices[int(self.rng.integers(len(choices)))]
+            else:
+                text = f"Simulated participant {self.run.index}."
+                answers[question["id"]] = text[: question["max_length"]]
+        return answers
 
     def teach(self, session_id: int) -> dict[str, Any]:
         """Teach one agent to the end; returns the finish response."""

@@ -13,6 +13,7 @@ from server.app.admin_auth import AdminSessions, SignInGuard
 from server.app.config import StudyConfig
 from server.app.db import Database
 from server.app.policies import PolicyCache
+from server.app.review import ReviewBackend, make_backend
 from server.app.settings import Settings
 
 if TYPE_CHECKING:
@@ -30,6 +31,13 @@ class ServerState:
     updates: UpdateManager | None = None
     sign_ins: SignInGuard = field(default_factory=SignInGuard)
     admin_sessions: AdminSessions = field(default_factory=AdminSessions)
+    review: ReviewBackend | None = None  # made on first use (BAM_REVIEW_BACKEND)
+
+    def review_backend(self) -> ReviewBackend:
+        """The platform the experimenter's reviews and bonuses go to."""
+        if self.review is None:
+            self.review = make_backend(self.settings, self.db)
+        return self.review
 
     async def run_db(self, work: Callable[[], T]) -> T:
         """Run a short database transaction for a request. On SQLite, in the event loop itself:

@@ -8,10 +8,12 @@ from fastapi import APIRouter, Query, Response
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from server.app import export, flow, teaching
+from server.app import export, flow, review, teaching
 from server.app.deps import AdminDep, RowId, StateDep
 from server.app.errors import ApiError
 from server.app.models import (
+    AssignmentReview,
+    Bonus,
     Event,
     LearnerUpdate,
     LearningSession,
@@ -25,10 +27,15 @@ from server.app.schemas import (
     AdminParticipant,
     AdminParticipantDetail,
     AdminSession,
+    BonusRequest,
+    BonusView,
     ExclusionRequest,
+    ReviewRequest,
+    ReviewView,
     StatusChangeView,
     plain_text,
 )
+from server.app.state import ServerState
 
 router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
 
@@ -154,10 +161,30 @@ def _participant_detail(s: Session, participant_id: int) -> AdminParticipantDeta
         select(StatusChange).where(StatusChange.participant_id == p.id).order_by(StatusChange.id)
     ).all()
     base = _admin_participant(p, sessions, _completed_at(s, [p.id]).get(p.id))
+    decision = s.scalar(select(AssignmentReview).where(AssignmentReview.participant_id == p.id))
+    bonuses = s.scalars(select(Bonus).where(Bonus.participant_id == p.id).order_by(Bonus.id))
     return AdminParticipantDetail(
         **base.model_dump(),
         status_changes=[StatusChangeView(status=c.status, at=c.at, note=c.note) for c in changes],
         sessions=_admin_sessions(s, sessions),
+        review=None
+        if decision is None
+        else ReviewView(
+            decision=decision.decision,  # type: ignore[arg-type]
+            feedback=decision.feedback,
+            backend=decision.backend,
+            decided_at=decision.decided_at,
+        ),
+        bonuses=[
+            BonusView(
+                amount=review.dollars(b.amount_cents),
+                reason=b.reason,
+                unique_token=b.unique_token,
+                backend=b.backend,
+                paid_at=b.paid_at,
+            )
+            for b in bonuses
+        ],
     )
 
 
@@ -208,6 +235,45 @@ def include(
         p.excluded_at = None
         p.exclusion_reason = None
         s.add(StatusChange(participant_id=p.id, status="included", at=utcnow(), note=reason))
+    with state.db.read() as s:
+        return _participant_detail(s, participant_id)
+
+
+@router.post("/participants/{participant_id}/approval", response_model=AdminParticipantDetail)
+def approve(participant_id: RowId, body: ReviewRequest, state: StateDep) -> AdminParticipantDetail:
+    """Approve the participant's submitted MTurk assignment (``BAM_REVIEW_BACKEND``), once."""
+    return _decide(participant_id, "approved", body, state)
+
+
+@router.post("/participants/{participant_id}/rejection", response_model=AdminParticipantDetail)
+def reject(participant_id: RowId, body: ReviewRequest, state: StateDep) -> AdminParticipantDetail:
+    """Reject the participant's submitted MTurk assignment, with feedback, once."""
+    return _decide(participant_id, "rejected", body, state)
+
+
+def _decide(
+    participant_id: int, decision: review.Decision, body: ReviewRequest, state: ServerState
+) -> AdminParticipantDetail:
+    backend = state.review_backend()
+    review.review_submission(state.db, backend, participant_id, decision, body.feedback)
+    with state.db.read() as s:
+        return _participant_detail(s, participant_id)
+
+
+@router.post("/participants/{participant_id}/bonuses", response_model=AdminParticipantDetail)
+def send_bonus(
+    participant_id: RowId, body: BonusRequest, state: StateDep
+) -> AdminParticipantDetail:
+    """Pay the participant's worker a bonus; a retry with the same ``unique_token`` pays
+    nothing more and answers the same."""
+    review.pay_bonus(
+        state.db,
+        state.review_backend(),
+        participant_id,
+        body.amount,
+        body.reason,
+        body.unique_token,
+    )
     with state.db.read() as s:
         return _participant_detail(s, participant_id)
 

@@ -27,7 +27,9 @@ from server.app.schemas import (
     AdminEvaluation,
     AdminParticipant,
     AdminParticipantDetail,
+    BonusRequest,
     ExclusionRequest,
+    ReviewRequest,
 )
 from server.app.state import ServerState
 
@@ -194,6 +196,26 @@ def include(
 ) -> AdminParticipantDetail:
     """Include an excluded participant again, with the reason."""
     return admin.include(participant_id, state, body.reason)
+
+
+@api.post("/participants/{participant_id}/approval", response_model=AdminParticipantDetail)
+def approve(participant_id: RowId, body: ReviewRequest, state: StateDep) -> AdminParticipantDetail:
+    """Approve the participant's submitted MTurk assignment (as ``/api/admin``)."""
+    return admin.approve(participant_id, body, state)
+
+
+@api.post("/participants/{participant_id}/rejection", response_model=AdminParticipantDetail)
+def reject(participant_id: RowId, body: ReviewRequest, state: StateDep) -> AdminParticipantDetail:
+    """Reject the participant's submitted MTurk assignment, with feedback."""
+    return admin.reject(participant_id, body, state)
+
+
+@api.post("/participants/{participant_id}/bonuses", response_model=AdminParticipantDetail)
+def send_bonus(
+    participant_id: RowId, body: BonusRequest, state: StateDep
+) -> AdminParticipantDetail:
+    """Pay the participant's worker a bonus, once per ``unique_token``."""
+    return admin.send_bonus(participant_id, body, state)
 
 
 @api.get("/sessions/{session_id}/evaluations", response_model=list[AdminEvaluation])

@@ -7,6 +7,8 @@ study in an iframe with exactly ``assignmentId``, ``hitId``, ``workerId`` and ``
 which points back at this server), and either submits (the page POSTs its form from the top
 window to ``{turkSubmitTo}/mturk/externalSubmit``, recorded here with every field) or returns
 the HIT, after which the same assignment id goes to the next worker who accepts, as on MTurk.
+The requester's approvals, rejections and bonuses (``review.ReplicaReviewBackend``, from the
+dashboard) show on the HIT page.
 """
 
 from __future__ import annotations
@@ -24,7 +26,12 @@ from sqlalchemy.orm import Session
 from server.app.deps import RowId, StateDep
 from server.app.flow import PREVIEW_ASSIGNMENT
 from server.app.models import utcnow
-from server.app.replica_models import ReplicaAssignment, ReplicaHit, ReplicaSubmission
+from server.app.replica_models import (
+    ReplicaAssignment,
+    ReplicaBonus,
+    ReplicaHit,
+    ReplicaSubmission,
+)
 from server.app.routers.arrivals import own_origin
 from server.app.routers.dashboard import is_admin, login_redirect
 from server.app.routers.pages import notice, templates
@@ -82,6 +89,7 @@ def hit_page(
         submissions = s.scalars(
             select(ReplicaSubmission).order_by(ReplicaSubmission.id.desc())
         ).all()
+        bonuses = s.scalars(select(ReplicaBonus).order_by(ReplicaBonus.id.desc())).all()
     return templates.TemplateResponse(
         request,
         "mturk_hit.html",
@@ -90,6 +98,7 @@ def hit_page(
             "hit": hit,
             "assignments": assignments,
             "submissions": submissions,
+            "bonuses": bonuses,
             "error": error,
             "worker": worker or f"WORKER{secrets.randbelow(10**6):06d}",
         },

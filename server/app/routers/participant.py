@@ -16,6 +16,7 @@ from server.app.schemas import (
     ConsentRequest,
     Outcome,
     ParticipantState,
+    QuestionnaireRequest,
     SeqRequest,
     TutorialStepRequest,
 )
@@ -98,6 +99,19 @@ async def tutorial_step(body: TutorialStepRequest, state: StateDep, token: Token
         return participant_response(action)
 
     return await perform(state, token, "tutorial", body, handle)
+
+
+@router.post("/questionnaire", response_model=ActionResponse)
+async def questionnaire(body: QuestionnaireRequest, state: StateDep, token: TokenDep) -> Response:
+    """The answers to the post-study questionnaire (the study file's ``[questionnaire]``); the
+    completion code is issued with them. 422 (nothing stored) for a required question left
+    unanswered, a choice not offered or a Likert point off the scale."""
+
+    def handle(action: Action) -> ActionResponse:
+        flow.answer_questionnaire(action, body.answers)
+        return participant_response(action)
+
+    return await perform(state, token, "questionnaire", body, handle)
 
 
 @router.get("/completion", response_model=Completion)

@@ -29,6 +29,16 @@ function headersFor(body) {
   return headers;
 }
 
+/** An error answer's message: its detail, or the messages of a 422's list of problems. */
+function describeError(data) {
+  if (data && typeof data.detail === "string") return data.detail;
+  if (data && Array.isArray(data.detail)) {
+    const messages = data.detail.map((problem) => problem?.msg).filter((msg) => typeof msg === "string");
+    if (messages.length) return messages.join("; ");
+  }
+  return null;
+}
+
 async function request(method, url, body) {
   const response = await fetch(url, {
     method,
@@ -44,7 +54,7 @@ async function request(method, url, body) {
     data = null;
   }
   if (!response.ok) {
-    throw new ApiError(response.status, data && typeof data.detail === "string" ? data.detail : response.statusText, response.headers);
+    throw new ApiError(response.status, describeError(data) ?? response.statusText, response.headers);
   }
   return data;
 }

@@ -78,6 +78,7 @@ async function showParticipant(id) {
         h("p", {}, h("strong", {}, "Assignment "), h("span", { class: "mono" }, p.assignment_id ?? "(none)")),
         h("p", {}, h("strong", {}, "Domain "), p.domain ?? "(not yet)", h("strong", {}, "  Time "), `${p.minutes.toFixed(1)} min`),
         exclusionForm(p),
+        reviewSection(p),
         h("h3", {}, "Status history"),
         h("ol", { class: "history" }, p.status_changes.map((c) => h("li", {}, badge(c.status), " ", time(c.at), c.note ? ` (${c.note})` : "")))),
       sessions));
@@ -129,6 +130,88 @@ function exclusionForm(p) {
     }
   });
   return form;
+}
+
+/** A request token for a bonus (MTurk's UniqueRequestToken), made when its form is drawn: a
+ * retry of the same form sends the same token and pays nothing more. */
+function requestToken() {
+  const bytes = crypto.getRandomValues(new Uint8Array(16));
+  return Array.from(bytes, (b) => b.toString(16).padStart(2, "0")).join("");
+}
+
+/** Approve or reject the participant's submitted MTurk assignment, and pay bonuses (sent to
+ * the review backend: the local replica, or MTurk). */
+function reviewSection(p) {
+  const heading = h("h3", { id: "review-heading" }, "Review of the submission");
+  if (p.platform !== "mturk") {
+    return h("section", { class: "review", "aria-labelledby": "review-heading" }, heading,
+      h("p", { class: "muted" }, `Approvals and bonuses are for MTurk assignments; this participant came from ${p.platform}.`));
+  }
+  if (p.status !== "submitted") {
+    return h("section", { class: "review", "aria-labelledby": "review-heading" }, heading,
+      h("p", { class: "muted" }, "The review opens once the worker has submitted the assignment."));
+  }
+  const message = h("p", { class: "form-error", role: "alert", hidden: true });
+  const fail = (error, buttons) => {
+    message.hidden = false;
+    message.textContent = error instanceof ApiError ? error.detail : "The server could not be reached.";
+    buttons.forEach((b) => { b.disabled = false; });
+  };
+  const send = async (what, body, buttons) => {
+    buttons.forEach((b) => { b.disabled = true; });
+    message.hidden = true;
+    try {
+      await postJSON(`${API}/participants/${p.participant_id}/${what}`, body);
+      await Promise.all([loadParticipants(), showParticipant(p.participant_id)]);
+    } catch (error) {
+      fail(error, buttons);
+    }
+  };
+  let decision;
+  if (p.review) {
+    decision = h("p", { "data-review": p.review.decision }, badge(p.review.decision), " ", time(p.review.decided_at),
+      p.review.feedback ? ` (${p.review.feedback})` : "");
+  } else {
+    const feedback = h("textarea", { id: "review-feedback", name: "feedback", rows: 2, maxlength: 1024 });
+    const approve = h("button", { class: "btn", type: "button", "data-action": "approve" }, "Approve");
+    const reject = h("button", { class: "btn", type: "button", "data-action": "reject" }, "Reject");
+    approve.addEventListener("click", () => send("approval", { feedback: feedback.value.trim() || null }, [approve, reject]));
+    reject.addEventListener("click", () => {
+      if (!feedback.value.trim()) {
+        message.hidden = false;
+        message.textContent = "A rejection needs feedback: the worker is shown why.";
+        feedback.focus();
+        return;
+      }
+      send("rejection", { feedback: feedback.value.trim() }, [approve, reject]);
+    });
+    decision = h("div", { class: "review-decision" },
+      h("p", { class: "muted" }, "Not reviewed yet."),
+      h("label", { for: "review-feedback" }, "Feedback to the worker (needed to reject)"), feedback,
+      h("div", { class: "review-buttons" }, approve, reject));
+  }
+  const amount = h("input", { id: "bonus-amount", name: "amount", type: "number", min: "0.01", step: "0.01", inputmode: "decimal", required: true });
+  const reason = h("input", { id: "bonus-reason", name: "reason", type: "text", maxlength: 1024, required: true });
+  const pay = h("button", { class: "btn", type: "submit", "data-action": "bonus" }, "Pay the bonus");
+  const token = requestToken();
+  const bonusForm = h("form", { class: "bonus" },
+    h("label", { for: "bonus-amount" }, "Bonus (USD)"), amount,
+    h("label", { for: "bonus-reason" }, "Reason, shown to the worker"), reason, pay);
+  bonusForm.addEventListener("submit", (event) => {
+    event.preventDefault();
+    if (!amount.value || !reason.value.trim()) {
+      message.hidden = false;
+      message.textContent = "A bonus needs an amount and a reason.";
+      return;
+    }
+    send("bonuses", { amount: amount.value, reason: reason.value.trim(), unique_token: token }, [pay]);
+  });
+  return h("section", { class: "review", "aria-labelledby": "review-heading" }, heading, decision,
+    h("h4", {}, "Bonuses"),
+    p.bonuses.length
+      ? h("ul", { class: "bonuses" }, p.bonuses.map((b) => h("li", { "data-amount": b.amount }, `${b.amount} USD · ${b.reason} · ${time(b.paid_at)}`)))
+      : h("p", { class: "muted" }, "No bonus paid."),
+    bonusForm, message);
 }
 
 /** Normalised return (0..1) after each update, against the episodes so far. */

@@ -1,5 +1,6 @@
 // The participant's page: asks the server where the participant is and shows that step
-// (consent, instructions, the tutorial, an agent, completion), so that a reload continues there.
+// (consent, instructions, the tutorial, an agent, the questionnaire if the study has one,
+// completion), so that a reload continues there.
 
 import { ApiError, Sequencer, getJSON, useParticipantToken } from "./api.js";
 import { environmentTitle, h, paragraphs } from "./dom.js";
@@ -80,6 +81,8 @@ async function route() {
       return declinedPage();
     case "consented":
       return instructionsPage();
+    case "questionnaire":
+      return questionnairePage();
     case "completed":
     case "submitted":
       return completionPage();
@@ -219,6 +222,108 @@ function meetPage(current) {
           : null)),
     h("div", { class: "actions" }, go)));
   go.focus();
+}
+
+// -- the post-study questionnaire ---------------------------------------------------------------
+function markInvalid(input, on) {
+  if (on) input.setAttribute("aria-invalid", "true");
+  else input.removeAttribute("aria-invalid");
+}
+
+/** One question's input: a labelled text box, or a fieldset of radio buttons whose legend is
+ * the question. ``value()`` is the answer, or null when there is none. */
+function questionField(question, index) {
+  const id = `q-${index}`;
+  const need = h("span", { class: "muted need" }, question.required ? " (required)" : " (optional)");
+  const error = h("p", { class: "field-error", id: `${id}-error`, hidden: true });
+  if (question.kind === "text") {
+    const box = h("textarea", { id, name: question.id, rows: question.lines, maxlength: question.max_length,
+      required: question.required, "aria-describedby": `${id}-error` });
+    return {
+      question, error, focus: () => box.focus(), invalid: (on) => markInvalid(box, on),
+      element: h("div", { class: "question", "data-question": question.id }, h("label", { for: id }, question.text, need), box, error),
+      value: () => (box.value.trim() ? box.value : null),
+    };
+  }
+  const options = question.kind === "likert" ? question.labels : question.choices;
+  const radios = options.map((option, k) => h("input", { type: "radio", id: `${id}-${k}`, name: question.id,
+    value: question.kind === "likert" ? k + 1 : option, required: question.required }));
+  const group = h("fieldset", { class: `question ${question.kind}`, "data-question": question.id, "aria-describedby": `${id}-error` },
+    h("legend", {}, question.text, need),
+    h("div", { class: question.kind === "likert" ? "scale" : "choices" },
+      radios.map((radio, k) => h("label", { for: radio.id, class: "option" }, radio, h("span", {}, options[k])))),
+    error);
+  return {
+    question, error, element: group,
+    focus: () => (radios.find((r) => r.checked) ?? radios[0]).focus(),
+    invalid: (on) => radios.forEach((r) => markInvalid(r, on)),
+    value: () => {
+      const checked = radios.find((r) => r.checked);
+      if (!checked) return null;
+      return question.kind === "likert" ? Number(checked.value) : checked.value;
+    },
+  };
+}
+
+function questionnairePage() {
+  const questionnaire = study.questionnaire;
+  const fields = questionnaire.questions.map(questionField);
+  const message = h("p", { class: "form-error", role: "alert", hidden: true });
+  const submit = h("button", { class: "btn primary big", type: "submit", "data-action": "submit-questionnaire" }, "Send the answers");
+  const form = h("form", { class: "questionnaire", novalidate: true }, fields.map((f) => f.element), message, h("div", { class: "actions" }, submit));
+  for (const field of fields) {
+    field.element.addEventListener("input", () => {
+      field.invalid(false);
+      field.error.hidden = true;
+    });
+  }
+  const complain = (text) => {
+    message.hidden = false;
+    message.textContent = text;
+  };
+  form.addEventListener("submit", async (event) => {
+    event.preventDefault();
+    const answers = {};
+    const missing = [];
+    for (const field of fields) {
+      const value = field.value();
+      field.invalid(false);
+      field.error.hidden = true;
+      if (value !== null) answers[field.question.id] = value;
+      else if (field.question.required) missing.push(field);
+    }
+    if (missing.length) {
+      for (const field of missing) {
+        field.invalid(true);
+        field.error.hidden = false;
+        field.error.textContent = "Please answer this question.";
+      }
+      complain(missing.length === 1 ? "One question still needs an answer." : `${missing.length} questions still need an answer.`);
+      missing[0].focus();
+      return;
+    }
+    submit.disabled = true;
+    try {
+      await seq.post("/api/participant/questionnaire", { answers });
+    } catch (error) {
+      if (error instanceof ApiError && error.resync) {
+        await refresh();
+        return route();
+      }
+      if (error instanceof ApiError && error.status === 422) {
+        complain(typeof error.detail === "string" ? error.detail : "Some answers could not be accepted.");
+        submit.disabled = false;
+        return;
+      }
+      return failure(error);
+    }
+    await refresh();
+    route();
+  });
+  show(sheet(
+    h("h1", {}, "A few questions"),
+    h("p", {}, questionnaire.intro),
+    form));
 }
 
 // -- completion -------------------------------------------------------------------------------

@@ -237,9 +237,12 @@ class UpdateManager:
             for future in futures:
                 future.cancel()
         if self._own_executor and self._executor is not None:
-            # Updates in flight stay pending in the database and run after the next start.
-            self._executor.shutdown(wait=False, cancel_futures=True)
-            self._executor = None
+            executor, self._executor = self._executor, None
+            # Updates not started stay pending in the database and run after the next start.
+            # The processes are waited for (one in an update finishes it), and the pool's
+            # queues released: a server stopped by a signal ends right after this, without
+            # Python's exit handlers, and their semaphores would be reported leaked.
+            await asyncio.to_thread(executor.shutdown, wait=True, cancel_futures=True)
 
     def _spawn(self, coroutine: Any) -> asyncio.Task[Any]:
         task = asyncio.ensure_future(coroutine)

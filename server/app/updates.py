@@ -72,7 +72,7 @@ def worker_init(niceness: int, server_pid: int) -> None:
     threading.Thread(target=leave_with_parent, name="leave-with-server", daemon=True).start()
     from server.learners.warmup import warm_up
 
-    # The kernels loaded (or compiled, about 14 s, where numba's cache lacks them) now, not on
+    # The kernels loaded (or compiled, about 30 s, where numba's cache lacks them) now, not on
     # a participant's first update.
     try:
         seconds = warm_up()
@@ -427,7 +427,8 @@ class UpdateManager:
         began = time.monotonic()
         log.info(
             "waiting for %d update process(es) to load the learners' compiled kernels (where "
-            "numba's cache lacks them, as on a first start, they are compiled: about a minute); "
+            "numba's cache lacks them, as on a first start, they are compiled: about half a "
+            "minute on two free cores); "
             "/api/health answers 503 until then",
             self.workers,
         )

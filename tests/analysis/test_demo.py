@@ -21,6 +21,9 @@ ENVIRONMENTS = {
     "three-fields": "Three Fields",
 }
 
+# Two participants, one round each, two update processes: a whole study in about a minute.
+SMALL_DEMO = ("--participants", 2, "--concurrency", 2, "--rounds", 1, "--workers", 2)
+
 
 def run(capsys: pytest.CaptureFixture[str], *args: str | Path) -> tuple[int, str, str]:
     try:
@@ -34,15 +37,7 @@ def run(capsys: pytest.CaptureFixture[str], *args: str | Path) -> tuple[int, str
 @pytest.mark.slow
 def test_the_demo_runs_a_whole_study(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "demo"
-    code, stdout, stderr = run(
-        capsys,
-        "demo",
-        "--out", out,
-        "--participants", 2,
-        "--concurrency", 2,
-        "--rounds", 1,
-        "--workers", 2,
-    )  # fmt: skip
+    code, stdout, stderr = run(capsys, "demo", "--out", out, *SMALL_DEMO)
     assert code == 0, stderr
     assert "2/2 participants 100%" in stderr  # the progress bar reached the end
 
@@ -107,15 +102,7 @@ def test_the_demo_gives_the_same_results_with_the_same_seed(
     outputs = []
     for run_number in (1, 2):
         out = tmp_path / f"demo-{run_number}"
-        code, stdout, stderr = run(
-            capsys,
-            "demo",
-            "--out", out,
-            "--participants", 2,
-            "--concurrency", 2,
-            "--rounds", 1,
-            "--workers", 2,
-        )  # fmt: skip
+        code, stdout, stderr = run(capsys, "demo", "--out", out, *SMALL_DEMO)
         assert code == 0, stderr
         assert (
             "Seed 0 (`--seed` draws others): these figures come from 2 simulated participants, "

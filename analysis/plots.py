@@ -99,7 +99,13 @@ def learning_curve_figure(analysis: Analysis, x: str) -> Figure:
             ax.fill_between(
                 grid, mean - se, mean + se, step="post", color=colour, alpha=0.2, linewidth=0
             )
-        ax.legend(fontsize="small", loc="lower right")
+        # Below the panel, outside its axes: inside, it covered curves and error bands.
+        ax.legend(
+            fontsize="small",
+            loc="upper center",
+            bbox_to_anchor=(0.5, -0.18),
+            frameon=False,
+        )
     for ax in axes.flat[len(environments) :]:
         ax.set_visible(False)
     for ax in axes[:, 0]:

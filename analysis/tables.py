@@ -96,7 +96,26 @@ def _table1_cells(analysis: Analysis, row: dict[str, object], latex: bool) -> li
     return cells
 
 
+def _marks_used(analysis: Analysis) -> tuple[bool, bool, bool]:
+    """Whether any cell of Table 1 carries ``*``, ``†`` or N/A (the legend defines only those)."""
+    star = dagger = not_available = False
+    for row in analysis.table1.to_dict("records"):
+        learner = str(row["learner"])
+        for measure in MEASURES:
+            for threshold in analysis.thresholds:
+                if measure != "success":
+                    value = row[required_column(measure, threshold)]
+                    not_available |= format_mean(value) == NOT_AVAILABLE
+                if learner != analysis.baseline:
+                    marked = analysis.marks(str(row["environment"]), measure, threshold, learner)
+                    star |= marked[0]
+                    dagger |= marked[1]
+    return star, dagger, not_available
+
+
 def _legend(analysis: Analysis, latex: bool) -> str:
+    """The marks of Table 1 that its cells use; without any significant difference it says so."""
+    star_used, dagger_used, not_available = _marks_used(analysis)
     baseline = learner_display(analysis.baseline)
     le = "$\\leq$" if latex else "≤"
     dash = "--" if latex else "–"
@@ -104,14 +123,25 @@ def _legend(analysis: Analysis, latex: bool) -> str:
     dagger = "($\\dagger$)" if latex else "†"
     percent = "\\%" if latex else "%"
     fdr = f"{threshold_label(analysis.fdr)}{percent}"
-    return (
-        f"{star} significantly worse than {baseline} (p {le} {ALPHA:g}; Fisher's exact test "
-        "for the successful sessions, Welch's t-test for the episodes and actions required, "
-        f"over the sessions that reached the threshold); {dagger} still significant after a "
-        f"Benjamini{dash}Yekutieli correction over all {analysis.environment_tests} "
-        f"environment-specific comparisons at a false discovery rate of {fdr}. "
-        f"{NOT_AVAILABLE}: no session reached the threshold."
+    tests = (
+        f"p {le} {ALPHA:g}; Fisher's exact test for the successful sessions, Welch's t-test "
+        "for the episodes and actions required, over the sessions that reached the threshold"
     )
+    parts = []
+    if star_used:
+        significant = f"{star} significantly worse than {baseline} ({tests})"
+        if dagger_used:
+            significant += (
+                f"; {dagger} still significant after a Benjamini{dash}Yekutieli correction "
+                f"over all {analysis.environment_tests} environment-specific comparisons at a "
+                f"false discovery rate of {fdr}"
+            )
+        parts.append(significant + ".")
+    else:
+        parts.append(f"No learner is significantly worse than {baseline} ({tests}).")
+    if not_available:
+        parts.append(f"{NOT_AVAILABLE}: no session reached the threshold.")
+    return " ".join(parts)
 
 
 def table1_markdown(analysis: Analysis) -> str:

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import argparse
 import secrets
+import shlex
+import shutil
 import sys
 import threading
 import time
@@ -24,6 +26,7 @@ if TYPE_CHECKING:
     from server.app.db import Database
 
 PROG = "bam-study demo"
+DEFAULT_SEED = 0
 POLL_SECONDS = 0.5
 
 
@@ -36,7 +39,7 @@ class DemoOptions:
     out: Path
     participants: int = 8
     concurrency: int = 4
-    seed: int = 0
+    seed: int = DEFAULT_SEED
     rounds: tuple[int, int] = (3, 5)
     mistake_probability: float = 0.05
     workers: int = 0  # learner-update processes (0: one per core)
@@ -61,7 +64,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--concurrency", type=int, default=4, help="participants at a time (default 4)"
     )
-    parser.add_argument("--seed", type=int, default=0, help="seed of the simulated teachers")
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=DEFAULT_SEED,
+        help="seed of the simulated teachers and of the server's random choices: the same "
+        f"seed gives the same results (default {DEFAULT_SEED})",
+    )
     parser.add_argument(
         "--rounds",
         type=parse_rounds,
@@ -104,6 +113,11 @@ def run(args: argparse.Namespace) -> int:
         return 1
     print()
     print(table)
+    print(
+        f"Seed {options.seed} (`--seed` draws others): these figures come from "
+        f"{options.participants} simulated participant{'s' if options.participants != 1 else ''}, "
+        "not from people, and differ from the paper's."
+    )
     print()
     print(f"The study's database, server log, export and analysis are in {options.out}/:")
     print(f"  {options.out / 'study.sqlite'}   the database (`bam-study serve` can reopen it)")
@@ -114,15 +128,29 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"  BAM_DATABASE_URL=sqlite:///{options.out.resolve() / 'study.sqlite'} "
         f"BAM_STUDY_CONFIG={options.out.resolve() / 'study.toml'} "
-        f"BAM_ADMIN_TOKEN={secrets.token_urlsafe()} bam-study serve"
+        f"BAM_ADMIN_TOKEN={secrets.token_urlsafe()} {shlex.quote(bam_study_command())} serve"
     )
     print("  then open http://127.0.0.1:8000/dashboard and sign in with that token.")
     return 0
 
 
+def bam_study_command() -> str:
+    """The absolute path of this ``bam-study`` (in a virtual environment that need not be
+    active where the printed command runs), or ``python -m server.cli`` with this Python."""
+    program = Path(sys.argv[0])
+    if program.name == "bam-study" and program.exists():
+        return str(program.resolve())
+    found = shutil.which("bam-study", path=str(Path(sys.executable).parent))
+    if found:
+        return str(Path(found).resolve())
+    return f"{sys.executable} -m server.cli"
+
+
 def check(options: DemoOptions) -> None:
     if options.participants < 1:
         raise DemoError(f"--participants must be at least 1, got {options.participants}")
+    if options.seed < 0:
+        raise DemoError(f"--seed must be 0 or more, got {options.seed}")
     if options.concurrency < 1:
         raise DemoError(f"--concurrency must be at least 1, got {options.concurrency}")
     if not 0.0 <= options.mistake_probability <= 1.0:
@@ -168,6 +196,7 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
             "BAM_STUDY_CONFIG": str(study),
             "BAM_ADMIN_TOKEN": secrets.token_urlsafe(24),
             "BAM_UPDATE_WORKERS": str(options.workers or available_cores()),
+            "BAM_SEED": str(options.seed),
         }
         plan = TeachingPlan(
             min_rounds=options.rounds[0],
@@ -197,6 +226,7 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
                 options.seed,
                 plan,
                 progress=finished,
+                in_order=True,
             )
             progress.finish()
             failed = [p for p in study_run.participants if not p.completed]

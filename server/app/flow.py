@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import random
 import secrets
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -557,11 +558,20 @@ def consent(action: Action, agree: bool) -> None:
     if not agree:
         set_status(action.c, participant, "declined", action.now)
         return
+    draws = participant_draws(action.settings.seed, participant.id)
     participant.domain = choose_domain(
-        action.c, action.study, action.now, action.settings.active_minutes
+        action.c, action.study, action.now, action.settings.active_minutes, draws
     )
     set_status(action.c, participant, "consented", action.now, note=f"domain {participant.domain}")
-    create_sessions(action.c, participant, action.study)
+    create_sessions(action.c, participant, action.study, draws)
+
+
+def participant_draws(seed: int | None, participant_id: int) -> random.Random:
+    """The randomness of a participant's assignment: the system's, or with a seed (the demo)
+    drawn from the seed and the participant's number, whatever the order of requests."""
+    if seed is None:
+        return _random
+    return random.Random(f"bam-study {seed} {participant_id}")
 
 
 def lock_domain_assignment(c: Connection) -> None:
@@ -580,7 +590,13 @@ def lock_domain_assignment(c: Connection) -> None:
         raise RuntimeError("domains are assigned in a write transaction (Database.transaction)")
 
 
-def choose_domain(c: Connection, study: StudyConfig, now: datetime, active_minutes: float) -> str:
+def choose_domain(
+    c: Connection,
+    study: StudyConfig,
+    now: datetime,
+    active_minutes: float,
+    draws: random.Random,
+) -> str:
     """The least-filled domain, counting participants who completed and those in progress who
     were active in the last ``active_minutes`` (abandoned or excluded ones do not hold a place);
     ties at random. Holds the domain assignment until the transaction ends."""
@@ -604,10 +620,12 @@ def choose_domain(c: Connection, study: StudyConfig, now: datetime, active_minut
     for name, count in rows:
         counts[name] = count
     fewest = min(counts.values())
-    return _random.choice([name for name in names if counts[name] == fewest])
+    return draws.choice([name for name in names if counts[name] == fewest])
 
 
-def create_sessions(c: Connection, participant: Record, study: StudyConfig) -> None:
+def create_sessions(
+    c: Connection, participant: Record, study: StudyConfig, draws: random.Random
+) -> None:
     """The participant's learning sessions in order: the tutorial, then each environment's
     agents with the learners in a random order; colours by position."""
     domain = study.domain(str(participant.domain))
@@ -626,7 +644,7 @@ def create_sessions(c: Connection, participant: Record, study: StudyConfig) -> N
     position = 0
     for environment in domain.environments:
         learners = [study.learners[i % len(study.learners)] for i in range(study.agents)]
-        _random.shuffle(learners)
+        draws.shuffle(learners)
         for learner in learners:
             colour = study.colours[position]
             rows.append(
@@ -647,7 +665,7 @@ def create_sessions(c: Connection, participant: Record, study: StudyConfig) -> N
             participant_id=participant.id,
             ordinal=ordinal,
             domain=domain.name,
-            seed=_random.randrange(2**31),
+            seed=draws.randrange(2**31),
             demonstrated=[],
             **row,
         )

@@ -41,6 +41,13 @@ class Settings(BaseSettings):
         description="Salt for pseudonymised worker ids in exports; unset uses the random salt "
         "created with the database.",
     )
+    seed: int | None = Field(
+        None,
+        ge=0,
+        description="Draw the server's random choices (a tie in the domain assignment, the "
+        "learners' order, the agents' seeds) from this seed and the participant's number, so "
+        "that the same arrivals give the same study (the demo); unset: the system's randomness.",
+    )
     update_workers: int = Field(2, ge=1, le=64, description="Processes for learner updates.")
     update_threads: int = Field(
         default_factory=available_cores,

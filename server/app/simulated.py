@@ -161,8 +161,11 @@ class SimulatedParticipant:
         assignment_id: str | None = None,
         client: httpx.Client | LightClient | None = None,
         stop: threading.Event | None = None,
+        turn: tuple[threading.Event, threading.Event] | None = None,
     ) -> None:
         self.base_url = base_url.rstrip("/")
+        # (the previous participant has consented, this one has): consents in order.
+        self.turn = turn
         self.plan = plan
         self.rng = np.random.default_rng([seed, index])
         self.run = ParticipantRun(
@@ -238,21 +241,15 @@ class SimulatedParticipant:
         return self.run
 
     def _take_part(self) -> None:
-        arrival = self.request(
-            "POST",
-            "/api/arrivals",
-            "arrival",
-            {
-                "assignmentId": self.run.assignment_id,
-                "hitId": "SIMHIT",
-                "workerId": self.run.worker_id,
-                "turkSubmitTo": f"{self.base_url}",
-            },
-        )
-        self.token = arrival["token"]
-        self.run.participant_id = arrival["participant"]["participant_id"]
-        self.seq = arrival["participant"]["next_seq"]
-        self.act("/api/participant/consent", "consent", agree=True)
+        if self.turn is None:
+            self._arrive_and_consent()
+        else:
+            previous, mine = self.turn
+            previous.wait()
+            try:
+                self._arrive_and_consent()
+            finally:
+                mine.set()
         current = self.act("/api/participant/start", "start")["participant"]["current_session_id"]
         finish: dict[str, Any] = {}
         while current is not None:
@@ -269,6 +266,23 @@ class SimulatedParticipant:
         self.act("/api/participant/submission", "submission")
         self.run.completed = True
         self.run.completion_code = code
+
+    def _arrive_and_consent(self) -> None:
+        arrival = self.request(
+            "POST",
+            "/api/arrivals",
+            "arrival",
+            {
+                "assignmentId": self.run.assignment_id,
+                "hitId": "SIMHIT",
+                "workerId": self.run.worker_id,
+                "turkSubmitTo": f"{self.base_url}",
+            },
+        )
+        self.token = arrival["token"]
+        self.run.participant_id = arrival["participant"]["participant_id"]
+        self.seq = arrival["participant"]["next_seq"]
+        self.act("/api/participant/consent", "consent", agree=True)
 
     def questionnaire_answers(self) -> dict[str, int | str]:
         """An answer to each question of the study's questionnaire, drawn at random (a text
@@ -416,18 +430,25 @@ def run_participants(
     progress: Callable[[ParticipantRun], None] | None = None,
     stop: threading.Event | None = None,
     ramp_seconds: float = 0.0,
+    in_order: bool = False,
 ) -> StudyRun:
     """Run simulated participants, ``concurrency`` at a time; each gets its own connection.
-    The first ``concurrency`` arrive spread over ``ramp_seconds``; ``stop`` ends the run."""
+    The first ``concurrency`` arrive spread over ``ramp_seconds``; ``stop`` ends the run.
+    ``in_order``: each arrives and consents once the one before has, so that the participants'
+    numbers and domains do not depend on the threads' timing (a seeded server's study is then
+    the same on every run)."""
     started = time.perf_counter()
+    consented = [threading.Event() for _ in range(participants + 1)]
+    consented[0].set()
 
     def one(index: int) -> ParticipantRun:
         slot = index - first_index
         if ramp_seconds > 0 and slot < concurrency:
             time.sleep(ramp_seconds * slot / concurrency)
         with LightClient(base_url) as client:
+            turn = (consented[slot], consented[slot + 1]) if in_order else None
             run = SimulatedParticipant(
-                base_url, index, seed, plan, client=client, stop=stop
+                base_url, index, seed, plan, client=client, stop=stop, turn=turn
             ).take_part()
         if progress is not None:
             progress(run)

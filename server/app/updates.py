@@ -72,7 +72,7 @@ def worker_init(niceness: int, server_pid: int) -> None:
     threading.Thread(target=leave_with_parent, name="leave-with-server", daemon=True).start()
     from server.learners.warmup import warm_up
 
-    # The kernels loaded (or compiled, about 14 s, where numba's cache lacks them) now, not on
+    # The kernels loaded (or compiled, about 30 s, where numba's cache lacks them) now, not on
     # a participant's first update.
     try:
         seconds = warm_up()
@@ -237,9 +237,12 @@ class UpdateManager:
             for future in futures:
                 future.cancel()
         if self._own_executor and self._executor is not None:
-            # Updates in flight stay pending in the database and run after the next start.
-            self._executor.shutdown(wait=False, cancel_futures=True)
-            self._executor = None
+            executor, self._executor = self._executor, None
+            # Updates not started stay pending in the database and run after the next start.
+            # The processes are waited for (one in an update finishes it), and the pool's
+            # queues released: a server stopped by a signal ends right after this, without
+            # Python's exit handlers, and their semaphores would be reported leaked.
+            await asyncio.to_thread(executor.shutdown, wait=True, cancel_futures=True)
 
     def _spawn(self, coroutine: Any) -> asyncio.Task[Any]:
         task = asyncio.ensure_future(coroutine)
@@ -424,7 +427,8 @@ class UpdateManager:
         began = time.monotonic()
         log.info(
             "waiting for %d update process(es) to load the learners' compiled kernels (where "
-            "numba's cache lacks them, as on a first start, they are compiled: about a minute); "
+            "numba's cache lacks them, as on a first start, they are compiled: about half a "
+            "minute on two free cores); "
             "/api/health answers 503 until then",
             self.workers,
         )

@@ -3,6 +3,8 @@ simulated participants over HTTP, the export, the analysis and Table 1; and its 
 
 from __future__ import annotations
 
+import os
+import shlex
 from pathlib import Path
 
 import pandas as pd
@@ -19,6 +21,9 @@ ENVIRONMENTS = {
     "three-fields": "Three Fields",
 }
 
+# Two participants, one round each, two update processes: a whole study in about a minute.
+SMALL_DEMO = ("--participants", 2, "--concurrency", 2, "--rounds", 1, "--workers", 2)
+
 
 def run(capsys: pytest.CaptureFixture[str], *args: str | Path) -> tuple[int, str, str]:
     try:
@@ -32,17 +37,17 @@ def run(capsys: pytest.CaptureFixture[str], *args: str | Path) -> tuple[int, str
 @pytest.mark.slow
 def test_the_demo_runs_a_whole_study(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "demo"
-    code, stdout, stderr = run(
-        capsys,
-        "demo",
-        "--out", out,
-        "--participants", 2,
-        "--concurrency", 2,
-        "--rounds", 1,
-        "--workers", 2,
-    )  # fmt: skip
+    code, stdout, stderr = run(capsys, "demo", "--out", out, *SMALL_DEMO)
     assert code == 0, stderr
     assert "2/2 participants 100%" in stderr  # the progress bar reached the end
+
+    # The command printed to open the dashboard runs as printed: its program exists (the
+    # virtual environment need not be active).
+    (command,) = [line for line in stdout.splitlines() if line.strip().endswith(" serve")]
+    words = shlex.split(command)
+    program = next(word for word in words if "=" not in word)
+    assert Path(program).is_absolute() and os.access(program, os.X_OK), command
+    assert words[words.index(program) + 1 :] in (["serve"], ["-m", "server.cli", "serve"])
 
     # Table 1 is printed, as written in the analysis folder, with every cell's learner.
     table = (out / "analysis" / "table1.md").read_text()
@@ -88,6 +93,36 @@ def test_the_demo_runs_a_whole_study(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert (tmp_path / "again" / "table1.md").read_text() == table
 
 
+@pytest.mark.slow
+def test_the_demo_gives_the_same_results_with_the_same_seed(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two runs with the default seed: the same Table 1 and the same curves, and the output
+    names the seed and says where the figures come from."""
+    outputs = []
+    for run_number in (1, 2):
+        out = tmp_path / f"demo-{run_number}"
+        code, stdout, stderr = run(capsys, "demo", "--out", out, *SMALL_DEMO)
+        assert code == 0, stderr
+        assert (
+            "Seed 0 (`--seed` draws others): these figures come from 2 simulated participants, "
+            "not from people, and differ from the paper's."
+        ) in stdout
+        outputs.append(out)
+    first, second = ((out / "analysis" / "table1.md").read_text() for out in outputs)
+    assert first == second
+    columns = ["participant_id", "environment", "learner", "position", "seed", "episodes"]
+    sessions = [pd.read_csv(out / "export" / "sessions.csv")[columns] for out in outputs]
+    pd.testing.assert_frame_equal(*sessions)
+    evaluations = [
+        pd.read_csv(out / "export" / "evaluations.csv")[
+            ["session_id", "update_index", "episodes", "actions", "normalized_return"]
+        ]
+        for out in outputs
+    ]
+    pd.testing.assert_frame_equal(*evaluations)
+
+
 def test_the_demo_needs_a_new_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "used"
     out.mkdir()
@@ -106,6 +141,7 @@ def test_the_demo_needs_a_new_folder(tmp_path: Path, capsys: pytest.CaptureFixtu
         (("--concurrency", "0"), "--concurrency must be at least 1, got 0"),
         (("--workers", "-1"), "--workers must be 0 (one per core) or more, got -1"),
         (("--rounds", "3-1"), "--rounds must be 1 <= N <= M"),
+        (("--seed", "-1"), "--seed must be 0 or more, got -1"),
     ],
 )
 def test_bad_demo_arguments(

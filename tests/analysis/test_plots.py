@@ -74,3 +74,27 @@ def test_the_count_axes_have_whole_number_ticks(tmp_path: Path) -> None:
         figure = learning_curve_figure(analysis, x)
         ticks = figure.axes[0].get_xticks()
         assert len(ticks) >= 2 and all(float(t).is_integer() for t in ticks), (x, ticks)
+
+
+def test_the_legends_hide_no_data(export: Path) -> None:
+    """Each panel's legend lies outside every panel (curves and error bands are drawn only
+    inside them), below its own panel, and inside the figure."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    sessions, evaluations = load_tables(export)
+    analysis = analyze(sessions, evaluations)
+    for x in ("episodes", "actions"):
+        figure = learning_curve_figure(analysis, x)
+        FigureCanvasAgg(figure).draw()
+        renderer = figure.canvas.get_renderer()  # type: ignore[attr-defined]
+        panels = [ax for ax in figure.axes if ax.get_visible()]
+        for ax in panels:
+            legend = ax.get_legend()
+            box = legend.get_window_extent(renderer)
+            for other in panels:
+                assert not box.overlaps(other.bbox), (x, ax.get_title(), other.get_title())
+            assert box.y1 < ax.bbox.y0 and ax.bbox.x0 <= box.x0 and box.x1 <= ax.bbox.x1
+            assert figure.bbox.contains(box.x0, box.y0) and figure.bbox.contains(box.x1, box.y1)
+            # Below the axis's labels too.
+            labels = ax.xaxis.get_tightbbox(renderer)
+            assert not box.overlaps(labels), (x, ax.get_title())

@@ -163,3 +163,26 @@ def test_another_baseline_comes_first_and_is_the_one_compared_with(export: Path)
     assert "significantly worse than Model-Based IRL" in table1_markdown(analysis)
     assert set(analysis.comparisons["baseline"]) == {"model-based"}
     assert set(analysis.comparisons["alternative"]) == {"bam", "cloning"}
+
+
+def test_the_legend_defines_only_the_marks_the_table_uses(export: Path) -> None:
+    """At a false discovery rate of 0.1% no difference survives the correction: no cell has a
+    dagger, so neither legend defines one. At the 50% threshold alone no cell is N/A. Against
+    cloning as the baseline no learner is worse: no star, and the legend says so."""
+    sessions, evaluations = load_tables(export)
+    strict = analyze(sessions, evaluations, fdr=0.001)
+    text = table1_markdown(strict)
+    table, legend = text.split("\n\nMarks: ")
+    assert "*" in table and "†" not in table
+    assert legend.startswith("* significantly worse than BAM")
+    assert "†" not in legend and "Benjamini" not in legend
+    assert "\\dagger" not in table1_latex(strict)
+    # At the 50% threshold alone every cell has a number: no N/A, and its definition goes too.
+    only_half = analyze(sessions, evaluations, thresholds=(0.5,))
+    table, legend = table1_markdown(only_half).split("\n\nMarks: ")
+    assert "N/A" not in table and "N/A" not in legend
+    better = analyze(sessions, evaluations, baseline="cloning")
+    table, legend = table1_markdown(better).split("\n\nMarks: ")
+    assert "*" not in table.replace("**", "")
+    assert legend.startswith("No learner is significantly worse than Behavioral Cloning (p ≤ 0.05")
+    assert "†" not in legend

@@ -446,14 +446,18 @@ class Study:
         *,
         begin: bool = True,
         checkpoint: Callable[[], None] | None = None,
+        on_step: Callable[[str], None] | None = None,
     ) -> None:
         """Every step of the tutorial, as it asks; ``checkpoint`` is called at its second step,
-        and without ``begin`` it stops at the next agent's introduction page."""
+        ``on_step`` with each step's name when the page shows it, and without ``begin`` it
+        stops at the next agent's introduction page."""
         card = self.frame.locator(".tutorial-card")
         expect(self.frame.locator('[data-action="next"]')).to_be_disabled()
 
         def step(name: str) -> None:
             expect(card).to_have_attribute("data-step", name, timeout=WAIT_MS)
+            if on_step is not None:
+                on_step(name)
 
         self.focus()
         step("move")

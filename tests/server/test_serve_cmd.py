@@ -5,6 +5,7 @@ the dashboard is locked, and `serve --lab` lets a lab participant in at /study."
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -124,35 +125,158 @@ def test_serve_lab_lets_a_participant_in_without_parameters(tmp_path: Path) -> N
         if not k.startswith("BAM_") or k == "BAM_TEST_POSTGRES_URL"
     }
     environment["BAM_UPDATE_WORKERS"] = "1"
-    log = tmp_path / "serve.log"
+    server, log = start_serve(tmp_path, environment, "--lab", "--port", str(port))
+    try:
+        wait_until_answering(server, log, f"http://127.0.0.1:{port}", ready=False)
+        arrived = httpx.post(f"http://127.0.0.1:{port}/api/arrivals", json={}, timeout=10)
+        assert arrived.status_code == 201, arrived.text
+        assert arrived.json()["participant"]["platform"] == "lab"
+        page = httpx.get(f"http://127.0.0.1:{port}/study", timeout=10)
+        assert page.status_code == 200 and "participant-token" in page.text
+        dashboard = httpx.get(f"http://127.0.0.1:{port}/api/admin/participants", timeout=10)
+        assert dashboard.status_code == 503 and "BAM_ADMIN_TOKEN" in dashboard.text
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+    text = log.read_text()
+    assert "Lab participants enter at /study with no parameters." in text
+    assert "BAM_ADMIN_TOKEN is not set: the dashboard (/dashboard)" in text
+
+
+def test_a_server_stopped_after_serving_participants_leaves_nothing_behind(
+    tmp_path: Path,
+) -> None:
+    """SIGTERM to a server whose update processes have run learner updates: it stops, and
+    its update processes leave no semaphore for the resource tracker to clean up."""
+    from sqlalchemy import create_engine, text
+
+    from tests.browser.conftest import domain_toml, study_toml
+
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    study = tmp_path / "study.toml"
+    study.write_text(
+        study_toml(
+            mode="lab",
+            domains_toml=domain_toml("navigation", "wall"),
+            learners='["cloning"]',
+            agents=1,
+            tutorial=False,
+        )
+    )
+    database = f"sqlite:///{tmp_path / 'study.db'}"
+    environment = {k: v for k, v in os.environ.items() if not k.startswith("BAM_")}
+    environment.update(
+        BAM_DATABASE_URL=database, BAM_STUDY_CONFIG=str(study), BAM_UPDATE_WORKERS="2"
+    )
+    server, log = start_serve(tmp_path, environment, "--port", str(port))
+    try:
+        wait_until_answering(server, log, url, ready=True)
+        deadline = time.monotonic() + 180
+        with httpx.Client(base_url=url, timeout=30) as client:
+            arrived = client.post("/api/arrivals", json={})
+            assert arrived.status_code == 201, arrived.text
+            seq = arrived.json()["participant"]["next_seq"]
+            session = None
+            for path, body in (
+                ("/api/participant/consent", {"agree": True}),
+                ("/api/participant/start", {}),
+                ("mode", {"mode": "demonstrate"}),
+                ("move", {"action": "UP"}),
+                ("mode", {"mode": "idle"}),  # the episode ends: a learner update
+            ):
+                where = path if path.startswith("/") else f"/api/sessions/{session}/{path}"
+                answer = client.post(where, json={"seq": seq, **body})
+                assert answer.status_code == 200, answer.text
+                seq = answer.json()["participant"]["next_seq"]
+                session = answer.json()["participant"]["current_session_id"]
+        engine = create_engine(database)
+        try:
+            while True:
+                with engine.connect() as connection:
+                    statuses = (
+                        connection.execute(text("SELECT status FROM learner_updates"))
+                        .scalars()
+                        .all()
+                    )
+                if len(statuses) == 2 and set(statuses) == {"done"}:
+                    break
+                assert time.monotonic() < deadline, statuses
+                time.sleep(0.2)
+        finally:
+            engine.dispose()
+        spawned = children(server.pid)  # the update processes, the resource tracker
+        assert len(spawned) >= 3, spawned
+        server.send_signal(signal.SIGTERM)
+        # Stopped by the signal, after a graceful shutdown (uvicorn raises it again).
+        assert server.wait(timeout=60) in (0, -signal.SIGTERM), log.read_text()
+        deadline = time.monotonic() + 30
+        while alive := [pid for pid in spawned if running(pid)]:
+            assert time.monotonic() < deadline, f"still running: {alive}"
+            time.sleep(0.1)
+    finally:
+        if server.poll() is None:
+            server.kill()
+            server.wait()
+    output = log.read_text()
+    assert "Application shutdown complete." in output
+    assert "leaked semaphore" not in output and "resource_tracker" not in output, output
+
+
+def children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (from /proc)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                found.append(int(entry.name))
+    return found
+
+
+def running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    stat = Path(f"/proc/{pid}/stat")
+    try:
+        return stat.read_text().rsplit(")", 1)[1].split()[0] != "Z"  # not a zombie
+    except OSError:
+        return False
+
+
+def start_serve(
+    folder: Path, environment: dict[str, str], *args: str
+) -> tuple[subprocess.Popen[bytes], Path]:
+    """`bam-study serve` with ``args`` in ``folder``; its console goes to the returned log."""
+    log = folder / "serve.log"
     with log.open("wb") as out:
         server = subprocess.Popen(
-            [sys.executable, "-m", "server.cli", "serve", "--lab", "--port", str(port)],
-            cwd=tmp_path,
+            [sys.executable, "-m", "server.cli", "serve", *args],
+            cwd=folder,
             env=environment,
             stdout=out,
             stderr=subprocess.STDOUT,
         )
+    return server, log
+
+
+def wait_until_answering(
+    server: subprocess.Popen[bytes], log: Path, url: str, ready: bool, seconds: float = 180
+) -> None:
+    """Until /api/health answers (with ``ready``: 200, once the update processes are warm)."""
+    deadline = time.monotonic() + seconds
+    while True:
+        assert server.poll() is None, log.read_text()
         try:
-            deadline = time.monotonic() + 120
-            while True:
-                assert server.poll() is None, log.read_text()
-                try:
-                    httpx.get(f"http://127.0.0.1:{port}/api/health", timeout=1)
-                    break
-                except httpx.HTTPError:
-                    assert time.monotonic() < deadline, log.read_text()
-                    time.sleep(0.2)
-            arrived = httpx.post(f"http://127.0.0.1:{port}/api/arrivals", json={}, timeout=10)
-            assert arrived.status_code == 201, arrived.text
-            assert arrived.json()["participant"]["platform"] == "lab"
-            page = httpx.get(f"http://127.0.0.1:{port}/study", timeout=10)
-            assert page.status_code == 200 and "participant-token" in page.text
-            dashboard = httpx.get(f"http://127.0.0.1:{port}/api/admin/participants", timeout=10)
-            assert dashboard.status_code == 503 and "BAM_ADMIN_TOKEN" in dashboard.text
-        finally:
-            server.terminate()
-            server.wait(timeout=30)
-    text = log.read_text()
-    assert "Lab participants enter at /study with no parameters." in text
-    assert "BAM_ADMIN_TOKEN is not set: the dashboard (/dashboard)" in text
+            answer = httpx.get(f"{url}/api/health", timeout=1)
+            if not ready or answer.status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        assert time.monotonic() < deadline, log.read_text()
+        time.sleep(0.2)

@@ -17,6 +17,11 @@ function time(iso) {
   return iso ? new Date(iso).toLocaleString() : "";
 }
 
+/** "1 episode", "2 episodes" */
+function count(n, noun) {
+  return `${n} ${noun}${n === 1 ? "" : "s"}`;
+}
+
 function badge(status) {
   return h("span", { class: `badge ${status}` }, status);
 }
@@ -46,7 +51,7 @@ async function loadParticipants() {
     if (p.domain) counts[p.domain] = (counts[p.domain] ?? 0) + 1;
   }
   $("#summary").replaceChildren(
-    h("span", { class: "badge" }, `${participants.length} participants`),
+    h("span", { class: "badge" }, count(participants.length, "participant")),
     ...Object.entries(counts).map(([name, n]) => h("span", { class: `badge ${name}` }, `${name}: ${n}`)));
   $("#refreshed").textContent = `updated ${new Date().toLocaleTimeString()}`;
 }
@@ -88,7 +93,7 @@ async function showParticipant(id) {
       h("h3", {}, h("span", { class: "colour-dot", title: session.colour, style: `background: ${session.colour_hex}` }),
         session.kind === "tutorial" ? "Tutorial" : `Agent ${session.position + 1} · ${environmentTitle(session.environment)}`),
       h("p", {}, `${session.learner} · ${session.colour} · `, badge(session.status)),
-      h("p", { class: "muted" }, `${session.episodes} episodes, ${session.actions} actions`,
+      h("p", { class: "muted" }, `${count(session.episodes, "episode")}, ${count(session.actions, "action")}`,
         session.last_normalized_return !== null ? `, return ${(100 * session.last_normalized_return).toFixed(0)}%` : ""),
       h("div", { class: "curve-box" }, h("p", { class: "muted" }, "Loading the curve…")),
       h("button", { class: "btn quiet", type: "button", "data-action": "replay", onclick: () => showReplay(session.session_id) }, "Replay"));
@@ -217,7 +222,10 @@ function reviewSection(p) {
 /** Normalised return (0..1) after each update, against the episodes so far. */
 function curve(evaluations) {
   const done = evaluations.filter((e) => e.status === "done" && e.normalized_return !== null);
-  const W = 260, H = 130, L = 30, R = 8, T = 8, B = 22;
+  if (!done.some((e) => e.episodes > 0)) {
+    return h("p", { class: "muted no-curve" }, "No episode yet: the curve starts with the first one.");
+  }
+  const W = 260, H = 130, L = 36, R = 8, T = 8, B = 22;
   const root = svg("svg", { viewBox: `0 0 ${W} ${H}`, class: "curve", role: "img", "data-points": done.length,
     "aria-label": `Normalised return after ${done.length} updates` });
   const maxEpisodes = Math.max(1, ...done.map((e) => e.episodes));
@@ -311,7 +319,7 @@ async function showReplay(sessionId) {
           button("Last ▶▶", "last", () => go(frames.length - 1)),
           slider),
         label),
-      h("div", { class: "replay-log" }, log)));
+      h("div", { class: "replay-log", tabindex: 0, role: "region", "aria-label": "Recorded events" }, log)));
   const view = new GridView(board, env, { reveal: true, label: `Replay of session ${sessionId}` });
   const fit = () => {
     const ratio = env.width / env.height;
@@ -353,7 +361,8 @@ async function showReplay(sessionId) {
     }, 300);
   });
   go(0);
-  box.scrollIntoView({ behavior: "smooth", block: "start" });
+  const still = window.matchMedia("(prefers-reduced-motion: reduce)").matches;
+  box.scrollIntoView({ behavior: still ? "auto" : "smooth", block: "start" });
 }
 
 async function refresh() {

@@ -99,7 +99,12 @@ export class Teacher {
         this.featureLine));
 
     this.tutorialCard = h("section", { class: "tutorial-card", hidden: true, "aria-live": "polite" });
-    this.status = h("p", { class: "status", role: "status", "aria-live": "polite" });
+    // The status line changes with every move; what a participant must notice (an episode
+    // ended, the agent learning, feedback recorded, a refusal) is also said in the log below,
+    // which screen readers announce.
+    this.status = h("p", { class: "status" });
+    this.announcements = h("div", { class: "visually-hidden", role: "log", "aria-live": "polite", "data-testid": "announcements" });
+    this.gridText = h("p", { class: "visually-hidden", id: `grid-text-${this.sessionId}`, "data-testid": "grid-text" });
     this.learning = h("p", { class: "learning", hidden: true },
       h("span", { class: "spinner", "aria-hidden": "true" }), " ",
       h("span", { class: "learning-text" }, "The agent is learning from your last episode…"));
@@ -130,6 +135,7 @@ export class Teacher {
         h("span", { class: "feedback-label" }, "Feedback"), this.goodButton, this.badButton));
     const stage = h("section", { class: "stage", "aria-label": "The grid world" },
       h("div", { class: "board-frame" }, this.board, this.flashBox, this.focusHint),
+      this.gridText,
       controls,
       h("p", { class: "hint" }, h("kbd", {}, "←"), h("kbd", {}, "↑"), h("kbd", {}, "↓"), h("kbd", {}, "→"),
         " move the agent: a lesson when demonstrating, just a move when no mode is on."),
@@ -142,7 +148,7 @@ export class Teacher {
     const next = h("section", { class: "next" }, this.nextButton, this.nextReason);
 
     const panel = h("aside", { class: "panel", "aria-label": "Teaching controls" },
-      agentCard, this.tutorialCard, this.status, this.learning, tasks, next, this.rules());
+      agentCard, this.tutorialCard, this.status, this.announcements, this.learning, tasks, next, this.rules());
 
     const header = h("header", { class: "topbar" },
       h("div", { class: "topbar-title" }, h("img", { src: "/static/img/robot.svg", alt: "", width: 28, height: 28 }), study.title),
@@ -158,6 +164,7 @@ export class Teacher {
     }, header, h("div", { class: "teach-main" }, stage, panel), this.dialog);
     this.root.replaceChildren(this.page);
     this.grid = new GridView(this.board, env, { reveal: study.reveal_gravity });
+    this.grid.root.setAttribute("aria-describedby", this.gridText.id);
     this.resizer = new ResizeObserver(() => this.fit());
     this.resizer.observe(this.board.parentElement);
   }
@@ -255,12 +262,57 @@ export class Teacher {
         ? capitalise(gravityRule(t.agent.gravity))
         : "";
     const learning = t.learning.pending > 0;
+    if (this.wasLearning !== undefined && learning !== this.wasLearning) {
+      this.announce(learning
+        ? "The agent is learning from your last episode."
+        : "The agent has learned from your last episode.");
+    }
+    this.wasLearning = learning;
     this.learning.hidden = !learning;
     this.learning.querySelector(".learning-text").textContent = t.mode === "agent"
       ? "The agent is still learning; it starts moving as soon as it is done."
       : "The agent is learning; you can go on teaching meanwhile.";
     this.status.textContent = this.statusText(atGoal);
+    this.gridText.textContent = this.describeGrid();
     this.guide?.render();
+  }
+
+  /** What the grid shows, in words (the drawing's text for screen readers). */
+  describeGrid() {
+    const { t, env } = this;
+    const place = ([r, c]) => `row ${r + 1}, column ${c + 1}`;
+    const parts = [`A grid of ${env.height} rows and ${env.width} columns, counted from the top left.`];
+    if (t.agent) {
+      parts.push(`The agent is at ${place([t.agent.row, t.agent.column])}${this.atGoal() ? ", on the goal" : ""}.`);
+      if (t.agent.carrying !== undefined) {
+        parts.push(t.agent.carrying === "none" ? "It carries no machine." : `It carries the ${MACHINES[t.agent.carrying]?.toLowerCase() ?? t.agent.carrying}.`);
+      }
+      if (t.agent.gravity !== undefined) parts.push(`Its ${gravityRule(t.agent.gravity)}.`);
+    }
+    const goal = env.tasks[t.task].goal_cells;
+    parts.push(goal.length === 1
+      ? `The goal of the selected task, “${this.taskName()}”, is at ${place(goal[0])}.`
+      : `The goal of the selected task, “${this.taskName()}”, is the field from ${place(goal[0])} to ${place(goal[goal.length - 1])}.`);
+    for (const { row, column, machine } of env.machines ?? []) parts.push(`The ${MACHINES[machine]?.toLowerCase() ?? machine} is at ${place([row, column])}.`);
+    for (const { row, column, colour } of env.colours ?? []) {
+      const direction = this.study.reveal_gravity ? env.gravity_of_colour?.[colour] : null;
+      parts.push(`A ${colour} cell (${GRAVITY_COLOURS[colour]?.letter}) at ${place([row, column])}${direction ? ` sets the gravity ${direction}` : ""}.`);
+    }
+    return parts.join(" ");
+  }
+
+  modeText() {
+    const task = `“${this.taskName()}”`;
+    if (this.t.mode === "demonstrate") return `Demonstrating ${task}: walk the agent to its goal with the arrow keys.`;
+    if (this.t.mode === "agent") return `The agent is trying ${task}. Press G after a good move, B after a bad one; S stops it.`;
+    return "No mode on: the arrow keys just move the agent.";
+  }
+
+  /** Said to screen readers (a polite live log; the last few messages stay). */
+  announce(text) {
+    if (this.announcements.lastElementChild?.textContent === text) return;
+    this.announcements.appendChild(h("p", {}, text));
+    while (this.announcements.children.length > 5) this.announcements.firstElementChild.remove();
   }
 
   atGoal() {
@@ -314,6 +366,7 @@ export class Teacher {
   say(text, ms = 4000) {
     this.notice = { text, until: Date.now() + ms };
     this.status.textContent = text;
+    this.announce(text);
     setTimeout(() => {
       if (!this.closed && this.notice && this.notice.until <= Date.now()) {
         this.notice = null;
@@ -379,7 +432,14 @@ export class Teacher {
       const what = this.t.mode === "agent" ? "it tries from a random start" : "it starts from a random place: walk it to the goal";
       this.say(`The agent was on the goal of “${this.taskName()}” already, so ${what}.`, 5000);
     }
-    if (!this.closed) this.update();
+    if (!this.closed) {
+      // Said before update(), which says that the agent is learning from the episode.
+      if (outcome.episode_ended) this.announce(`Episode ended. ${this.statusText(this.atGoal())}`);
+      if (outcome.feedback) this.announce(`Feedback recorded: ${outcome.feedback > 0 ? "good" : "bad"}.`);
+      if (kind === "mode" && this.t.mode !== modeBefore && !outcome.episode_ended) this.announce(this.modeText());
+      if (kind === "task" && this.t.task !== taskBefore) this.announce(`Task “${this.taskName()}” selected.`);
+      this.update();
+    }
     this.emit({ kind, outcome, modeBefore, taskBefore, state: this.t });
     if (this.t.learning.pending > 0) this.watchLearning();
   }

@@ -1,6 +1,8 @@
 """A study with a post-study questionnaire (the questions of
 ``server/examples/questionnaire-study.toml``): after the last agent the participant answers it
-with the keyboard alone, is told what is missing, and then sees the completion code."""
+with the keyboard alone, is told what is missing, and then sees the completion code. axe-core
+checks the page, with and without its error messages, as tests/browser/test_accessibility.py
+checks every other page."""
 
 from __future__ import annotations
 
@@ -20,6 +22,7 @@ from tests.browser.conftest import (
     run_live_server,
     study_toml,
 )
+from tests.browser.test_accessibility import axe_violations
 
 pytestmark = pytest.mark.browser
 
@@ -67,6 +70,7 @@ def test_the_questionnaire_is_answered_by_keyboard_before_the_code(
     expect(difficulty).to_be_visible()
     expect(page.get_by_label("Neither easy nor hard")).to_have_attribute("type", "radio")
     expect(page.locator('[data-testid="completion-code"]')).to_have_count(0)
+    assert axe_violations(page) == []  # WCAG 2.0/2.1 A and AA, as every other page
 
     # Tab into the scale and pick its fourth point with the arrow keys, then Tab past the
     # other questions to the button and send: the missing answer is named and focused.
@@ -82,6 +86,7 @@ def test_the_questionnaire_is_answered_by_keyboard_before_the_code(
     expect(page.get_by_role("alert")).to_have_text("One question still needs an answer.")
     expect(best.get_by_label("The first agent")).to_be_focused()
     expect(best.get_by_role("radio").first).to_have_attribute("aria-invalid", "true")
+    assert axe_violations(page) == []  # the page with its error messages
     study.press("ArrowDown")
     expect(best.get_by_label("The second agent")).to_be_checked()
     study.press("Tab")

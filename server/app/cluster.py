@@ -20,6 +20,7 @@ import asyncio
 import logging
 import os
 import sys
+import uuid
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -112,13 +113,14 @@ class UpdateCluster:
             warm_threads=sum(n for address, n in threads.items() if warm.get(address) is True),
         )
 
-    async def run(self, function: Any, payload: dict[str, Any]) -> tuple[Any, int]:
-        """``function(payload)`` on a worker: its result, and how many workers died running
+    async def run(self, function: Any, payload: dict[str, Any], name: str) -> tuple[Any, int]:
+        """``function(payload)`` on a worker, as a task named ``name`` (and a unique suffix,
+        as the cluster's dashboard shows it): its result, and how many workers died running
         it. Raises the function's error, or ``WorkerDied``."""
         loop = asyncio.get_running_loop()
         outcome: asyncio.Future[tuple[Any, int]] = loop.create_future()
         future = self.client.submit(
-            function, {**payload, "threads": THREADS_PER_UPDATE}, pure=False
+            function, {**payload, "threads": THREADS_PER_UPDATE}, key=f"{name}-{uuid.uuid4().hex}"
         )
         self._futures.add(future)
 

@@ -373,7 +373,7 @@ class UpdateManager:
             if job is None:
                 return
             try:
-                outcome, deaths = await self._run(job.payload)
+                outcome, deaths = await self._run(job)
             except WorkerDied as died:
                 log.error(
                     "an update process died during update %s of session %s",
@@ -413,17 +413,18 @@ class UpdateManager:
                 self._again.discard(session_id)
                 self._enqueue(session_id)
 
-    async def _run(self, payload: dict[str, Any]) -> tuple[dict[str, Any], int]:
+    async def _run(self, job: Job) -> tuple[dict[str, Any], int]:
         """``run_update`` on the cluster or in an update process: its outcome, and how many
         processes died running it before it came back. Raises ``WorkerDied`` when the
         processes running it died (and gave no outcome)."""
         if self.cluster is not None:
-            outcome, deaths = await self.cluster.run(run_update, payload)
+            name = f"learner-update-{job.session_id}-{job.update_index}"
+            outcome, deaths = await self.cluster.run(run_update, job.payload, name)
             return outcome, deaths
         executor = self._executor
         assert executor is not None
         try:
-            return await self._run_in_process(executor, payload), 0
+            return await self._run_in_process(executor, job.payload), 0
         except BrokenProcessPool:
             self._replace_executor(executor)
             raise WorkerDied() from None

@@ -10,6 +10,7 @@ import random
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
@@ -121,18 +122,37 @@ def learner_states(db: Database) -> list[tuple[int, int, bytes | None, bytes | N
         ]
 
 
-def kill_a_worker_during_an_update(client: Any, timeout: float = 60.0) -> None:
-    """Find a worker running a task and kill its process (its nanny starts a new one)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        busy = [address for address, tasks in client.processing().items() if tasks]
-        if busy:
-            pid = client.run(os.getpid, workers=busy[:1])[busy[0]]
-            time.sleep(0.3)  # well into the update (one takes about two seconds)
-            os.kill(pid, signal.SIGKILL)
-            return
-        time.sleep(0.01)
-    raise AssertionError("no update ran on the cluster")
+def executing(dask_worker: Any) -> list[str]:
+    """In a worker, through ``Client.run``: the tasks it is running."""
+    return [str(task.key) for task in dask_worker.state.executing]
+
+
+class WorkerKiller(threading.Thread):
+    """Kills the process of the first worker seen starting a learner update that fits the
+    learner (update 1 or later; they take about two seconds here): its nanny starts another."""
+
+    def __init__(self, client: Any) -> None:
+        super().__init__(daemon=True)
+        self.client = client
+        self.killed: str | None = None
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            pids = self.client.run(os.getpid)
+            seen = {key for keys in self.client.run(executing).values() for key in keys}
+            deadline = time.monotonic() + 120
+            while self.killed is None and time.monotonic() < deadline:
+                for address, keys in self.client.run(executing).items():
+                    fresh = [key for key in keys if key not in seen]
+                    seen.update(keys)
+                    if any(int(key.split("-")[3]) >= 1 for key in fresh):
+                        os.kill(pids[address], signal.SIGKILL)
+                        self.killed = fresh[0]
+                        return
+                time.sleep(0.01)
+        except BaseException as error:
+            self.error = error
 
 
 @pytest.mark.slow
@@ -160,7 +180,10 @@ def test_a_cluster_gives_the_local_evaluations_and_survives_a_killed_worker(
                 health = wait_until_ready(client)
                 assert health["update_scheduler"] == cluster.scheduler_address
                 assert health["update_processes"] == health["update_processes_warm"] == 2
-                teach(client, lambda: kill_a_worker_during_an_update(observer))
+                killer = WorkerKiller(observer)
+                teach(client, killer.start)
+                killer.join()
+                assert killer.error is None and killer.killed is not None, killer.error
                 wait_for_updates(db)
         outcomes[where] = (evaluations(db), learner_states(db))
         with db.read() as s:

@@ -39,7 +39,7 @@ PLUGIN_NAME = "bam-study-warm-up"
 # One planner thread per update: a worker runs as many updates at once as it has threads.
 THREADS_PER_UPDATE = 1
 
-_warm = False  # in a worker process: the learners' kernels are loaded
+_warm = False  # in a worker process: it has been through its warm-up
 
 
 class WarmUp(WorkerPlugin):
@@ -53,27 +53,28 @@ class WarmUp(WorkerPlugin):
         await asyncio.to_thread(warm_this_process)
 
 
-def warm_this_process() -> bool:
-    """Warm up this process once; True when it is warm (an error is printed, as a local
-    update process prints it: an update would meet it and report it for its session)."""
+def warm_this_process() -> None:
+    """Warm up this process once. An error is printed, as a local update process prints it,
+    and the worker counts as warm all the same: an update would meet the same error and report
+    it for its session."""
     global _warm
-    if not _warm:
-        from server.learners.warmup import warm_up
+    if _warm:
+        return
+    from server.learners.warmup import warm_up
 
-        try:
-            seconds = warm_up()
-        except Exception:
-            import traceback
+    try:
+        seconds = warm_up()
+    except Exception:
+        import traceback
 
-            traceback.print_exc()
-            return False
-        _warm = True
+        traceback.print_exc()
+    else:
         print(f"update worker {os.getpid()} ready in {seconds:.1f} s", file=sys.stderr)
-    return _warm
+    _warm = True
 
 
 def is_warm() -> bool:
-    """In a worker, through ``Client.run``: has it loaded the kernels?"""
+    """In a worker, through ``Client.run``: has it been through its warm-up?"""
     return _warm
 
 
@@ -100,9 +101,12 @@ class UpdateCluster:
     @classmethod
     def connect(cls, address: str, timeout: float = 10.0) -> UpdateCluster:
         """Raises ``server.dask_client.SchedulerError`` (one line) if it cannot connect."""
-        cluster = cls(connect(address, timeout, what="BAM_UPDATE_SCHEDULER"))
-        cluster.client.register_plugin(WarmUp(), name=PLUGIN_NAME)
-        return cluster
+        return cls(connect(address, timeout, what="BAM_UPDATE_SCHEDULER"))
+
+    def warm_up_workers(self) -> None:
+        """Blocking, until the workers there now have warmed up; those that join later warm up
+        as they join."""
+        self.client.register_plugin(WarmUp(), name=PLUGIN_NAME)
 
     def workers(self) -> Workers:
         """Blocking (call it in a thread)."""

@@ -501,6 +501,7 @@ class UpdateManager:
             "kernels; /api/health answers 503 until then",
             self.cluster.address,
         )
+        self._spawn(self._warm_up_cluster())
         while True:
             try:
                 workers = await asyncio.to_thread(self.cluster.workers)
@@ -521,6 +522,15 @@ class UpdateManager:
                     time.monotonic() - began,
                 )
             await asyncio.sleep(CLUSTER_WATCH_SECONDS if self.ready else 0.5)
+
+    async def _warm_up_cluster(self) -> None:
+        assert self.cluster is not None
+        try:
+            await asyncio.to_thread(self.cluster.warm_up_workers)
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            log.exception("could not ask the Dask cluster's workers to warm up")
 
     def _resize(self, capacity: int) -> None:
         """As many slots as ``capacity`` (at least one: with no worker yet, one update waits

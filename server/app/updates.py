@@ -50,7 +50,7 @@ RESCAN_SECONDS = 30.0
 # database this often for one another process committed (a thread hop and a query each: at
 # 200 participants, once a second per waiter was a measurable share of the server's CPU).
 DB_POLL_SECONDS = 5.0
-CLUSTER_WATCH_SECONDS = 2.0  # how often the server asks a Dask cluster about its workers
+CLUSTER_WATCH_SECONDS = 10.0  # how often a ready server asks its Dask cluster about the workers
 
 
 # -- in the worker process ------------------------------------------------------------------

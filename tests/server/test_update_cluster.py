@@ -13,7 +13,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -278,3 +278,40 @@ def test_the_scheduler_setting_accepts_dask_addresses_only() -> None:
     for bad in ("10.0.0.5:8786", "http://host:8786", "tcp://host", "tcp://host:8786/x"):
         with pytest.raises(ValueError, match="must be a Dask scheduler address"):
             Settings(update_scheduler=bad)
+
+
+def die(payload: dict[str, Any]) -> None:
+    """An update that kills the process running it."""
+    os._exit(1)
+
+
+def double(payload: dict[str, Any]) -> int:
+    return 2 * int(payload["value"])
+
+
+@pytest.mark.slow
+def test_an_update_that_kills_every_worker_comes_back_as_worker_deaths(cluster: Any) -> None:
+    """The scheduler gives up on a task whose workers keep dying (allowed-failures, 3): the
+    server hears of every death, to count them as attempts, and stops waiting."""
+    import asyncio
+
+    from server.app.cluster import UpdateCluster
+    from server.app.updates import WorkerDied
+
+    async def scenario() -> tuple[Any, BaseException | None]:
+        updates = UpdateCluster.connect(cluster.scheduler_address)
+        try:
+            answer = await updates.run(double, {"value": 21}, "learner-update-1-1")
+            try:
+                await asyncio.wait_for(updates.run(die, {}, "learner-update-1-2"), 300)
+            except WorkerDied as error:
+                return answer, error
+            return answer, None
+        finally:
+            await asyncio.to_thread(updates.close)
+
+    # In a thread of its own: after the browser tests, this thread may run an event loop.
+    with ThreadPoolExecutor(1) as pool:
+        answer, error = pool.submit(asyncio.run, scenario()).result()
+    assert answer == (42, 0)  # the result, and no worker died running it
+    assert isinstance(error, WorkerDied) and error.deaths == 4

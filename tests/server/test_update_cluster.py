@@ -22,6 +22,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
+from analysis.data import EVALUATION_COLUMNS
 from server.app import flow
 from server.app.db import Database, upgrade
 from server.app.export import load_tables
@@ -44,19 +45,7 @@ from tests.server.test_updates import SLOW_STUDY, demonstrate
 distributed = pytest.importorskip("distributed")
 
 # The evaluations' columns that depend on the inputs only (not on when or how fast).
-SAME_COLUMNS = [
-    "session_id",
-    "participant_id",
-    "environment",
-    "learner",
-    "position",
-    "update_index",
-    "episodes",
-    "actions",
-    "normalized_return",
-    "status",
-    "objective",
-]
+SAME_COLUMNS = [*EVALUATION_COLUMNS, "status", "objective"]
 
 
 @pytest.fixture(scope="module")

@@ -4,6 +4,8 @@ acknowledged against events stored.
 
     python benchmarks/server.py                               # 200 participants, 300 s, SQLite
     python benchmarks/server.py --participants 50 --seconds 60 --database-url postgresql+psycopg://...
+    python benchmarks/server.py --scheduler local:2             # updates on a local Dask cluster
+    python benchmarks/server.py --scheduler tcp://host:8786     # ... or on a running one
 
 The server is ``bam-study serve`` in its own process (a fresh SQLite file in a temporary folder
 unless --database-url is given; a PostgreSQL database is migrated first), with the paper's study
@@ -13,7 +15,8 @@ Participants arrive spread over --ramp-seconds and act at a person's pace: a pau
 animates the agent every half second) and --episode-pause-seconds before each episode. After
 --seconds they stop sending; requests in flight are answered, then every acknowledged request
 must be stored. An agent step that had to wait for its learner's update counts as an update
-wait, not as an agent step. Latencies run from a request's first attempt, and the table counts
+wait, not as an agent step (the agent's wait for its update: the figure that updates on a Dask
+cluster, --scheduler, are for). Latencies run from a request's first attempt, and the table counts
 the requests that needed a retry. Target on a 2-core machine with SQLite: 200 participants,
 p95 move latency at most 50 ms, nothing lost.
 """
@@ -21,12 +24,16 @@ p95 move latency at most 50 ms, nothing lost.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
+import signal
+import subprocess
 import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 # This file is benchmarks/server.py: run as a script, its folder comes first on sys.path and
@@ -37,7 +44,7 @@ from sqlalchemy import func, select
 
 from server.app.config import DEFAULT_STUDY_CONFIG
 from server.app.db import Database, upgrade
-from server.app.live import LiveServer
+from server.app.live import LiveServer, free_port
 from server.app.models import Event, LearnerUpdate
 from server.app.simulated import (
     StudyRun,
@@ -76,6 +83,51 @@ def learner_settings_toml(
     return "\n".join(lines) + "\n"
 
 
+@contextlib.contextmanager
+def local_cluster(workers: int, folder: Path) -> Iterator[str]:
+    """A Dask scheduler and ``workers`` single-threaded worker processes beside the server,
+    started as on other machines (``dask scheduler``, ``dask worker``), at the niceness of
+    local update processes; yields the scheduler's address."""
+    address = f"tcp://127.0.0.1:{free_port()}"
+    port = address.rsplit(":", 1)[1]
+    cli = [sys.executable, "-m"]
+    commands = [
+        [*cli, "distributed.cli.dask_scheduler", "--port", port, "--no-dashboard"],
+        [
+            "nice",
+            "-n",
+            "10",
+            *cli,
+            "distributed.cli.dask_worker",
+            address,
+            "--nworkers",
+            str(workers),
+            "--nthreads",
+            "1",
+            "--no-dashboard",
+        ],
+    ]
+    processes = []
+    try:
+        for name, command in zip(("scheduler", "workers"), commands, strict=True):
+            with open(folder / f"dask-{name}.log", "wb") as log:
+                processes.append(
+                    subprocess.Popen(
+                        command, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
+                    )
+                )
+        yield address
+    finally:
+        for process in reversed(processes):
+            if process.poll() is None:
+                os.killpg(process.pid, signal.SIGTERM)
+            try:
+                process.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                os.killpg(process.pid, signal.SIGKILL)
+                process.wait()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--participants", type=int, default=200)
@@ -86,6 +138,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episode-pause-seconds", type=float, default=2.0)
     parser.add_argument("--database-url", help="default: a new SQLite file in a temporary folder")
     parser.add_argument("--workers", type=int, default=2, help="learner-update processes")
+    parser.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="run the learner updates on a Dask cluster: a scheduler's address "
+        "(tcp://host:8786), or local:N for a scheduler and N worker processes started here",
+    )
     parser.add_argument("--fast-learners", action="store_true", help="few optimisation steps")
     parser.add_argument(
         "--optimizer",
@@ -106,6 +164,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
+    cluster_workers = None
+    if args.scheduler and args.scheduler.startswith("local:"):
+        count = args.scheduler.removeprefix("local:")
+        if not count.isdigit() or int(count) < 1:
+            parser.error("--scheduler local:N needs a number of workers N >= 1")
+        cluster_workers = int(count)
     if args.warm_alternations is not None:
         if args.warm_alternations < 0:
             parser.error("--warm-alternations must be at least 0")
@@ -140,13 +204,26 @@ def main(argv: list[str] | None = None) -> int:
     )
     stop = threading.Event()
     result: dict[str, StudyRun] = {}
+    if cluster_workers is not None:
+        where = f"updates on a local Dask cluster of {cluster_workers} worker processes"
+    elif args.scheduler:
+        where = f"updates on the Dask cluster at {args.scheduler}"
+    else:
+        where = f"{args.workers} update processes"
     print(
         f"{args.participants} participants for {args.seconds:.0f} s on "
-        f"{'SQLite' if url.startswith('sqlite') else 'PostgreSQL'}, {args.workers} update "
-        f"workers, {os.cpu_count()} cores; server log in {folder}",
+        f"{'SQLite' if url.startswith('sqlite') else 'PostgreSQL'}, {where}, "
+        f"{os.cpu_count()} cores; server log in {folder}",
         flush=True,
     )
-    with LiveServer(folder, environment) as server:
+    with contextlib.ExitStack() as stack:
+        if cluster_workers is not None:
+            environment["BAM_UPDATE_SCHEDULER"] = stack.enter_context(
+                local_cluster(cluster_workers, folder)
+            )
+        elif args.scheduler:
+            environment["BAM_UPDATE_SCHEDULER"] = args.scheduler
+        server = stack.enter_context(LiveServer(folder, environment))
 
         def teach() -> None:
             result["run"] = run_participants(

@@ -9,7 +9,7 @@ from collections.abc import AsyncIterator
 from concurrent.futures import Executor
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -35,6 +35,9 @@ from server.app.schemas import ERROR_RESPONSES
 from server.app.settings import Settings, get_settings
 from server.app.state import ServerState
 from server.app.updates import UpdateManager
+
+if TYPE_CHECKING:
+    from server.app.cluster import UpdateCluster
 
 log = logging.getLogger("bam_study")
 STATIC_DIR = Path(__file__).resolve().parents[1] / "static"
@@ -98,9 +101,11 @@ def create_app(
     study_config: StudyConfig | None = None,
     db: Database | None = None,
     executor: Executor | None = None,
+    cluster: UpdateCluster | None = None,
 ) -> FastAPI:
     """The app for one study database. ``executor`` runs learner updates (a process pool of
-    ``BAM_UPDATE_WORKERS`` is made when None); the schema must be up to date (``bam-study db
+    ``BAM_UPDATE_WORKERS`` is made when None), or ``cluster``, a Dask cluster's client (one is
+    connected to ``BAM_UPDATE_SCHEDULER`` when that is set and ``cluster`` is None); the schema must be up to date (``bam-study db
     upgrade``, which ``bam-study serve`` runs itself on SQLite)."""
     settings = settings or get_settings()
     study_config = study_config or load_study_config(settings.study_config)
@@ -121,6 +126,14 @@ def create_app(
                 f"the database schema is at {current or 'none'}, this server needs {head}: "
                 "run `bam-study db upgrade`"
             )
+        updates_cluster, own_cluster = cluster, False
+        if updates_cluster is None and settings.update_scheduler:
+            from server.app.cluster import UpdateCluster
+
+            updates_cluster = await asyncio.to_thread(
+                UpdateCluster.connect, settings.update_scheduler
+            )
+            own_cluster = True
         manager = UpdateManager(
             db,
             state.policies,
@@ -129,6 +142,7 @@ def create_app(
             niceness=settings.update_worker_niceness,
             threads=settings.update_threads,
             executor=executor,
+            cluster=updates_cluster,
         )
         state.updates = manager
         await manager.start()
@@ -139,6 +153,9 @@ def create_app(
             sweeper.cancel()
             await asyncio.gather(sweeper, return_exceptions=True)
             await manager.stop()
+            if own_cluster:
+                assert updates_cluster is not None
+                await asyncio.to_thread(updates_cluster.close)
             state.updates = None
             if own_db:
                 db.dispose()

@@ -24,6 +24,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "study: the page gives them a completion code), whatever the study file says",
     )
     parser.add_argument(
+        "--update-scheduler",
+        metavar="ADDRESS",
+        help="run the learner updates on the Dask cluster of this scheduler (tcp://host:8786); "
+        "overrides BAM_UPDATE_SCHEDULER",
+    )
+    parser.add_argument(
         "--log-level", default="info", choices=("debug", "info", "warning", "error")
     )
     parser.add_argument("--access-log", action="store_true", help="log every request")
@@ -52,7 +58,12 @@ def run(args: argparse.Namespace) -> int:
     from server.app.settings import SettingsError, load_settings
 
     try:
-        settings = load_settings({"database_url": ("--database-url", args.database_url)})
+        settings = load_settings(
+            {
+                "database_url": ("--database-url", args.database_url),
+                "update_scheduler": ("--update-scheduler", args.update_scheduler),
+            }
+        )
     except SettingsError as error:
         print(f"{PROG}: {error}", file=sys.stderr)
         return 2
@@ -104,10 +115,23 @@ def run(args: argparse.Namespace) -> int:
         db.dispose()
         sock.close()
         return 1
+    cluster = None
+    if settings.update_scheduler:
+        from server.app.cluster import UpdateCluster
+        from server.dask_client import SchedulerError
+
+        try:
+            cluster = UpdateCluster.connect(settings.update_scheduler)
+        except SchedulerError as error:
+            print(f"{PROG}: {error}", file=sys.stderr)
+            db.dispose()
+            sock.close()
+            return 1
+        print(f"Learner updates run on the Dask cluster at {cluster.address}.", file=sys.stderr)
     for line in startup_notes(settings.admin_token is not None, study):
         print(line, file=sys.stderr)
     logging.basicConfig(level=args.log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
-    app = create_app(settings, study, db=db)
+    app = create_app(settings, study, db=db, cluster=cluster)
     server = uvicorn.Server(
         uvicorn.Config(
             app,
@@ -123,6 +147,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         sock.close()
         db.dispose()
+        if cluster is not None:
+            cluster.close()
     return 0
 
 

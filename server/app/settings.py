@@ -17,6 +17,8 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from server.cores import available_cores
 
 DEFAULT_DATABASE_URL = "sqlite:///bam-study.db"
+# A Dask scheduler's address: protocol, host (a name, IPv4, or [IPv6]) and port.
+SCHEDULER_ADDRESS = re.compile(r"(tcp|tls|ws|wss)://(\[[0-9A-Fa-f:.]+\]|[^\s/:\[\]]+):\d{1,5}")
 
 
 class Settings(BaseSettings):
@@ -56,6 +58,11 @@ class Settings(BaseSettings):
         description="Planner threads for learner updates (one per task at most): an update "
         "running alone uses them all, updates running together share them. Default: the number "
         "of cores.",
+    )
+    update_scheduler: str = Field(
+        "",
+        description="Address of a Dask distributed scheduler (tcp://host:8786) whose workers "
+        "run the learner updates; empty: local update processes (BAM_UPDATE_WORKERS).",
     )
     update_worker_niceness: int = Field(
         10, ge=0, le=19, description="Nice increment of update processes, so requests come first."
@@ -118,6 +125,17 @@ class Settings(BaseSettings):
     def _known_backend(cls, value: str) -> str:
         if not value.startswith(("sqlite", "postgresql")):
             raise ValueError("must be a sqlite:// or postgresql:// URL")
+        return value
+
+    @field_validator("update_scheduler")
+    @classmethod
+    def _scheduler_address(cls, value: str) -> str:
+        value = value.strip()
+        if value and not SCHEDULER_ADDRESS.fullmatch(value):
+            raise ValueError(
+                "must be a Dask scheduler address such as tcp://host:8786 (or empty for local "
+                "update processes)"
+            )
         return value
 
     @model_validator(mode="after")

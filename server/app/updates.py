@@ -10,7 +10,8 @@ it, stores its greedy policies and scores them (exact normalised return). The se
 commits the new learner state with the evaluation, and an agent step waiting for that
 session's update goes on. Sessions with an agent step waiting go first; the others take turns.
 Pending updates are found again in the database when the server starts, so none is lost by a
-restart.
+restart. With ``BAM_UPDATE_SCHEDULER`` the same function runs on the workers of a Dask cluster
+instead of the local processes (``server.app.cluster``), in the same order.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import traceback
 from concurrent.futures import Executor, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from sqlalchemy import func, select
@@ -38,6 +39,9 @@ from server.cores import share_threads
 from server.domains import make as make_environment
 from server.domains.base import STAY
 
+if TYPE_CHECKING:
+    from server.app.cluster import UpdateCluster
+
 log = logging.getLogger("bam_study.updates")
 
 MAX_ATTEMPTS = 3  # a worker process dying this often on one update marks it failed
@@ -46,6 +50,7 @@ RESCAN_SECONDS = 30.0
 # database this often for one another process committed (a thread hop and a query each: at
 # 200 participants, once a second per waiter was a measurable share of the server's CPU).
 DB_POLL_SECONDS = 5.0
+CLUSTER_WATCH_SECONDS = 10.0  # how often a ready server asks its Dask cluster about the workers
 
 
 # -- in the worker process ------------------------------------------------------------------
@@ -135,6 +140,18 @@ def run_update(job: dict[str, Any]) -> dict[str, Any]:
 
 
 # -- in the server process ------------------------------------------------------------------
+class WorkerDied(RuntimeError):
+    """The processes running an update died ``deaths`` times."""
+
+    def __init__(self, deaths: int = 1) -> None:
+        super().__init__("the update process died")
+        self.deaths = deaths
+
+
+class UpdatesUnavailable(ConnectionError):
+    """The updates' cluster cannot be reached: the update stays pending and is tried again."""
+
+
 @dataclass
 class Job:
     update_id: int
@@ -184,6 +201,7 @@ class UpdateManager:
         niceness: int = 10,
         executor: Executor | None = None,
         threads: int = 1,
+        cluster: UpdateCluster | None = None,
     ) -> None:
         self.db = db
         self.policies = policies
@@ -193,6 +211,8 @@ class UpdateManager:
         self.threads = threads
         self._executor = executor
         self._own_executor = executor is None
+        self.cluster = cluster  # updates on a Dask cluster (server.app.cluster), not a pool
+        self._capacity = workers  # updates run at once: the slots
         self._loop: asyncio.AbstractEventLoop | None = None
         self._ready: dict[int, int] = {}  # session -> turn
         self._turn = 0
@@ -216,11 +236,14 @@ class UpdateManager:
         self._stopping = False
         self._loop = asyncio.get_running_loop()
         self._wake = asyncio.Event()
-        self._slots = asyncio.Semaphore(self.workers)
-        if self._executor is None:
-            self._executor = new_executor(self.workers, self.niceness)
-            self._start_workers()
-        self._spawn(self._await_warm())
+        self._slots = asyncio.Semaphore(self._capacity)
+        if self.cluster is not None:
+            self._spawn(self._watch_cluster())
+        else:
+            if self._executor is None:
+                self._executor = new_executor(self.workers, self.niceness)
+                self._start_workers()
+            self._spawn(self._await_warm())
         self._spawn(self._dispatch())
         self._spawn(self._rescan_forever())
 
@@ -352,18 +375,19 @@ class UpdateManager:
             job = await asyncio.to_thread(self._load, session_id)
             if job is None:
                 return
-            executor = self._executor
-            assert executor is not None
             try:
-                outcome = await self._run_in_process(executor, job.payload)
-            except BrokenProcessPool:
+                outcome, deaths = await self._run(job)
+            except WorkerDied as died:
                 log.error(
                     "an update process died during update %s of session %s",
                     job.update_index,
                     session_id,
                 )
-                self._replace_executor(executor)
-                more = await asyncio.to_thread(self._fail, job, "the update process died", True)
+                more = await asyncio.to_thread(
+                    self._fail, job, "the update process died", True, died.deaths
+                )
+            except UpdatesUnavailable:
+                raise  # not the update's fault: it stays pending and is tried again
             except Exception:
                 error = traceback.format_exc()
                 log.error(
@@ -373,7 +397,7 @@ class UpdateManager:
                 self.failed += 1
             else:
                 policy = decode(outcome["greedy_policy"], make_environment(job.environment))
-                more = await asyncio.to_thread(self._commit, job, outcome)
+                more = await asyncio.to_thread(self._commit, job, outcome, deaths)
                 self.policies.put(session_id, job.update_index, policy)
                 self.completed += 1
             processed = await asyncio.to_thread(self._processed_in_db, session_id)
@@ -391,6 +415,22 @@ class UpdateManager:
             if more or session_id in self._again:
                 self._again.discard(session_id)
                 self._enqueue(session_id)
+
+    async def _run(self, job: Job) -> tuple[dict[str, Any], int]:
+        """``run_update`` on the cluster or in an update process: its outcome, and how many
+        processes died running it before it came back. Raises ``WorkerDied`` when the
+        processes running it died (and gave no outcome)."""
+        if self.cluster is not None:
+            name = f"learner-update-{job.session_id}-{job.update_index}"
+            outcome, deaths = await self.cluster.run(run_update, job.payload, name)
+            return outcome, deaths
+        executor = self._executor
+        assert executor is not None
+        try:
+            return await self._run_in_process(executor, job.payload), 0
+        except BrokenProcessPool:
+            self._replace_executor(executor)
+            raise WorkerDied() from None
 
     async def _run_in_process(self, executor: Executor, payload: dict[str, Any]) -> Any:
         """``run_update`` in an update process, its planner given this server's threads
@@ -454,6 +494,63 @@ class UpdateManager:
             "update processes ready after %.1f s: the server is ready",
             time.monotonic() - began,
         )
+
+    async def _watch_cluster(self) -> None:
+        """Follow the cluster's workers: as many updates at once as they have threads, and
+        the server ready (``/api/health``) once there are workers and every one is warm."""
+        assert self.cluster is not None
+        began = time.monotonic()
+        log.info(
+            "waiting for the workers of the Dask cluster at %s to load the learners' compiled "
+            "kernels; /api/health answers 503 until then",
+            self.cluster.address,
+        )
+        self._spawn(self._warm_up_cluster())
+        while True:
+            try:
+                workers = await asyncio.to_thread(self.cluster.workers)
+            except asyncio.CancelledError:
+                raise
+            except Exception as error:
+                log.warning("could not ask the Dask cluster for its workers: %s", error)
+                await asyncio.sleep(CLUSTER_WATCH_SECONDS)
+                continue
+            self.workers = workers.threads
+            self.warm_processes = workers.warm_threads
+            self._resize(workers.threads)
+            if not self.ready and workers.threads and workers.warm_threads == workers.threads:
+                self.ready = True
+                log.info(
+                    "%d Dask worker thread(s) ready after %.1f s: the server is ready",
+                    workers.threads,
+                    time.monotonic() - began,
+                )
+            await asyncio.sleep(CLUSTER_WATCH_SECONDS if self.ready else 0.5)
+
+    async def _warm_up_cluster(self) -> None:
+        assert self.cluster is not None
+        try:
+            await asyncio.to_thread(self.cluster.warm_up_workers)
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            log.exception("could not ask the Dask cluster's workers to warm up")
+
+    def _resize(self, capacity: int) -> None:
+        """As many slots as ``capacity`` (at least one: with no worker yet, one update waits
+        at the scheduler for the first)."""
+        assert self._slots is not None
+        capacity = max(1, capacity)
+        change, self._capacity = capacity - self._capacity, capacity
+        for _ in range(change):
+            self._slots.release()
+        if change < 0:
+            self._spawn(self._take_slots(-change))
+
+    async def _take_slots(self, count: int) -> None:
+        assert self._slots is not None
+        for _ in range(count):
+            await self._slots.acquire()
 
     async def _rescan_forever(self) -> None:
         while True:
@@ -536,14 +633,18 @@ class UpdateManager:
             }
             return Job(update.id, session_id, update.update_index, session.environment, payload)
 
-    def _commit(self, job: Job, outcome: dict[str, Any]) -> bool:
+    def _commit(self, job: Job, outcome: dict[str, Any], deaths: int = 0) -> bool:
+        """Store the update's outcome (after ``deaths`` processes died running it, each an
+        attempt, as ``_fail`` records one)."""
         with self.db.write() as s:
             update = s.get(LearnerUpdate, job.update_id)
             session = s.get(LearningSession, job.session_id)
             assert update is not None and session is not None
             update.status = "done"
             update.finished_at = utcnow()
-            update.attempts += 1
+            update.attempts += 1 + deaths
+            if deaths:
+                update.error = "the update process died"
             for name in (
                 "learner_state",
                 "greedy_policy",
@@ -558,12 +659,12 @@ class UpdateManager:
             session.policy_update = max(session.policy_update or 0, job.update_index)
             return session.updates_requested > session.updates_processed
 
-    def _fail(self, job: Job, error: str, retry: bool) -> bool:
+    def _fail(self, job: Job, error: str, retry: bool, attempts: int = 1) -> bool:
         with self.db.write() as s:
             update = s.get(LearnerUpdate, job.update_id)
             session = s.get(LearningSession, job.session_id)
             assert update is not None and session is not None
-            update.attempts += 1
+            update.attempts += attempts
             update.error = error
             if retry and update.attempts < MAX_ATTEMPTS:
                 return True

@@ -275,20 +275,13 @@ class DaskBackend:
     """Jobs on an existing Dask distributed cluster (the ``bam-study[dask]`` extra)."""
 
     def __init__(self, address: str, timeout: float = 30.0) -> None:
-        try:
-            from distributed import Client
-        except ImportError:
-            raise ConfigError(
-                "--scheduler needs Dask distributed, an optional extra: "
-                "pip install 'bam-study[dask]'"
-            ) from None
+        from server.dask_client import SchedulerError, connect
+
         self.address = address
         try:
-            self.client = Client(address, timeout=timeout)
-        except (OSError, TimeoutError, ValueError) as error:
-            raise ConfigError(
-                f"cannot connect to the Dask scheduler at {address}: {error}"
-            ) from None
+            self.client = connect(address, timeout)
+        except SchedulerError as error:
+            raise ConfigError(str(error)) from None
 
     def describe(self) -> str:
         return f"the Dask cluster at {self.address}"

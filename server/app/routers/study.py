@@ -20,7 +20,8 @@ def read_study(state: StateDep) -> PublicStudy:
 
 @router.get("/health")
 def health(state: StateDep) -> JSONResponse:
-    """Ready (200) once the database answers and every learner-update process has loaded the
+    """Ready (200) once the database answers and every learner-update process (with
+    ``BAM_UPDATE_SCHEDULER``: every thread of the Dask cluster's workers) has loaded the
     learners' compiled kernels; 503 before (starting). With the updates waiting or running,
     done and failed since the server started."""
     with state.db.connect() as c:
@@ -31,6 +32,7 @@ def health(state: StateDep) -> JSONResponse:
         "status": "ok" if ready else "starting",
         "update_processes_warm": updates.warm_processes if updates is not None else 0,
         "update_processes": state.settings.update_workers if updates is None else updates.workers,
+        "update_scheduler": state.settings.update_scheduler or None,
         "update_backlog": updates.backlog if updates is not None else None,
         "updates_done": updates.completed if updates is not None else None,
         "updates_failed": updates.failed if updates is not None else None,

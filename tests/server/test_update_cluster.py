@@ -1,0 +1,306 @@
+"""Learner updates on a Dask cluster (``BAM_UPDATE_SCHEDULER``): the server is ready once the
+workers are warm, participants teach, a worker killed during an update loses nothing, and the
+evaluations equal those of the same participants with local update processes, to the last bit.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import select
+
+from analysis.data import EVALUATION_COLUMNS
+from server.app import flow
+from server.app.db import Database, upgrade
+from server.app.export import load_tables
+from server.app.main import create_app
+from server.app.models import LearnerUpdate
+from server.app.settings import Settings
+from server.domains import make
+from server.domains.base import ACTIONS
+from server.teacher import Teacher
+from tests.server.conftest import (
+    Participant,
+    make_settings,
+    study_config,
+    teaching_participant,
+    wait_for_updates,
+    wait_until_ready,
+)
+from tests.server.test_updates import SLOW_STUDY, demonstrate
+
+distributed = pytest.importorskip("distributed")
+
+# The evaluations' columns that depend on the inputs only (not on when or how fast).
+SAME_COLUMNS = [*EVALUATION_COLUMNS, "status", "objective"]
+
+
+@pytest.fixture(scope="module")
+def cluster() -> Iterator[Any]:
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as local_cluster:
+        yield local_cluster
+
+
+def fresh_database(path: Path) -> Database:
+    database = Database.from_url(f"sqlite:///{path}")
+    upgrade(database.engine)
+    return database
+
+
+def agent_try(participant: Participant, session_id: int, task: int, steps: int) -> None:
+    """The agent acts ``steps`` times on ``task`` (each step waits for the session's pending
+    update) and the teacher gives its feedback on each."""
+    base = participant.session(session_id)
+    env = make(participant.get(base)["summary"]["environment"])
+    teacher = Teacher(env, seed=task)
+    if participant.get(base)["teaching"]["task"] != task:
+        participant.act(f"{base}/task", task=task)
+    participant.act(f"{base}/reset")
+    participant.act(f"{base}/mode", mode="agent")
+    for _ in range(steps):
+        data = participant.act(f"{base}/agent-step")
+        outcome = data["outcome"]
+        signal_ = teacher.feedback(task, outcome["state"], ACTIONS.index(outcome["action"]))
+        if signal_:
+            participant.act(f"{base}/feedback", feedback=signal_)
+        if outcome["episode_ended"]:
+            return
+    participant.act(f"{base}/end-episode")
+
+
+def teach(client: TestClient, during_updates: Any = None) -> None:
+    """Two participants, each: three demonstrations and an agent's try with feedback, in a
+    fixed order. ``during_updates()`` is called once, after the first demonstrations."""
+    wait_until_ready(client)
+    participants = [teaching_participant(client, f"W{k}", f"A{k}") for k in range(2)]
+    for task in range(3):
+        for participant, session_id in participants:
+            demonstrate(participant, session_id, task, seed=task)
+        if task == 0 and during_updates is not None:
+            during_updates()
+    for participant, session_id in participants:
+        agent_try(participant, session_id, 0, steps=4)
+
+
+def evaluations(db: Database) -> pd.DataFrame:
+    return load_tables(db)["evaluations"][SAME_COLUMNS]
+
+
+def learner_states(db: Database) -> list[tuple[int, int, bytes | None, bytes | None]]:
+    with db.read() as s:
+        return [
+            (row.session_id, row.update_index, row.learner_state, row.greedy_policy)
+            for row in s.scalars(
+                select(LearnerUpdate).order_by(LearnerUpdate.session_id, LearnerUpdate.update_index)
+            )
+        ]
+
+
+def executing(dask_worker: Any) -> list[str]:
+    """In a worker, through ``Client.run``: the tasks it is running."""
+    return [str(task.key) for task in dask_worker.state.executing]
+
+
+class WorkerKiller(threading.Thread):
+    """Kills the process of the first worker seen starting a learner update that fits the
+    learner (update 1 or later; they take about two seconds here): its nanny starts another."""
+
+    def __init__(self, client: Any) -> None:
+        super().__init__(daemon=True)
+        self.client = client
+        self.killed: str | None = None
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            pids = self.client.run(os.getpid)
+            seen = {key for keys in self.client.run(executing).values() for key in keys}
+            deadline = time.monotonic() + 120
+            while self.killed is None and time.monotonic() < deadline:
+                for address, keys in self.client.run(executing).items():
+                    fresh = [key for key in keys if key not in seen]
+                    seen.update(keys)
+                    if any(int(key.split("-")[3]) >= 1 for key in fresh):
+                        os.kill(pids[address], signal.SIGKILL)
+                        self.killed = fresh[0]
+                        return
+                time.sleep(0.01)
+        except BaseException as error:
+            self.error = error
+
+
+@pytest.mark.slow
+def test_a_cluster_gives_the_local_evaluations_and_survives_a_killed_worker(
+    tmp_path: Path, cluster: Any, executor: ProcessPoolExecutor, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    study = study_config(**SLOW_STUDY)
+    outcomes = {}
+    for where in ("local", "cluster"):
+        # The same participants: the same domains, learner orders and session seeds.
+        monkeypatch.setattr(flow, "_random", random.Random(22))
+        db = fresh_database(tmp_path / f"{where}.db")
+        url = db.engine.url.render_as_string(hide_password=False)
+        if where == "local":
+            app = create_app(make_settings(url), study, db=db, executor=executor)
+            with TestClient(app) as client:
+                teach(client)
+                wait_for_updates(db)
+        else:
+            settings = make_settings(url, update_scheduler=cluster.scheduler_address)
+            with (
+                distributed.Client(cluster.scheduler_address) as observer,
+                TestClient(create_app(settings, study, db=db)) as client,
+            ):
+                health = wait_until_ready(client)
+                assert health["update_scheduler"] == cluster.scheduler_address
+                assert health["update_processes"] == health["update_processes_warm"] == 2
+                killer = WorkerKiller(observer)
+                teach(client, killer.start)
+                killer.join()
+                assert killer.error is None and killer.killed is not None, killer.error
+                wait_for_updates(db)
+        outcomes[where] = (evaluations(db), learner_states(db))
+        with db.read() as s:
+            rows = s.scalars(select(LearnerUpdate)).all()
+            assert rows and all(row.status == "done" for row in rows)
+            retried = [(row.attempts, row.error) for row in rows if row.attempts > 1]
+        if where == "cluster":  # the killed worker's update ran again elsewhere, and says so
+            assert retried == [(2, "the update process died")]
+        else:
+            assert retried == []
+        db.dispose()
+    local, on_cluster = outcomes["local"], outcomes["cluster"]
+    assert len(local[0]) == 2 * 5  # update 0, three demonstrations, the agent's try
+    pd.testing.assert_frame_equal(local[0], on_cluster[0], check_exact=True)
+    assert local[1] == on_cluster[1]
+
+
+@pytest.mark.slow
+def test_the_server_waits_for_a_worker_and_its_warm_up(tmp_path: Path) -> None:
+    """With a scheduler and no worker, /api/health answers 503; a worker joins, warms up, and
+    the server becomes ready and runs the updates."""
+    db = fresh_database(tmp_path / "study.db")
+    with distributed.LocalCluster(
+        n_workers=0, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as local_cluster:
+        settings = make_settings(
+            db.engine.url.render_as_string(hide_password=False),
+            update_scheduler=local_cluster.scheduler_address,
+        )
+        with TestClient(create_app(settings, study_config(), db=db)) as client:
+            time.sleep(1.0)
+            response = client.get("/api/health")
+            assert response.status_code == 503
+            assert response.json()["update_processes"] == 0
+            local_cluster.scale(1)
+            health = wait_until_ready(client, timeout=180)
+            assert health["update_processes"] == health["update_processes_warm"] == 1
+            # The worker loaded the kernels before the server counted it as ready.
+            client_ = distributed.Client(local_cluster.scheduler_address)
+            try:
+                from server.app.cluster import is_warm
+
+                assert list(client_.run(is_warm).values()) == [True]
+            finally:
+                client_.close()
+            participant, session_id = teaching_participant(client)
+            demonstrate(participant, session_id, 0)
+            wait_for_updates(db)
+    db.dispose()
+
+
+def test_a_bad_scheduler_address_is_one_line_at_start(tmp_path: Path) -> None:
+    """An address that is not one, and one where no scheduler answers: a one-line message and
+    exit status, before the server starts."""
+    database = f"sqlite:///{tmp_path / 'study.db'}"
+    command = [sys.executable, "-m", "server.cli", "serve", "--port", "0"]
+    environment = {**os.environ, "BAM_DATABASE_URL": database}
+    for address, status, message in (
+        ("localhost:8786", 2, "--update-scheduler='localhost:8786': must be a Dask scheduler"),
+        ("tcp://127.0.0.1:1", 1, "cannot connect to the Dask scheduler at tcp://127.0.0.1:1"),
+    ):
+        result = subprocess.run(
+            [*command, "--update-scheduler", address],
+            env=environment,
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert result.returncode == status, result.stderr
+        last = result.stderr.strip().splitlines()[-1]
+        assert last.startswith("bam-study serve: ") and message in last, result.stderr
+        assert "Traceback" not in result.stderr
+    result = subprocess.run(
+        command,
+        env={**environment, "BAM_UPDATE_SCHEDULER": "tcp://nowhere"},
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2
+    assert "BAM_UPDATE_SCHEDULER='tcp://nowhere': must be a Dask scheduler" in result.stderr
+
+
+def test_the_scheduler_setting_accepts_dask_addresses_only() -> None:
+    assert Settings(update_scheduler="").update_scheduler == ""
+    assert Settings(update_scheduler=" tcp://10.0.0.5:8786 ").update_scheduler == (
+        "tcp://10.0.0.5:8786"
+    )
+    assert Settings(update_scheduler="tls://[::1]:8786").update_scheduler == "tls://[::1]:8786"
+    for bad in ("10.0.0.5:8786", "http://host:8786", "tcp://host", "tcp://host:8786/x"):
+        with pytest.raises(ValueError, match="must be a Dask scheduler address"):
+            Settings(update_scheduler=bad)
+
+
+def die(payload: dict[str, Any]) -> None:
+    """An update that kills the process running it."""
+    os._exit(1)
+
+
+def double(payload: dict[str, Any]) -> int:
+    return 2 * int(payload["value"])
+
+
+@pytest.mark.slow
+def test_an_update_that_kills_every_worker_comes_back_as_worker_deaths(cluster: Any) -> None:
+    """The scheduler gives up on a task whose workers keep dying (allowed-failures, 3): the
+    server hears of every death, to count them as attempts, and stops waiting."""
+    import asyncio
+
+    from server.app.cluster import UpdateCluster
+    from server.app.updates import WorkerDied
+
+    async def scenario() -> tuple[Any, BaseException | None]:
+        updates = UpdateCluster.connect(cluster.scheduler_address)
+        try:
+            answer = await updates.run(double, {"value": 21}, "learner-update-1-1")
+            try:
+                await asyncio.wait_for(updates.run(die, {}, "learner-update-1-2"), 300)
+            except WorkerDied as error:
+                return answer, error
+            return answer, None
+        finally:
+            await asyncio.to_thread(updates.close)
+
+    # In a thread of its own: after the browser tests, this thread may run an event loop.
+    with ThreadPoolExecutor(1) as pool:
+        answer, error = pool.submit(asyncio.run, scenario()).result()
+    assert answer == (42, 0)  # the result, and no worker died running it
+    assert isinstance(error, WorkerDied) and error.deaths == 4

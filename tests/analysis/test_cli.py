@@ -172,7 +172,12 @@ def test_options_reach_the_outputs(
     assert code == 0
     assert "Successful 30% | Successful 90%" in stdout
     assert "significantly worse than Behavioral Cloning" in stdout
-    assert "at a false discovery rate of 5%" in stdout
+    # The legend names the rate only beside a mark that uses it (Table 1's legend defines only
+    # the marks its cells use); the outputs' README always states it.
+    readme = (out / "README.md").read_text(encoding="utf-8")
+    assert "False discovery rate of the Benjamini-Yekutieli correction: 0.05." in readme
+    if "†" in stdout:
+        assert "at a false discovery rate of 5%" in stdout
     comparisons = read_rows(out / "comparisons.csv")
     assert {row["threshold"] for row in comparisons} == {"0.3", "0.9"}
     assert {row["baseline"] for row in comparisons} == {"cloning"}

@@ -452,8 +452,8 @@ def test_an_update_lost_with_the_scheduler_runs_on_the_next_one(
 ) -> None:
     """The scheduler and its worker are killed while an update runs, and stay away longer than
     the Dask client waits for them; a new scheduler at the same address and a new worker: the
-    update was kept pending and runs there, and every update of the participant is done, once
-    each, with nothing lost."""
+    update was kept pending and runs there, every update of the participant is done, once
+    each, with nothing lost, and the new worker was warmed up."""
     from server.app import updates
 
     monkeypatch.setattr(updates, "CLUSTER_WATCH_SECONDS", 1.0)
@@ -492,6 +492,12 @@ def test_an_update_lost_with_the_scheduler_runs_on_the_next_one(
                 requested, processed = session.updates_requested, session.updates_processed
             assert done == [(index, "done", 1, None) for index in range(4)]
             assert requested == processed == 3
+            # The new scheduler was given the warm-up: its worker loaded the kernels.
+            deadline = time.monotonic() + 60
+            while (health := client.get("/api/health").json())["update_processes_warm"] < 1:
+                assert time.monotonic() < deadline, health
+                time.sleep(0.2)
+            assert health["update_processes"] == health["update_processes_warm"] == 1
     finally:
         first.kill()
         if second is not None:

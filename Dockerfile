@@ -22,9 +22,13 @@ RUN apt-get update \
     && rm -rf /var/lib/apt/lists/*
 
 # The dependencies first, in their own layer: it is rebuilt only when pyproject.toml changes.
+# With the "dask" extra: the server can send its learner updates to a Dask cluster
+# (BAM_UPDATE_SCHEDULER), and the image can run the cluster's scheduler and workers
+# (`dask scheduler`, `dask worker tcp://SCHEDULER:8786`; see docs/cluster.md).
 COPY pyproject.toml ./
 RUN python -c "import subprocess, sys, tomllib; \
-deps = tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies']; \
+project = tomllib.load(open('pyproject.toml', 'rb'))['project']; \
+deps = project['dependencies'] + project['optional-dependencies']['dask']; \
 subprocess.check_call([sys.executable, '-m', 'pip', 'install', *deps])"
 
 COPY . .
@@ -39,6 +43,8 @@ RUN python -c "from server.learners.warmup import warm_up; warm_up()"
 EXPOSE 8000
 
 # Healthy once every update process has loaded the learners' compiled kernels (503 before).
+# (A container running `dask scheduler` or `dask worker` serves no page: run it with
+# --no-healthcheck, as compose.yaml's cluster profile does.)
 HEALTHCHECK --interval=10s --timeout=5s --start-period=120s --retries=3 \
     CMD python -c "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/api/health', timeout=4)"
 

@@ -24,7 +24,7 @@ import uuid
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from distributed import KilledWorker, WorkerPlugin
+from distributed import KilledWorker, SchedulerPlugin, WorkerPlugin
 
 from server.app.updates import UpdatesUnavailable, WorkerDied
 from server.dask_client import connect
@@ -36,6 +36,8 @@ if TYPE_CHECKING:
 log = logging.getLogger("bam_study.updates")
 
 PLUGIN_NAME = "bam-study-warm-up"
+DEATHS_PLUGIN = "bam-study-deaths"
+DEATHS_HANDLER = "bam_study_deaths"  # the scheduler's operation that DeathCounts adds
 # One planner thread per update: a worker runs as many updates at once as it has threads.
 THREADS_PER_UPDATE = 1
 
@@ -78,16 +80,26 @@ def is_warm() -> bool:
     return _warm
 
 
-def deaths_of(key: str, dask_scheduler: Scheduler) -> int:
-    """On the scheduler: how often a worker died while running the task ``key``."""
-    task = dask_scheduler.tasks.get(key)
-    return 0 if task is None else int(task.suspicious)
+class DeathCounts(SchedulerPlugin):
+    """On the scheduler: adds the operation ``DEATHS_HANDLER``, how often a worker died while
+    running a task (``UpdateCluster.deaths``)."""
+
+    name = DEATHS_PLUGIN
+    idempotent = True  # registered again on a scheduler that has it: nothing changes
+
+    async def start(self, scheduler: Scheduler) -> None:
+        def deaths(key: str) -> int:
+            task = scheduler.tasks.get(key)
+            return 0 if task is None else int(task.suspicious)
+
+        scheduler.handlers[DEATHS_HANDLER] = deaths
 
 
 @dataclass
 class Workers:
     threads: int  # updates the cluster runs at once
     warm_threads: int  # of them, on workers that have loaded the kernels
+    warm_up_registered: bool = True  # the scheduler has the WarmUp plugin (a new one has not)
 
 
 class UpdateCluster:
@@ -96,25 +108,61 @@ class UpdateCluster:
     def __init__(self, client: Client) -> None:
         self.client = client
         self.address = str(client.scheduler.address)
+        self.timeout = 10.0
         self._futures: set[Future] = set()
+        self._counted_on: str | None = None  # the scheduler (its id) that has DeathCounts
+        self._warmed_on: str | None = None  # the scheduler that has the WarmUp plugin
 
     @classmethod
     def connect(cls, address: str, timeout: float = 10.0) -> UpdateCluster:
         """Raises ``server.dask_client.SchedulerError`` (one line) if it cannot connect."""
-        return cls(connect(address, timeout, what="BAM_UPDATE_SCHEDULER"))
+        cluster = cls(connect(address, timeout, what="BAM_UPDATE_SCHEDULER"))
+        cluster.timeout = timeout
+        cluster.count_deaths()
+        return cluster
+
+    def scheduler_id(self) -> str:
+        """Blocking: the id of the scheduler the client is connected to (a restarted scheduler
+        has a new one)."""
+        return str(self.client.scheduler_info(n_workers=0)["id"])
+
+    def count_deaths(self) -> None:
+        """Blocking: the scheduler counts the deaths for ``deaths`` (once per scheduler)."""
+        scheduler = self.scheduler_id()
+        if self._counted_on != scheduler:
+            self.client.register_plugin(DeathCounts(), name=DEATHS_PLUGIN)
+            self._counted_on = scheduler
+
+    def deaths(self, key: str) -> int:
+        """Blocking: how often a worker died while running the task ``key``."""
+        self.count_deaths()
+        return int(self.client.sync(getattr(self.client.scheduler, DEATHS_HANDLER), key=key))
 
     def warm_up_workers(self) -> None:
         """Blocking, until the workers there now have warmed up; those that join later warm up
         as they join."""
+        scheduler = self.scheduler_id()
         self.client.register_plugin(WarmUp(), name=PLUGIN_NAME)
+        self._warmed_on = scheduler
+
+    def _reconnect(self) -> None:
+        """A client closed (the scheduler was out of reach for longer than it waits for it to
+        come back) is replaced by a new one, when the scheduler answers again."""
+        if self.client.status != "closed":
+            return
+        self.client = connect(self.address, self.timeout, what="BAM_UPDATE_SCHEDULER")
+        log.info("reconnected to the Dask scheduler at %s", self.address)
 
     def workers(self) -> Workers:
-        """Blocking (call it in a thread)."""
+        """Blocking (call it in a thread); reconnects to the scheduler if the client has given
+        up on it."""
+        self._reconnect()
         threads = self.client.nthreads()
         warm = self.client.run(is_warm, on_error="return") if threads else {}
         return Workers(
             threads=sum(threads.values()),
             warm_threads=sum(n for address, n in threads.items() if warm.get(address) is True),
+            warm_up_registered=self._warmed_on == self.scheduler_id(),
         )
 
     async def run(self, function: Any, payload: dict[str, Any], name: str) -> tuple[Any, int]:
@@ -123,6 +171,8 @@ class UpdateCluster:
         it. Raises the function's error, or ``WorkerDied``."""
         loop = asyncio.get_running_loop()
         outcome: asyncio.Future[tuple[Any, int]] = loop.create_future()
+        if self.client.status == "closed":
+            raise UpdatesUnavailable(f"no connection to the Dask scheduler at {self.address}")
         future = self.client.submit(
             function, {**payload, "threads": THREADS_PER_UPDATE}, key=f"{name}-{uuid.uuid4().hex}"
         )
@@ -131,17 +181,21 @@ class UpdateCluster:
         def settle(done: Future) -> None:  # in the client's callback thread
             try:
                 if done.status == "finished":
-                    deaths = self.client.run_on_scheduler(deaths_of, done.key)
+                    deaths = self.deaths(str(done.key))
                     answer: tuple[str, Any] = ("result", (done.result(), deaths))
-                else:
+                elif done.status == "error":
                     error = done.exception()
                     if isinstance(error, KilledWorker):
                         error = WorkerDied(error.allowed_failures + 1)
                     answer = ("error", error)
-            except BaseException as error:  # cancelled, or the scheduler was lost
+                else:  # cancelled: the client lost the scheduler (or was closed)
+                    answer = ("error", UpdatesUnavailable(f"the update was {done.status}"))
+            except BaseException as error:  # the scheduler was lost
                 answer = ("error", UpdatesUnavailable(f"the Dask scheduler failed: {error!r}"))
             finally:
                 self._futures.discard(done)
+            if answer[0] == "error" and not isinstance(answer[1], Exception):
+                answer = ("error", UpdatesUnavailable(f"the Dask scheduler gave {answer[1]!r}"))
             try:
                 loop.call_soon_threadsafe(_settle, outcome, answer)
             except RuntimeError:  # the server's loop is closed: it stopped
@@ -151,12 +205,13 @@ class UpdateCluster:
         try:
             return await outcome
         except asyncio.CancelledError:
-            future.cancel()
+            if future.client.status != "closed":  # a closed client has cancelled it already
+                future.cancel()
             raise
 
     def close(self) -> None:
         """Cancel the updates in flight (they stay pending in the database) and disconnect."""
-        if self._futures:
+        if self._futures and self.client.status != "closed":
             self.client.cancel(list(self._futures))
         self.client.close()
 

@@ -50,6 +50,7 @@ RESCAN_SECONDS = 30.0
 # database this often for one another process committed (a thread hop and a query each: at
 # 200 participants, once a second per waiter was a measurable share of the server's CPU).
 DB_POLL_SECONDS = 5.0
+RETRY_SECONDS = 5.0  # a session whose update could not be run (database, scheduler) waits
 CLUSTER_WATCH_SECONDS = 10.0  # how often a ready server asks its Dask cluster about the workers
 
 
@@ -404,17 +405,28 @@ class UpdateManager:
             self._notify(session_id, processed)
         except asyncio.CancelledError:
             raise
+        except UpdatesUnavailable as error:  # not the update's fault: it stays pending
+            log.warning(
+                "learner updates of session %s wait for the Dask scheduler: %s; retrying in %.0f s",
+                session_id,
+                error,
+                RETRY_SECONDS,
+            )
+            self._retry_later(session_id)
         except Exception:
             # The database failed us: try this session again a little later.
             log.exception("learner updates of session %s could not be run; retrying", session_id)
-            assert self._loop is not None
-            self._loop.call_later(5.0, self._enqueue, session_id)
+            self._retry_later(session_id)
         finally:
             self._running.discard(session_id)
             self._slots.release()
             if more or session_id in self._again:
                 self._again.discard(session_id)
                 self._enqueue(session_id)
+
+    def _retry_later(self, session_id: int) -> None:
+        assert self._loop is not None
+        self._loop.call_later(RETRY_SECONDS, self._enqueue, session_id)
 
     async def _run(self, job: Job) -> tuple[dict[str, Any], int]:
         """``run_update`` on the cluster or in an update process: its outcome, and how many
@@ -505,7 +517,7 @@ class UpdateManager:
             "kernels; /api/health answers 503 until then",
             self.cluster.address,
         )
-        self._spawn(self._warm_up_cluster())
+        warming: asyncio.Task[None] | None = None
         while True:
             try:
                 workers = await asyncio.to_thread(self.cluster.workers)
@@ -515,6 +527,9 @@ class UpdateManager:
                 log.warning("could not ask the Dask cluster for its workers: %s", error)
                 await asyncio.sleep(CLUSTER_WATCH_SECONDS)
                 continue
+            # At the start, and after the scheduler was replaced: its workers are to warm up.
+            if not workers.warm_up_registered and (warming is None or warming.done()):
+                warming = self._spawn(self._warm_up_cluster())
             self.workers = workers.threads
             self.warm_processes = workers.warm_threads
             self._resize(workers.threads)

@@ -161,11 +161,13 @@ class LiveServer:
     database_url: str
 
     def query(self, sql: str, **params: Any) -> list[Any]:
-        """Rows straight from the study's database (what the server committed)."""
+        """Rows straight from the study's database (what the server committed); a statement
+        that changes rows is committed (as another process's change would be)."""
         engine = create_engine(self.database_url)
         try:
-            with engine.connect() as connection:
-                return list(connection.execute(text(sql), params))
+            with engine.begin() as connection:
+                result = connection.execute(text(sql), params)
+                return list(result) if result.returns_rows else []
         finally:
             engine.dispose()
 

@@ -1,8 +1,9 @@
 """Every page a person sees, checked by axe-core (bundled by axe-playwright-python: nothing is
 fetched) against the WCAG 2.0 and 2.1 A and AA rules: the MTurk replica's pages, the preview,
 consent, each tutorial step, the teaching page of each domain (idle, demonstrating, the agent
-trying, after feedback), the completion page, the error pages, the login page and the
-dashboard (its list, a participant, a curve, a replay). Each page or state is its own test.
+trying, after feedback), the completion page, the error pages, the errors the study's page draws
+itself (a participant the server no longer knows, a request the server failed), the login page
+and the dashboard (its list, a participant, a curve, a replay). Each page or state is its own test.
 
 The pages are reached once per module by driving real studies (a Mechanical Turk study with its
 tutorial, a lab study with the three domains); each test looks at what axe found there."""
@@ -16,7 +17,7 @@ from typing import Any
 
 import pytest
 from axe_playwright_python.sync_playwright import Axe
-from playwright.sync_api import Browser, Frame, Page, expect
+from playwright.sync_api import Browser, Frame, Page, Route, expect
 
 from tests.browser.conftest import (
     WAIT_MS,
@@ -72,6 +73,8 @@ LAB_STATES = (
     "declined",
     *(f"teaching-{domain}-{state}" for domain in DOMAINS for state in TEACHING_STATES),
     "lab-completion",
+    "place-not-found",
+    "something-went-wrong",
 )
 
 
@@ -309,10 +312,47 @@ def lab_found(
         study.press("Enter")
         expect(page.locator('[data-testid="completion-code"]')).to_be_visible(timeout=WAIT_MS)
         found.check("lab-completion", page)
+        in_page_errors(browser, browser_context_args, server, found, pages)
 
     yield drive(found, steps)
     for page in pages:
         page.context.close()
+
+
+def in_page_errors(
+    browser: Browser,
+    browser_context_args: dict[str, Any],
+    server: LiveServer,
+    found: Found,
+    pages: list[Page],
+) -> None:
+    """The errors the study's page draws in place of a step: the participant's token is no
+    longer known to the server (401), and the server fails a request (500)."""
+    forgotten = new_page(browser, browser_context_args)
+    pages.append(forgotten)
+    forgotten.goto(f"{server.url}/study")
+    expect(forgotten.locator('[data-action="agree"]')).to_be_visible()
+    # The newest participant's token is no longer valid.
+    server.query(
+        "UPDATE participants SET token_hash = :other WHERE id = (SELECT max(id) FROM participants)",
+        other="0" * 64,
+    )
+    forgotten.click('[data-action="agree"]')
+    expect(forgotten.locator("h1")).to_have_text("Your place in the study could not be found")
+    found.check("place-not-found", forgotten)
+
+    failing = new_page(browser, browser_context_args)
+    pages.append(failing)
+
+    def server_error(route: Route) -> None:  # as the server answers an unhandled error
+        route.fulfill(status=500, content_type="text/plain", body="Internal Server Error")
+
+    failing.route("**/api/participant/consent", server_error)
+    failing.goto(f"{server.url}/study")
+    failing.click('[data-action="agree"]')
+    expect(failing.locator("h1")).to_have_text("Something went wrong")
+    expect(failing.locator("main")).to_contain_text("Internal Server Error")
+    found.check("something-went-wrong", failing)
 
 
 @pytest.mark.parametrize("state", LAB_STATES)

@@ -5,9 +5,11 @@ evaluations equal those of the same participants with local update processes, to
 
 from __future__ import annotations
 
+import logging
 import os
 import random
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -20,14 +22,14 @@ from typing import Any
 import pandas as pd
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import select
+from sqlalchemy import func, select
 
 from analysis.data import EVALUATION_COLUMNS
 from server.app import flow
 from server.app.db import Database, upgrade
 from server.app.export import load_tables
 from server.app.main import create_app
-from server.app.models import LearnerUpdate
+from server.app.models import LearnerUpdate, LearningSession
 from server.app.settings import Settings
 from server.domains import make
 from server.domains.base import ACTIONS
@@ -304,3 +306,200 @@ def test_an_update_that_kills_every_worker_comes_back_as_worker_deaths(cluster: 
         answer, error = pool.submit(asyncio.run, scenario()).result()
     assert answer == (42, 0)  # the result, and no worker died running it
     assert isinstance(error, WorkerDied) and error.deaths == 4
+
+
+def die_once(payload: dict[str, Any]) -> str:
+    """An update whose first attempt kills the process running it."""
+    marker = Path(payload["marker"])
+    if not marker.exists():
+        marker.touch()
+        os._exit(1)
+    return "ran again"
+
+
+class Records(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
+@pytest.mark.slow
+def test_worker_deaths_are_counted_without_a_log_line_per_update(
+    cluster: Any, tmp_path: Path
+) -> None:
+    """The scheduler (in this process: a LocalCluster's) logs nothing at INFO or above for an
+    update, while the server still learns how many workers died running each."""
+    import asyncio
+
+    from server.app.cluster import UpdateCluster
+
+    async def scenario() -> list[tuple[Any, int]]:
+        updates = UpdateCluster.connect(cluster.scheduler_address)
+        try:
+            answers = [
+                await updates.run(double, {"value": k}, f"learner-update-7-{k}") for k in range(4)
+            ]
+            marker = str(tmp_path / "died")
+            answers.append(await updates.run(die_once, {"marker": marker}, "learner-update-8-1"))
+            return answers
+        finally:
+            await asyncio.to_thread(updates.close)
+
+    records = Records()
+    logger = logging.getLogger("distributed")
+    logger.addHandler(records)
+    try:
+        with ThreadPoolExecutor(1) as pool:
+            answers = pool.submit(asyncio.run, scenario()).result()
+    finally:
+        logger.removeHandler(records)
+    assert answers == [(0, 0), (2, 0), (4, 0), (6, 0), ("ran again", 1)]
+    lines = [
+        f"{record.name}: {record.getMessage()}"
+        for record in records.records
+        if record.levelno >= logging.INFO
+        and record.name.startswith("distributed.")
+        and ("out-of-band" in record.getMessage() or "handler" in record.getMessage())
+    ]
+    assert lines == []
+
+
+def dask_command(*arguments: str) -> list[str]:
+    return [str(Path(sys.executable).with_name("dask")), *arguments]
+
+
+# The worker runs functions of this module too (``executing``).
+DASK_ENVIRONMENT = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+class SchedulerAndWorker:
+    """A Dask scheduler at ``address`` and one single-threaded worker, in processes of their
+    own (killed together, as a lost machine is)."""
+
+    def __init__(self, port: int) -> None:
+        self.address = f"tcp://127.0.0.1:{port}"
+        self.processes = [
+            subprocess.Popen(
+                dask_command(
+                    "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"
+                ),
+                start_new_session=True,
+                env=DASK_ENVIRONMENT,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+        ]
+        with distributed.Client(self.address, timeout=60):  # the scheduler answers
+            pass
+        self.processes.append(
+            subprocess.Popen(
+                dask_command(
+                    "worker", self.address, "--nthreads", "1", "--nworkers", "1", "--no-dashboard"
+                ),
+                start_new_session=True,
+                env=DASK_ENVIRONMENT,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+        )
+
+    def kill(self) -> None:
+        for process in reversed(self.processes):
+            if process.poll() is None:
+                os.killpg(process.pid, signal.SIGKILL)
+            process.wait(timeout=30)
+
+
+class UpdateWatcher(threading.Thread):
+    """Waits until the worker runs a learner update that fits the learner (update 1 or later),
+    then calls ``then``."""
+
+    def __init__(self, address: str, then: Any) -> None:
+        super().__init__(daemon=True)
+        self.address = address
+        self.then = then
+        self.seen: str | None = None
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            with distributed.Client(self.address, timeout=30) as observer:
+                deadline = time.monotonic() + 120
+                while self.seen is None and time.monotonic() < deadline:
+                    for keys in observer.run(executing).values():
+                        fitting = [key for key in keys if int(key.split("-")[3]) >= 1]
+                        if fitting:
+                            self.seen = fitting[0]
+                    time.sleep(0.01)
+            if self.seen is not None:
+                self.then()
+        except BaseException as error:
+            self.error = error
+
+
+@pytest.mark.slow
+def test_an_update_lost_with_the_scheduler_runs_on_the_next_one(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The scheduler and its worker are killed while an update runs, and stay away longer than
+    the Dask client waits for them; a new scheduler at the same address and a new worker: the
+    update was kept pending and runs there, every update of the participant is done, once
+    each, with nothing lost, and the new worker was warmed up."""
+    from server.app import updates
+
+    monkeypatch.setattr(updates, "CLUSTER_WATCH_SECONDS", 1.0)
+    port = free_port()
+    first = SchedulerAndWorker(port)
+    second: SchedulerAndWorker | None = None
+    db = fresh_database(tmp_path / "study.db")
+    settings = make_settings(
+        db.engine.url.render_as_string(hide_password=False), update_scheduler=first.address
+    )
+    try:
+        with TestClient(create_app(settings, study_config(**SLOW_STUDY), db=db)) as client:
+            wait_until_ready(client, timeout=180)
+            watcher = UpdateWatcher(first.address, first.kill)
+            watcher.start()
+            participant, session_id = teaching_participant(client)
+            for task in range(3):
+                demonstrate(participant, session_id, task, seed=task)
+            watcher.join()
+            assert watcher.error is None and watcher.seen is not None, watcher.error
+            # Longer than the client's own reconnection attempts (10 s, as the server sets).
+            time.sleep(12)
+            with db.read() as s:
+                assert s.scalar(
+                    select(func.count())
+                    .select_from(LearnerUpdate)
+                    .where(LearnerUpdate.status == "pending")
+                )
+            second = SchedulerAndWorker(port)
+            wait_for_updates(db, timeout=180)
+            with db.read() as s:
+                rows = s.scalars(select(LearnerUpdate).order_by(LearnerUpdate.update_index))
+                done = [(row.update_index, row.status, row.attempts, row.error) for row in rows]
+                session = s.get(LearningSession, session_id)
+                assert session is not None
+                requested, processed = session.updates_requested, session.updates_processed
+            assert done == [(index, "done", 1, None) for index in range(4)]
+            assert requested == processed == 3
+            # The new scheduler was given the warm-up: its worker loaded the kernels.
+            deadline = time.monotonic() + 60
+            while (health := client.get("/api/health").json())["update_processes_warm"] < 1:
+                assert time.monotonic() < deadline, health
+                time.sleep(0.2)
+            assert health["update_processes"] == health["update_processes_warm"] == 1
+    finally:
+        first.kill()
+        if second is not None:
+            second.kill()
+        db.dispose()

@@ -78,9 +78,19 @@ LAB_STATES = (
 )
 
 
+# Transitions and other finite animations still running (a button's colour fading into its
+# pressed colour for 0.12 s): axe judges the colours of the moment, so it waits for them to end.
+# Endless animations (a marching outline, a pulsing prompt) move no colour axe checks.
+FINITE_ANIMATIONS_RUNNING = """() => document.getAnimations().filter(
+    (a) => a.playState === "running" && a.effect.getTiming().iterations !== Infinity
+).length === 0"""
+
+
 def axe_violations(target: Page | Frame) -> list[str]:
     """Every WCAG 2.0/2.1 A and AA violation axe finds in ``target`` (a page without its
-    iframes, or one frame), one line each: rule, element, what is wrong."""
+    iframes, or one frame) once its transitions have ended, one line each: rule, element,
+    what is wrong."""
+    target.wait_for_function(FINITE_ANIMATIONS_RUNNING, timeout=5000)
     results = AXE.run(
         target,
         options={

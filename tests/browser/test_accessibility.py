@@ -16,7 +16,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from axe_playwright_python.sync_playwright import Axe
 from playwright.sync_api import Browser, Frame, Page, Route, expect
 
 from tests.browser.conftest import (
@@ -24,6 +23,7 @@ from tests.browser.conftest import (
     LiveServer,
     Study,
     admin_login,
+    axe_violations,
     domain_toml,
     run_live_server,
     study_frame,
@@ -32,8 +32,6 @@ from tests.browser.conftest import (
 
 pytestmark = pytest.mark.browser
 
-WCAG_TAGS = ["wcag2a", "wcag2aa", "wcag21a", "wcag21aa"]
-AXE = Axe()
 DOMAINS = ("navigation", "farming", "gravity")
 TUTORIAL_STEPS = (
     "move",
@@ -76,35 +74,6 @@ LAB_STATES = (
     "place-not-found",
     "something-went-wrong",
 )
-
-
-# Transitions and other finite animations still running (a button's colour fading into its
-# pressed colour for 0.12 s): axe judges the colours of the moment, so it waits for them to end.
-# Endless animations (a marching outline, a pulsing prompt) move no colour axe checks.
-FINITE_ANIMATIONS_RUNNING = """() => document.getAnimations().filter(
-    (a) => a.playState === "running" && a.effect.getTiming().iterations !== Infinity
-).length === 0"""
-
-
-def axe_violations(target: Page | Frame) -> list[str]:
-    """Every WCAG 2.0/2.1 A and AA violation axe finds in ``target`` (a page without its
-    iframes, or one frame) once its transitions have ended, one line each: rule, element,
-    what is wrong."""
-    target.wait_for_function(FINITE_ANIMATIONS_RUNNING, timeout=5000)
-    results = AXE.run(
-        target,
-        options={
-            "runOnly": {"type": "tag", "values": WCAG_TAGS},
-            "resultTypes": ["violations"],
-            "iframes": False,
-        },
-    )
-    return [
-        f"{violation['id']} at {node['target']}: {violation['help']} "
-        f"({(node.get('failureSummary') or '').replace(chr(10), ' ')})"
-        for violation in results.response["violations"]
-        for node in violation["nodes"]
-    ]
 
 
 class Found(dict[str, list[str]]):

@@ -18,11 +18,11 @@ from tests.browser.conftest import (
     LiveServer,
     Study,
     Watch,
+    axe_violations,
     domain_toml,
     run_live_server,
     study_toml,
 )
-from tests.browser.test_accessibility import axe_violations
 
 pytestmark = pytest.mark.browser
 

@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import os
 import re
-import socket
-import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
@@ -22,7 +20,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-import uvicorn
 from axe_playwright_python.sync_playwright import Axe
 from playwright.sync_api import ConsoleMessage, Frame, Page, Request, expect
 from sqlalchemy import create_engine, text
@@ -32,6 +29,7 @@ from server.app.db import create_db_engine, upgrade
 from server.app.main import create_app
 from server.app.settings import Settings
 from server.domains.base import ACTIONS
+from tests.server.conftest import live
 
 ADMIN_TOKEN = "browser-test-admin-token"
 CHROMIUM = "/usr/bin/chromium"
@@ -150,12 +148,6 @@ def screenshot_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 # -- the live server ------------------------------------------------------------------------
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @dataclass
 class LiveServer:
     url: str
@@ -193,22 +185,8 @@ def run_live_server(
         mp.setenv("BAM_UPDATE_WORKER_NICENESS", "0")
         mp.setenv("BAM_AGENT_WAIT_SECONDS", "120")
         app = create_app(Settings(), executor=executor)
-    port = free_port()
-    server = uvicorn.Server(
-        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", access_log=False)
-    )
-    thread = threading.Thread(target=server.run, name=f"live-server-{port}", daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    while not server.started:
-        if not thread.is_alive() or time.monotonic() > deadline:
-            raise RuntimeError("the live server did not start")
-        time.sleep(0.05)
-    try:
-        yield LiveServer(f"http://127.0.0.1:{port}", database_url)
-    finally:
-        server.should_exit = True
-        thread.join(timeout=60)
+    with live(app) as url:
+        yield LiveServer(url, database_url)
 
 
 # -- watching the page ----------------------------------------------------------------------

@@ -5,13 +5,19 @@ client that keeps the participant's sequence number."""
 from __future__ import annotations
 
 import os
+import socket
+import threading
 import time
 import uuid
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from typing import Any
 
+import httpx
 import pytest
+import uvicorn
+from fastapi import FastAPI
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, func, select, text
 from sqlalchemy.engine import make_url
@@ -121,10 +127,38 @@ def client(
         yield test_client
 
 
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+@contextmanager
+def live(app: FastAPI) -> Iterator[str]:
+    """``app`` served by uvicorn in a thread on a free port, as ``serve`` runs it (one lifespan,
+    real HTTP); yields its base URL."""
+    port = free_port()
+    server = uvicorn.Server(
+        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", access_log=False)
+    )
+    thread = threading.Thread(target=server.run, name=f"live-server-{port}", daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 60
+    while not server.started:
+        if not thread.is_alive() or time.monotonic() > deadline:
+            raise RuntimeError("the live server did not start")
+        time.sleep(0.05)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(timeout=60)
+
+
 class Participant:
     """A participant talking to the API: keeps the token and the next sequence number."""
 
-    def __init__(self, client: TestClient, token: str, next_seq: int = 1) -> None:
+    def __init__(self, client: httpx.Client, token: str, next_seq: int = 1) -> None:
         self.client = client
         self.token = token
         self.seq = next_seq
@@ -153,7 +187,7 @@ class Participant:
         return f"/api/sessions/{session_id}"
 
 
-def arrive(client: TestClient, worker: str = "W1", assignment: str = "A1", **extra: Any) -> Any:
+def arrive(client: httpx.Client, worker: str = "W1", assignment: str = "A1", **extra: Any) -> Any:
     params = {
         "assignmentId": assignment,
         "hitId": "H1",
@@ -164,14 +198,16 @@ def arrive(client: TestClient, worker: str = "W1", assignment: str = "A1", **ext
     return client.post("/api/arrivals", json=params)
 
 
-def new_participant(client: TestClient, worker: str = "W1", assignment: str = "A1") -> Participant:
+def new_participant(
+    client: httpx.Client, worker: str = "W1", assignment: str = "A1"
+) -> Participant:
     response = arrive(client, worker, assignment)
     assert response.status_code == 201, response.text
     return Participant(client, response.json()["token"])
 
 
 def teaching_participant(
-    client: TestClient, worker: str = "W1", assignment: str = "A1"
+    client: httpx.Client, worker: str = "W1", assignment: str = "A1"
 ) -> tuple[Participant, int]:
     """A participant past consent and start: returns it and its current (tutorial) session."""
     participant = new_participant(client, worker, assignment)
@@ -180,7 +216,7 @@ def teaching_participant(
     return participant, data["participant"]["current_session_id"]
 
 
-def wait_until_ready(client: TestClient, timeout: float = 120.0) -> dict[str, Any]:
+def wait_until_ready(client: httpx.Client, timeout: float = 120.0) -> dict[str, Any]:
     """Until /api/health answers 200 (every update process warm); its answer."""
     deadline = time.monotonic() + timeout
     while (response := client.get("/api/health")).status_code == 503:

@@ -18,6 +18,7 @@ import pytest
 from server.app.config import load_study_config
 from server.app.serve_cmd import startup_notes
 from server.cli import main
+from tests.server.conftest import free_port
 
 
 def test_serve_on_a_port_in_use_fails_at_once_with_one_line(
@@ -108,12 +109,6 @@ def test_the_console_says_who_may_enter_and_what_is_locked() -> None:
         "BAM_ADMIN_TOKEN is not set: the dashboard (/dashboard), the MTurk replica (/mturk) "
         "and the admin API are locked. Set it and restart to use them.",
     ]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def test_serve_lab_lets_a_participant_in_without_parameters(tmp_path: Path) -> None:

@@ -9,7 +9,6 @@ import logging
 import os
 import random
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -36,6 +35,7 @@ from server.domains.base import ACTIONS
 from server.teacher import Teacher
 from tests.server.conftest import (
     Participant,
+    free_port,
     make_settings,
     study_config,
     teaching_participant,
@@ -373,12 +373,6 @@ def dask_command(*arguments: str) -> list[str]:
 
 # The worker runs functions of this module too (``executing``).
 DASK_ENVIRONMENT = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 class SchedulerAndWorker:

@@ -1,6 +1,6 @@
-"""Learner update speed of this checkout against an earlier commit, on the same machine
-(issue 2): the development machines differ by up to 3x in speed from one day to the next and
-are noisy within a run, so a figure is only comparable with one measured beside it.
+"""Learner update speed of this checkout against an earlier commit, on the same machine:
+2-core virtual machines differ by up to 3x in speed from one day to the next and are noisy
+within a run, so a figure is only comparable with one measured beside it.
 
     python benchmarks/compare.py --against 2bb2b4e [--environments flip doorway] [--cycles 3]
 

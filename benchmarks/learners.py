@@ -1,4 +1,4 @@
-"""Learner speed benchmark (issue 2): per environment and learner, the update time (median and
+"""Learner speed benchmark: per environment and learner, the update time (median and
 p95) after 1, 5 and 10 rounds of simulated demonstrations, one planner forward pass, one
 forward-plus-backward pass, and the learner state's serialised size.
 

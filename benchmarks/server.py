@@ -1,4 +1,4 @@
-"""Study server benchmark (issue 4): a live server, N simulated participants teaching at once
+"""Study server benchmark: a live server, N simulated participants teaching at once
 over HTTP, p50 and p95 latencies of moves, agent steps and waits for learner updates, and events
 acknowledged against events stored.
 

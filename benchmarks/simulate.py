@@ -1,4 +1,4 @@
-"""Simulation speed benchmark (issue 3): time the demonstrations experiment, or a stated
+"""Simulation speed benchmark: time the demonstrations experiment, or a stated
 fraction of it, and project the full-size run (8 environments x 3 learners x 50 agents x 10
 rounds; target on a 2-core machine: at most 15 minutes).
 

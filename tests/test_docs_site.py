@@ -190,6 +190,22 @@ def test_the_documents_speak_of_the_project_only() -> None:
     assert found == []
 
 
+def test_the_code_names_no_issue_of_the_tracker() -> None:
+    """Docstrings and --help texts say what a thing does, not which piece of work made it."""
+    sources = [
+        path
+        for folder in ("server", "analysis", "benchmarks", "scripts", "migrations")
+        for path in sorted((ROOT / folder).rglob("*.py"))
+    ]
+    assert len(sources) > 50
+    found = [
+        f"{path.relative_to(ROOT)}: {match.group(0)}"
+        for path in sources
+        for match in re.finditer(r"\bissues? #?\d+", path.read_text(encoding="utf-8"), re.I)
+    ]
+    assert found == []
+
+
 def test_the_readme_links_to_pages_and_pictures_that_exist() -> None:
     """The README is read on its own (not built by MkDocs): its relative links must resolve."""
     readme = (ROOT / "README.md").read_text(encoding="utf-8")

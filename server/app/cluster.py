@@ -20,6 +20,7 @@ import asyncio
 import logging
 import os
 import sys
+import threading
 import uuid
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -109,7 +110,10 @@ class UpdateCluster:
         self.client = client
         self.address = str(client.scheduler.address)
         self.timeout = 10.0
-        self._futures: set[Future] = set()
+        self._lock = threading.Lock()
+        # The tasks the server waits for: the future, the server's loop, and what it awaits.
+        self._in_flight: dict[str, tuple[Future, asyncio.AbstractEventLoop, asyncio.Future[None]]]
+        self._in_flight = {}
         self._counted_on: str | None = None  # the scheduler (its id) that has DeathCounts
         self._warmed_on: str | None = None  # the scheduler that has the WarmUp plugin
 
@@ -150,6 +154,7 @@ class UpdateCluster:
         come back) is replaced by a new one, when the scheduler answers again."""
         if self.client.status != "closed":
             return
+        self._abandon()
         self.client = connect(self.address, self.timeout, what="BAM_UPDATE_SCHEDULER")
         log.info("reconnected to the Dask scheduler at %s", self.address)
 
@@ -168,58 +173,84 @@ class UpdateCluster:
     async def run(self, function: Any, payload: dict[str, Any], name: str) -> tuple[Any, int]:
         """``function(payload)`` on a worker, as a task named ``name`` (and a unique suffix,
         as the cluster's dashboard shows it): its result, and how many workers died running
-        it. Raises the function's error, or ``WorkerDied``."""
+        it. Raises the function's error, ``WorkerDied``, or ``UpdatesUnavailable`` when the
+        scheduler was out of reach (the update stays pending and is run again)."""
+        client = self.client
+        # Only a connected client: one reconnecting or closing takes a task and never settles
+        # it (seen: an update submitted as the client closed waited for ever).
+        if client.status != "running":
+            raise UpdatesUnavailable(
+                f"no connection to the Dask scheduler at {self.address} (the client is "
+                f"{client.status})"
+            )
         loop = asyncio.get_running_loop()
-        outcome: asyncio.Future[tuple[Any, int]] = loop.create_future()
-        if self.client.status == "closed":
-            raise UpdatesUnavailable(f"no connection to the Dask scheduler at {self.address}")
-        future = self.client.submit(
+        done: asyncio.Future[None] = loop.create_future()
+        future = client.submit(
             function, {**payload, "threads": THREADS_PER_UPDATE}, key=f"{name}-{uuid.uuid4().hex}"
         )
-        self._futures.add(future)
-
-        def settle(done: Future) -> None:  # in the client's callback thread
-            try:
-                if done.status == "finished":
-                    deaths = self.deaths(str(done.key))
-                    answer: tuple[str, Any] = ("result", (done.result(), deaths))
-                elif done.status == "error":
-                    error = done.exception()
-                    if isinstance(error, KilledWorker):
-                        error = WorkerDied(error.allowed_failures + 1)
-                    answer = ("error", error)
-                else:  # cancelled: the client lost the scheduler (or was closed)
-                    answer = ("error", UpdatesUnavailable(f"the update was {done.status}"))
-            except BaseException as error:  # the scheduler was lost
-                answer = ("error", UpdatesUnavailable(f"the Dask scheduler failed: {error!r}"))
-            finally:
-                self._futures.discard(done)
-            if answer[0] == "error" and not isinstance(answer[1], Exception):
-                answer = ("error", UpdatesUnavailable(f"the Dask scheduler gave {answer[1]!r}"))
-            try:
-                loop.call_soon_threadsafe(_settle, outcome, answer)
-            except RuntimeError:  # the server's loop is closed: it stopped
-                pass
-
-        future.add_done_callback(settle)
+        with self._lock:
+            self._in_flight[str(future.key)] = (future, loop, done)
+        # Dask runs every future's callbacks in one thread: this one only wakes the server's
+        # loop, and what asks the scheduler (the deaths) runs in a thread of the server's own.
+        future.add_done_callback(lambda finished: self._wake(str(finished.key)))
         try:
-            return await outcome
+            await done
         except asyncio.CancelledError:
-            if future.client.status != "closed":  # a closed client has cancelled it already
+            if client.status != "closed":  # a closed client has cancelled it already
                 future.cancel()
             raise
+        finally:
+            with self._lock:
+                self._in_flight.pop(str(future.key), None)
+        return await asyncio.to_thread(self._outcome, future)
+
+    def _wake(self, key: str) -> None:
+        """From any thread: the server's wait for the task ``key`` ends."""
+        with self._lock:
+            entry = self._in_flight.get(key)
+        if entry is None:
+            return
+        _, loop, done = entry
+        try:
+            loop.call_soon_threadsafe(_set_done, done)
+        except RuntimeError:  # the server's loop is closed: it stopped
+            pass
+
+    def _abandon(self) -> None:
+        """The client is closed: the tasks it held will never settle; their updates stay
+        pending and are run again."""
+        with self._lock:
+            keys = list(self._in_flight)
+        for key in keys:
+            self._wake(key)
+
+    def _outcome(self, future: Future) -> tuple[Any, int]:
+        """Blocking: the ended task's result and deaths, or the error it ended with."""
+        status = future.status
+        try:
+            if status == "finished":
+                return future.result(), self.deaths(str(future.key))
+            error = future.exception() if status == "error" else None
+        except Exception as lost:
+            raise UpdatesUnavailable(f"the Dask scheduler failed: {lost!r}") from None
+        if status != "error":  # cancelled, or left pending by a closed client
+            raise UpdatesUnavailable(f"the update was lost with the scheduler ({status})")
+        if isinstance(error, KilledWorker):
+            raise WorkerDied(error.allowed_failures + 1)
+        if isinstance(error, Exception):
+            raise error
+        raise UpdatesUnavailable(f"the Dask scheduler gave {error!r}")
 
     def close(self) -> None:
         """Cancel the updates in flight (they stay pending in the database) and disconnect."""
-        if self._futures and self.client.status != "closed":
-            self.client.cancel(list(self._futures))
+        with self._lock:
+            futures = [future for future, _, _ in self._in_flight.values()]
+        if futures and self.client.status != "closed":
+            self.client.cancel(futures)
         self.client.close()
+        self._abandon()
 
 
-def _settle(outcome: asyncio.Future[Any], answer: tuple[str, Any]) -> None:
-    if outcome.done():
-        return
-    if answer[0] == "result":
-        outcome.set_result(answer[1])
-    else:
-        outcome.set_exception(answer[1])
+def _set_done(done: asyncio.Future[None]) -> None:
+    if not done.done():
+        done.set_result(None)

@@ -497,3 +497,95 @@ def test_an_update_lost_with_the_scheduler_runs_on_the_next_one(
         if second is not None:
             second.kill()
         db.dispose()
+
+
+class StandInClient:
+    """In place of a Dask client, for the paths a real one reaches only by timing: its status
+    is set by the test, and its tasks never end unless the test ends them."""
+
+    def __init__(self, status: str) -> None:
+        self.status = status
+        self.scheduler = type("Rpc", (), {"address": "tcp://127.0.0.1:1"})()
+        self.submitted: list[StandInFuture] = []
+
+    def submit(self, function: Any, payload: Any, key: str) -> StandInFuture:
+        future = StandInFuture(key)
+        self.submitted.append(future)
+        return future
+
+    def nthreads(self) -> dict[str, int]:
+        return {}
+
+    def scheduler_info(self, n_workers: int) -> dict[str, str]:
+        return {"id": f"scheduler-{id(self)}"}
+
+    def cancel(self, futures: list[Any]) -> None:
+        for future in futures:
+            future.cancel()
+
+    def close(self) -> None:
+        self.status = "closed"
+
+
+class StandInFuture:
+    def __init__(self, key: str) -> None:
+        self.key = key
+        self.status = "pending"
+        self.callbacks: list[Any] = []
+
+    def add_done_callback(self, callback: Any) -> None:
+        self.callbacks.append(callback)
+
+    def cancel(self) -> None:
+        self.status = "cancelled"
+        for callback in self.callbacks:
+            callback(self)
+
+
+@pytest.mark.parametrize("status", ["connecting", "closing", "closed"])
+def test_no_update_goes_to_a_client_that_is_not_connected(status: str) -> None:
+    """A client that is reconnecting or closing would take the task and, closing, never settle
+    it: the update is refused as unavailable (it stays pending and is tried again)."""
+    import asyncio
+
+    from server.app.cluster import UpdateCluster
+    from server.app.updates import UpdatesUnavailable
+
+    client = StandInClient(status)
+    with pytest.raises(UpdatesUnavailable, match=f"the client is {status}"):
+        update = UpdateCluster(client).run(double, {"value": 1}, "learner-update-1-1")  # type: ignore[arg-type]
+        asyncio.run(asyncio.wait_for(update, 5))
+    assert client.submitted == []
+
+
+def test_an_update_left_with_a_closed_client_ends_when_the_server_reconnects(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A task the closed client never settled: the reconnection ends the server's wait for it
+    with UpdatesUnavailable, instead of leaving the session's updates waiting for ever."""
+    import asyncio
+
+    from server.app import cluster as cluster_module
+    from server.app.cluster import UpdateCluster
+    from server.app.updates import UpdatesUnavailable
+
+    old, new = StandInClient("running"), StandInClient("running")
+    monkeypatch.setattr(cluster_module, "connect", lambda *args, **kwargs: new)
+    updates = UpdateCluster(old)  # type: ignore[arg-type]
+
+    async def scenario() -> BaseException | None:
+        running = asyncio.ensure_future(updates.run(double, {"value": 1}, "learner-update-1-1"))
+        await asyncio.sleep(0.05)
+        assert len(old.submitted) == 1 and not running.done()
+        old.status = "closed"  # it closed without settling the task
+        await asyncio.to_thread(updates.workers)  # as the server asks every few seconds
+        try:
+            await asyncio.wait_for(running, 5)
+        except UpdatesUnavailable as error:
+            return error
+        return None
+
+    error = asyncio.run(scenario())
+    assert isinstance(error, UpdatesUnavailable), error
+    assert "lost with the scheduler (pending)" in str(error)
+    assert updates.client is new

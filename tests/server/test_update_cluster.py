@@ -301,11 +301,18 @@ def test_an_update_that_kills_every_worker_comes_back_as_worker_deaths(cluster: 
         finally:
             await asyncio.to_thread(updates.close)
 
-    # In a thread of its own: after the browser tests, this thread may run an event loop.
-    with ThreadPoolExecutor(1) as pool:
-        answer, error = pool.submit(asyncio.run, scenario()).result()
+    answer, error = run_apart(scenario())
     assert answer == (42, 0)  # the result, and no worker died running it
     assert isinstance(error, WorkerDied) and error.deaths == 4
+
+
+def run_apart(coroutine: Any) -> Any:
+    """``asyncio.run`` in a thread of its own: after the browser tests, this thread may be
+    running Playwright's event loop."""
+    import asyncio
+
+    with ThreadPoolExecutor(1) as pool:
+        return pool.submit(asyncio.run, coroutine).result()
 
 
 def die_once(payload: dict[str, Any]) -> str:
@@ -554,7 +561,7 @@ def test_no_update_goes_to_a_client_that_is_not_connected(status: str) -> None:
     client = StandInClient(status)
     with pytest.raises(UpdatesUnavailable, match=f"the client is {status}"):
         update = UpdateCluster(client).run(double, {"value": 1}, "learner-update-1-1")  # type: ignore[arg-type]
-        asyncio.run(asyncio.wait_for(update, 5))
+        run_apart(asyncio.wait_for(update, 5))
     assert client.submitted == []
 
 
@@ -585,7 +592,7 @@ def test_an_update_left_with_a_closed_client_ends_when_the_server_reconnects(
             return error
         return None
 
-    error = asyncio.run(scenario())
+    error = run_apart(scenario())
     assert isinstance(error, UpdatesUnavailable), error
     assert "lost with the scheduler (pending)" in str(error)
     assert updates.client is new

@@ -112,8 +112,9 @@ class UpdateCluster:
         self.timeout = 10.0
         self._lock = threading.Lock()
         # The tasks the server waits for: the future, the server's loop, and what it awaits.
-        self._in_flight: dict[str, tuple[Future, asyncio.AbstractEventLoop, asyncio.Future[None]]]
-        self._in_flight = {}
+        self._in_flight: dict[
+            str, tuple[Future, asyncio.AbstractEventLoop, asyncio.Future[None]]
+        ] = {}
         self._counted_on: str | None = None  # the scheduler (its id) that has DeathCounts
         self._warmed_on: str | None = None  # the scheduler that has the WarmUp plugin
 
@@ -185,14 +186,13 @@ class UpdateCluster:
             )
         loop = asyncio.get_running_loop()
         done: asyncio.Future[None] = loop.create_future()
-        future = client.submit(
-            function, {**payload, "threads": THREADS_PER_UPDATE}, key=f"{name}-{uuid.uuid4().hex}"
-        )
+        key = f"{name}-{uuid.uuid4().hex}"
+        future = client.submit(function, {**payload, "threads": THREADS_PER_UPDATE}, key=key)
         with self._lock:
-            self._in_flight[str(future.key)] = (future, loop, done)
+            self._in_flight[key] = (future, loop, done)
         # Dask runs every future's callbacks in one thread: this one only wakes the server's
         # loop, and what asks the scheduler (the deaths) runs in a thread of the server's own.
-        future.add_done_callback(lambda finished: self._wake(str(finished.key)))
+        future.add_done_callback(lambda _: self._wake(key))
         try:
             await done
         except asyncio.CancelledError:
@@ -201,8 +201,8 @@ class UpdateCluster:
             raise
         finally:
             with self._lock:
-                self._in_flight.pop(str(future.key), None)
-        return await asyncio.to_thread(self._outcome, future)
+                self._in_flight.pop(key, None)
+        return await asyncio.to_thread(self._outcome, future, key)
 
     def _wake(self, key: str) -> None:
         """From any thread: the server's wait for the task ``key`` ends."""
@@ -224,12 +224,12 @@ class UpdateCluster:
         for key in keys:
             self._wake(key)
 
-    def _outcome(self, future: Future) -> tuple[Any, int]:
+    def _outcome(self, future: Future, key: str) -> tuple[Any, int]:
         """Blocking: the ended task's result and deaths, or the error it ended with."""
         status = future.status
         try:
             if status == "finished":
-                return future.result(), self.deaths(str(future.key))
+                return future.result(), self.deaths(key)
             error = future.exception() if status == "error" else None
         except Exception as lost:
             raise UpdatesUnavailable(f"the Dask scheduler failed: {lost!r}") from None

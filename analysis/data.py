@@ -127,7 +127,7 @@ def load_database(
     from sqlalchemy.engine import make_url
     from sqlalchemy.exc import ArgumentError, SQLAlchemyError
 
-    from server.app.export.tables import load_tables as read_database
+    from server.app.export.tables import export_tables as read_database
     from server.app.export.tables import open_study_database
     from server.app.storage.db import current_revision, head_revision
 

@@ -45,7 +45,7 @@ from sqlalchemy import func, select
 from server.app.config import DEFAULT_STUDY_CONFIG
 from server.app.storage.db import Database, upgrade
 from server.app.storage.models import Event, LearnerUpdate
-from server.commands.live import LiveServer, free_port
+from server.commands.live import ServerProcess, free_port
 from server.commands.simulated import (
     StudyRun,
     TeachingPlan,
@@ -223,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
             )
         elif args.scheduler:
             environment["BAM_UPDATE_SCHEDULER"] = args.scheduler
-        server = stack.enter_context(LiveServer(folder, environment))
+        server = stack.enter_context(ServerProcess(folder, environment))
 
         def teach() -> None:
             result["run"] = run_participants(

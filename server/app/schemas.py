@@ -189,7 +189,10 @@ class EpisodeState(BaseModel):
 
 class Learning(BaseModel):
     pending: int = Field(description="Updates queued or running: the agent is learning.")
-    updates: int = Field(description="Updates finished (done or failed), the first one included.")
+    updates: int = Field(
+        description="Updates after episodes finished (done or failed), counted as sessions.csv's "
+        "`updates`: the untrained learner's evaluation (update 0) is not one of them."
+    )
 
 
 class TeachingState(BaseModel):

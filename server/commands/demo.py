@@ -176,9 +176,9 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
     from analysis.results import analyze
     from analysis.tables import table1_markdown
     from server.app.config import DEFAULT_STUDY_CONFIG
-    from server.app.export.tables import load_tables, write_export
+    from server.app.export.tables import export_tables, write_export
     from server.app.storage.db import Database, upgrade
-    from server.commands.live import LiveServer
+    from server.commands.live import ServerProcess
     from server.commands.simulated import TeachingPlan, run_participants
     from server.simulation.progress import Progress
 
@@ -210,7 +210,7 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
             file=err,
             flush=True,
         )
-        with LiveServer(out, environment) as server:
+        with ServerProcess(out, environment) as server:
             progress = Progress(options.participants, stream=err, label="participants")
             progress.start()
             lock = threading.Lock()
@@ -238,7 +238,7 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
                     f"{server.log_path}"
                 )
             wait_for_learners(db, err, server.log_path)
-        tables = load_tables(db)
+        tables = export_tables(db)
     finally:
         db.dispose()
     write_export(tables, out / "export")

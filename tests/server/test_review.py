@@ -15,7 +15,7 @@ from sqlalchemy import func, select
 
 from server.app.config import StudyConfig
 from server.app.errors import ApiError
-from server.app.export.tables import dictionary_frame, load_tables
+from server.app.export.tables import dictionary_frame, export_tables
 from server.app.platforms.review import (
     MTurkClientBackend,
     ReplicaReviewBackend,
@@ -142,7 +142,7 @@ def test_approve_reject_and_bonus_show_on_the_replica_and_in_the_export(
     assert "bonus-token-1" in page
 
     # The export records them, pseudonymised like participants.csv, and documents them.
-    tables = load_tables(db)
+    tables = export_tables(db)
     participants = tables["participants"].set_index("participant_id")
     reviews = tables["reviews"]
     assert list(reviews["decision"]) == ["approved", "rejected"]
@@ -154,7 +154,7 @@ def test_approve_reject_and_bonus_show_on_the_replica_and_in_the_export(
     bonuses = tables["bonuses"]
     assert list(bonuses["amount_usd"]) == [1.5, 0.25]
     assert list(bonuses["participant_id"]) == [first, first]
-    plain = load_tables(db, pseudonymize=False)
+    plain = export_tables(db, pseudonymize=False)
     assert list(plain["bonuses"]["worker_id"]) == ["WORKER1", "WORKER1"]
     dictionary = dictionary_frame()
     for name in ("reviews", "bonuses"):

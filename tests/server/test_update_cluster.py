@@ -24,7 +24,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
 from analysis.data import EVALUATION_COLUMNS
-from server.app.export.tables import load_tables
+from server.app.export.tables import export_tables
 from server.app.main import create_app
 from server.app.participants import tokens
 from server.app.settings import Settings
@@ -100,7 +100,7 @@ def teach(client: TestClient, during_updates: Any = None) -> None:
 
 
 def evaluations(db: Database) -> pd.DataFrame:
-    return load_tables(db)["evaluations"][SAME_COLUMNS]
+    return export_tables(db)["evaluations"][SAME_COLUMNS]
 
 
 def learner_states(db: Database) -> list[tuple[int, int, bytes | None, bytes | None]]:

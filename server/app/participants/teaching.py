@@ -125,7 +125,7 @@ def teaching_state(session: Any, env: Environment) -> TeachingState:
 def learning(session: Any) -> Learning:
     return Learning(
         pending=max(0, session.updates_requested - session.updates_processed),
-        updates=session.updates_processed + 1,
+        updates=session.updates_processed,
     )
 
 

@@ -31,6 +31,7 @@ from server.app.schemas import (
     StatusChangeView,
 )
 from server.app.state import ServerState
+from server.app.storage.figures import participant_figures
 from server.app.storage.models import (
     AssignmentReview,
     Bonus,
@@ -96,8 +97,7 @@ def _admin_sessions(s: Session, sessions: list[LearningSession]) -> list[AdminSe
 def _admin_participant(
     p: Participant, sessions: list[LearningSession], completed_at: Any
 ) -> AdminParticipant:
-    mine = [x for x in sessions if x.kind == "study"]
-    end = completed_at or p.last_seen_at
+    figures = participant_figures(p, [x for x in sessions if x.kind == "study"], completed_at)
     return AdminParticipant(
         participant_id=p.id,
         platform=p.platform,
@@ -110,9 +110,9 @@ def _admin_participant(
         exclusion_reason=p.exclusion_reason,
         created_at=p.created_at,
         last_seen_at=p.last_seen_at,
-        minutes=round((end - p.created_at).total_seconds() / 60, 2),
-        agents_finished=sum(1 for x in mine if x.completed),
-        agents=len(mine),
+        minutes=figures.minutes,
+        agents_finished=figures.agents_finished,
+        agents=figures.agents,
         completion_code=p.completion_code,
     )
 
@@ -369,7 +369,7 @@ def download_export(
 ) -> Response:
     """The export (CSV files and their data dictionary) as a zip."""
     secret = state.settings.secret.get_secret_value() if state.settings.secret else None
-    tables = export.load_tables(state.db, pseudonymize=pseudonymize, secret=secret)
+    tables = export.export_tables(state.db, pseudonymize=pseudonymize, secret=secret)
     stamp = utcnow().strftime("%Y%m%dT%H%M%SZ")
     return Response(
         content=export.export_zip(tables),

@@ -25,6 +25,7 @@ from server.app.storage.models import Event, LearnerUpdate, LearningSession
 from server.app.updates.worker import PARENT_CHECK_SECONDS
 from server.domains import make
 from server.domains.base import ACTIONS
+from server.learners.records import DemonstrationStep
 from server.teacher import Teacher
 from tests.server.conftest import (
     Participant,
@@ -315,7 +316,7 @@ def test_an_update_gives_its_planner_the_threads_its_job_names(tmp_path: Path) -
     env = make("doorway")
     teacher = Teacher(env, seed=3)
     records = [
-        ("demonstration", task, *step)
+        DemonstrationStep(task, *step)
         for task in range(len(env.tasks))
         for step in teacher.demonstration(task, env.sample_start(task, np.random.default_rng(task)))
     ]

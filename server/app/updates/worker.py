@@ -15,6 +15,13 @@ import numpy as np
 
 from server.app.updates.policies import encode
 from server.domains.base import STAY
+from server.learners.records import (
+    AgentStep,
+    DemonstrationStep,
+    Feedback,
+    IdleMove,
+    Observation,
+)
 
 if TYPE_CHECKING:
     pass
@@ -61,20 +68,10 @@ def worker_ready(hold_seconds: float = 0.0) -> int:
     return os.getpid()
 
 
-def apply_records(learner: Any, records: list[tuple[Any, ...]]) -> None:
+def apply_records(learner: Any, records: list[Observation]) -> None:
     """Replay what the learner observed, in order."""
     for record in records:
-        kind, *values = record
-        if kind == "demonstration":
-            learner.record_demonstration(*values)
-        elif kind == "agent_step":
-            learner.record_agent_step(*values)
-        elif kind == "transition":
-            learner.record_transition(*values)
-        elif kind == "feedback":
-            learner.record_feedback(*values)
-        else:
-            raise ValueError(f"unknown record {kind!r}")
+        learner.observe(record)
 
 
 def run_update(job: dict[str, Any]) -> dict[str, Any]:
@@ -106,19 +103,19 @@ def run_update(job: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def records_of(rows: Any) -> list[tuple[Any, ...]]:
+def records_of(rows: Any) -> list[Observation]:
     """Learner observations from event rows (record, task, state, action, next_state,
-    feedback, stay_state)."""
-    records: list[tuple[Any, ...]] = []
+    feedback, stay_state); the events' ``transition`` is an idle move."""
+    records: list[Observation] = []
     for row in rows:
         if row.record == "demonstration":
-            records.append(("demonstration", row.task, row.state, row.action, row.next_state))
+            records.append(DemonstrationStep(row.task, row.state, row.action, row.next_state))
         elif row.record == "agent_step":
-            records.append(("agent_step", row.task, row.state, row.action, row.next_state, 0))
+            records.append(AgentStep(row.task, row.state, row.action, row.next_state))
         elif row.record == "transition":
-            records.append(("transition", row.state, row.action, row.next_state))
+            records.append(IdleMove(row.state, row.action, row.next_state))
         elif row.record == "feedback":
-            records.append(("feedback", row.feedback))
+            records.append(Feedback(row.feedback))
         if row.stay_state is not None:
-            records.append(("demonstration", row.task, row.next_state, STAY, row.stay_state))
+            records.append(DemonstrationStep(row.task, row.next_state, STAY, row.stay_state))
     return records

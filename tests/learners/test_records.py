@@ -57,7 +57,7 @@ def test_observe_records_what_the_record_calls_record() -> None:
         elif isinstance(o, Feedback):
             called.record_feedback(o.feedback)
         else:
-            called.record_transition(o.state, o.action, o.next_state)
+            called.record_idle_move(o.state, o.action, o.next_state)
     for name, table in typed.data.state_dict().items():
         assert np.array_equal(table, called.data.state_dict()[name]), name
     assert set(typed.data.agent_steps[:, 4].tolist()) == {-1, 1}

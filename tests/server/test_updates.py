@@ -102,7 +102,7 @@ def test_one_evaluation_per_update_in_order(client: TestClient, db: Database) ->
         e.stay_state is not None for e in events
     )
     assert len(learner.data.demonstrations) == demonstrated
-    assert len(learner.data.transitions_alone) == sum(e.record == "transition" for e in events)
+    assert len(learner.data.idle_moves) == sum(e.record == "transition" for e in events)
     policy = np.frombuffer(rows[-1].greedy_policy, dtype=np.int8).reshape(tasks, env.num_states)
     assert policy.min() >= 0 and policy.max() < len(ACTIONS)
 

@@ -264,18 +264,13 @@ def minari_infos() -> str:
 
 
 def analysis_outputs() -> str:
-    """What ``bam-study analyze`` writes, from the README it writes beside its outputs (with
-    the default baseline, thresholds and false discovery rate)."""
-    from types import SimpleNamespace
-
+    """What ``bam-study analyze`` counts and writes, from the README it writes beside its
+    outputs (with the default baseline, thresholds and false discovery rate; without the
+    notes on a study's data, which the README adds)."""
     from analysis.options import DEFAULT_BASELINE, DEFAULT_FDR, DEFAULT_THRESHOLDS
-    from analysis.report import describe_outputs
+    from analysis.report import describe_files
 
-    defaults = SimpleNamespace(
-        baseline=DEFAULT_BASELINE, thresholds=DEFAULT_THRESHOLDS, fdr=DEFAULT_FDR
-    )
-    text = describe_outputs(defaults)  # type: ignore[arg-type]
-    return text.split("\n", 1)[1].strip()
+    return describe_files(DEFAULT_BASELINE, DEFAULT_THRESHOLDS, DEFAULT_FDR).strip()
 
 
 GENERATORS: dict[str, Callable[[], str]] = {

@@ -15,7 +15,7 @@ import pandas as pd
 import pytest
 from sqlalchemy import create_engine, text
 
-from server.cli import main
+from server.commands.main import main
 
 LEARNERS = {"bam": "BAM", "model-based": "Model-Based IRL", "cloning": "Behavioral Cloning"}
 ENVIRONMENTS = {
@@ -51,7 +51,7 @@ def test_the_demo_runs_a_whole_study(tmp_path: Path, capsys: pytest.CaptureFixtu
     words = shlex.split(command)
     program = next(word for word in words if "=" not in word)
     assert Path(program).is_absolute() and os.access(program, os.X_OK), command
-    assert words[words.index(program) + 1 :] in (["serve"], ["-m", "server.cli", "serve"])
+    assert words[words.index(program) + 1 :] in (["serve"], ["-m", "server.commands.main", "serve"])
     # It points to the dashboard's token, in a file only its owner can read, not shows it.
     token = (out / "admin-token").read_text().strip()
     assert token and token not in stdout and token not in stderr
@@ -165,7 +165,7 @@ def test_bad_demo_arguments(
 def test_the_dashboard_command_points_to_the_token_without_showing_it(tmp_path: Path) -> None:
     """The printed command reads the token from a file only its owner can read; the token is
     in no printed line, and a shell running the command's assignments gets it."""
-    from server.app.demo import TOKEN_FILE, dashboard_instructions, write_admin_token
+    from server.commands.demo import TOKEN_FILE, dashboard_instructions, write_admin_token
 
     out = tmp_path / "my demo"  # a space: the paths must be quoted
     out.mkdir()
@@ -193,9 +193,9 @@ def test_the_dashboard_command_points_to_the_token_without_showing_it(tmp_path: 
 def test_waiting_for_the_learners_says_what_it_waits_for(tmp_path: Path) -> None:
     """After the participants, the updates still queued are explained before their progress
     bar, and the bar says what it counts."""
-    from server.app.db import Database, upgrade
-    from server.app.demo import wait_for_learners
-    from server.app.models import LearnerUpdate, LearningSession, Participant
+    from server.app.storage.db import Database, upgrade
+    from server.app.storage.models import LearnerUpdate, LearningSession, Participant
+    from server.commands.demo import wait_for_learners
 
     db = Database.from_url(f"sqlite:///{tmp_path / 'study.sqlite'}")
     upgrade(db.engine)

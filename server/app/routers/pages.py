@@ -8,6 +8,7 @@ keeps no cookie in the platform's iframe).
 
 from __future__ import annotations
 
+from datetime import UTC, datetime
 from pathlib import Path
 
 from fastapi import APIRouter, Request, Response
@@ -22,6 +23,20 @@ from server.app.schemas import ArrivalRequest
 
 TEMPLATES_DIR = Path(__file__).resolve().parents[2] / "templates"
 templates = Jinja2Templates(directory=str(TEMPLATES_DIR))
+
+
+def format_time(moment: datetime | None) -> str:
+    """A time as "2026-11-26 10:42:07 UTC": how every time is written on the experimenter's pages (the
+    dashboard's ``formatTime`` in static/js/dom.js writes the same); a time without a zone is
+    UTC, as the database keeps them."""
+    if moment is None:
+        return ""
+    if moment.tzinfo is None:
+        moment = moment.replace(tzinfo=UTC)
+    return moment.astimezone(UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+
+
+templates.env.filters["utc"] = format_time
 router = APIRouter(tags=["pages"])
 
 ARRIVAL_PARAMETERS = {field.alias or name for name, field in ArrivalRequest.model_fields.items()}

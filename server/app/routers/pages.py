@@ -8,44 +8,18 @@ keeps no cookie in the platform's iframe).
 
 from __future__ import annotations
 
-from datetime import UTC, datetime
-from pathlib import Path
-
 from fastapi import APIRouter, Request, Response
 from fastapi.responses import HTMLResponse
-from fastapi.templating import Jinja2Templates
 from pydantic import ValidationError
 
 from server.app.deps import StateDep
 from server.app.errors import ApiError, TurnedAway
-from server.app.routers.arrivals import arrive
+from server.app.routers.common import arrive, notice, templates
 from server.app.schemas import ArrivalRequest
 
-TEMPLATES_DIR = Path(__file__).resolve().parents[2] / "templates"
-templates = Jinja2Templates(directory=str(TEMPLATES_DIR))
-
-
-def format_time(moment: datetime | None) -> str:
-    """A time as "2026-11-26 10:42:07 UTC": how every time is written on the experimenter's pages (the
-    dashboard's ``formatTime`` in static/js/dom.js writes the same); a time without a zone is
-    UTC, as the database keeps them."""
-    if moment is None:
-        return ""
-    if moment.tzinfo is None:
-        moment = moment.replace(tzinfo=UTC)
-    return moment.astimezone(UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
-
-
-templates.env.filters["utc"] = format_time
 router = APIRouter(tags=["pages"])
 
 ARRIVAL_PARAMETERS = {field.alias or name for name, field in ArrivalRequest.model_fields.items()}
-
-
-def notice(request: Request, title: str, message: str, status_code: int) -> Response:
-    return templates.TemplateResponse(
-        request, "notice.html", {"title": title, "message": message}, status_code=status_code
-    )
 
 
 @router.get("/study", response_class=HTMLResponse)

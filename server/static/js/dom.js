@@ -51,7 +51,7 @@ export function capitalise(text) {
 }
 
 /** "2026-11-26 10:42:07 UTC": how every time is written on the experimenter's pages (the
- * server writes the replica's the same way, ``format_time`` in routers/pages.py). ``value`` is
+ * server writes the replica's the same way, ``format_time`` in routers/common.py). ``value`` is
  * a Date or an ISO 8601 text; one without a zone is UTC, as the server keeps times. */
 export function formatTime(value) {
   if (value === null || value === undefined || value === "") return "";

@@ -208,7 +208,7 @@ def test_a_failed_update_is_recorded_and_the_session_goes_on(
         participant.act(f"{participant.session(session_id)}/agent-step")["session"]["learning"][
             "updates"
         ]
-        == 3
+        == 2
     )
 
 

@@ -382,7 +382,7 @@ def test_a_waiter_wakes_on_its_own_update_at_once_and_polls_for_other_processes(
     poll; and a wait with neither ends False at its timeout."""
     import asyncio
 
-    from server.app import updates as updates_module
+    from server.app.updates import manager as updates_module
     from server.app.updates.policies import PolicyCache
 
     class FakeDb:

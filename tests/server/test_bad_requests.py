@@ -126,3 +126,23 @@ def test_bad_requests_get_4xx_and_change_nothing(
     assert stored(db) == before
     # The participant goes on where it was.
     learner.act(f"/api/sessions/{session}/mode", mode="demonstrate")
+
+
+def test_every_422_has_its_detail_as_a_list_of_problems(client: TestClient, db: Database) -> None:
+    """The documented shape of a 422 (HTTPValidationError), for a bad query value too."""
+    assert client.post("/api/arrivals", json={}).status_code in (201, 403)
+    before = stored(db)
+    for path in (
+        "/api/admin/participants/1/exclusion?reason=%00",
+        "/api/admin/participants/1/exclusion?reason=a%00b",
+        "/api/admin/participants/1/exclusion?reason=",
+    ):
+        response = client.delete(path, headers=ADMIN)
+        assert response.status_code == 422, response.text
+        detail = response.json()["detail"]
+        assert isinstance(detail, list) and detail, detail
+        for problem in detail:
+            assert isinstance(problem["loc"], list) and problem["msg"] and problem["type"]
+    assert stored(db) == before
+    schema = client.get("/openapi.json").json()["components"]["schemas"]
+    assert schema["HTTPValidationError"]["properties"]["detail"]["type"] == "array"

@@ -27,6 +27,7 @@ from server.app.db import Database, upgrade
 from server.app.flow import TOKEN_HEADER
 from server.app.main import create_app
 from server.app.models import Event, LearnerUpdate
+from server.app.serve_cmd import server_config
 from server.app.settings import Settings
 from server.app.updates import new_executor
 
@@ -138,9 +139,8 @@ def live(app: FastAPI) -> Iterator[str]:
     """``app`` served by uvicorn in a thread on a free port, as ``serve`` runs it (one lifespan,
     real HTTP); yields its base URL."""
     port = free_port()
-    server = uvicorn.Server(
-        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", access_log=False)
-    )
+    settings = app.state.server.settings
+    server = uvicorn.Server(server_config(app, settings, "127.0.0.1", port, log_level="warning"))
     thread = threading.Thread(target=server.run, name=f"live-server-{port}", daemon=True)
     thread.start()
     deadline = time.monotonic() + 60

@@ -28,6 +28,13 @@ import numpy as np
 from threadpoolctl import ThreadpoolController
 
 from server.domains.base import Environment
+from server.learners.records import (
+    AgentStep,
+    DemonstrationStep,
+    Feedback,
+    IdleMove,
+    Observation,
+)
 
 _blas: ThreadpoolController | None = None
 
@@ -143,6 +150,20 @@ class Learner(ABC):
             self.env.check_action(action),
             self.env.check_state(next_state),
         )
+
+    def observe(self, observation: Observation) -> None:
+        """Record one observation (``records``): the typed form of the ``record_*`` methods."""
+        match observation:
+            case DemonstrationStep(task, state, action, next_state):
+                self.record_demonstration(task, state, action, next_state)
+            case AgentStep(task, state, action, next_state, feedback):
+                self.record_agent_step(task, state, action, next_state, feedback)
+            case IdleMove(state, action, next_state):
+                self.record_transition(state, action, next_state)
+            case Feedback(feedback):
+                self.record_feedback(feedback)
+            case _:
+                raise TypeError(f"not an observation: {observation!r}")
 
     def record_demonstration(self, task: int, state: int, action: int, next_state: int) -> None:
         """Record a teacher's action for ``task`` and the transition it made."""

@@ -16,7 +16,7 @@ from server.app.config import (
     parse_study_config,
 )
 from server.app.settings import Settings
-from server.cli import main
+from server.commands.main import main
 
 PAPER = DEFAULT_STUDY_CONFIG.read_text()
 

@@ -48,7 +48,10 @@ def test_the_default_is_the_papers_study() -> None:
         (('mode = "mturk"', 'mode = "prolific"'), "needs prolific_code"),
         (('mode = "mturk"', 'mode = "email"'), "completion.mode"),
         (('title = "Teach a robot"', 'title = ""'), "title"),
-        (('title = "Teach a robot"', 'title = "x"\nsurprise = 1'), "surprise: unknown key; valid keys: "),
+        (
+            ('title = "Teach a robot"', 'title = "x"\nsurprise = 1'),
+            "surprise: unknown key; valid keys: ",
+        ),
         (
             ("# [learner_settings.bam]", "learner_settings = { bam = { speed = 2 } }"),
             "learner_settings.bam: unknown setting(s) speed",

@@ -28,6 +28,7 @@ from server.app.routers import (
     mturk,
     pages,
     participant,
+    prolific,
     sessions,
     study,
 )
@@ -197,6 +198,7 @@ def create_app(
         dashboard.pages,
         dashboard.api,
         mturk.router,
+        prolific.router,
     ):
         app.include_router(router)
     if STATIC_DIR.is_dir():

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Query, Response
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from server.app import export, flow, review, teaching
+from server.app import export, flow, teaching
 from server.app.deps import AdminDep, RowId, StateDep
 from server.app.errors import ApiError
 from server.app.models import (
@@ -21,6 +21,7 @@ from server.app.models import (
     StatusChange,
     utcnow,
 )
+from server.app.platforms import review
 from server.app.schemas import (
     AdminEvaluation,
     AdminEvent,
@@ -172,15 +173,20 @@ def _participant_detail(s: Session, participant_id: int) -> AdminParticipantDeta
         else ReviewView(
             decision=decision.decision,  # type: ignore[arg-type]
             feedback=decision.feedback,
+            rejection_category=decision.rejection_category,
             backend=decision.backend,
+            state=decision.state,  # type: ignore[arg-type]
             decided_at=decision.decided_at,
         ),
         bonuses=[
             BonusView(
-                amount=review.dollars(b.amount_cents),
+                amount=review.money(b.amount_cents),
+                currency=b.currency,
                 reason=b.reason,
                 unique_token=b.unique_token,
                 backend=b.backend,
+                state=b.state,
+                setup_id=b.setup_id,
                 paid_at=b.paid_at,
             )
             for b in bonuses
@@ -241,21 +247,34 @@ def include(
 
 @router.post("/participants/{participant_id}/approval", response_model=AdminParticipantDetail)
 def approve(participant_id: RowId, body: ReviewRequest, state: StateDep) -> AdminParticipantDetail:
-    """Approve the participant's submitted MTurk assignment (``BAM_REVIEW_BACKEND``), once."""
+    """Approve the participant's submitted work on their platform (``BAM_REVIEW_BACKEND``),
+    once; a repeat answers the same."""
     return _decide(participant_id, "approved", body, state)
 
 
 @router.post("/participants/{participant_id}/rejection", response_model=AdminParticipantDetail)
 def reject(participant_id: RowId, body: ReviewRequest, state: StateDep) -> AdminParticipantDetail:
-    """Reject the participant's submitted MTurk assignment, with feedback, once."""
+    """Reject the participant's submitted work, with feedback (on Prolific: a category and a
+    message of at least 100 characters), once."""
     return _decide(participant_id, "rejected", body, state)
+
+
+def _backend_for(state: ServerState, participant_id: int) -> review.ReviewBackend:
+    with state.db.read() as s:
+        p = s.get(Participant, participant_id)
+        if p is None:
+            raise ApiError(404, f"no participant {participant_id}")
+        platform = p.platform
+    return state.review_backend(platform)
 
 
 def _decide(
     participant_id: int, decision: review.Decision, body: ReviewRequest, state: ServerState
 ) -> AdminParticipantDetail:
-    backend = state.review_backend()
-    review.review_submission(state.db, backend, participant_id, decision, body.feedback)
+    backend = _backend_for(state, participant_id)
+    review.review_submission(
+        state.db, backend, participant_id, decision, body.feedback, body.rejection_category
+    )
     with state.db.read() as s:
         return _participant_detail(s, participant_id)
 
@@ -264,11 +283,11 @@ def _decide(
 def send_bonus(
     participant_id: RowId, body: BonusRequest, state: StateDep
 ) -> AdminParticipantDetail:
-    """Pay the participant's worker a bonus; a retry with the same ``unique_token`` pays
-    nothing more and answers the same."""
+    """Pay the participant a bonus; a retry with the same ``unique_token`` pays nothing more
+    and answers the same."""
     review.pay_bonus(
         state.db,
-        state.review_backend(),
+        _backend_for(state, participant_id),
         participant_id,
         body.amount,
         body.reason,

@@ -7,7 +7,7 @@ study in an iframe with exactly ``assignmentId``, ``hitId``, ``workerId`` and ``
 which points back at this server), and either submits (the page POSTs its form from the top
 window to ``{turkSubmitTo}/mturk/externalSubmit``, recorded here with every field) or returns
 the HIT, after which the same assignment id goes to the next worker who accepts, as on MTurk.
-The requester's approvals, rejections and bonuses (``review.ReplicaReviewBackend``, from the
+The requester's approvals, rejections and bonuses (``platforms.mturk.MTurkReplicaBackend``, from the
 dashboard) show on the HIT page.
 """
 

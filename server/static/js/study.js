@@ -365,13 +365,20 @@ async function completionPage() {
     });
     parts.push(h("p", {}, "Press the button to submit your work to Mechanical Turk. The code is sent with it."), form);
   } else if (completion.mode === "prolific") {
+    // Prolific's guidance: send the participant back automatically; the button is the fallback.
     const link = h("a", { class: "btn primary big", href: completion.redirect_url, target: "_top", "data-action": "return-prolific" }, "Return to Prolific");
-    link.addEventListener("click", async (event) => {
-      event.preventDefault();
+    const back = async () => {
       await recordSubmission();
       window.open(completion.redirect_url, "_top");
+    };
+    link.addEventListener("click", (event) => {
+      event.preventDefault();
+      back();
     });
-    parts.push(h("p", {}, "Press the button to go back to Prolific, which records that you completed the study."), link);
+    parts.push(h("p", {}, "You are being sent back to Prolific, which records that you completed the study. If nothing happens, press the button."), link);
+    show(sheet(...parts));
+    back();
+    return;
   } else {
     parts.push(h("p", {}, "Please give this code to the experimenter. You may close this page."));
   }

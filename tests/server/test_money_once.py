@@ -18,14 +18,14 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from server.app.db import Database
 from server.app.errors import ApiError
-from server.app.export import load_tables
-from server.app.models import AssignmentReview, Bonus, Participant
+from server.app.export.tables import export_tables
 from server.app.platforms import review
 from server.app.platforms.mturk import MTurkClientBackend, MTurkReplicaBackend
 from server.app.platforms.review import parse_amount
-from server.app.replica_models import ReplicaAssignment, ReplicaBonus
+from server.app.storage.db import Database
+from server.app.storage.models import AssignmentReview, Bonus, Participant
+from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus
 from tests.server.conftest import ADMIN_TOKEN
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
@@ -166,7 +166,7 @@ def test_an_mturk_bonus_is_paid_once_and_recorded_whatever_fails_after_paying(
         assert [(b["amount"], b["state"]) for b in again.json()["bonuses"]] == [("2.00", "paid")]
     assert stand_in.bonuses == {"bonus-token-1": ("WORKER1", "2.00")}
     assert our_bonuses(db) == [("bonus-token-1", 200, "paid")]
-    exported = load_tables(db, pseudonymize=False)["bonuses"]
+    exported = export_tables(db, pseudonymize=False)["bonuses"]
     assert list(zip(exported["amount"], exported["payment_state"], strict=True)) == [
         ("2.00", "paid")
     ]
@@ -252,7 +252,7 @@ KILLED_BETWEEN_CALL_AND_RECORD = textwrap.dedent(
     """
     import os, signal, sys
     from decimal import Decimal
-    from server.app.db import Database
+    from server.app.storage.db import Database
     from server.app.platforms import review
     from server.app.platforms.mturk import MTurkReplicaBackend
 
@@ -295,7 +295,7 @@ def test_a_replica_bonus_killed_between_the_call_and_the_record_is_settled_once(
     with db.read() as s:
         assert list(s.scalars(select(ReplicaBonus.unique_request_token))) == ["tok-killed-1"]
     assert our_bonuses(db) == [("tok-killed-1", 300, "paid")]
-    assert list(load_tables(db)["bonuses"]["unique_token"]) == ["tok-killed-1"]
+    assert list(export_tables(db)["bonuses"]["unique_token"]) == ["tok-killed-1"]
     assert isinstance(MTurkReplicaBackend(db), MTurkReplicaBackend)
 
 

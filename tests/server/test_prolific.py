@@ -17,11 +17,9 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 
 from server.app.config import StudyConfig
-from server.app.db import Database
 from server.app.errors import ApiError
-from server.app.export import load_tables
+from server.app.export.tables import export_tables
 from server.app.main import create_app
-from server.app.models import Bonus, Participant
 from server.app.platforms import review
 from server.app.platforms.prolific import (
     ProlificBackend,
@@ -30,8 +28,10 @@ from server.app.platforms.prolific import (
     ProlificUnavailable,
 )
 from server.app.platforms.review import Reviewed
-from server.app.replica_models import ProlificReplicaPayment, ProlificReplicaSubmission
 from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.app.storage.models import Bonus, Participant
+from server.app.storage.replica_models import ProlificReplicaPayment, ProlificReplicaSubmission
 from tests.server.conftest import ADMIN_TOKEN, live
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
@@ -322,7 +322,7 @@ def test_the_dashboard_reviews_prolific_participants_on_the_replica(
         ("0.75", "GBP", "paid")
     ]
     assert payments(db) == [75]
-    exported = load_tables(db)["bonuses"]
+    exported = export_tables(db)["bonuses"]
     assert list(exported["setup_id"]) == [paid.json()["bonuses"][0]["setup_id"]]
 
 
@@ -353,6 +353,6 @@ def test_a_crash_around_a_prolific_bonus_never_pays_twice(client: TestClient, db
             assert row is not None and row.state == "paying" and row.setup_id
         with pytest.raises(ApiError, match="will not be paid again") as unknown:
             pay(token, "1")
-        assert unknown.value.status_code == 502
+        assert unknown.value.status == 502
     assert review.reconcile_bonuses(db, backend) == []
     assert payments(db) == [200, 100]  # the one pay that was sent, once

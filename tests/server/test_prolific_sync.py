@@ -17,13 +17,13 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 
 from server.app.config import StudyConfig
-from server.app.db import Database
 from server.app.main import create_app
-from server.app.models import Participant, StatusChange
 from server.app.platforms.prolific import ProlificClient
 from server.app.platforms.prolific_replica import ReplicaTransport
 from server.app.platforms.prolific_sync import reconcile_submissions, signature
 from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.app.storage.models import Participant, StatusChange
 from tests.server.conftest import ADMIN_TOKEN, make_settings
 from tests.server.test_prolific import ADMIN, draft
 
@@ -124,9 +124,9 @@ def test_only_a_genuine_fresh_webhook_releases_a_returned_participant_once(
         )
     assert len(notes) == 1 and "RETURNED" in (notes[0] or "")
     # The export keeps the participant, marked with Prolific's status.
-    from server.app.export import load_tables
+    from server.app.export.tables import export_tables
 
-    row = load_tables(db)["participants"].set_index("participant_id").loc[participant]
+    row = export_tables(db)["participants"].set_index("participant_id").loc[participant]
     assert row["status"] == "returned" and row["prolific_status"] == "RETURNED"
 
 

@@ -4,13 +4,13 @@ through boto3) or ``prolific`` (Prolific's API)."""
 
 from __future__ import annotations
 
-from server.app.db import Database
 from server.app.errors import ApiError
 from server.app.platforms.mturk import MTurkClientBackend, MTurkReplicaBackend, mturk_client
 from server.app.platforms.prolific import ProlificBackend, ProlificClient
 from server.app.platforms.prolific_replica import ReplicaTransport
 from server.app.platforms.review import ReviewBackend
 from server.app.settings import Settings
+from server.app.storage.db import Database
 
 
 def make_backend(settings: Settings, db: Database, platform: str) -> ReviewBackend:

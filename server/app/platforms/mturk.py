@@ -9,9 +9,7 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 
-from server.app.db import Database
 from server.app.errors import ApiError
-from server.app.models import utcnow
 from server.app.platforms.review import (
     AlreadyDone,
     Decision,
@@ -19,8 +17,10 @@ from server.app.platforms.review import (
     ReviewRefused,
     ReviewUnavailable,
 )
-from server.app.replica_models import ReplicaAssignment, ReplicaBonus
 from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.app.storage.models import utcnow
+from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus
 
 # MTurk's answer to a SendBonus whose UniqueRequestToken it has already carried out (the docs:
 # "subsequent calls will return an error with a message containing the request ID").

@@ -29,15 +29,15 @@ import httpx
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from server.app.db import Database
-from server.app.models import utcnow
-from server.app.replica_models import (
+from server.app.platforms.review import REJECTION_CATEGORIES
+from server.app.storage.db import Database
+from server.app.storage.models import utcnow
+from server.app.storage.replica_models import (
     ProlificReplicaBonusSetup,
     ProlificReplicaPayment,
     ProlificReplicaStudy,
     ProlificReplicaSubmission,
 )
-from server.app.schemas import REJECTION_CATEGORIES
 
 STUDY_ACTIONS = {
     "PUBLISH": ({"UNPUBLISHED"}, "ACTIVE"),

@@ -18,9 +18,15 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 
-from server.app.db import Database
-from server.app.models import LearningSession, Participant, ProlificEvent, StatusChange, utcnow
 from server.app.platforms.prolific import SUBMISSION_STATUSES, ProlificClient
+from server.app.storage.db import Database
+from server.app.storage.models import (
+    LearningSession,
+    Participant,
+    ProlificEvent,
+    StatusChange,
+    utcnow,
+)
 
 RELEASED = ("RETURNED", "TIMED-OUT")
 # A webhook older (or newer) than this is refused: a replay of a captured request.

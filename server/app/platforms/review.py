@@ -33,9 +33,9 @@ from typing import Any, Literal, Protocol
 from sqlalchemy import delete, select, update
 from sqlalchemy.exc import IntegrityError
 
-from server.app.db import Database
 from server.app.errors import ApiError, InvalidInput
-from server.app.models import AssignmentReview, Bonus, Participant, utcnow
+from server.app.storage.db import Database
+from server.app.storage.models import AssignmentReview, Bonus, Participant, utcnow
 
 Decision = Literal["approved", "rejected"]
 
@@ -44,6 +44,21 @@ MAX_BONUS = Decimal(100)
 AMOUNT = re.compile(r"[0-9]{1,6}(\.[0-9]{1,2})?")
 CONTROL = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f]")
 
+# Prolific's rejection categories (POST /submissions/{id}/transition/ with action REJECT).
+REJECTION_CATEGORIES = (
+    "TOO_QUICKLY",
+    "TOO_SLOWLY",
+    "FAILED_INSTRUCTIONS",
+    "INCOMP_LONGITUDINAL",
+    "FAILED_CHECK",
+    "LOW_EFFORT",
+    "MALINGERING",
+    "NO_CODE",
+    "BAD_CODE",
+    "NO_DATA",
+    "UNSUPP_DEVICE",
+    "OTHER",
+)
 # Prolific refuses a rejection message shorter than this.
 PROLIFIC_MIN_MESSAGE = 100
 

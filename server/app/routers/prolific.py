@@ -22,8 +22,7 @@ from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse
 from sqlalchemy import select
 
 from server.app.admin_auth import admin_token
-from server.app.deps import StateDep
-from server.app.models import utcnow
+from server.app.deps import StateDep, is_admin
 from server.app.platforms.prolific_replica import (
     PLACEHOLDERS,
     error_body,
@@ -32,15 +31,15 @@ from server.app.platforms.prolific_replica import (
     places_taken,
 )
 from server.app.platforms.prolific_sync import WebhookRefused, apply_webhook, verify
-from server.app.replica_models import (
+from server.app.routers.common import login_redirect, notice, templates
+from server.app.state import ServerState
+from server.app.storage.models import utcnow
+from server.app.storage.replica_models import (
     ProlificReplicaBonusSetup,
     ProlificReplicaPayment,
     ProlificReplicaStudy,
     ProlificReplicaSubmission,
 )
-from server.app.routers.dashboard import is_admin, login_redirect
-from server.app.routers.pages import notice, templates
-from server.app.state import ServerState
 
 router = APIRouter(prefix="/prolific", tags=["prolific replica"], include_in_schema=False)
 
@@ -121,7 +120,7 @@ def researcher_view(request: Request, state: StateDep) -> Response:
     return templates.TemplateResponse(
         request,
         "prolific_replica.html",
-        {"studies": listed, "title": state.study.title},
+        {"studies": listed, "title": state.study.title, "study": state.study.public()},
         headers={"Cache-Control": "no-store"},
     )
 

@@ -1,7 +1,7 @@
 """The study's data as tables: CSV files with a data dictionary, a zip, or pandas DataFrames.
 
 ``open_study_database`` opens a study database for reading only (it never creates one);
-``load_tables`` reads it (the analysis can use it directly); ``write_export`` writes the CSVs
+``export_tables`` reads it (the analysis can use it directly); ``write_export`` writes the CSVs
 and ``data_dictionary.csv``. Worker and assignment ids are pseudonymised with a salted hash
 (HMAC-SHA256 with ``BAM_SECRET``, or the random secret created with the database) and
 completion codes left out, unless ``pseudonymize=False``.
@@ -21,8 +21,9 @@ import pandas as pd
 from sqlalchemy import create_engine, select
 from sqlalchemy.engine import make_url
 
-from server.app.db import Database
-from server.app.models import (
+from server.app.storage.db import Database
+from server.app.storage.figures import participant_figures, study_sessions_by_participant
+from server.app.storage.models import (
     AssignmentReview,
     Bonus,
     Episode,
@@ -101,7 +102,7 @@ DICTIONARY: dict[str, dict[str, str]] = {
         "agent_actions": "Actions the agent took on its own.",
         "idle_moves": "Moves in idle mode (not demonstrations; their transitions are observed).",
         "feedback_given": "Feedback signals given (+ or -).",
-        "updates": "Learner updates processed after the first (index 0) one.",
+        "updates": "Learner updates after episodes processed (update 0, the untrained learner's evaluation, is not one; the API's `learning.updates` counts the same).",
         "final_normalized_return": "Normalised return after the session's last processed update.",
     },
     "episodes": {
@@ -328,7 +329,7 @@ def _frame(name: str, rows: Iterable[dict[str, Any]]) -> pd.DataFrame:
     return pd.DataFrame(list(rows), columns=list(DICTIONARY[name]))
 
 
-def load_tables(
+def export_tables(
     db: Database | str, pseudonymize: bool = True, secret: str | None = None
 ) -> dict[str, pd.DataFrame]:
     """Every export table as a DataFrame (columns as in ``DICTIONARY``; times as ISO strings),
@@ -336,7 +337,7 @@ def load_tables(
     if isinstance(db, str):
         database = open_study_database(db)
         try:
-            return load_tables(database, pseudonymize, secret)
+            return export_tables(database, pseudonymize, secret)
         finally:
             database.dispose()
     if pseudonymize and secret is None:
@@ -422,10 +423,11 @@ def load_tables(
             "assignment_id": pseudonym(secret, assignment_id, "a"),
         }
 
+    study_sessions = study_sessions_by_participant(sessions)
+
     def participant_row(p: Participant) -> dict[str, Any]:
         at = first_at.get(p.id, {})
-        mine = [x for x in sessions if x.participant_id == p.id and x.kind == "study"]
-        end = at.get("completed") or p.last_seen_at
+        figures = participant_figures(p, study_sessions.get(p.id, []), at.get("completed"))
         row = {
             "participant_id": p.id,
             "platform": p.platform,
@@ -440,9 +442,9 @@ def load_tables(
             **{f"{status}_at": _iso(at.get(status)) for status in STATUS_COLUMNS},
             "excluded_at": _iso(p.excluded_at),
             "last_seen_at": _iso(p.last_seen_at),
-            "minutes": round((end - p.created_at).total_seconds() / 60, 2),
-            "agents": len(mine),
-            "agents_finished": sum(1 for x in mine if x.completed),
+            "minutes": figures.minutes,
+            "agents": figures.agents,
+            "agents_finished": figures.agents_finished,
             "tutorial_step": p.tutorial_step,
             "completion_code": p.completion_code,
         }

@@ -18,8 +18,9 @@ import json, numba
 import numpy as np
 from server import domains, learners
 from server.learners import _kernels, likelihoods, planning
-from server.learners.warmup import warm_up
-from server.app.updates import run_update
+from server.app.updates.warmup import warm_up
+from server.app.updates.worker import run_update
+from server.learners.records import AgentStep, DemonstrationStep, Feedback
 from server.teacher import Teacher
 
 def signatures():
@@ -40,12 +41,12 @@ for env_name in ("doorway", "flip", "two-fields", "three-fields"):
     records = []
     for task in range(len(env.tasks)):
         for step in teacher.demonstration(task, env.sample_start(task, rng)):
-            records.append(("demonstration", task, *step))
+            records.append(DemonstrationStep(task, *step))
         state = env.sample_start(task, rng)
         for action in (1, 2, 3, 4, 0):
             next_state = env.step(state, action, rng)
-            records.append(("agent_step", task, state, action, next_state, 0))
-            records.append(("feedback", int(rng.choice([-1, 1]))))
+            records.append(AgentStep(task, state, action, next_state))
+            records.append(Feedback(int(rng.choice([-1, 1]))))
             state = next_state
     for learner in learners.NAMES:
         for threads in (1, 2):

@@ -21,7 +21,10 @@ def free_port() -> int:
         return int(probe.getsockname()[1])
 
 
-class LiveServer:
+class ServerProcess:
+    """``bam-study serve`` in a process of its own (tests of a real server thread use
+    ``tests.browser.conftest.LiveServer``, the app served in a thread)."""
+
     def __init__(self, folder: Path, environment: dict[str, str], port: int | None = None) -> None:
         """``environment``: the BAM_* settings (BAM_DATABASE_URL, ...); the server runs in
         ``folder`` and logs to ``folder/server-N.log``."""
@@ -40,7 +43,7 @@ class LiveServer:
         self.starts += 1
         with open(self.log_path, "wb") as log:
             self.process = subprocess.Popen(
-                [sys.executable, "-m", "server.cli", "serve", "--port", str(self.port)],
+                [sys.executable, "-m", "server.commands.main", "serve", "--port", str(self.port)],
                 env=self.environment,
                 cwd=self.folder,
                 stdout=log,
@@ -79,7 +82,7 @@ class LiveServer:
     def log(self) -> str:
         return self.log_path.read_text(errors="replace")[-4000:] if self.log_path.exists() else ""
 
-    def __enter__(self) -> LiveServer:
+    def __enter__(self) -> ServerProcess:
         self.start()
         return self
 

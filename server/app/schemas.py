@@ -360,6 +360,9 @@ class AdminParticipant(BaseModel):
     assignment_id: str | None
     hit_id: str | None
     status: str
+    prolific_status: str | None = Field(
+        None, description="Prolific's status of the submission (from its webhook or a poll)."
+    )
     domain: str | None
     excluded: bool
     exclusion_reason: str | None

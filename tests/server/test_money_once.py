@@ -29,7 +29,7 @@ from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus
 from tests.server.conftest import ADMIN_TOKEN
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
-BASE = "/dashboard/api/participants"
+BASE = "/api/admin/participants"
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 

@@ -35,7 +35,7 @@ from server.app.storage.replica_models import ProlificReplicaPayment, ProlificRe
 from tests.server.conftest import ADMIN_TOKEN, live
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
-BASE = "/dashboard/api/participants"
+BASE = "/api/admin/participants"
 REASON = (
     "The agents were not taught: no demonstration was given in any of the six tasks, and the "
     "study's instructions asked for one in each."

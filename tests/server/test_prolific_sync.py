@@ -17,6 +17,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 
 from server.app.config import StudyConfig
+from server.app.export.tables import export_tables
 from server.app.main import create_app
 from server.app.platforms.prolific import ProlificClient
 from server.app.platforms.prolific_replica import ReplicaTransport
@@ -24,7 +25,8 @@ from server.app.platforms.prolific_sync import reconcile_submissions, signature
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Participant, StatusChange
-from tests.server.conftest import ADMIN_TOKEN, make_settings
+from tests.server.conftest import ADMIN_TOKEN, live, make_settings, study_config
+from tests.server.conftest import Participant as Participant_
 from tests.server.test_prolific import ADMIN, draft
 
 SECRET = "d2ViaG9vay1zZWNyZXQtZm9yLXRlc3Rz"
@@ -123,9 +125,9 @@ def test_only_a_genuine_fresh_webhook_releases_a_returned_participant_once(
             s.scalars(select(StatusChange.note).where(StatusChange.participant_id == participant))
         )
     assert len(notes) == 1 and "RETURNED" in (notes[0] or "")
-    # The export keeps the participant, marked with Prolific's status.
-    from server.app.export.tables import export_tables
-
+    # The dashboard shows Prolific's status; the export keeps the participant, marked with it.
+    listed = client.get("/api/admin/participants", headers=ADMIN).json()
+    assert [(x["status"], x["prolific_status"]) for x in listed] == [("returned", "RETURNED")]
     row = export_tables(db)["participants"].set_index("participant_id").loc[participant]
     assert row["status"] == "returned" and row["prolific_status"] == "RETURNED"
 
@@ -161,3 +163,91 @@ def test_the_poll_releases_returned_and_timed_out_participants(
     assert status_of(db, ours[kept]) == ("teaching", "ACTIVE")
     assert status_of(db, ours[returned]) == ("returned", "RETURNED")
     assert status_of(db, ours[timed_out]) == ("returned", "TIMED-OUT")
+
+
+@pytest.fixture
+def study() -> StudyConfig:
+    return study_config(
+        completion={
+            "mode": "prolific",
+            "prolific_code": "C1A2B3C4",
+            "prolific_no_consent_code": "NOCONSNT",
+        }
+    )
+
+
+def test_a_released_participant_who_comes_back_sees_a_clear_page_and_changes_nothing(
+    client: TestClient, db: Database
+) -> None:
+    link = {"PROLIFIC_PID": "e" * 24, "STUDY_ID": "a" * 24, "SESSION_ID": "f" * 24}
+    arrived = client.post("/api/arrivals", json=link)
+    assert arrived.status_code == 201, arrived.text
+    participant = Participant_(client, arrived.json()["token"])
+    participant.act("/api/participant/consent", agree=True)
+    event = {
+        "event_type": "submission.status.change",
+        "resource_id": "f" * 24,
+        "study_id": "a" * 24,
+        "status": "TIMED-OUT",
+    }
+    assert send(client, event, "ev-timeout-1").json()["result"] == "applied"
+    with db.read() as s:
+        (ours,) = s.scalars(select(Participant.id))
+    assert status_of(db, ours) == ("returned", "TIMED-OUT")
+    # Coming back by the same link: a page that says why, and the release stands.
+    again = client.post("/api/arrivals", json=link)
+    assert again.status_code == 403 and "returned or that its time ran out" in again.text
+    page = client.get("/study", params=link)
+    assert "This study has ended for you" in page.text
+    refused = client.post(
+        "/api/participant/start", json={"seq": participant.seq}, headers=participant.headers
+    )
+    assert refused.status_code == 409 and "place has gone to another participant" in refused.text
+    assert status_of(db, ours) == ("returned", "TIMED-OUT")
+
+
+def test_the_replica_sends_signed_webhooks_that_release_a_returning_participant(
+    db: Database, settings: Settings, study: StudyConfig, executor: ProcessPoolExecutor
+) -> None:
+    app = create_app(settings, study, db=db, executor=executor)
+    token = {"Authorization": f"Token {ADMIN_TOKEN}"}
+    with live(app) as base, httpx.Client(base_url=base, headers=ADMIN) as browser:
+        made = draft(2)
+        made["external_study_url"] = (
+            f"{base}/study?PROLIFIC_PID={{{{%PROLIFIC_PID%}}}}&STUDY_ID={{{{%STUDY_ID%}}}}"
+            "&SESSION_ID={{%SESSION_ID%}}"
+        )
+        created = browser.post("/prolific/api/v1/studies/", json=made, headers=token).json()
+        browser.post(
+            f"/prolific/api/v1/studies/{created['id']}/transition/",
+            json={"action": "PUBLISH"},
+            headers=token,
+        )
+        # The participant takes part: the replica sends them to the study, which lets them in.
+        entered = browser.post(
+            f"/prolific/studies/{created['id']}/take-part", follow_redirects=True
+        )
+        assert entered.status_code == 200 and entered.url.path == "/study", entered.url
+        with db.read() as s:
+            (ours,) = s.scalars(select(Participant.id))
+            submission = s.scalar(select(Participant.assignment_id))
+        browser.post(f"/prolific/submissions/{submission}/return")
+        deadline = time.monotonic() + 60
+        while status_of(db, ours) != ("returned", "RETURNED"):
+            assert time.monotonic() < deadline, status_of(db, ours)
+            time.sleep(0.1)
+
+
+def test_a_prolific_participant_who_declines_consent_is_sent_back_with_no_consent(
+    client: TestClient, db: Database
+) -> None:
+    link = {"PROLIFIC_PID": "1" * 24, "STUDY_ID": "a" * 24, "SESSION_ID": "2" * 24}
+    participant = Participant_(client, client.post("/api/arrivals", json=link).json()["token"])
+    declined = participant.act("/api/participant/consent", agree=False)["participant"]
+    assert declined["status"] == "declined"
+    assert declined["completion"] == {
+        **declined["completion"],
+        "code": "NOCONSNT",
+        "mode": "prolific",
+        "redirect_url": "https://app.prolific.com/submissions/complete?cc=NOCONSNT",
+    }

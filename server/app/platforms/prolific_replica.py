@@ -29,6 +29,7 @@ import httpx
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from server.app.platforms.prolific_sync import signature
 from server.app.platforms.review import REJECTION_CATEGORIES
 from server.app.storage.db import Database
 from server.app.storage.models import utcnow
@@ -420,3 +421,26 @@ class ReplicaTransport(httpx.BaseTransport):
             status, body = handle(self.db, request.method, path, query, request.read())
         content = b"" if body is None else json.dumps(body).encode()
         return httpx.Response(status, content=content, headers={"Content-Type": "application/json"})
+
+
+def status_event(
+    secret: str, submission: dict[str, Any], timestamp: int
+) -> tuple[dict[str, str], bytes]:
+    """The replica's ``submission.status.change`` webhook for a submission, signed as Prolific
+    signs it: the headers and the body."""
+    body = json.dumps(
+        {
+            "event_type": "submission.status.change",
+            "resource_id": submission["id"],
+            "study_id": submission["study_id"],
+            "participant_id": submission["participant_id"],
+            "status": submission["status"],
+        }
+    ).encode()
+    stamp = str(timestamp)
+    return {
+        "Content-Type": "application/json",
+        "X-Prolific-Request-Signature": signature(secret, stamp, body),
+        "X-Prolific-Request-Timestamp": stamp,
+        "X-Event-ID": secrets.token_hex(16),
+    }, body

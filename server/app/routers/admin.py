@@ -105,6 +105,7 @@ def _admin_participant(
         assignment_id=p.assignment_id,
         hit_id=p.hit_id,
         status=p.status,
+        prolific_status=p.prolific_status,
         domain=p.domain,
         excluded=p.excluded_at is not None,
         exclusion_reason=p.exclusion_reason,

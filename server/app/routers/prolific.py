@@ -13,11 +13,14 @@
 from __future__ import annotations
 
 import json
+import logging
 import secrets
+import time
 from datetime import timedelta
 from typing import Any
 
-from fastapi import APIRouter, Request, Response
+import httpx
+from fastapi import APIRouter, BackgroundTasks, Request, Response
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse
 from sqlalchemy import select
 
@@ -29,9 +32,11 @@ from server.app.platforms.prolific_replica import (
     handle,
     new_id,
     places_taken,
+    status_event,
+    submission_view,
 )
 from server.app.platforms.prolific_sync import WebhookRefused, apply_webhook, verify
-from server.app.routers.common import login_redirect, notice, templates
+from server.app.routers.common import login_redirect, notice, own_origin, templates
 from server.app.state import ServerState
 from server.app.storage.models import utcnow
 from server.app.storage.replica_models import (
@@ -44,6 +49,31 @@ from server.app.storage.replica_models import (
 router = APIRouter(prefix="/prolific", tags=["prolific replica"], include_in_schema=False)
 
 PID_COOKIE = "prolific_replica_pid"
+log = logging.getLogger(__name__)
+
+
+def send_status_event(url: str, secret: str, submission: dict[str, Any]) -> None:
+    """POST the signed webhook, as Prolific does (a failure is logged; the poll catches up)."""
+    headers, body = status_event(secret, submission, int(time.time()))
+    try:
+        httpx.post(url, content=body, headers=headers, timeout=10).raise_for_status()
+    except httpx.HTTPError as error:
+        log.warning("the Prolific replica's webhook to %s failed: %s", url, error)
+
+
+def notify(
+    background: BackgroundTasks, request: Request, state: ServerState, submission: Any
+) -> None:
+    """With BAM_PROLIFIC_WEBHOOK_SECRET set, the replica sends the submission's new status to
+    this server's webhook, signed with it, after answering."""
+    secret = state.settings.prolific_webhook_secret
+    if secret is not None and submission is not None:
+        background.add_task(
+            send_status_event,
+            f"{own_origin(request)}/prolific/webhook",
+            secret.get_secret_value(),
+            submission,
+        )
 
 
 @router.api_route("/api/v1/{path:path}", methods=["GET", "POST", "PATCH"])
@@ -160,7 +190,13 @@ def take_part(study_id: str, request: Request, state: StateDep) -> Response:
     return response
 
 
-def _end(request: Request, state: ServerState, submission_id: str, status: str) -> Response:
+def _end(
+    request: Request,
+    state: ServerState,
+    background: BackgroundTasks,
+    submission_id: str,
+    status: str,
+) -> Response:
     if not is_admin(request, state):
         return login_redirect("/prolific")
     with state.db.write() as s:
@@ -171,24 +207,33 @@ def _end(request: Request, state: ServerState, submission_id: str, status: str) 
         study = s.get(ProlificReplicaStudy, row.study_id)
         if study is not None and study.status == "AWAITING REVIEW":
             study.status = "ACTIVE"  # the place reopens
+        view = submission_view(row)
+    notify(background, request, state, view)
     return RedirectResponse("/prolific", status_code=303)
 
 
 @router.post("/submissions/{submission_id}/return")
-def return_submission(submission_id: str, request: Request, state: StateDep) -> Response:
-    return _end(request, state, submission_id, "RETURNED")
+def return_submission(
+    submission_id: str, request: Request, state: StateDep, background: BackgroundTasks
+) -> Response:
+    return _end(request, state, background, submission_id, "RETURNED")
 
 
 @router.post("/submissions/{submission_id}/time-out")
-def time_out(submission_id: str, request: Request, state: StateDep) -> Response:
-    return _end(request, state, submission_id, "TIMED-OUT")
+def time_out(
+    submission_id: str, request: Request, state: StateDep, background: BackgroundTasks
+) -> Response:
+    return _end(request, state, background, submission_id, "TIMED-OUT")
 
 
 @router.get("/submissions/complete", response_class=HTMLResponse)
-def complete(request: Request, state: StateDep, cc: str = "") -> Response:
+def complete(
+    request: Request, state: StateDep, background: BackgroundTasks, cc: str = ""
+) -> Response:
     """The completion redirect's landing: the participant's active submission is completed
     with the code, when the code is one of the study's (else Prolific's 'invalid code')."""
     pid = request.cookies.get(PID_COOKIE, "")
+    view = None
     with state.db.write() as s:
         row = s.scalar(
             select(ProlificReplicaSubmission)
@@ -217,6 +262,8 @@ def complete(request: Request, state: StateDep, cc: str = "") -> Response:
         if codes[cc].get("code_type") == "NO_CONSENT":
             row.status = "RETURNED"  # the participant is asked to return, and does
         status = row.status
+        view = submission_view(row)
+    notify(background, request, state, view)
     return notice(
         request,
         "Submission recorded",

@@ -133,10 +133,15 @@ function consentPage() {
 }
 
 function declinedPage() {
+  const back = participant.completion && participant.completion.redirect_url;
   show(sheet(
     h("h1", {}, "Thank you"),
-    h("p", {}, "You chose not to take part, and nothing more will be recorded. You may close this page."),
-    participant.platform === "mturk" ? h("p", {}, "Please return the HIT so that someone else can take it.") : null));
+    h("p", {}, "You chose not to take part, and nothing more will be recorded."),
+    participant.platform === "mturk" ? h("p", {}, "Please return the HIT so that someone else can take it.") : null,
+    back ? [h("p", {}, "You are being sent back to Prolific, which will ask you to return the study. If nothing happens, press the button."),
+      h("a", { class: "btn primary big", href: back, target: "_top", "data-action": "return-prolific" }, "Return to Prolific")]
+      : h("p", {}, "You may close this page.")));
+  if (back) window.open(back, "_top");
 }
 
 function instructionsPage() {

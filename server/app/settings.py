@@ -105,7 +105,7 @@ class Settings(BaseSettings):
     prolific_api_url: str = Field(
         "https://api.prolific.com/api/v1",
         pattern=r"^https?://[A-Za-z0-9.-]+(:[0-9]+)?(/[A-Za-z0-9._~/-]*)?$",
-        description="Prolific's API (BAM_REVIEW_BACKEND=prolific and `bam-study prolific`).",
+        description="Prolific's API, for BAM_REVIEW_BACKEND=prolific.",
     )
     prolific_token: SecretStr | None = Field(
         None,

@@ -365,3 +365,21 @@ def test_bad_amounts_and_texts_are_refused_by_the_dashboard_and_store_nothing(
     assert our_bonuses(db) == []
     with db.read() as s:
         assert s.scalar(select(AssignmentReview)) is None
+
+
+def test_the_reconciliation_endpoint_settles_a_dropped_bonus_once(
+    client: TestClient, db: Database, mturk: tuple[MTurkStandIn, int]
+) -> None:
+    stand_in, participant = mturk
+    stand_in.faults = ["drop"]
+    bonus = {"amount": "4.00", "reason": "Kept going", "unique_token": "tok-reconcile-1"}
+    lost = client.post(f"{BASE}/{participant}/bonuses", json=bonus, headers=ADMIN)
+    assert lost.status_code == 502
+    assert client.post("/api/admin/reconciliation").status_code == 401
+    settled = client.post("/api/admin/reconciliation", headers=ADMIN)
+    assert settled.status_code == 200, settled.text
+    assert settled.json() == {"settled_bonuses": ["tok-reconcile-1"], "prolific_statuses": {}}
+    again = client.post("/api/admin/reconciliation", headers=ADMIN)
+    assert again.json()["settled_bonuses"] == []
+    assert stand_in.bonuses == {"tok-reconcile-1": ("WORKER1", "4.00")}
+    assert our_bonuses(db) == [("tok-reconcile-1", 400, "paid")]

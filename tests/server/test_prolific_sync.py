@@ -163,6 +163,11 @@ def test_the_poll_releases_returned_and_timed_out_participants(
     assert status_of(db, ours[kept]) == ("teaching", "ACTIVE")
     assert status_of(db, ours[returned]) == ("returned", "RETURNED")
     assert status_of(db, ours[timed_out]) == ("returned", "TIMED-OUT")
+    # The same poll from the admin API (the server's own client, on the replica here).
+    answer = client.post(
+        "/api/admin/reconciliation", params={"prolific_study": study["id"]}, headers=ADMIN
+    )
+    assert answer.status_code == 200 and answer.json()["prolific_statuses"] == seen
 
 
 @pytest.fixture

@@ -64,8 +64,8 @@ DICTIONARY: dict[str, dict[str, str]] = {
         "(MTurk HIT returned, or Prolific submission RETURNED or TIMED-OUT: released) or "
         "abandoned (idle too long).",
         "prolific_status": "Prolific's latest status of the participant's submission (ACTIVE, "
-        "AWAITING REVIEW, APPROVED, REJECTED, RETURNED, TIMED-OUT, ...), from its webhook or a "
-        "poll; empty for other platforms or when not yet known.",
+        "AWAITING REVIEW, APPROVED, REJECTED, RETURNED, TIMED-OUT and the others), from its "
+        "webhook or a poll; empty for other platforms or when not yet known.",
         "domain": "Domain assigned at consent (empty before).",
         "excluded": "True if the experimenter excluded the participant from analysis.",
         "exclusion_reason": "The experimenter's reason for the exclusion.",

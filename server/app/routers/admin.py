@@ -12,7 +12,7 @@ from server.app.deps import AdminDep, RowId, StateDep
 from server.app.errors import ApiError
 from server.app.export import tables as export
 from server.app.participants import assignment, teaching, tokens
-from server.app.platforms import review
+from server.app.platforms import prolific_sync, review
 from server.app.schemas import (
     AdminEvaluation,
     AdminEvent,
@@ -278,6 +278,46 @@ def _decide(
     )
     with state.db.read() as s:
         return _participant_detail(s, participant_id)
+
+
+@router.post("/reconciliation")
+def reconcile(
+    state: StateDep,
+    prolific_study: Annotated[
+        str | None,
+        Query(
+            pattern=r"^[0-9a-f]{24}$", description="Also poll this Prolific study's submissions."
+        ),
+    ] = None,
+) -> dict[str, Any]:
+    """Settle the unsettled bonuses that can be settled without paying twice (MTurk's by their
+    UniqueRequestToken; Prolific's set up but never sent to pay), and, with ``prolific_study``,
+    apply Prolific's status of each of the study's submissions (for a server that Prolific's
+    webhook cannot reach)."""
+    settled: list[str] = []
+    with state.db.read() as s:
+        platforms = set(
+            s.scalars(
+                select(Participant.platform)
+                .join(Bonus, Bonus.participant_id == Participant.id)
+                .where(Bonus.state.in_(("pending", "set_up")))
+            )
+        )
+    for platform in sorted(platforms):
+        settled += review.reconcile_bonuses(state.db, state.review_backend(platform))
+    statuses: dict[str, str] = {}
+    if prolific_study is not None:
+        backend = state.review_backend("prolific")
+        client = getattr(backend, "client", None)
+        if client is None:
+            raise ApiError(409, "the review backend for Prolific has no Prolific client")
+        try:
+            statuses = prolific_sync.reconcile_submissions(state.db, client, prolific_study)
+        except review.ReviewRefused as refused:
+            raise ApiError(409, str(refused)) from None
+        except review.ReviewUnavailable as error:
+            raise ApiError(502, str(error)) from None
+    return {"settled_bonuses": settled, "prolific_statuses": statuses}
 
 
 @router.post("/participants/{participant_id}/bonuses", response_model=AdminParticipantDetail)

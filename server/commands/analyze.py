@@ -79,6 +79,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="drop the sessions of participants the experimenter marked excluded",
     )
+    parser.add_argument(
+        "--include-unfinished",
+        action="store_true",
+        help="also count the taught learning sessions (at least one evaluation) of participants "
+        "who did not complete the study (default: only those of participants who did)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -91,11 +97,17 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.database_url is not None:
             sessions, evaluations = load_database(
-                args.database_url, exclude_excluded=args.exclude_excluded, notes=notes
+                args.database_url,
+                exclude_excluded=args.exclude_excluded,
+                include_unfinished=args.include_unfinished,
+                notes=notes,
             )
         else:
             sessions, evaluations = load_tables(
-                args.data, exclude_excluded=args.exclude_excluded, notes=notes
+                args.data,
+                exclude_excluded=args.exclude_excluded,
+                include_unfinished=args.include_unfinished,
+                notes=notes,
             )
         analysis = analyze(
             sessions,

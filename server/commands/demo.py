@@ -3,13 +3,15 @@
 A study server starts on a new SQLite database in the output folder; simulated participants
 take the paper's study over HTTP (arrival, consent, tutorial, six agents each, completion);
 once every learner update has finished the data is exported and analysed, and Table 1 is
-printed. Everything stays in the folder: the database, the server's log, the export and the
-analysis.
+printed. Everything stays in the folder: the database, the server's log, the export, the
+analysis, and the dashboard's sign-in token (``admin-token``, readable by its owner only, so
+that the command printed to open the dashboard shows where the token is, not the token).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import secrets
 import shlex
 import shutil
@@ -28,6 +30,7 @@ if TYPE_CHECKING:
 PROG = "bam-study demo"
 DEFAULT_SEED = 0
 POLL_SECONDS = 0.5
+TOKEN_FILE = "admin-token"  # in the output folder: the dashboard's sign-in token
 
 
 class DemoError(RuntimeError):
@@ -123,15 +126,43 @@ def run(args: argparse.Namespace) -> int:
     print(f"  {options.out / 'study.sqlite'}   the database (`bam-study serve` can reopen it)")
     print(f"  {options.out / 'export'}/         the CSV export with its data dictionary")
     print(f"  {options.out / 'analysis'}/       Table 1, the appendix tables, comparisons, plots")
+    print(f"  {options.out / TOKEN_FILE}     the dashboard's sign-in token (yours only)")
     print()
-    print("To look at the participants, learning curves and replays in the dashboard:")
-    print(
-        f"  BAM_DATABASE_URL=sqlite:///{options.out.resolve() / 'study.sqlite'} "
-        f"BAM_STUDY_CONFIG={options.out.resolve() / 'study.toml'} "
-        f"BAM_ADMIN_TOKEN={secrets.token_urlsafe()} {shlex.quote(bam_study_command())} serve"
-    )
-    print("  then open http://127.0.0.1:8000/dashboard and sign in with that token.")
+    for line in dashboard_instructions(options.out.resolve()):
+        print(line)
     return 0
+
+
+def write_admin_token(folder: Path) -> str:
+    """A new dashboard token, written to ``folder / TOKEN_FILE`` readable and writable by its
+    owner only (created so, never widened from a default mode), and returned."""
+    token = secrets.token_urlsafe(24)
+    descriptor = os.open(folder / TOKEN_FILE, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(descriptor, "w") as file:
+        file.write(token + "\n")
+    return token
+
+
+def dashboard_instructions(out: Path) -> list[str]:
+    """How to open the demo's study in the dashboard: a command that reads the token from its
+    file (a shell expands it; the token itself is not printed) and where to sign in."""
+    token_file = out / TOKEN_FILE
+    database_url = f"sqlite:///{out / 'study.sqlite'}"
+    command = " ".join(
+        [
+            f"BAM_DATABASE_URL={shlex.quote(database_url)}",
+            f"BAM_STUDY_CONFIG={shlex.quote(str(out / 'study.toml'))}",
+            f'BAM_ADMIN_TOKEN="$(cat {shlex.quote(str(token_file))})"',
+            shlex.quote(bam_study_command()),
+            "serve",
+        ]
+    )
+    return [
+        "To look at the participants, learning curves and replays in the dashboard:",
+        f"  {command}",
+        "  then open http://127.0.0.1:8000/dashboard and sign in with the token in",
+        f"  {token_file} (readable by you only).",
+    ]
 
 
 def bam_study_command() -> str:
@@ -188,13 +219,14 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
     url = f"sqlite:///{out / 'study.sqlite'}"
     study = out / "study.toml"
     study.write_text(DEFAULT_STUDY_CONFIG.read_text() + options.learner_settings)
+    admin_token = write_admin_token(out)
     db = Database.from_url(url)
     try:
         upgrade(db.engine)
         environment = {
             "BAM_DATABASE_URL": url,
             "BAM_STUDY_CONFIG": str(study),
-            "BAM_ADMIN_TOKEN": secrets.token_urlsafe(24),
+            "BAM_ADMIN_TOKEN": admin_token,
             "BAM_UPDATE_WORKERS": str(options.workers or available_cores()),
             "BAM_SEED": str(options.seed),
         }
@@ -237,7 +269,7 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
                     f"(participant {first.index}: {first.error}); the server's log is "
                     f"{server.log_path}"
                 )
-            wait_for_learners(db, err, server.log_path)
+            wait_for_learners(db, err, server.log_path, options.participants)
         tables = export_tables(db)
     finally:
         db.dispose()
@@ -251,8 +283,10 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
     return table1_markdown(analysis)
 
 
-def wait_for_learners(db: Database, err: TextIO, log_path: Path) -> None:
-    """Wait until no learner update is pending, with a progress bar over the updates."""
+def wait_for_learners(db: Database, err: TextIO, log_path: Path, participants: int) -> None:
+    """Wait until no learner update is pending: the participants have finished, but the
+    learners may still be training on their last demonstrations and feedback. A line says so,
+    then a progress bar counts those updates as they finish."""
     from sqlalchemy import func, select
 
     from server.app.storage.models import LearnerUpdate
@@ -269,7 +303,14 @@ def wait_for_learners(db: Database, err: TextIO, log_path: Path) -> None:
 
     _, pending, _ = counts()
     if pending:
-        progress = Progress(pending, stream=err, label="learner updates still to finish")
+        print(
+            f"All {participants} participants have finished; the learners are still training "
+            f"on their last demonstrations and feedback ({pending} learner "
+            f"update{'s' if pending != 1 else ''} queued). The export waits for them.",
+            file=err,
+            flush=True,
+        )
+        progress = Progress(pending, stream=err, label="queued learner updates done")
         progress.start()
         while pending:
             time.sleep(POLL_SECONDS)

@@ -63,3 +63,14 @@ def test_observe_records_what_the_record_calls_record() -> None:
     assert set(typed.data.agent_steps[:, 4].tolist()) == {-1, 1}
     with pytest.raises(TypeError, match="not an observation"):
         typed.observe(("demonstration", 0, 1, 2, 3))  # type: ignore[arg-type]
+
+
+def test_a_state_saved_with_the_old_name_of_idle_moves_still_loads() -> None:
+    env = domains.make("doorway")
+    learner = learners.make("model-based", env, seed=0)
+    learner.observe(IdleMove(5, 2, 14))
+    learner.observe(DemonstrationStep(0, 5, 2, 14))
+    state = learner.state_dict()
+    state["data"]["transitions_alone"] = state["data"].pop("idle_moves")
+    restored = learners.restore(env, state)
+    np.testing.assert_array_equal(restored.data.idle_moves, [[5, 2, 14]])

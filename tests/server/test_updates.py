@@ -140,7 +140,7 @@ def test_an_agent_step_waits_for_its_own_update_only(
         rows = updates_of(db, session_id)
         assert rows[1].status == "done"
         assert step["outcome"]["learning_wait_seconds"] > 0
-        assert step["session"]["learning"] == {"pending": 0, "updates": 2}
+        assert step["session"]["learning"] == {"pending": 0, "updates": 1}
         assert moves < step["outcome"]["learning_wait_seconds"]
         env = make("two-rooms")
         policy = np.frombuffer(rows[1].greedy_policy, dtype=np.int8).reshape(
@@ -240,7 +240,7 @@ def test_the_learning_state_can_be_awaited(slow_client: TestClient, db: Database
     learning = participant.get(f"{participant.session(session_id)}/learning")
     assert learning["pending"] >= 1
     learning = participant.get(f"{participant.session(session_id)}/learning?wait=30")
-    assert learning == {"pending": 0, "updates": 2}
+    assert learning == {"pending": 0, "updates": 1}
     with db.read() as s:
         session = s.get(LearningSession, session_id)
         assert session.policy_update == 1

@@ -96,7 +96,9 @@ def teaching_state(session: Any, env: Environment) -> TeachingState:
     if session.status != "active":
         blocked = "this agent is not being taught"
     elif session.kind == "study" and missing:
-        blocked = f"demonstrate every task at least once first; not yet: {', '.join(missing)}"
+        blocked = (
+            f"every task needs at least one demonstrated move first; not yet: {', '.join(missing)}"
+        )
     episode = None
     if session.open_episode is not None:
         episode = EpisodeState(

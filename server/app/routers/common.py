@@ -4,6 +4,7 @@ never from one another."""
 
 from __future__ import annotations
 
+from datetime import UTC, datetime
 from pathlib import Path
 from urllib.parse import quote
 
@@ -31,6 +32,20 @@ TEMPLATES_DIR = Path(__file__).resolve().parents[2] / "templates"
 
 
 templates = Jinja2Templates(directory=str(TEMPLATES_DIR))
+
+
+def format_time(moment: datetime | None) -> str:
+    """A time as "2026-11-26 10:42:07 UTC": how every time is written on the experimenter's
+    pages (the dashboard's ``formatTime`` in static/js/dom.js writes the same); a time without
+    a zone is UTC, as the database keeps them."""
+    if moment is None:
+        return ""
+    if moment.tzinfo is None:
+        moment = moment.replace(tzinfo=UTC)
+    return moment.astimezone(UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+
+
+templates.env.filters["utc"] = format_time
 
 
 def notice(request: Request, title: str, message: str, status_code: int) -> Response:

@@ -28,6 +28,7 @@ from server.app.routers import (
     mturk,
     pages,
     participant,
+    prolific,
     sessions,
     study,
 )
@@ -221,6 +222,7 @@ def create_app(
         pages.router,
         dashboard.pages,
         mturk.router,
+        prolific.router,
     ):
         app.include_router(router)
     if STATIC_DIR.is_dir():

@@ -97,11 +97,33 @@ class Settings(BaseSettings):
         description="Hosts accepted in turkSubmitTo (comma-separated; the server's own host is "
         "always accepted, for a local replica).",
     )
-    review_backend: Literal["replica", "mturk"] = Field(
+    review_backend: Literal["replica", "mturk", "prolific"] = Field(
         "replica",
         description="Where the dashboard's approvals, rejections and bonuses go: 'replica' (the "
-        "local MTurk replica's assignments, at /mturk) or 'mturk' (Mechanical Turk through "
-        "boto3's client, which must be installed; credentials as boto3 finds them).",
+        "local replica of each participant's platform: the MTurk replica at /mturk, the Prolific "
+        "replica at /prolific), 'mturk' (Mechanical Turk through boto3's client, which must be "
+        "installed; credentials as boto3 finds them) or 'prolific' (Prolific's API, with "
+        "BAM_PROLIFIC_TOKEN).",
+    )
+    prolific_api_url: str = Field(
+        "https://api.prolific.com/api/v1",
+        pattern=r"^https?://[A-Za-z0-9.-]+(:[0-9]+)?(/[A-Za-z0-9._~/-]*)?$",
+        description="Prolific's API, for BAM_REVIEW_BACKEND=prolific.",
+    )
+    prolific_token: SecretStr | None = Field(
+        None,
+        description="Prolific's API token (Settings > API tokens in Prolific's app); never "
+        "logged or exported.",
+    )
+    prolific_currency: Literal["GBP", "USD"] = Field(
+        "GBP",
+        description="The currency of the Prolific workspace's studies: rewards and bonuses are "
+        "paid in it.",
+    )
+    prolific_webhook_secret: SecretStr | None = Field(
+        None,
+        description="The secret of the Prolific webhook subscription (base64, as Prolific gives "
+        "it): /prolific/webhook accepts only events signed with it.",
     )
     mturk_endpoint_url: str = Field(
         "https://mturk-requester-sandbox.us-east-1.amazonaws.com",

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from analysis.data import EPISODE_COLUMNS, EVALUATION_COLUMNS, SESSION_COLUMNS
+from analysis.columns import EPISODE_COLUMNS, EVALUATION_COLUMNS, SESSION_COLUMNS
 
 # (session_id, participant_id, environment, learner, position,
 #  evaluations as (episodes, actions, normalized_return) in update order)

@@ -7,7 +7,8 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from analysis.data import EVALUATION_COLUMNS, load_tables
+from analysis.columns import EVALUATION_COLUMNS
+from analysis.data import load_tables
 from analysis.options import InputError
 from analysis.stats import session_measures
 
@@ -282,7 +283,7 @@ def test_only_the_sessions_of_participants_who_completed_the_study_are_counted(
 def test_every_participant_status_of_the_server_is_completed_or_has_a_reason() -> None:
     """A status the server gives a participant is either completion or a reason, in the note,
     for not finishing; a new status needs its entry in UNFINISHED_REASONS."""
-    from analysis.data import COMPLETED_STATUSES, UNFINISHED_REASONS
+    from analysis.selection import COMPLETED_STATUSES, UNFINISHED_REASONS
     from server.app.participants.tokens import STATUSES
 
     assert set(COMPLETED_STATUSES) <= set(STATUSES)

@@ -66,19 +66,31 @@ def test_approve_and_pay_a_bonus_from_the_dashboard(page: Page, server: LiveServ
     # A rejection without feedback is stopped on the page.
     detail.locator('[data-action="reject"]').click()
     expect(detail.locator("#review-error")).to_have_text(
-        "A rejection needs feedback: the worker is shown why."
+        "A rejection needs feedback: the participant is shown why."
     )
     page.get_by_label("Feedback to the worker (needed to reject)").fill("Thank you!")
+    # Approve and Pay ask first: declined, nothing is sent; accepted, it goes.
+    asked: list[str] = []
+    page.once("dialog", lambda dialog: (asked.append(dialog.message), dialog.dismiss()))
+    detail.locator('[data-action="approve"]').click()
+    expect(detail.locator('[data-action="approve"]')).to_be_enabled()
+    assert server.query("SELECT id FROM assignment_reviews") == []
+    page.on("dialog", lambda dialog: (asked.append(dialog.message), dialog.accept()))
     detail.locator('[data-action="approve"]').click()
     expect(detail.locator('[data-review="approved"]')).to_contain_text("Thank you!")
     expect(detail.locator('[data-action="approve"]')).to_have_count(0)
     page.get_by_label("Bonus (USD)").fill("1.25")
-    page.get_by_label("Reason, shown to the worker").fill("Taught every task")
+    page.get_by_label("Reason, shown to the participant").fill("Taught every task")
     detail.locator('[data-action="bonus"]').click()
     expect(detail.locator('.bonuses li[data-amount="1.25"]')).to_contain_text("Taught every task")
 
     (review,) = server.query("SELECT decision, feedback, backend FROM assignment_reviews")
-    assert tuple(review) == ("approved", "Thank you!", "replica")
+    assert tuple(review) == ("approved", "Thank you!", "mturk-replica")
+    assert [m.split("?")[0] for m in asked] == [
+        "Approve this submission",
+        "Approve this submission",
+        "Pay a bonus of 1.25",
+    ]
     (bonus,) = server.query("SELECT amount_cents, reason FROM bonuses")
     assert tuple(bonus) == (125, "Taught every task")
 
@@ -98,7 +110,7 @@ def test_each_form_s_error_is_by_its_own_buttons(page: Page, server: LiveServer)
     reject = detail.locator('[data-action="reject"]')
     reject.click()
     error = detail.locator(".review-decision .form-error")
-    expect(error).to_have_text("A rejection needs feedback: the worker is shown why.")
+    expect(error).to_have_text("A rejection needs feedback: the participant is shown why.")
     feedback = page.get_by_label("Feedback to the worker (needed to reject)")
     expect(feedback).to_have_attribute("aria-invalid", "true")
     expect(feedback).to_have_attribute("aria-describedby", str(error.get_attribute("id")))
@@ -110,7 +122,7 @@ def test_each_form_s_error_is_by_its_own_buttons(page: Page, server: LiveServer)
     assert reject_box["y"] < error_box["y"] < pay_box["y"]
     # The bonus form's own error is by its button (a reason of spaces is none).
     page.get_by_label("Bonus (USD)").fill("1.00")
-    page.get_by_label("Reason, shown to the worker").fill("   ")
+    page.get_by_label("Reason, shown to the participant").fill("   ")
     detail.locator('[data-action="bonus"]').click()
     bonus_error = detail.locator(".bonus .form-error")
     expect(bonus_error).to_have_text("A bonus needs an amount and a reason.")

@@ -23,7 +23,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
-from analysis.data import EVALUATION_COLUMNS
+from analysis.columns import EVALUATION_COLUMNS
 from server.app.export.tables import export_tables
 from server.app.main import create_app
 from server.app.participants import tokens

@@ -61,7 +61,11 @@ DICTIONARY: dict[str, dict[str, str]] = {
         "hit_id": "MTurk hitId or Prolific STUDY_ID.",
         "status": "Latest status: arrived, consented, declined, tutorial, teaching, "
         "questionnaire (answering the post-study questionnaire), completed, submitted, returned "
-        "(MTurk HIT returned) or abandoned (idle too long).",
+        "(MTurk HIT returned, or Prolific submission RETURNED or TIMED-OUT: released) or "
+        "abandoned (idle too long).",
+        "prolific_status": "Prolific's latest status of the participant's submission (ACTIVE, "
+        "AWAITING REVIEW, APPROVED, REJECTED, RETURNED, TIMED-OUT and the others), from its "
+        "webhook or a poll; empty for other platforms or when not yet known.",
         "domain": "Domain assigned at consent (empty before).",
         "excluded": "True if the experimenter excluded the participant from analysis.",
         "exclusion_reason": "The experimenter's reason for the exclusion.",
@@ -181,23 +185,40 @@ DICTIONARY: dict[str, dict[str, str]] = {
     },
     "reviews": {
         "participant_id": "The participant.",
-        "assignment_id": "The MTurk assignmentId reviewed (pseudonymised as in participants.csv).",
-        "worker_id": "The worker (pseudonymised as in participants.csv).",
+        "assignment_id": "The MTurk assignmentId or Prolific submission id reviewed "
+        "(pseudonymised as in participants.csv).",
+        "worker_id": "The MTurk worker or Prolific participant (pseudonymised as in "
+        "participants.csv).",
         "decision": "approved or rejected (final; sent to the review backend).",
-        "requester_feedback": "The feedback sent to the worker with the decision (MTurk's "
-        "RequesterFeedback).",
-        "backend": "Where the decision was sent: replica (the local MTurk replica) or mturk.",
-        "decided_at": "When the platform took the decision (UTC).",
+        "requester_feedback": "The feedback sent to the participant with the decision (MTurk's "
+        "RequesterFeedback, Prolific's rejection message).",
+        "rejection_category": "Prolific's rejection category (empty otherwise).",
+        "backend": "Where the decision was sent: mturk, prolific, mturk-replica or "
+        "prolific-replica.",
+        "decision_state": "done: the platform took the decision; pending: recorded before the platform "
+        "was called and not yet confirmed (the dashboard settles it when the decision is sent "
+        "again).",
+        "requested_at": "When the experimenter asked for the decision (UTC).",
+        "decided_at": "When the platform took the decision (UTC; empty while pending).",
     },
     "bonuses": {
         "participant_id": "The participant.",
-        "assignment_id": "The MTurk assignmentId the bonus was paid for (pseudonymised).",
-        "worker_id": "The worker paid (pseudonymised).",
-        "amount_usd": "The bonus, in US dollars.",
-        "reason": "The reason sent to the worker with the bonus.",
-        "unique_token": "The request's UniqueRequestToken (a retry with it pays nothing more).",
-        "backend": "Where the bonus was sent: replica or mturk.",
-        "paid_at": "When the platform took the bonus (UTC).",
+        "assignment_id": "The MTurk assignmentId or Prolific submission id the bonus was paid "
+        "for (pseudonymised).",
+        "worker_id": "The MTurk worker or Prolific participant paid (pseudonymised).",
+        "amount": "The bonus, in currency (two decimals).",
+        "currency": "USD on MTurk; the study's currency (GBP or USD) on Prolific.",
+        "reason": "The reason sent to the participant with the bonus.",
+        "unique_token": "The request's token (MTurk's UniqueRequestToken): a retry with it pays "
+        "nothing more.",
+        "backend": "Where the bonus was sent: mturk, prolific, mturk-replica or prolific-replica.",
+        "payment_state": "paid; or not yet confirmed: pending (recorded before the platform was "
+        "called), set_up (Prolific's bonus set up, not yet paid), paying (Prolific's pay "
+        "called, outcome not known).",
+        "setup_id": "Prolific's bonus set-up id (its bulk bonus payment), stored before pay "
+        "was called.",
+        "requested_at": "When the experimenter asked for the bonus (UTC).",
+        "paid_at": "When the platform took the bonus (UTC; empty until paid).",
     },
 }
 # Integer columns, some of them with empty cells (written without a decimal point).
@@ -247,8 +268,9 @@ DESCRIPTIONS = {
     "status_changes": "One row per change of a participant's status.",
     "questionnaire_answers": "One row per question answered in the post-study questionnaire "
     "(an optional question left unanswered has none; a study without a questionnaire, none).",
-    "reviews": "One row per submitted MTurk assignment the experimenter approved or rejected.",
-    "bonuses": "One row per bonus paid to a participant's worker.",
+    "reviews": "One row per submitted MTurk assignment or Prolific submission the "
+    "experimenter approved or rejected.",
+    "bonuses": "One row per bonus the experimenter paid (or asked the platform to pay).",
     "data_dictionary": "Every file's columns. In every file, each line of a text cell that "
     "begins with =, +, -, @, a tab or a carriage return is written with an apostrophe (') "
     "before it, so that a spreadsheet shows it as text instead of running it as a formula; "
@@ -417,6 +439,7 @@ def export_tables(
             "assignment_id": p.assignment_id,
             "hit_id": p.hit_id,
             "status": p.status,
+            "prolific_status": p.prolific_status,
             "domain": p.domain,
             "excluded": p.excluded_at is not None,
             "exclusion_reason": p.exclusion_reason,
@@ -440,7 +463,10 @@ def export_tables(
             **platform_ids(r.worker_id, r.assignment_id),
             "decision": r.decision,
             "requester_feedback": r.feedback,
+            "rejection_category": r.rejection_category,
             "backend": r.backend,
+            "decision_state": r.state,
+            "requested_at": _iso(r.requested_at),
             "decided_at": _iso(r.decided_at),
         }
 
@@ -448,10 +474,14 @@ def export_tables(
         return {
             "participant_id": b.participant_id,
             **platform_ids(b.worker_id, b.assignment_id),
-            "amount_usd": b.amount_cents / 100,
+            "amount": f"{b.amount_cents // 100}.{b.amount_cents % 100:02d}",
+            "currency": b.currency,
             "reason": b.reason,
             "unique_token": b.unique_token,
             "backend": b.backend,
+            "payment_state": b.state,
+            "setup_id": b.setup_id,
+            "requested_at": _iso(b.requested_at),
             "paid_at": _iso(b.paid_at),
         }
 

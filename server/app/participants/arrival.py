@@ -206,6 +206,14 @@ def _arrive(
             mark_returned(c, in_progress, now, "assignment taken by another worker")
         if existing is None:
             return Arrival(*_create(c, platform, now), False)
+        if platform.name == "prolific" and existing.status == "returned":
+            # Released on Prolific's word (RETURNED or TIMED-OUT): the place went to another.
+            raise TurnedAway(
+                "This study has ended for you",
+                "Prolific shows that this study was returned or that its time ran out, so your "
+                "place has gone to another participant and it cannot be continued. What you did "
+                "is kept. Thank you for your interest.",
+            )
         if existing.status in ("abandoned", "returned"):
             restore_status(c, existing, now)
         token = None

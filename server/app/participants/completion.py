@@ -110,7 +110,15 @@ def submission(transaction: Transaction) -> None:
 
 
 def completion(participant: Any, study: StudyConfig) -> Completion | None:
-    """The completion code and how to hand it in; None until the completion is committed."""
+    """The completion code and how to hand it in; None until the completion is committed. A
+    Prolific participant who declined consent goes back with the NO_CONSENT code."""
+    no_consent = study.completion.prolific_no_consent_code
+    if participant.status == "declined" and participant.platform == "prolific" and no_consent:
+        return Completion(
+            code=no_consent,
+            mode="prolific",
+            redirect_url=study.completion.prolific_redirect(no_consent),
+        )
     if participant.status not in ("completed", "submitted") or participant.completion_code is None:
         return None
     code = participant.completion_code

@@ -156,6 +156,12 @@ def perform(
                 f"request out of order: sequence number {body.seq}, but the next is "
                 f"{participant.next_seq} (an earlier request has not arrived)",
             )
+        if participant.status == "returned" and participant.platform == "prolific":
+            raise ApiError(
+                409,
+                "Prolific shows that this study was returned or that its time ran out: your "
+                "place has gone to another participant, and this session has ended",
+            )
         if participant.status == "returned":
             raise ApiError(
                 409,

@@ -12,7 +12,7 @@ from server.app.deps import AdminDep, RowId, StateDep
 from server.app.errors import ApiError
 from server.app.export import tables as export
 from server.app.participants import assignment, teaching, tokens
-from server.app.platforms import review
+from server.app.platforms import prolific_sync, review
 from server.app.schemas import (
     AdminEvaluation,
     AdminEvent,
@@ -105,6 +105,7 @@ def _admin_participant(
         assignment_id=p.assignment_id,
         hit_id=p.hit_id,
         status=p.status,
+        prolific_status=p.prolific_status,
         domain=p.domain,
         excluded=p.excluded_at is not None,
         exclusion_reason=p.exclusion_reason,
@@ -179,15 +180,20 @@ def _participant_detail(s: Session, participant_id: int) -> AdminParticipantDeta
         else ReviewView(
             decision=decision.decision,  # type: ignore[arg-type]
             feedback=decision.feedback,
+            rejection_category=decision.rejection_category,
             backend=decision.backend,
+            state=decision.state,  # type: ignore[arg-type]
             decided_at=decision.decided_at,
         ),
         bonuses=[
             BonusView(
-                amount=review.dollars(b.amount_cents),
+                amount=review.money(b.amount_cents),
+                currency=b.currency,
                 reason=b.reason,
                 unique_token=b.unique_token,
                 backend=b.backend,
+                state=b.state,
+                setup_id=b.setup_id,
                 paid_at=b.paid_at,
             )
             for b in bonuses
@@ -242,34 +248,87 @@ def include(
 
 @router.post("/participants/{participant_id}/approval", response_model=AdminParticipantDetail)
 def approve(participant_id: RowId, body: ReviewRequest, state: StateDep) -> AdminParticipantDetail:
-    """Approve the participant's submitted MTurk assignment (``BAM_REVIEW_BACKEND``), once."""
+    """Approve the participant's submitted work on their platform (``BAM_REVIEW_BACKEND``),
+    once; a repeat answers the same."""
     return _decide(participant_id, "approved", body, state)
 
 
 @router.post("/participants/{participant_id}/rejection", response_model=AdminParticipantDetail)
 def reject(participant_id: RowId, body: ReviewRequest, state: StateDep) -> AdminParticipantDetail:
-    """Reject the participant's submitted MTurk assignment, with feedback, once."""
+    """Reject the participant's submitted work, with feedback (on Prolific: a category and a
+    message of at least 100 characters), once."""
     return _decide(participant_id, "rejected", body, state)
+
+
+def _backend_for(state: ServerState, participant_id: int) -> review.ReviewBackend:
+    with state.db.read() as s:
+        p = s.get(Participant, participant_id)
+        if p is None:
+            raise ApiError(404, f"no participant {participant_id}")
+        platform = p.platform
+    return state.review_backend(platform)
 
 
 def _decide(
     participant_id: int, decision: review.Decision, body: ReviewRequest, state: ServerState
 ) -> AdminParticipantDetail:
-    backend = state.review_backend()
-    review.review_submission(state.db, backend, participant_id, decision, body.feedback)
+    backend = _backend_for(state, participant_id)
+    review.review_submission(
+        state.db, backend, participant_id, decision, body.feedback, body.rejection_category
+    )
     with state.db.read() as s:
         return _participant_detail(s, participant_id)
+
+
+@router.post("/reconciliation")
+def reconcile(
+    state: StateDep,
+    prolific_study: Annotated[
+        str | None,
+        Query(
+            pattern=r"^[0-9a-f]{24}$", description="Also poll this Prolific study's submissions."
+        ),
+    ] = None,
+) -> dict[str, Any]:
+    """Settle the unsettled bonuses that can be settled without paying twice (MTurk's by their
+    UniqueRequestToken; Prolific's set up but never sent to pay), and, with ``prolific_study``,
+    apply Prolific's status of each of the study's submissions (for a server that Prolific's
+    webhook cannot reach)."""
+    settled: list[str] = []
+    with state.db.read() as s:
+        platforms = set(
+            s.scalars(
+                select(Participant.platform)
+                .join(Bonus, Bonus.participant_id == Participant.id)
+                .where(Bonus.state.in_(("pending", "set_up")))
+            )
+        )
+    for platform in sorted(platforms):
+        settled += review.reconcile_bonuses(state.db, state.review_backend(platform))
+    statuses: dict[str, str] = {}
+    if prolific_study is not None:
+        backend = state.review_backend("prolific")
+        client = getattr(backend, "client", None)
+        if client is None:
+            raise ApiError(409, "the review backend for Prolific has no Prolific client")
+        try:
+            statuses = prolific_sync.reconcile_submissions(state.db, client, prolific_study)
+        except review.ReviewRefused as refused:
+            raise ApiError(409, str(refused)) from None
+        except review.ReviewUnavailable as error:
+            raise ApiError(502, str(error)) from None
+    return {"settled_bonuses": settled, "prolific_statuses": statuses}
 
 
 @router.post("/participants/{participant_id}/bonuses", response_model=AdminParticipantDetail)
 def send_bonus(
     participant_id: RowId, body: BonusRequest, state: StateDep
 ) -> AdminParticipantDetail:
-    """Pay the participant's worker a bonus; a retry with the same ``unique_token`` pays
-    nothing more and answers the same."""
+    """Pay the participant a bonus; a retry with the same ``unique_token`` pays nothing more
+    and answers the same."""
     review.pay_bonus(
         state.db,
-        state.review_backend(),
+        _backend_for(state, participant_id),
         participant_id,
         body.amount,
         body.reason,

@@ -9,7 +9,7 @@ window to ``{turkSubmitTo}/mturk/externalSubmit``, recorded here with every fiel
 the HIT, after which the same assignment id goes to the next worker who accepts, as on MTurk.
 Unlike MTurk, the replica tells the study of a return at once (the participant is marked
 returned).
-The requester's approvals, rejections and bonuses (``review.ReplicaReviewBackend``, from the
+The requester's approvals, rejections and bonuses (``platforms.mturk.MTurkReplicaBackend``, from the
 dashboard) show on the HIT page.
 """
 

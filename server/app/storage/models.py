@@ -111,6 +111,8 @@ class Participant(Base):
     exclusion_reason: Mapped[str | None] = mapped_column(Text)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     last_seen_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    # Prolific's status of the participant's submission (webhook or poll), e.g. RETURNED.
+    prolific_status: Mapped[str | None] = mapped_column(String(24))
 
 
 class ParticipantToken(Base):
@@ -282,24 +284,32 @@ class QuestionnaireAnswer(Base):
 
 
 class AssignmentReview(Base):
-    """The experimenter's decision on a participant's submitted MTurk assignment, as sent to
-    the review backend (``review.py``): one per assignment, final."""
+    """The experimenter's decision on a participant's submitted work (an MTurk assignment or a
+    Prolific submission): one per participant, final. The row is written as ``pending`` before
+    the platform is called and becomes ``done`` once the platform has taken the decision, so
+    that a decision the platform carried out is never missing here (``platforms/review.py``)."""
 
     __tablename__ = "assignment_reviews"
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), unique=True)
+    # The MTurk assignmentId or the Prolific submission id (SESSION_ID).
     assignment_id: Mapped[str] = mapped_column(String(128), unique=True)
-    worker_id: Mapped[str] = mapped_column(String(128))
+    worker_id: Mapped[str] = mapped_column(String(128))  # workerId or PROLIFIC_PID
     decision: Mapped[str] = mapped_column(String(16))  # approved or rejected
-    feedback: Mapped[str | None] = mapped_column(Text)  # RequesterFeedback, shown to the worker
-    backend: Mapped[str] = mapped_column(String(16))  # replica or mturk
-    decided_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    feedback: Mapped[str | None] = mapped_column(Text)  # shown to the participant
+    rejection_category: Mapped[str | None] = mapped_column(String(32))  # Prolific's category
+    backend: Mapped[str] = mapped_column(String(24))  # mturk, mturk-replica, prolific, ...
+    state: Mapped[str] = mapped_column(String(16), default="done")  # pending or done
+    requested_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    decided_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
 
 
 class Bonus(Base):
-    """A bonus paid to a participant's worker for an assignment. ``unique_token`` is sent as
-    MTurk's UniqueRequestToken: a retried request with the same token pays nothing more."""
+    """A bonus for a participant's submitted work. The row is written before the platform is
+    called (``pending``, with ``unique_token``, sent as MTurk's UniqueRequestToken); on Prolific
+    the bonus's set-up id is stored (``set_up``) before the one ``pay`` call (``paying``), so
+    that neither a retry nor a crash pays twice; ``paid`` once the platform took it."""
 
     __tablename__ = "bonuses"
 
@@ -307,8 +317,23 @@ class Bonus(Base):
     participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), index=True)
     assignment_id: Mapped[str] = mapped_column(String(128))
     worker_id: Mapped[str] = mapped_column(String(128))
-    amount_cents: Mapped[int] = mapped_column(Integer)  # US cents
-    reason: Mapped[str] = mapped_column(Text)  # shown to the worker
+    amount_cents: Mapped[int] = mapped_column(Integer)  # cents of ``currency``
+    currency: Mapped[str] = mapped_column(String(3), default="USD")
+    reason: Mapped[str] = mapped_column(Text)  # shown to the participant
     unique_token: Mapped[str] = mapped_column(String(64), unique=True)
-    backend: Mapped[str] = mapped_column(String(16))
-    paid_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    backend: Mapped[str] = mapped_column(String(24))
+    state: Mapped[str] = mapped_column(String(16), default="paid")
+    setup_id: Mapped[str | None] = mapped_column(String(64))  # Prolific's bulk bonus payment id
+    requested_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    paid_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+
+
+class ProlificEvent(Base):
+    """A Prolific webhook event applied (``X-Event-ID``): delivery is at-least-once, so each
+    event is applied once."""
+
+    __tablename__ = "prolific_events"
+
+    event_id: Mapped[str] = mapped_column(String(128), primary_key=True)
+    event_type: Mapped[str] = mapped_column(String(64))
+    received_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)

@@ -78,3 +78,64 @@ class ReplicaBonus(Base):
     reason: Mapped[str] = mapped_column(Text)
     unique_request_token: Mapped[str] = mapped_column(String(64), unique=True)
     granted_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+# -- the local Prolific replica (``platforms/prolific_replica.py``, ``routers/prolific.py``) --
+class ProlificReplicaStudy(Base):
+    """A study as Prolific keeps it: made as a draft (UNPUBLISHED) through ``POST /studies/``,
+    with the fields it was made with."""
+
+    __tablename__ = "prolific_replica_studies"
+
+    id: Mapped[str] = mapped_column(String(24), primary_key=True)
+    name: Mapped[str] = mapped_column(String(200))
+    status: Mapped[str] = mapped_column(String(24))  # UNPUBLISHED, ACTIVE, PAUSED, ...
+    external_study_url: Mapped[str] = mapped_column(Text)
+    total_available_places: Mapped[int] = mapped_column(Integer)
+    reward: Mapped[int] = mapped_column(Integer)  # cents of the currency
+    maximum_allowed_time: Mapped[int] = mapped_column(Integer)  # minutes
+    fields: Mapped[dict[str, Any]] = mapped_column(JSON)  # the study as it was made
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    published_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+
+
+class ProlificReplicaSubmission(Base):
+    """One participant's place in a study (the SESSION_ID), with Prolific's statuses."""
+
+    __tablename__ = "prolific_replica_submissions"
+
+    id: Mapped[str] = mapped_column(String(24), primary_key=True)
+    study_id: Mapped[str] = mapped_column(String(24), index=True)
+    participant_id: Mapped[str] = mapped_column(String(24))  # PROLIFIC_PID
+    status: Mapped[str] = mapped_column(String(24))
+    started_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    completed_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    study_code: Mapped[str | None] = mapped_column(String(64))  # the completion code given
+    rejection_category: Mapped[str | None] = mapped_column(String(32))
+    message: Mapped[str | None] = mapped_column(Text)  # a rejection's message
+    reviewed_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+
+
+class ProlificReplicaBonusSetup(Base):
+    """Bonuses set up (``POST /submissions/bonus-payments/``), not paid until ``pay``."""
+
+    __tablename__ = "prolific_replica_bonus_setups"
+
+    id: Mapped[str] = mapped_column(String(24), primary_key=True)
+    study_id: Mapped[str] = mapped_column(String(24), index=True)
+    csv_bonuses: Mapped[str] = mapped_column(Text)
+    amount: Mapped[int] = mapped_column(Integer)  # cents, the bonuses' total
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class ProlificReplicaPayment(Base):
+    """One participant paid by one ``pay`` of a set-up: a second ``pay`` of the same set-up pays
+    again, as Prolific's does."""
+
+    __tablename__ = "prolific_replica_payments"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    setup_id: Mapped[str] = mapped_column(String(24), index=True)
+    participant_id: Mapped[str] = mapped_column(String(24))
+    amount: Mapped[int] = mapped_column(Integer)  # cents
+    paid_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)

@@ -136,10 +136,15 @@ function consentPage() {
 }
 
 function declinedPage() {
+  const back = participant.completion && participant.completion.redirect_url;
   show(sheet(
     h("h1", {}, "Thank you"),
-    h("p", {}, "You chose not to take part, and nothing more will be recorded. You may close this page."),
-    participant.platform === "mturk" ? h("p", {}, "Please return the HIT so that someone else can take it.") : null));
+    h("p", {}, "You chose not to take part, and nothing more will be recorded."),
+    participant.platform === "mturk" ? h("p", {}, "Please return the HIT so that someone else can take it.") : null,
+    back ? [h("p", {}, "You are being sent back to Prolific, which will ask you to return the study. If nothing happens, press the button."),
+      h("a", { class: "btn primary big", href: back, target: "_top", "data-action": "return-prolific" }, "Return to Prolific")]
+      : h("p", {}, "You may close this page.")));
+  if (back) window.open(back, "_top");
 }
 
 function instructionsPage() {
@@ -368,13 +373,20 @@ async function completionPage() {
     });
     parts.push(h("p", {}, "Press the button to submit your work to Mechanical Turk. The code is sent with it."), form);
   } else if (completion.mode === "prolific") {
+    // Prolific's guidance: send the participant back automatically; the button is the fallback.
     const link = h("a", { class: "btn primary big", href: completion.redirect_url, target: "_top", "data-action": "return-prolific" }, "Return to Prolific");
-    link.addEventListener("click", async (event) => {
-      event.preventDefault();
+    const back = async () => {
       await recordSubmission();
       window.open(completion.redirect_url, "_top");
+    };
+    link.addEventListener("click", (event) => {
+      event.preventDefault();
+      back();
     });
-    parts.push(h("p", {}, "Press the button to go back to Prolific, which records that you completed the study."), link);
+    parts.push(h("p", {}, "You are being sent back to Prolific, which records that you completed the study. If nothing happens, press the button."), link);
+    show(sheet(...parts));
+    back();
+    return;
   } else {
     parts.push(h("p", {}, "Please give this code to the experimenter. You may close this page."));
   }

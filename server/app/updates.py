@@ -37,7 +37,9 @@ from server.app.models import Event, LearnerUpdate, LearningSession, utcnow
 from server.app.policies import PolicyCache, decode, encode
 from server.cores import share_threads
 from server.domains import make as make_environment
+from server.domains import register_all, registered
 from server.domains.base import STAY
+from server.domains.spec import EnvironmentSpec
 
 if TYPE_CHECKING:
     from server.app.cluster import UpdateCluster
@@ -58,8 +60,12 @@ CLUSTER_WATCH_SECONDS = 10.0  # how often a ready server asks its Dask cluster a
 PARENT_CHECK_SECONDS = 1.0
 
 
-def worker_init(niceness: int, server_pid: int) -> None:
-    """Lower the worker's priority, leave with the server, import the learners once."""
+def worker_init(
+    niceness: int, server_pid: int, environments: tuple[EnvironmentSpec, ...] = ()
+) -> None:
+    """Lower the worker's priority, leave with the server, import the learners once, know
+    the study's own environments."""
+    register_all(environments)
     # A server that dies without shutting its pool down (killed, or stopped while it was
     # replacing workers that a SIGTERM to its process group had killed) leaves its workers
     # waiting on a queue no one writes to: they must notice and go. A worker whose server died
@@ -186,7 +192,7 @@ def new_executor(workers: int, niceness: int) -> ProcessPoolExecutor:
         max_workers=workers,
         mp_context=multiprocessing.get_context("spawn"),
         initializer=worker_init,
-        initargs=(niceness, os.getpid()),
+        initargs=(niceness, os.getpid(), registered()),
     )
 
 

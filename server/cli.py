@@ -29,6 +29,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "db": ("server.app.db_cmd", "Create or upgrade the study database's schema (migrations)."),
     "export": ("server.app.export_cmd", "Export the study's data as CSV files with a dictionary."),
     "teach": ("server.app.teach_cli", "Run simulated participants against a study server."),
+    "check": (
+        "server.commands.check",
+        "Check a study file before running it: problems, drawings, optimal returns, update times.",
+    ),
 }
 
 

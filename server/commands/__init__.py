@@ -1,0 +1,1 @@
+"""The ``bam-study`` subcommands (``server.cli`` lists them), one module each."""

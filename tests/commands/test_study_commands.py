@@ -119,3 +119,30 @@ def test_a_study_s_environment_is_a_gymnasium_id(forget: None) -> None:
         _, reward, _, truncated, _ = env.step(0)
         total += float(reward)
     assert truncated and np.isfinite(total)
+
+
+@pytest.mark.slow
+def test_demo_runs_the_office_study_end_to_end(tmp_path: Path, forget: None) -> None:
+    """``bam-study demo --study``: a server on SQLite, a simulated participant teaching the
+    office floor, the export and the analysis, with small learner settings."""
+    from server.app.demo import DemoOptions, check, run_demo
+
+    options = DemoOptions(
+        out=tmp_path / "demo",
+        participants=1,
+        concurrency=1,
+        rounds=(1, 1),
+        workers=1,
+        study=EXAMPLES / "office-study.toml",
+        learner_settings="\n[learner_settings.bam]\nalternations = 1\ncost_steps = 5\n"
+        "dynamics_steps = 5\n",
+    )
+    check(options)
+    table = run_demo(options)
+    assert "| BAM " in table and "| Behavioral Cloning " in table
+    with (options.out / "export" / "sessions.csv").open() as file:
+        sessions = [row for row in csv.DictReader(file) if row["environment"] == "office-floor"]
+    assert sorted(row["learner"] for row in sessions) == ["bam", "cloning"]
+    with (options.out / "export" / "evaluations.csv").open() as file:
+        evaluations = [row for row in csv.DictReader(file) if row["environment"] == "office-floor"]
+    assert evaluations  # each agent's policy evaluated on the office floor

@@ -322,10 +322,11 @@ def _text_cells(env: Environment) -> list[str]:
 
 
 def study_environment_id(study: str, name: str) -> str:
-    """The Gymnasium id of a study's own environment, ``BAMStudy:<study>/<Name>-v0``
-    (Gymnasium ids have one namespace: the study's name joins ours with a colon)."""
+    """The Gymnasium id of a study's own environment, ``BAMStudy-<study>/<Name>-v0``
+    (Gymnasium ids have one namespace, without '/' or '.', and read ``a:b`` as module ``a``:
+    the study's name joins ours with a hyphen)."""
     title = "".join(part.capitalize() for part in name.split("-"))
-    return f"{NAMESPACE}:{study}/{title}-v{VERSION}"
+    return f"{NAMESPACE}-{study}/{title}-v{VERSION}"
 
 
 def register_study_environments(study: str, names: tuple[str, ...]) -> tuple[str, ...]:

@@ -109,7 +109,7 @@ def test_a_study_s_environment_is_a_gymnasium_id(forget: None) -> None:
     from server.commands.studies import register_study
 
     (name,) = register_study(EXAMPLES / "office-study.toml")
-    env = gym.make("BAMStudy:office-study/OfficeFloor-v0")
+    env = gym.make("BAMStudy-office-study/OfficeFloor-v0")
     observation, _ = env.reset(seed=0, options={"task": 4})
     own = domains.make(name)
     assert env.spec is not None and env.spec.max_episode_steps == own.horizon
@@ -146,3 +146,28 @@ def test_demo_runs_the_office_study_end_to_end(tmp_path: Path, forget: None) -> 
     with (options.out / "export" / "evaluations.csv").open() as file:
         evaluations = [row for row in csv.DictReader(file) if row["environment"] == "office-floor"]
     assert evaluations  # each agent's policy evaluated on the office floor
+
+
+def test_a_study_s_teacher_datasets_are_minari_datasets(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, forget: None
+) -> None:
+    import minari
+
+    from server.commands.studies import register_study
+    from server.rl.teacher_datasets import write_teacher_datasets
+
+    (name,) = register_study(EXAMPLES / "office-study.toml")
+    ids = write_teacher_datasets([name], 1, 1, 0, tmp_path / "minari")
+    assert ids == ["bam-study/office-floor/simulated-teacher-v0"]
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
+    dataset = minari.load_dataset(ids[0])
+    assert dataset.spec.env_spec is not None
+    assert dataset.spec.env_spec.id == "BAMStudy-office-study/OfficeFloor-v0"
+    env = domains.make(name)
+    # One demonstration per task, each from a start of its task to its goal.
+    episodes = list(dataset.iterate_episodes())
+    assert len(episodes) == len(env.tasks)
+    for episode in episodes:
+        task = int(episode.infos["task"][0])
+        assert env.tasks[task].start[int(episode.observations[0])] > 0
+        assert env.is_goal(task, int(episode.observations[-1]))

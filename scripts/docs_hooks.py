@@ -6,6 +6,7 @@ table in its place. NAME is one of ``GENERATORS``:
 - ``study-file``: every key of the study file, from the pydantic models in
   ``server/app/config.py`` (their field types, defaults and descriptions);
 - ``domains``: the domains, their environments and tutorials, from ``server.domains``;
+- ``environment-legend``: each family's map letters, from the families in ``server.domains``;
 - ``learner-settings``: every learner's settings and their defaults, from the learners'
   ``default_settings``;
 - ``deployment-settings``: every ``BAM_*`` variable, from ``server/app/settings.py``;
@@ -186,6 +187,9 @@ def nested_models(model: type[BaseModel]) -> list[tuple[str, tuple[type[BaseMode
             found.append((name, table_models(annotation), False))
         elif typing.get_origin(annotation) in (tuple, list) and table_models(arguments[0]):
             found.append((name, table_models(arguments[0]), True))
+        elif len(arguments) == 2 and arguments[0] is str and table_models(arguments[1]):
+            # a table of tables by name: [environments.NAME]
+            found.append((f"{name}.NAME", table_models(arguments[1]), False))
     return found
 
 
@@ -293,6 +297,26 @@ def domains_table() -> str:
     return "\n".join(lines)
 
 
+def environment_legend() -> str:
+    """Each family's map letters, from ``server.domains``' families."""
+    from server.domains import farming, gravity, navigation
+
+    rows = ["| family | letter | meaning |", "| --- | --- | --- |"]
+    rows.append(f"| navigation | `{navigation.WALL}` | wall |")
+    rows.append(f"| navigation | `{navigation.FLOOR}` | floor |")
+    rows.append("| navigation, gravity | a capital letter | the goal of the task it names |")
+    rows.append(f"| gravity | `{gravity.PLAIN}` | plain cell |")
+    for letter, colour in gravity.COLOURS.items():
+        rows.append(f"| gravity | `{letter}` | {colour}: acting here sets its gravity |")
+    for letter, terrain in farming.TERRAIN_OF_LETTER.items():
+        machine = next((m for m, t in farming.TERRAIN_OF_MACHINE.items() if t == terrain), None)
+        meaning = "free" if machine is None else f"entered with the {machine}"
+        rows.append(f"| farming | `{letter}` | {terrain}: {meaning} |")
+    for letter, machine in farming.MACHINE_OF_LETTER.items():
+        rows.append(f"| farming | `{letter}` | the {machine}, on dirt: stepping here takes it |")
+    return "\n".join(rows)
+
+
 def learner_settings() -> str:
     from server.learners import DISPLAY_NAMES, LEARNERS
 
@@ -363,6 +387,7 @@ GENERATORS: dict[str, Callable[[], str]] = {
     "analysis-outputs": analysis_outputs,
     "study-file": lambda: study_file(),
     "domains": domains_table,
+    "environment-legend": environment_legend,
     "learner-settings": learner_settings,
     "deployment-settings": deployment_settings,
     "export-tables": export_tables,

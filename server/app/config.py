@@ -3,7 +3,9 @@ learners, the tutorial, the texts shown to participants and how they complete.
 
 A TOML file (``BAM_STUDY_CONFIG``); the default, ``server/config/study.toml``, is the paper's
 study. ``load_study_config`` validates it against the environment and learner registries and
-reports every problem with its place in the file.
+reports every problem with its place in the file. A study may define environments of its own
+(``[environments.NAME]``, each map checked for every problem, with its line and column);
+``StudyConfig.register_environments`` makes them known to ``server.domains`` by name.
 """
 
 from __future__ import annotations
@@ -11,10 +13,23 @@ from __future__ import annotations
 import difflib
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Literal, get_args
+from typing import TYPE_CHECKING, Annotated, Any, Literal, get_args
 from urllib.parse import urlsplit
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from server.domains.spec import DEFAULT_MAX_STATES
+
+if TYPE_CHECKING:
+    from server.domains.spec import EnvironmentSpec
 
 DEFAULT_STUDY_CONFIG = Path(__file__).resolve().parent.parent / "config" / "study.toml"
 
@@ -34,6 +49,105 @@ class Colour(_Strict):
         min_length=1, max_length=40, description="The colour's name, shown to participants."
     )
     hex: str = Field(pattern=r"^#[0-9A-Fa-f]{6}$", description="The colour drawn, as #RRGGBB.")
+
+
+class EnvironmentDefinition(_Strict):
+    """An environment of the study's own, ``[environments.NAME]``: used as the built-in ones
+    are (list NAME in its family's ``[[domains]]``). The map is text in the format of the
+    built-in maps (docs: Designing your own environments), inline or in a file."""
+
+    family: Literal["navigation", "gravity", "farming"] = Field(
+        description="The environment's family: navigation, gravity or farming."
+    )
+    map: str | None = Field(
+        None,
+        description="The map's text: header lines (task:, start:, gravity of ...:), the column "
+        "digits, then one numbered line per row.",
+    )
+    map_file: str | None = Field(
+        None,
+        description="Instead of map: a file holding the map, its path relative to the study file.",
+    )
+    horizon: int | None = Field(
+        None,
+        ge=1,
+        le=1000,
+        description="Steps per task; unset: the family's own (navigation 2 x (width + height), "
+        "gravity and farming 4 x (width + height)).",
+    )
+    colours: dict[str, str] = Field(
+        default_factory=dict,
+        description="The colour drawn for each new terrain, machine or gravity colour, e.g. "
+        '{ vines = "#6b8e23" }.',
+    )
+    gravity_colours: dict[str, str] = Field(
+        default_factory=dict,
+        description="Gravity only: colours beyond orange (o), green (g) and purple (p), "
+        'each a lower-case letter and its name, e.g. { y = "yellow" }.',
+    )
+    gravity: dict[str, str] = Field(
+        default_factory=dict,
+        description="Gravity only: the gravity each colour sets (north, south, east or west); "
+        "the map's 'gravity of COLOUR:' lines may give it instead.",
+    )
+    terrains: dict[str, str] = Field(
+        default_factory=dict,
+        description="Farming only: field terrains beyond soil (s), grass (i) and crops (c), "
+        'each a lower-case letter and its name, e.g. { v = "vines" }.',
+    )
+    machines: dict[str, str] = Field(
+        default_factory=dict,
+        description="Farming only: machines beyond the plow (P), sprinkler (W) and harvester "
+        '(H), each a capital letter and its name, e.g. { T = "trellis" }.',
+    )
+    works_on: dict[str, str] = Field(
+        default_factory=dict,
+        description="Farming only: the terrain each machine enters (required for a new "
+        'machine; the others keep theirs unless given), e.g. { trellis = "vines" }.',
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _read_map_file(cls, data: Any, info: ValidationInfo) -> Any:
+        if not isinstance(data, dict) or data.get("map_file") is None:
+            return data
+        if data.get("map") is not None:
+            raise ValueError("give map or map_file, not both")
+        base = (info.context or {}).get("base", Path.cwd())
+        path = Path(base) / str(data["map_file"])
+        try:
+            text = path.read_text(encoding="utf-8")
+        except OSError as error:
+            raise ValueError(f"cannot read map_file {path}: {error.strerror or error}") from None
+        return {**data, "map": text}
+
+    @model_validator(mode="after")
+    def _check_map(self, info: ValidationInfo) -> EnvironmentDefinition:
+        """Every problem of the map at once (the study's limit on states in the context)."""
+        if self.map is None:
+            raise ValueError("needs map (the map's text) or map_file")
+        limit = (info.context or {}).get("max_states", DEFAULT_MAX_STATES)
+        problems = self.spec("environment").problems(limit)
+        if problems:
+            raise ValueError("\n    ".join(str(problem) for problem in problems))
+        return self
+
+    def spec(self, name: str) -> EnvironmentSpec:
+        from server.domains.spec import EnvironmentSpec
+
+        assert self.map is not None
+        return EnvironmentSpec(
+            name=name,
+            family=self.family,
+            map=self.map,
+            horizon=self.horizon,
+            colours=dict(self.colours),
+            gravity_colours=dict(self.gravity_colours),
+            gravity=dict(self.gravity),
+            terrains=dict(self.terrains),
+            machines=dict(self.machines),
+            works_on=dict(self.works_on),
+        )
 
 
 class Domain(_Strict):
@@ -57,16 +171,20 @@ class Domain(_Strict):
 
         if self.name not in domains.DOMAINS:
             raise ValueError(f"unknown domain {self.name!r}; valid: {', '.join(domains.DOMAINS)}")
-        valid = domains.DOMAINS[self.name]
+        # The built-in names of another domain; the study's own are checked by StudyConfig.
         for environment in self.environments:
-            if environment not in valid:
+            if environment in domains.NAMES and domains.domain_of(environment) != self.name:
                 raise ValueError(
                     f"environment {environment!r} is not in domain {self.name!r}; "
-                    f"valid: {', '.join(valid)}"
+                    f"valid: {', '.join(domains.DOMAINS[self.name])}"
                 )
         if len(set(self.environments)) != len(self.environments):
             raise ValueError(f"domain {self.name!r} lists an environment twice")
-        if self.tutorial is not None and domains.domain_of(self.tutorial) != self.name:
+        if (
+            self.tutorial is not None
+            and self.tutorial in domains.NAMES
+            and domains.domain_of(self.tutorial) != self.name
+        ):
             raise ValueError(f"tutorial {self.tutorial!r} is not an environment of {self.name!r}")
         return self
 
@@ -276,6 +394,18 @@ class StudyConfig(_Strict):
         description="A post-study questionnaire, shown after the last agent and before the "
         "completion code; none when it has no questions.",
     )
+    environments: dict[str, EnvironmentDefinition] = Field(
+        default_factory=dict,
+        description="The study's own environments, one [environments.NAME] table each (NAME: "
+        "lower-case letters, digits and '-'), listed in a domain of their family.",
+    )
+    max_environment_states: int = Field(
+        DEFAULT_MAX_STATES,
+        ge=1,
+        le=100_000,
+        description="The most states (cells x gravities or machines carried) an environment "
+        "of the study's own may have.",
+    )
 
     @field_validator("learners")
     @classmethod
@@ -302,12 +432,64 @@ class StudyConfig(_Strict):
         colour_names = [colour.name for colour in self.colours]
         if len(set(colour_names)) != len(colour_names):
             raise ValueError("two colours have the same name")
+        self._check_environments()
         most = max(len(domain.environments) for domain in self.domains) * self.agents
         if len(self.colours) < most:
             raise ValueError(
                 f"{len(self.colours)} colours for up to {most} agents: each agent needs its own"
             )
         return self
+
+    @field_validator("environments")
+    @classmethod
+    def _environment_names(
+        cls, value: dict[str, EnvironmentDefinition]
+    ) -> dict[str, EnvironmentDefinition]:
+        from server import domains
+        from server.domains.spec import NAME
+
+        for name in value:
+            if name in domains.NAMES:
+                raise ValueError(f"{name!r} is a built-in environment; choose another name")
+            if not NAME.match(name):
+                raise ValueError(
+                    f"{name!r}: a name is lower-case letters, digits and '-', from a letter"
+                )
+        return value
+
+    def _check_environments(self) -> None:
+        """Each domain's environments are built in or the study's own, of its family (each
+        map was checked on its own)."""
+        from server import domains
+
+        problems: list[str] = []
+        for domain in self.domains:
+            for environment in (*domain.environments, domain.tutorial):
+                if environment is None or environment in domains.NAMES:
+                    continue
+                own = self.environments.get(environment)
+                if own is None:
+                    problems.append(
+                        f"domain {domain.name!r}: no environment {environment!r}; valid: "
+                        f"{', '.join((*domains.DOMAINS[domain.name], *self.environments))}"
+                    )
+                elif own.family != domain.name:
+                    problems.append(
+                        f"domain {domain.name!r}: {environment!r} is a {own.family} environment"
+                    )
+        if problems:
+            raise ValueError("\n    ".join(problems))
+
+    def environment_specs(self) -> tuple[EnvironmentSpec, ...]:
+        """The study's own environments, as ``server.domains`` registers them."""
+        return tuple(definition.spec(name) for name, definition in self.environments.items())
+
+    def register_environments(self) -> None:
+        """Make the study's own environments known to ``server.domains`` by name."""
+        from server import domains
+
+        for spec in self.environment_specs():
+            domains.register(spec, self.max_environment_states)
 
     @property
     def agents(self) -> int:
@@ -398,9 +580,16 @@ def _tables_in(annotation: Any) -> set[type[BaseModel]]:
     return {table for argument in get_args(annotation) for table in _tables_in(argument)}
 
 
-def parse_study_config(data: dict[str, Any], source: str = "study configuration") -> StudyConfig:
+def parse_study_config(
+    data: dict[str, Any], source: str = "study configuration", base: Path | None = None
+) -> StudyConfig:
+    """Validate a study's data (``base``: the directory map files are relative to)."""
     try:
-        return StudyConfig.model_validate(data)
+        limit = data.get("max_environment_states", DEFAULT_MAX_STATES)
+        if not isinstance(limit, int) or isinstance(limit, bool):
+            limit = DEFAULT_MAX_STATES  # the field reports the bad value
+        context = {"base": base or Path.cwd(), "max_states": limit}
+        return StudyConfig.model_validate(data, context=context)
     except ValidationError as error:
         raise StudyConfigError(f"{source} is not a valid study:\n{_format_errors(error)}") from None
 
@@ -416,4 +605,4 @@ def load_study_config(path: Path | str | None = None) -> StudyConfig:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise StudyConfigError(f"{path} is not valid TOML: {error}") from None
-    return parse_study_config(data, str(path))
+    return parse_study_config(data, str(path), path.resolve().parent)

@@ -133,6 +133,7 @@ def create_app(
     upgrade``, which ``bam-study serve`` runs itself on SQLite)."""
     settings = settings or get_settings()
     study_config = study_config or load_study_config(settings.study_config)
+    study_config.register_environments()
     own_db = db is None
     if db is None:
         db = Database.from_url(

@@ -11,6 +11,7 @@ that the command printed to open the dashboard shows where the token is, not the
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import secrets
 import shlex
@@ -47,11 +48,18 @@ class DemoOptions:
     mistake_probability: float = 0.05
     workers: int = 0  # learner-update processes (0: one per core)
     learner_settings: str = ""  # TOML appended to the shipped study configuration
+    study: Path | None = None  # a study file to run instead of the paper's
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
     from server.commands.teach import parse_rounds
 
+    parser.add_argument(
+        "--study",
+        type=Path,
+        metavar="STUDY.toml",
+        help="run this study file (its own environments included) instead of the paper's",
+    )
     parser.add_argument(
         "--out",
         type=Path,
@@ -96,6 +104,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     options = DemoOptions(
+        study=args.study,
         out=args.out,
         participants=args.participants,
         concurrency=args.concurrency,
@@ -188,6 +197,8 @@ def check(options: DemoOptions) -> None:
         raise DemoError(
             f"--mistake-probability must be in [0, 1], got {options.mistake_probability}"
         )
+    if options.study is not None and not options.study.is_file():
+        raise DemoError(f"--study {options.study} is not a file")
     if options.workers < 0:
         raise DemoError(f"--workers must be 0 (one per core) or more, got {options.workers}")
     out = options.out
@@ -206,7 +217,6 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
     from analysis.report import write_outputs
     from analysis.results import analyze
     from analysis.tables import table1_markdown
-    from server.app.config import DEFAULT_STUDY_CONFIG
     from server.app.export.tables import export_tables, write_export
     from server.app.storage.db import Database, upgrade
     from server.commands.live import ServerProcess
@@ -218,8 +228,15 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
     out.mkdir(parents=True, exist_ok=True)
     url = f"sqlite:///{out / 'study.sqlite'}"
     study = out / "study.toml"
-    study.write_text(DEFAULT_STUDY_CONFIG.read_text() + options.learner_settings)
+    study.write_text(study_text(options) + options.learner_settings)
     admin_token = write_admin_token(out)
+    if options.study is not None:
+        from server.commands.studies import StudyEnvironmentsError, register_study
+
+        try:  # the simulated participants find the study's environments by name too
+            register_study(study)
+        except StudyEnvironmentsError as error:
+            raise DemoError(str(error)) from None
     db = Database.from_url(url)
     try:
         upgrade(db.engine)
@@ -238,7 +255,8 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
         )
         print(
             f"{options.participants} simulated participants, {options.concurrency} at a time, "
-            f"teach the paper's study on a server at {url}",
+            f"teach {'the paper' if options.study is None else options.study.stem}'s study on "
+            f"a server at {url}",
             file=err,
             flush=True,
         )
@@ -281,6 +299,24 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
         raise DemoError(f"the analysis refused the export: {error}") from error
     write_outputs(analysis, out / "analysis")
     return table1_markdown(analysis)
+
+
+def study_text(options: DemoOptions) -> str:
+    """The study file the demo runs (the paper's by default), its map files' paths made
+    absolute so that the copy in the output folder reads them."""
+    import re
+
+    from server.app.config import DEFAULT_STUDY_CONFIG
+
+    if options.study is None:
+        return DEFAULT_STUDY_CONFIG.read_text()
+    base = options.study.resolve().parent
+    return re.sub(
+        r'^(\s*map_file\s*=\s*)"([^"]*)"',
+        lambda match: f"{match.group(1)}{json.dumps(str(base / match.group(2)))}",
+        options.study.read_text(encoding="utf-8"),
+        flags=re.MULTILINE,
+    )
 
 
 def wait_for_learners(db: Database, err: TextIO, log_path: Path, participants: int) -> None:

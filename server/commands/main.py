@@ -29,6 +29,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "db": ("server.commands.db", "Create or upgrade the study database's schema (migrations)."),
     "export": ("server.commands.export", "Export the study's data as CSV files with a dictionary."),
     "teach": ("server.commands.teach", "Run simulated participants against a study server."),
+    "check": (
+        "server.commands.check",
+        "Check a study file before running it: problems, drawings, optimal returns, update times.",
+    ),
 }
 
 

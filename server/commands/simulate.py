@@ -62,6 +62,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="run the jobs on this Dask distributed scheduler instead of the local pool "
         "(needs bam-study[dask] here and bam-study installed on the workers)",
     )
+    parser.add_argument(
+        "--study",
+        type=Path,
+        metavar="STUDY.toml",
+        help="a study file whose own environments ([environments.NAME]) are simulated; "
+        "--environments then defaults to them",
+    )
     parser.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder")
     parser.add_argument(
         "--minari",
@@ -98,6 +105,8 @@ def command_line(args: argparse.Namespace, config: RunConfig) -> str:
         words += ["--learner-setting", assignment]
     if args.scheduler:
         words += ["--scheduler", args.scheduler]
+    if getattr(args, "study", None) is not None:
+        words += ["--study", str(args.study)]
     words += ["--out", str(args.out)]
     return " ".join(shlex.quote(word) for word in words)
 
@@ -117,9 +126,21 @@ def run(args: argparse.Namespace) -> int:
 
     backend: Backend | None = None
     try:
+        environments = args.environments
+        if args.study is not None:
+            from server.commands.studies import StudyEnvironmentsError, register_study
+
+            try:
+                own = register_study(args.study)
+            except StudyEnvironmentsError as error:
+                raise ConfigError(str(error)) from None
+            if args.scheduler:
+                raise ConfigError("--study runs on the local pool: a cluster's workers "
+                                  "do not know the study's environments")  # fmt: skip
+            environments = environments or list(own)
         config, notes = build_config(
             args.experiment,
-            args.environments,
+            environments,
             args.learners,
             args.agents,
             args.rounds,

@@ -21,6 +21,8 @@ Only the field cells carry a cost (``Environment.cost_cells``), as in the author
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import numpy as np
 
 from server.domains.base import NUM_ACTIONS, Environment, SoftmaxRowsModel, Task
@@ -51,25 +53,56 @@ TRUE_LOGIT = 30.0  # softmax(+30 against -30) is within 1e-26 of one-hot
 WIDTH = 2  # successors per (state, action)
 
 
+@dataclass(frozen=True)
+class Rules:
+    """A farming variant's letters and rule: {letter: terrain} (dirt drawn '.'), {letter:
+    machine} and {machine: the terrain it works on}. The defaults are the paper's; the order of
+    the terrains and machines is the order of the model's softmax columns and rows."""
+
+    terrain_of_letter: dict[str, str] = field(default_factory=lambda: dict(TERRAIN_OF_LETTER))
+    machine_of_letter: dict[str, str] = field(default_factory=lambda: dict(MACHINE_OF_LETTER))
+    terrain_of_machine: dict[str, str] = field(default_factory=lambda: dict(TERRAIN_OF_MACHINE))
+    palette: dict[str, str] = field(default_factory=dict)  # {name: "#rrggbb"} the page lacks
+
+    @property
+    def terrains(self) -> tuple[str, ...]:
+        return ("dirt", *(t for t in self.terrain_of_letter.values() if t != "dirt"))
+
+    @property
+    def machines(self) -> tuple[str, ...]:
+        return tuple(self.machine_of_letter.values())
+
+    @property
+    def features(self) -> tuple[str, ...]:
+        return ("none", *self.machines)
+
+
 def horizon(height: int, width: int) -> int:
     return 4 * (width + height)
 
 
-def build(name: str, grid_map: GridMap) -> Environment:
-    grid_map.check_characters("".join(TERRAIN_OF_LETTER) + "".join(MACHINE_OF_LETTER))
+def build(
+    name: str, grid_map: GridMap, horizon_steps: int | None = None, rules: Rules | None = None
+) -> Environment:
+    """The environment of a farming map. ``horizon_steps``: the horizon, unless the family's
+    own, 4 * (width + height); ``rules``: the variant's letters and rule (the paper's unless
+    given)."""
+    rules = Rules() if rules is None else rules
+    features, machines, terrains = rules.features, rules.machines, rules.terrains
+    grid_map.check_characters("".join(rules.terrain_of_letter) + "".join(rules.machine_of_letter))
     if grid_map.goal_letters:
         raise ValueError(f"map {name!r}: farming tasks are fields, not letters")
     height, width = grid_map.height, grid_map.width
-    num_features = len(FEATURES)
+    num_features = len(features)
     num_states = height * width * num_features
     # Machines stand on dirt.
     terrain = {
-        cell: TERRAIN_OF_LETTER.get(grid_map.char(cell), "dirt") for cell in grid_map.cells()
+        cell: rules.terrain_of_letter.get(grid_map.char(cell), "dirt") for cell in grid_map.cells()
     }
     machine_of_cell = {
-        cell: MACHINE_OF_LETTER[grid_map.char(cell)]
+        cell: rules.machine_of_letter[grid_map.char(cell)]
         for cell in grid_map.cells()
-        if grid_map.char(cell) in MACHINE_OF_LETTER
+        if grid_map.char(cell) in rules.machine_of_letter
     }
 
     def state_of(cell: tuple[int, int], feature: int) -> int:
@@ -77,12 +110,12 @@ def build(name: str, grid_map: GridMap) -> Environment:
 
     def parametric(carried: str, target_terrain: str) -> tuple[int, float]:
         """The model parameter of ``carried`` on ``target_terrain``, and whether it truly works."""
-        index = MACHINES.index(carried) * len(TERRAINS) + TERRAINS.index(target_terrain)
-        return index, float(TERRAIN_OF_MACHINE[carried] == target_terrain)
+        index = machines.index(carried) * len(terrains) + terrains.index(target_terrain)
+        return index, float(rules.terrain_of_machine[carried] == target_terrain)
 
     table = TransitionTable(num_states, WIDTH)
     for cell in grid_map.cells():
-        for feature, carried in enumerate(FEATURES):
+        for feature, carried in enumerate(features):
             state = state_of(cell, feature)
             for action in range(NUM_ACTIONS):
                 target = target_cell(cell, action, height, width)
@@ -101,7 +134,7 @@ def build(name: str, grid_map: GridMap) -> Environment:
                         )
                 elif terrain[target] == "dirt":
                     machine = machine_of_cell.get(target)
-                    new = feature if machine is None else FEATURES.index(machine)
+                    new = feature if machine is None else features.index(machine)
                     table.set(state, action, known(state_of(target, new)))
                 elif carried == "none":
                     table.set(state, action, known(state))
@@ -117,11 +150,11 @@ def build(name: str, grid_map: GridMap) -> Environment:
                     )
     model = SoftmaxRowsModel(
         **table.model_arrays(),
-        num_parameters=len(MACHINES) * len(TERRAINS),
+        num_parameters=len(machines) * len(terrains),
         initial_value=0.0,
-        parameter_names=[f"{machine}->{t}" for machine in MACHINES for t in TERRAINS],
-        groups=len(MACHINES),
-        choices=len(TERRAINS),
+        parameter_names=[f"{machine}->{t}" for machine in machines for t in terrains],
+        groups=len(machines),
+        choices=len(terrains),
         prior_sd=None,
         parameter_bound=PARAMETER_BOUND,
         outcomes=table.outcomes,
@@ -165,13 +198,18 @@ def build(name: str, grid_map: GridMap) -> Environment:
         domain=DOMAIN,
         grid_map=grid_map,
         num_features=num_features,
-        feature_names=FEATURES,
-        horizon=horizon(height, width),
+        feature_names=features,
+        horizon=horizon_steps or horizon(height, width),
         tasks=tasks,
         table=table,
         model=model,
         layout=layout,
         cost_cells=cost_cells,
+        legend={
+            "letters": {**rules.terrain_of_letter, **rules.machine_of_letter},
+            "palette": dict(rules.palette),
+            "works_on": dict(rules.terrain_of_machine),
+        },
     )
 
 
@@ -180,10 +218,10 @@ def true_model_parameters(env: Environment) -> np.ndarray:
     per machine, +30 on the terrain it works on and -30 on the others."""
     if env.domain != DOMAIN:
         raise ValueError(f"{env.name!r} is a {env.domain} environment, not {DOMAIN}")
+    works_on = env.legend.get("works_on", TERRAIN_OF_MACHINE)
     return np.asarray(
         [
-            TRUE_LOGIT if TERRAIN_OF_MACHINE[machine] == terrain else -TRUE_LOGIT
-            for machine in MACHINES
-            for terrain in TERRAINS
+            TRUE_LOGIT if works_on[machine] == terrain else -TRUE_LOGIT
+            for machine, terrain in (name.split("->") for name in env.model.parameter_names)
         ]
     )

@@ -60,18 +60,30 @@ def horizon(height: int, width: int) -> int:
     return 4 * (width + height)
 
 
-def build(name: str, grid_map: GridMap) -> Environment:
-    grid_map.check_characters(PLAIN + "".join(COLOURS))
+def build(
+    name: str,
+    grid_map: GridMap,
+    horizon_steps: int | None = None,
+    colours: dict[str, str] | None = None,
+    palette: dict[str, str] | None = None,
+) -> Environment:
+    """The environment of a gravity map. ``horizon_steps``: the horizon, unless the family's
+    own, 4 * (width + height); ``colours``: {map letter: colour} (``COLOURS`` unless given),
+    whose order is the order of the model's softmax rows; ``palette``: {colour: "#rrggbb"} for
+    colours the page does not know."""
+    colours = dict(COLOURS) if colours is None else colours
+    steps = horizon_steps or horizon(grid_map.height, grid_map.width)
+    grid_map.check_characters(PLAIN + "".join(colours))
     height, width = grid_map.height, grid_map.width
     num_features = len(GRAVITIES)
     num_states = height * width * num_features
     colour_of_cell = {
-        cell: COLOURS[grid_map.char(cell)]
+        cell: colours[grid_map.char(cell)]
         for cell in grid_map.cells()
-        if grid_map.char(cell) in COLOURS
+        if grid_map.char(cell) in colours
     }
-    # Softmax rows: the colours present, in the order orange, green, purple.
-    groups = [colour for colour in COLOURS.values() if colour in colour_of_cell.values()]
+    # Softmax rows: the colours present, in the order of ``colours`` (orange, green, purple).
+    groups = [colour for colour in colours.values() if colour in colour_of_cell.values()]
     mapping = grid_map.gravity_of_colour
     if set(mapping) != set(groups) or not set(mapping.values()) <= set(GRAVITIES):
         raise ValueError(
@@ -140,7 +152,7 @@ def build(name: str, grid_map: GridMap) -> Environment:
         # The study's starts leave out the few states from which no policy can ever reach the
         # goal (e.g. gravity east in the last column with no colour in it, for a goal at the
         # left): a person's demonstration from there could never end at the goal.
-        reachable = can_reach(true_transitions, reward > 0, horizon(height, width) - 1)
+        reachable = can_reach(true_transitions, reward > 0, steps - 1)
         tasks.append(
             Task(
                 name=spec.name,
@@ -163,11 +175,15 @@ def build(name: str, grid_map: GridMap) -> Environment:
         grid_map=grid_map,
         num_features=num_features,
         feature_names=GRAVITIES,
-        horizon=horizon(height, width),
+        horizon=steps,
         tasks=tasks,
         table=table,
         model=model,
         layout=layout,
+        legend={
+            "letters": {PLAIN: "floor", **colours},
+            "palette": {} if palette is None else dict(palette),
+        },
     )
 
 

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from typing import Any, TypedDict
 
@@ -108,6 +108,31 @@ class TaskSpec:
     goal_cells: tuple[Cell, ...]
 
 
+@dataclass(frozen=True, order=True)
+class Problem:
+    """One problem of a map, at its line and column of the map's text (both from 1)."""
+
+    line: int
+    column: int
+    message: str
+
+    def __str__(self) -> str:
+        if self.line == 0:  # not in the map's text: a key of the environment's definition
+            return self.message
+        return f"line {self.line}, column {self.column}: {self.message}"
+
+
+class MapProblems(ValueError):
+    """A map with problems; ``problems`` holds every one, in the order of the text."""
+
+    def __init__(self, name: str, problems: Sequence[Problem]) -> None:
+        self.name = name
+        self.problems = tuple(sorted(problems))
+        count = len(self.problems)
+        listed = "\n".join(f"  {problem}" for problem in self.problems)
+        super().__init__(f"map {name!r} has {count} problem{'s' * (count != 1)}:\n{listed}")
+
+
 @dataclass(frozen=True)
 class GridMap:
     """One parsed map file: the grid (one string per row) and its header."""
@@ -119,6 +144,12 @@ class GridMap:
     start: Region = field(default_factory=Region)
     study_starts: dict[str, Region] = field(default_factory=dict)
     gravity_of_colour: dict[str, str] = field(default_factory=dict)
+    # Where things are in the text, for problems: each grid row's line and the text column of
+    # its first cell, and (line, column) of header entries ("task NAME", "start",
+    # "gravity of COLOUR").
+    row_lines: tuple[int, ...] = ()
+    row_columns: tuple[int, ...] = ()
+    places: dict[str, tuple[int, int]] = field(default_factory=dict)
 
     @property
     def height(self) -> int:
@@ -136,6 +167,16 @@ class GridMap:
     def char(self, cell: Cell) -> str:
         return self.grid[cell[0]][cell[1]]
 
+    def where(self, cell: Cell) -> tuple[int, int]:
+        """The (line, column) of a cell in the map's text."""
+        if not self.row_lines:
+            return cell[0] + 1, cell[1] + 1
+        return self.row_lines[cell[0]], self.row_columns[cell[0]] + cell[1]
+
+    def place(self, key: str) -> tuple[int, int]:
+        """The (line, column) of a header entry (the grid's first line when it has none)."""
+        return self.places.get(key, (self.row_lines[0] if self.row_lines else 1, 1))
+
     def check_characters(self, allowed: str) -> None:
         """Reject a map drawing a character its family does not know (goal letters aside)."""
         for cell in self.cells():
@@ -151,45 +192,117 @@ def load_map(name: str) -> GridMap:
 
 
 def parse_map(name: str, text: str) -> GridMap:
-    header: list[tuple[str, str]] = []
+    """Read a map, failing at its first problem (``read_map`` gives every one)."""
+    grid_map, problems = read_map(name, text)
+    if problems or grid_map is None:
+        first = min(problems)
+        raise ValueError(f"map {name!r} line {first.line}: {first.message}")
+    return grid_map
+
+
+@dataclass(frozen=True)
+class _Entry:
+    key: str
+    value: str
+    line: int
+    column: int
+
+
+def read_map(name: str, text: str) -> tuple[GridMap | None, list[Problem]]:
+    """Read a map and list every problem of its text (the map is None when the grid itself
+    cannot be read)."""
+    problems: list[Problem] = []
+    header: list[_Entry] = []
     grid: list[str] = []
+    row_lines: list[int] = []
+    row_columns: list[int] = []
     column_header: str | None = None
+    header_place = (1, 1)
     for number, line in enumerate(text.splitlines(), start=1):
-        where = f"map {name!r} line {number}"
         if not line.strip() or (line.startswith("#") and column_header is None):
             continue
         if column_header is None:
             header_match = _COLUMN_HEADER.match(line)
             if header_match is not None:
                 column_header = header_match.group(1)
+                header_place = (number, header_match.start(1) + 1)
                 continue
             key_value = _KEY_VALUE.match(line)
             if key_value is None:
-                raise ValueError(f"{where}: expected 'key: value', got {line!r}")
-            header.append((key_value.group(1), key_value.group(2).strip()))
+                problems.append(Problem(number, 1, f"expected 'key: value', got {line!r}"))
+                continue
+            header.append(
+                _Entry(
+                    key_value.group(1), key_value.group(2).strip(), number, key_value.start(2) + 1
+                )
+            )
             continue
         row_match = _GRID_ROW.match(line)
         if row_match is None or int(row_match.group(1)) != len(grid):
-            raise ValueError(f"{where}: expected row {len(grid)} of the grid, got {line!r}")
+            problems.append(
+                Problem(number, 1, f"expected row {len(grid)} of the grid, got {line!r}")
+            )
+            if row_match is None:
+                continue
+        assert row_match is not None
         grid.append(row_match.group(2))
+        row_lines.append(number)
+        row_columns.append(row_match.start(2) + 1)
     if column_header is None or not grid:
-        raise ValueError(f"map {name!r} has no grid")
+        problems.append(Problem(1, 1, "the map has no grid (a line of column digits, then rows)"))
+        return None, problems
     width = len(column_header)
     if column_header != "".join(str(column % 10) for column in range(width)):
-        raise ValueError(f"map {name!r}: column header {column_header!r} is not 0123...")
-    if any(len(row) != width for row in grid):
-        raise ValueError(f"map {name!r}: every row must be {width} cells wide")
-    return _read_header(name, tuple(grid), header)
+        problems.append(Problem(*header_place, f"column header {column_header!r} is not 0123..."))
+    for row, (cells, row_line) in enumerate(zip(grid, row_lines, strict=True)):
+        if len(cells) != width:
+            problems.append(
+                Problem(
+                    row_line,
+                    row_columns[row] + min(len(cells), width),
+                    f"row {row} is {len(cells)} cells wide: every row must be {width} cells wide",
+                )
+            )
+    if any(len(cells) != width for cells in grid):
+        # The header's own problems still count: read it against the rows cut or padded.
+        _read_header(name, tuple(cells[:width].ljust(width) for cells in grid), header, problems)
+        return None, problems
+    grid_map = _read_header(name, tuple(grid), header, problems)
+    located = replace(grid_map, row_lines=tuple(row_lines), row_columns=tuple(row_columns))
+    return located, problems
 
 
-def _read_header(name: str, grid: tuple[str, ...], header: list[tuple[str, str]]) -> GridMap:
+def _region(entry: _Entry, text: str, height: int, width: int, problems: list[Problem]) -> Region:
+    """A region of the header, its problems listed (an unreadable one reads as no cell)."""
+    try:
+        region = Region.parse(text)
+    except ValueError as error:
+        problems.append(Problem(entry.line, entry.column, str(error)))
+        return Region(range(0), range(0))
+    for axis, span, size in (("rows", region.rows, height), ("columns", region.columns, width)):
+        if span is not None and span.stop > size:
+            problems.append(
+                Problem(
+                    entry.line,
+                    entry.column,
+                    f"region {text!r} goes past the grid's last {axis[:-1]} ({size - 1})",
+                )
+            )
+    return region
+
+
+def _read_header(
+    name: str, grid: tuple[str, ...], header: list[_Entry], problems: list[Problem]
+) -> GridMap:
     height, width = len(grid), len(grid[0])
     tasks: list[TaskSpec] = []
     goal_letters: set[str] = set()
     start = Region()
     study_starts: dict[str, Region] = {}
     gravity_of_colour: dict[str, str] = {}
-    for key, value in header:
+    places: dict[str, tuple[int, int]] = {}
+    for entry in header:
+        key, value = entry.key, entry.value
         if key == "task":
             task_name, _, goal = (part.strip() for part in value.partition("="))
             goal = goal or task_name
@@ -199,29 +312,58 @@ def _read_header(name: str, grid: tuple[str, ...], header: list[tuple[str, str]]
                 )
                 goal_letters.add(goal)
             else:
-                region = Region.parse(goal)
+                region = _region(entry, goal, height, width, problems)
                 cells = tuple(
                     (r, c) for r in range(height) for c in range(width) if (r, c) in region
                 )
+            if f"task {task_name}" in places:
+                problems.append(
+                    Problem(
+                        entry.line,
+                        entry.column,
+                        f"tasks must have distinct names: {task_name!r} is given twice",
+                    )
+                )
+                continue
+            places[f"task {task_name}"] = (entry.line, entry.column)
             if not cells:
-                raise ValueError(f"map {name!r}: task {task_name!r} has no goal cell")
+                problems.append(
+                    Problem(entry.line, entry.column, f"task {task_name!r} has no goal cell")
+                )
+                continue
             tasks.append(TaskSpec(task_name, cells))
         elif key == "start":
-            start = Region.parse(value)
+            places["start"] = (entry.line, entry.column)
+            start = _region(entry, value, height, width, problems)
         elif key.startswith("study-start "):
-            study_starts[key.removeprefix("study-start ").strip()] = Region.parse(value)
+            task_name = key.removeprefix("study-start ").strip()
+            places[f"study-start {task_name}"] = (entry.line, entry.column)
+            study_starts[task_name] = _region(entry, value, height, width, problems)
         elif key.startswith("gravity of "):
-            gravity_of_colour[key.removeprefix("gravity of ").strip()] = value
+            colour = key.removeprefix("gravity of ").strip()
+            places[f"gravity of {colour}"] = (entry.line, entry.column)
+            gravity_of_colour[colour] = value
         else:
-            raise ValueError(f"map {name!r}: unknown header key {key!r}")
-    names = [task.name for task in tasks]
-    if not tasks or len(set(names)) != len(names):
-        raise ValueError(f"map {name!r}: tasks must be present and have distinct names")
-    unknown = set(study_starts) - set(names)
-    if unknown:
-        raise ValueError(f"map {name!r}: study-start for unknown tasks {sorted(unknown)}")
+            problems.append(Problem(entry.line, 1, f"unknown header key {key!r}"))
+    if not any(key.startswith("task ") for key in places):
+        problems.append(Problem(1, 1, "the map has no task: add a line 'task: A'"))
+    named = {key.removeprefix("task ") for key in places if key.startswith("task ")}
+    for task_name in sorted(set(study_starts) - named):
+        problems.append(
+            Problem(
+                *places[f"study-start {task_name}"],
+                f"study-start for unknown tasks [{task_name!r}]",
+            )
+        )
     return GridMap(
-        name, grid, tuple(tasks), frozenset(goal_letters), start, study_starts, gravity_of_colour
+        name,
+        grid,
+        tuple(tasks),
+        frozenset(goal_letters),
+        start,
+        study_starts,
+        gravity_of_colour,
+        places=places,
     )
 
 
@@ -352,6 +494,19 @@ def can_reach(true_transitions: SparseTransitions, goal: np.ndarray, max_steps: 
     return reached
 
 
+def reachable_from(true_transitions: SparseTransitions, starts: np.ndarray) -> np.ndarray:
+    """Mask of the states some sequence of actions reaches from a state of ``starts`` (a mask;
+    included) under the true dynamics."""
+    reached = starts.copy()
+    frontier = np.flatnonzero(starts)
+    possible = true_transitions.probabilities > 0
+    while frontier.size:
+        successors = np.unique(true_transitions.next_states[frontier][possible[frontier]])
+        frontier = successors[~reached[successors]]
+        reached[frontier] = True
+    return reached
+
+
 def make_environment(
     *,
     name: str,
@@ -365,6 +520,7 @@ def make_environment(
     model: TransitionModel,
     layout: dict[str, Any],
     cost_cells: np.ndarray | None = None,
+    legend: dict[str, Any] | None = None,
 ) -> Environment:
     """Assemble an environment and make its arrays read-only: ``make`` shares one instance."""
     environment = Environment(
@@ -380,6 +536,7 @@ def make_environment(
         layout=layout,
         feature_names=feature_names,
         cost_cells=np.zeros(0, dtype=bool) if cost_cells is None else cost_cells,
+        legend={} if legend is None else legend,
     )
     arrays: list[np.ndarray] = [
         environment.true_transitions.next_states,

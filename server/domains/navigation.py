@@ -37,7 +37,9 @@ def horizon(height: int, width: int) -> int:
     return 2 * (width + height)
 
 
-def build(name: str, grid_map: GridMap) -> Environment:
+def build(name: str, grid_map: GridMap, horizon_steps: int | None = None) -> Environment:
+    """The environment of a navigation map (``horizon_steps``: the horizon, unless the
+    family's own, 2 * (width + height))."""
     grid_map.check_characters(WALL + FLOOR)
     height, width = grid_map.height, grid_map.width
     walls = [cell for cell in grid_map.cells() if grid_map.char(cell) == WALL]
@@ -98,11 +100,12 @@ def build(name: str, grid_map: GridMap) -> Environment:
         grid_map=grid_map,
         num_features=1,
         feature_names=("none",),
-        horizon=horizon(height, width),
+        horizon=horizon_steps or horizon(height, width),
         tasks=tasks,
         table=table,
         model=model,
         layout=layout,
+        legend={"letters": {WALL: "wall", FLOOR: "floor"}, "palette": {}},
     )
 
 

@@ -35,8 +35,15 @@ OBSERVATIONS = ("state", "grid")
 CELL_PIXELS = 16
 
 
+# The ids of the study environments registered with Gymnasium, by environment name.
+_STUDY_IDS: dict[str, str] = {}
+
+
 def environment_id(name: str) -> str:
-    """The Gymnasium id of one of our environments (``BAMStudy/Doorway-v0``)."""
+    """The Gymnasium id of one of our environments (``BAMStudy/Doorway-v0``), or of a study's
+    own registered with ``register_study_environments``."""
+    if name in _STUDY_IDS:
+        return _STUDY_IDS[name]
     if name not in GYMNASIUM_NAMES:
         raise ValueError(f"unknown environment {name!r}; valid names: {', '.join(domains.NAMES)}")
     return f"{NAMESPACE}/{GYMNASIUM_NAMES[name]}-v{VERSION}"
@@ -213,17 +220,19 @@ class BAMStudyEnv(gym.Env[Any, np.int64]):
         )
         return "\n".join(["".join(row) for row in rows] + [status]) + "\n"
 
-    def picture(self) -> np.ndarray:
+    def picture(self, show_agent: bool = True) -> np.ndarray:
         """The grid in the page's colours, ``CELL_PIXELS`` per cell: goals as white squares,
-        machines and gravity colours as squares of their colour, the agent as a blue disc."""
+        machines and gravity colours as squares of their colour, the agent as a blue disc
+        (a study's own names in the colours its environment gives them)."""
         size = CELL_PIXELS
+        palette = {**_own_colours(self.env), **PALETTE}
         image = np.zeros((self.env.height * size, self.env.width * size, 3), dtype=np.uint8)
 
         def fill(row: int, column: int, colour: str, margin: int = 0) -> None:
             image[
                 row * size + margin : (row + 1) * size - margin,
                 column * size + margin : (column + 1) * size - margin,
-            ] = PALETTE[colour]
+            ] = palette[colour]
 
         layout = self.env.layout
         for row, line in enumerate(layout["terrain"]):
@@ -239,6 +248,8 @@ class BAMStudyEnv(gym.Env[Any, np.int64]):
         for item in layout["machines"]:
             fill(item["row"], item["column"], "outline", 3)
             fill(item["row"], item["column"], item["machine"], 4)
+        if not show_agent:
+            return image
         row, column = self.env.cell_of(self.state)
         y, x = np.mgrid[0:size, 0:size] + 0.5
         disc = (y - size / 2) ** 2 + (x - size / 2) ** 2 <= (size * 0.35) ** 2
@@ -246,6 +257,14 @@ class BAMStudyEnv(gym.Env[Any, np.int64]):
             "agent"
         ]
         return image
+
+
+def _own_colours(env: Environment) -> dict[str, tuple[int, int, int]]:
+    """The colours a study's environment gives its own terrains, machines and colours."""
+    return {
+        name: (int(value[1:3], 16), int(value[3:5], 16), int(value[5:7], 16))
+        for name, value in env.legend.get("palette", {}).items()
+    }
 
 
 def _layout_planes(env: Environment) -> tuple[tuple[str, ...], np.ndarray]:
@@ -283,17 +302,49 @@ def _layout_planes(env: Environment) -> tuple[tuple[str, ...], np.ndarray]:
 def _text_cells(env: Environment) -> list[str]:
     """The grid in the map files' legend (the families' letters)."""
     letter_of_terrain = {terrain: letter for letter, terrain in farming.TERRAIN_OF_LETTER.items()}
+    # A study's own environment draws its own letters.
+    letter_of_terrain.update(
+        {name: letter for letter, name in env.legend.get("letters", {}).items()}
+    )
     letter_of_terrain["floor"] = navigation.FLOOR
     rows = [[letter_of_terrain[terrain] for terrain in line] for line in env.layout["terrain"]]
     for row, column in env.layout["walls"]:
         rows[row][column] = navigation.WALL
     letter_of_colour = {colour: letter for letter, colour in gravity.COLOURS.items()}
+    letter_of_colour.update(letter_of_terrain)
     for item in env.layout["colours"]:
         rows[item["row"]][item["column"]] = letter_of_colour[item["colour"]]
     letter_of_machine = {machine: letter for letter, machine in farming.MACHINE_OF_LETTER.items()}
+    letter_of_machine.update(letter_of_terrain)
     for item in env.layout["machines"]:
         rows[item["row"]][item["column"]] = letter_of_machine[item["machine"]]
     return ["".join(row) for row in rows]
+
+
+def study_environment_id(study: str, name: str) -> str:
+    """The Gymnasium id of a study's own environment, ``BAMStudy-<study>/<Name>-v0``
+    (Gymnasium ids have one namespace, without '/' or '.', and read ``a:b`` as module ``a``:
+    the study's name joins ours with a hyphen)."""
+    title = "".join(part.capitalize() for part in name.split("-"))
+    return f"{NAMESPACE}-{study}/{title}-v{VERSION}"
+
+
+def register_study_environments(study: str, names: tuple[str, ...]) -> tuple[str, ...]:
+    """Register a study's own environments (registered in ``server.domains`` first) with
+    Gymnasium; returns their ids."""
+    ids = []
+    for name in names:
+        env_id = study_environment_id(study, name)
+        if env_id not in gym.registry:
+            gym.register(
+                id=env_id,
+                entry_point="server.rl.environments:BAMStudyEnv",
+                kwargs={"environment": name},
+                max_episode_steps=domains.make(name).horizon,
+            )
+        _STUDY_IDS[name] = env_id
+        ids.append(env_id)
+    return tuple(ids)
 
 
 def register_environments() -> None:

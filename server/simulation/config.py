@@ -186,11 +186,11 @@ def build_config(
     if experiment not in EXPERIMENTS:
         raise ConfigError(f"unknown experiment {experiment!r}; valid: {', '.join(EXPERIMENTS)}")
     environments = list(domains.ENVIRONMENTS) if not environments else list(environments)
-    bad_environments = [name for name in environments if name not in domains.NAMES]
+    bad_environments = [name for name in environments if name not in domains.names()]
     if bad_environments:
         raise ConfigError(
             f"unknown environment(s): {', '.join(bad_environments)}; "
-            f"valid: {', '.join(domains.NAMES)}"
+            f"valid: {', '.join(domains.names())}"
         )
     learner_names = list(EXPERIMENTS[experiment]) if not learner_names else list(learner_names)
     bad_learners = [name for name in learner_names if name not in learners.NAMES]
@@ -207,7 +207,7 @@ def build_config(
     per_learner, notes = parse_learner_settings(setting_assignments, selected)
     config = RunConfig(
         experiment=experiment,
-        environments=_ordered_unique(environments, domains.NAMES),
+        environments=_ordered_unique(environments, domains.names()),
         learners=selected,
         agents=int(agents),
         rounds=int(rounds),

@@ -11,6 +11,7 @@ demonstrations, so learners are compared on identical data.
 from __future__ import annotations
 
 import time
+import zlib
 from dataclasses import dataclass
 from typing import Any
 
@@ -67,7 +68,16 @@ class JobResult:
 
 
 def _entropy(job: Job, stream: int, learner_index: int) -> list[int]:
-    return [job.seed, domains.NAMES.index(job.environment), job.agent, stream, learner_index]
+    return [job.seed, environment_number(job.environment), job.agent, stream, learner_index]
+
+
+def environment_number(name: str) -> int:
+    """A number per environment for the random streams: a built-in one's place among the
+    built-in names; a study's own, one from its name alone (whatever else is registered)."""
+    if name in domains.NAMES:
+        return domains.NAMES.index(name)
+    domains.make(name)  # an unknown name fails here, clearly
+    return len(domains.NAMES) + zlib.crc32(name.encode())
 
 
 def _seed(sequence: np.random.SeedSequence) -> int:

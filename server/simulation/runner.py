@@ -22,7 +22,9 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from server import domains
 from server.cores import available_cores, share_threads
+from server.domains.spec import EnvironmentSpec
 from server.simulation.config import ConfigError, RunConfig
 from server.simulation.progress import Progress
 from server.simulation.protocols import Job, JobResult, run_agent
@@ -220,9 +222,10 @@ class Journal:
 # -- where jobs run ------------------------------------------------------------------------
 
 
-def _start_worker(threads: int) -> None:
+def _start_worker(threads: int, environments: tuple[EnvironmentSpec, ...] = ()) -> None:
     # Ctrl-C reaches the whole process group; the parent stops the pool itself.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    domains.register_all(environments)  # the study's own, registered in the parent
     from server.learners.planning import set_planner_threads
 
     set_planner_threads(threads)
@@ -258,7 +261,9 @@ class LocalBackend:
         processes = min(self.workers, len(jobs))
         context = multiprocessing.get_context("spawn")
         pool = context.Pool(
-            processes, initializer=_start_worker, initargs=(spare_threads(processes),)
+            processes,
+            initializer=_start_worker,
+            initargs=(spare_threads(processes), domains.registered()),
         )
         try:
             yield from pool.imap_unordered(run_agent, jobs, chunksize=1)

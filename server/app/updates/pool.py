@@ -13,6 +13,7 @@ if TYPE_CHECKING:
 
 
 from server.app.updates.worker import worker_init
+from server.domains import registered
 
 
 class WorkerDied(RuntimeError):
@@ -33,5 +34,5 @@ def new_executor(workers: int, niceness: int) -> ProcessPoolExecutor:
         max_workers=workers,
         mp_context=multiprocessing.get_context("spawn"),
         initializer=worker_init,
-        initargs=(niceness, os.getpid()),
+        initargs=(niceness, os.getpid(), registered()),
     )

@@ -14,7 +14,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from server.app.updates.policies import encode
+from server.domains import register_all
 from server.domains.base import STAY
+from server.domains.spec import EnvironmentSpec
 from server.learners.records import (
     AgentStep,
     DemonstrationStep,
@@ -31,8 +33,12 @@ if TYPE_CHECKING:
 PARENT_CHECK_SECONDS = 1.0
 
 
-def worker_init(niceness: int, server_pid: int) -> None:
-    """Lower the worker's priority, leave with the server, import the learners once."""
+def worker_init(
+    niceness: int, server_pid: int, environments: tuple[EnvironmentSpec, ...] = ()
+) -> None:
+    """Lower the worker's priority, leave with the server, import the learners once, know
+    the study's own environments."""
+    register_all(environments)
     # A server that dies without shutting its pool down (killed, or stopped while it was
     # replacing workers that a SIGTERM to its process group had killed) leaves its workers
     # waiting on a queue no one writes to: they must notice and go. A worker whose server died

@@ -1,0 +1,150 @@
+"""``bam-study check STUDY.toml``: is a study ready to run, before anyone is paid?
+
+    bam-study check server/examples/office-study.toml --out /tmp/office-check
+
+Prints every problem of the study file (its maps' with their line and column) and stops there
+(exit status 1) if it has any; else, for each environment the study teaches, a drawing in the
+map's letters (and a PNG in ``--out``), each task's optimal return, and each learner's expected
+update time on this machine, estimated from the environment's size (states x actions x horizon
+x tasks) and the processor time of one update per learner on the paper's doorway, with a
+warning where it exceeds ``UPDATE_SECONDS_CAPACITY``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from server.domains.base import Environment
+
+PROG = "bam-study check"
+# The update time a study can serve: a participant waits for an update between rounds, and a
+# longer wait than this, several participants at once, is more than the server can take.
+UPDATE_SECONDS_CAPACITY = 2.0
+CALIBRATION_ENVIRONMENT = "doorway"
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("study", type=Path, metavar="STUDY.toml", help="the study file")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        metavar="DIR",
+        help="where to write each environment's drawing as NAME.png (default: STUDY-check "
+        "beside the current folder's files)",
+    )
+
+
+def size(env: Environment) -> int:
+    """The environment's size for an update: states x actions x horizon x tasks."""
+    return env.num_states * env.num_actions * env.horizon * len(env.tasks)
+
+
+def text_drawing(env: Environment) -> list[str]:
+    """The grid in the map's letters, goal cells drawn as their task's number (1, 2, ...)."""
+    letter_of = {name: letter for letter, name in env.legend.get("letters", {}).items()}
+    rows = [[letter_of.get(terrain, ".") for terrain in line] for line in env.layout["terrain"]]
+    for row, column in env.layout["walls"]:
+        rows[row][column] = letter_of.get("wall", "#")
+    for item in env.layout["colours"]:
+        rows[item["row"]][item["column"]] = letter_of.get(item["colour"], "?")
+    for item in env.layout["machines"]:
+        rows[item["row"]][item["column"]] = letter_of.get(item["machine"], "?")
+    for number, task in enumerate(env.tasks, start=1):
+        for row, column in task.goal_cells:
+            rows[row][column] = str(number % 10)
+    header = "    " + "".join(str(column % 10) for column in range(env.width))
+    return [header, *(f"{row:>3} {''.join(cells)}" for row, cells in enumerate(rows))]
+
+
+def picture(env: Environment) -> np.ndarray:
+    """The environment drawn in the page's colours (``server.rl``'s picture, no agent)."""
+    from server.rl.environments import BAMStudyEnv
+
+    gym_env = BAMStudyEnv(env)
+    gym_env.reset(seed=0, options={"task": 0})
+    return gym_env.picture(show_agent=False)
+
+
+def calibrate(learner_names: tuple[str, ...]) -> dict[str, float]:
+    """Seconds of one update per unit of size, per learner, timed here on the doorway with a
+    demonstration per task (after an untimed first update, which compiles the planner)."""
+    from server import domains, learners
+    from server.teacher import Teacher
+
+    env = domains.make(CALIBRATION_ENVIRONMENT)
+    teacher = Teacher(env, seed=0)
+    rng = np.random.default_rng(0)
+    rates = {}
+    for name in learner_names:
+        learner = learners.make(name, env, seed=0)
+        timed = 0.0
+        for attempt in range(2):
+            for task in range(len(env.tasks)):
+                for step in teacher.demonstration(task, env.sample_start(task, rng)):
+                    learner.record_demonstration(task, *step)
+            # Processor time, not wall time: other work on the machine does not count.
+            started = time.process_time()
+            learner.update()
+            timed = time.process_time() - started if attempt else 0.0
+        rates[name] = timed / size(env)
+    return rates
+
+
+def run(args: argparse.Namespace) -> int:
+    from server import domains
+    from server.app.config import StudyConfigError, load_study_config
+    from server.learners.evaluation import optimal_returns
+
+    try:
+        study = load_study_config(args.study)
+    except StudyConfigError as error:
+        print(f"{PROG}: {error}", file=sys.stderr)
+        return 1
+    study.register_environments()
+    out = args.out if args.out is not None else Path(f"{args.study.stem}-check")
+    out.mkdir(parents=True, exist_ok=True)
+    names = [name for domain in study.domains for name in domain.environments]
+    print(f"{args.study}: no problems; {len(names)} environment(s): {', '.join(names)}")
+    rates = calibrate(study.learners)
+    warnings = 0
+    for name in names:
+        env = domains.make(name)
+        own = "the study's own" if name in study.environments else "built in"
+        print(
+            f"\n== {name} ({env.domain}, {own}): {env.height} x {env.width} cells, "
+            f"{env.num_states} states, horizon {env.horizon}, {len(env.tasks)} task(s)"
+        )
+        print("\n".join(text_drawing(env)))
+        print("tasks (number in the drawing: name, optimal return over the horizon):")
+        for number, (task, best) in enumerate(zip(env.tasks, optimal_returns(env), strict=True)):
+            print(f"  {number + 1}: {task.name}, {best:.1f}")
+        print(f"expected update time (size {size(env)}: states x actions x horizon x tasks):")
+        for learner, rate in rates.items():
+            seconds = rate * size(env)
+            flag = ""
+            if seconds > UPDATE_SECONDS_CAPACITY:
+                warnings += 1
+                flag = f"  WARNING: above the {UPDATE_SECONDS_CAPACITY:.1f} s the server can serve"
+            print(f"  {learner}: {seconds:.2f} s{flag}")
+        image = out / f"{name}.png"
+        _write_png(image, picture(env))
+        print(f"drawing: {image}")
+    if warnings:
+        print(f"\n{warnings} warning(s): a smaller map, fewer tasks or a shorter horizon helps")
+    return 0
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    plt.imsave(path, image)

@@ -1,0 +1,173 @@
+"""``bam-study check`` and ``bam-study simulate --study`` on the two example studies, and a
+study's own environments as Gymnasium ids."""
+
+from __future__ import annotations
+
+import csv
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+import gymnasium as gym
+import matplotlib.image
+import numpy as np
+import pytest
+from server.cli import main
+
+from server import domains
+from server.commands import check
+from server.learners.evaluation import optimal_returns
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "server" / "examples"
+STUDIES = {"office-study": "office-floor", "vineyard-study": "vineyard"}
+
+
+@pytest.fixture
+def forget() -> Iterator[None]:
+    before = set(domains.names())
+    yield
+    for name in set(domains.names()) - before:
+        domains.unregister(name)
+
+
+@pytest.mark.parametrize("study", sorted(STUDIES))
+def test_check_draws_each_environment_with_its_optimal_returns(
+    study: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], forget: None
+) -> None:
+    assert main(["check", str(EXAMPLES / f"{study}.toml"), "--out", str(tmp_path)]) == 0
+    printed = capsys.readouterr().out
+    name = STUDIES[study]
+    env = domains.make(name)
+    assert f"no problems; 1 environment(s): {name}" in printed
+    # The text drawing: the column header, then each row; goal cells as task numbers.
+    assert "    " + "".join(str(c % 10) for c in range(env.width)) in printed.splitlines()
+    row, column = env.tasks[0].goal_cells[0]
+    drawn = next(line for line in printed.splitlines() if line.startswith(f"{row:>3} "))
+    assert drawn[4 + column] == "1"
+    for number, (task, best) in enumerate(zip(env.tasks, optimal_returns(env), strict=True)):
+        assert f"  {number + 1}: {task.name}, {best:.1f}" in printed
+    for learner in ("bam", "cloning"):
+        assert re.search(rf"^  {learner}: \d+\.\d\d s", printed, re.MULTILINE)
+    image = matplotlib.image.imread(tmp_path / f"{name}.png")
+    assert image.shape[:2] == (env.height * 16, env.width * 16)
+
+
+def test_check_warns_above_the_capacity(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    forget: None,
+) -> None:
+    """With a learner timed at 1e-5 s per unit of size, the vineyard (869,400 units) takes
+    8.7 s, above the capacity; 1e-9 s is far below it."""
+    rates = {"bam": 1e-5, "cloning": 1e-9}
+    monkeypatch.setattr(check, "calibrate", lambda names: {n: rates[n] for n in names})
+    main(["check", str(EXAMPLES / "vineyard-study.toml"), "--out", str(tmp_path)])
+    printed = capsys.readouterr().out
+    assert "  bam: 8.69 s  WARNING: above the 2.0 s the server can serve" in printed
+    assert "  cloning: 0.00 s\n" in printed and "1 warning(s)" in printed
+
+
+def test_check_lists_every_problem_and_fails(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    study = tmp_path / "vineyard-study.toml"
+    text = (EXAMPLES / "vineyard-study.toml").read_text()
+    study.write_text(text.replace("  8 ..P..W..H..T..", "  8 ..P..W..H..X..").replace(
+        'works_on = { trellis = "vines" }', ""))  # fmt: skip
+    assert main(["check", str(study), "--out", str(tmp_path / "out")]) == 1
+    error = capsys.readouterr().err
+    assert "environments.vineyard: works_on: say which terrain the trellis works on" in error
+    assert "line 16, column 16: unknown character 'X'" in error
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("study", sorted(STUDIES))
+def test_a_short_simulation_of_each_example(study: str, tmp_path: Path, forget: None) -> None:
+    out = tmp_path / "run"
+    argv = ["simulate", "--study", str(EXAMPLES / f"{study}.toml"), "--experiment",
+            "demonstrations", "--learners", "bam", "--agents", "1", "--rounds", "1", "--jobs",
+            "1", "--learner-setting", "alternations=1", "--learner-setting", "cost_steps=5",
+            "--learner-setting", "dynamics_steps=5", "--out", str(out)]  # fmt: skip
+    assert main(argv) == 0
+    with (out / "summary.csv").open() as file:
+        rows = list(csv.DictReader(file))
+    name = STUDIES[study]
+    assert [(row["environment"], row["round"]) for row in rows] == [(name, "0"), (name, "1")]
+    optimum = float(optimal_returns(domains.make(name)).sum())
+    assert float(rows[0]["optimal_return"]) == pytest.approx(optimum)
+    returns = [float(row["mean_normalized_return"]) for row in rows]
+    assert all(0.0 <= value <= 1.0 for value in returns)
+    assert float(rows[1]["mean_update_seconds"]) > 0.0  # the round's update ran
+    if study == "office-study":
+        # One round of demonstrations teaches BAM the way around the office, in part (in the
+        # vineyard, five steps of each kind do not yet learn which machine enters the vines).
+        assert returns[1] > returns[0]
+
+
+def test_a_study_s_environment_is_a_gymnasium_id(forget: None) -> None:
+    from server.commands.studies import register_study
+
+    (name,) = register_study(EXAMPLES / "office-study.toml")
+    env = gym.make("BAMStudy-office-study/OfficeFloor-v0")
+    observation, _ = env.reset(seed=0, options={"task": 4})
+    own = domains.make(name)
+    assert env.spec is not None and env.spec.max_episode_steps == own.horizon
+    assert own.tasks[4].start[int(observation)] > 0
+    total = 0.0
+    for _ in range(own.horizon):
+        _, reward, _, truncated, _ = env.step(0)
+        total += float(reward)
+    assert truncated and np.isfinite(total)
+
+
+@pytest.mark.slow
+def test_demo_runs_the_office_study_end_to_end(tmp_path: Path, forget: None) -> None:
+    """``bam-study demo --study``: a server on SQLite, a simulated participant teaching the
+    office floor, the export and the analysis, with small learner settings."""
+    from server.app.demo import DemoOptions, check, run_demo
+
+    options = DemoOptions(
+        out=tmp_path / "demo",
+        participants=1,
+        concurrency=1,
+        rounds=(1, 1),
+        workers=1,
+        study=EXAMPLES / "office-study.toml",
+        learner_settings="\n[learner_settings.bam]\nalternations = 1\ncost_steps = 5\n"
+        "dynamics_steps = 5\n",
+    )
+    check(options)
+    table = run_demo(options)
+    assert "| BAM " in table and "| Behavioral Cloning " in table
+    with (options.out / "export" / "sessions.csv").open() as file:
+        sessions = [row for row in csv.DictReader(file) if row["environment"] == "office-floor"]
+    assert sorted(row["learner"] for row in sessions) == ["bam", "cloning"]
+    with (options.out / "export" / "evaluations.csv").open() as file:
+        evaluations = [row for row in csv.DictReader(file) if row["environment"] == "office-floor"]
+    assert evaluations  # each agent's policy evaluated on the office floor
+
+
+def test_a_study_s_teacher_datasets_are_minari_datasets(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, forget: None
+) -> None:
+    import minari
+
+    from server.commands.studies import register_study
+    from server.rl.teacher_datasets import write_teacher_datasets
+
+    (name,) = register_study(EXAMPLES / "office-study.toml")
+    ids = write_teacher_datasets([name], 1, 1, 0, tmp_path / "minari")
+    assert ids == ["bam-study/office-floor/simulated-teacher-v0"]
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
+    dataset = minari.load_dataset(ids[0])
+    assert dataset.spec.env_spec is not None
+    assert dataset.spec.env_spec.id == "BAMStudy-office-study/OfficeFloor-v0"
+    env = domains.make(name)
+    # One demonstration per task, each from a start of its task to its goal.
+    episodes = list(dataset.iterate_episodes())
+    assert len(episodes) == len(env.tasks)
+    for episode in episodes:
+        task = int(episode.infos["task"][0])
+        assert env.tasks[task].start[int(episode.observations[0])] > 0
+        assert env.is_goal(task, int(episode.observations[-1]))

@@ -1,8 +1,8 @@
-"""The planner learners' updates learn what they learned before their passes were made cheaper:
-two updates of BAM and of model-based IRL at their defaults, in every environment, from two
+"""The planner learners' updates at their defaults learn what they learned before: two updates of BAM and of model-based IRL at their defaults, in every environment, from two
 rounds of the simulated teacher's demonstrations, end at the parameters (theta and the costs)
-and optimiser velocities recorded in ``update_reference.npz`` at commit 7463029, before any of
-the speed-ups of docs/benchmarks.md ("Where an update's time goes"). Tolerance: 1e-12 relative
+and optimiser velocities recorded in ``update_reference.npz`` at commit 7463029: a change that
+makes updates cheaper (docs/benchmarks.md, "Where an update's time goes") must keep them, or
+be a named setting. Tolerance: 1e-12 relative
 plus 1e-12 absolute, which the compiled passes meet to the last bit on the machines measured
 (the same operations in the same order), and which still catches any change to the arithmetic
 a learner's result depends on (one step of a different gradient moves parameters by ~1e-3).

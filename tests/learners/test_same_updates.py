@@ -1,11 +1,12 @@
-"""The planner learners' updates at their defaults learn what they learned before: two updates of BAM and of model-based IRL at their defaults, in every environment, from two
-rounds of the simulated teacher's demonstrations, end at the parameters (theta and the costs)
-and optimiser velocities recorded in ``update_reference.npz`` at commit 7463029: a change that
-makes updates cheaper (docs/benchmarks.md, "Where an update's time goes") must keep them, or
-be a named setting. Tolerance: 1e-12 relative
-plus 1e-12 absolute, which the compiled passes meet to the last bit on the machines measured
-(the same operations in the same order), and which still catches any change to the arithmetic
-a learner's result depends on (one step of a different gradient moves parameters by ~1e-3).
+"""The planner learners' updates at their defaults learn what they learned before: two updates
+of BAM and of model-based IRL, in every environment, from two rounds of the simulated
+teacher's demonstrations, end at the parameters (theta and the costs) and optimiser velocities
+recorded in ``update_reference.npz`` at commit 7463029. A change that makes updates cheaper
+(docs/benchmarks.md, "Where an update's time goes") must keep them, or be a named setting.
+
+Tolerance: 1e-12 relative plus 1e-12 absolute. On the AVX-512 AMD EPYC the updates meet the
+reference to the last bit (the compiled passes do the same operations in the same order); a
+change of the arithmetic an update depends on compounds over its 400 steps far beyond it.
 
 Record again only for a change meant to alter what agents learn (then rerun the demonstrations
 experiment, docs/reproduction.md): ``python -m tests.learners.test_same_updates --record``.

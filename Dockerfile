@@ -39,7 +39,7 @@ USER bam
 # The learners' compiled kernels, in numba's cache in the image (the bam user's ~/.cache): the
 # update processes load them when they start (about 0.4 s) instead of compiling them (about
 # 14 s each). The cache is made for this machine's CPU; on another, they compile at start.
-RUN python -c "from server.learners.warmup import warm_up; warm_up()"
+RUN python -c "from server.app.updates.warmup import warm_up; warm_up()"
 EXPOSE 8000
 
 # Healthy once every update process has loaded the learners' compiled kernels (503 before).
@@ -48,6 +48,6 @@ EXPOSE 8000
 HEALTHCHECK --interval=10s --timeout=5s --start-period=120s --retries=3 \
     CMD python -c "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/api/health', timeout=4)"
 
-# Behind a TLS proxy (needed for MTurk's https iframe), set FORWARDED_ALLOW_IPS to the proxy's
-# address so that uvicorn trusts its X-Forwarded-* headers.
+# Behind a TLS proxy (needed for MTurk's https iframe), set BAM_FORWARDED_ALLOW_IPS to the
+# proxy's address so that the server believes its X-Forwarded-* headers (none by default).
 CMD ["bam-study", "serve", "--host", "0.0.0.0", "--port", "8000"]

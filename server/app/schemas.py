@@ -9,9 +9,11 @@ from __future__ import annotations
 
 from datetime import datetime
 from decimal import Decimal
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
+
+from server.app.platforms.review import MAX_BONUS, message_text, parse_amount
 
 MAX_SEQ = 1_000_000_000
 ID_PATTERN = r"^[A-Za-z0-9_\-]{1,128}$"
@@ -189,7 +191,10 @@ class EpisodeState(BaseModel):
 
 class Learning(BaseModel):
     pending: int = Field(description="Updates queued or running: the agent is learning.")
-    updates: int = Field(description="Updates finished (done or failed), the first one included.")
+    updates: int = Field(
+        description="Updates after episodes finished (done or failed), counted as sessions.csv's "
+        "`updates`: the untrained learner's evaluation (update 0) is not one of them."
+    )
 
 
 class TeachingState(BaseModel):
@@ -226,7 +231,9 @@ class Outcome(BaseModel):
     learning_wait_seconds: float | None = None
 
 
-class ActionResponse(BaseModel):
+class RequestOutcome(BaseModel):
+    """The answer to a request that changes something: its outcome and the state after it."""
+
     seq: int
     kind: str
     outcome: Outcome
@@ -259,50 +266,85 @@ class ExclusionRequest(Body):
     reason: str = Field(min_length=1, max_length=2000)
 
 
+RejectionCategory = Literal[
+    "TOO_QUICKLY",
+    "TOO_SLOWLY",
+    "FAILED_INSTRUCTIONS",
+    "INCOMP_LONGITUDINAL",
+    "FAILED_CHECK",
+    "LOW_EFFORT",
+    "MALINGERING",
+    "NO_CODE",
+    "BAD_CODE",
+    "NO_DATA",
+    "UNSUPP_DEVICE",
+    "OTHER",
+]
+
+
 class ReviewRequest(Body):
-    """Approve or reject the participant's submitted MTurk assignment."""
+    """Approve or reject the participant's submitted work (an MTurk assignment or a Prolific
+    submission)."""
 
     feedback: str | None = Field(
         None,
         max_length=1024,
-        description="RequesterFeedback, shown to the worker (needed for a rejection).",
+        description="Shown to the participant (needed for a rejection: MTurk's "
+        "RequesterFeedback; on Prolific the rejection message, at least 100 characters).",
+    )
+    rejection_category: RejectionCategory | None = Field(
+        None, description="Prolific's rejection category (needed to reject on Prolific)."
     )
 
-
-MAX_BONUS_USD = 100
+    @field_validator("feedback", mode="after")
+    @classmethod
+    def _shown_text(cls, value: str | None) -> str | None:
+        return None if value is None else message_text(value, "feedback")
 
 
 class BonusRequest(Body):
-    """Pay the participant's worker a bonus for the submitted assignment."""
+    """Pay the participant a bonus for the submitted work."""
 
-    amount: Decimal = Field(
-        gt=0,
-        le=MAX_BONUS_USD,
-        decimal_places=2,
-        allow_inf_nan=False,
-        strict=False,  # a JSON number or a string of one
-        description=f'US dollars, 0.01 to {MAX_BONUS_USD} (a number or a string like "1.50").',
+    amount: Annotated[Decimal, BeforeValidator(parse_amount)] = Field(
+        description=f"In the platform's currency (US dollars on MTurk, the study's currency on "
+        f'Prolific): 0.01 to {MAX_BONUS}, a number or a string like "1.50" (plain ASCII '
+        "digits, at most two decimal places).",
     )
-    reason: str = Field(min_length=1, max_length=1024, description="Shown to the worker.")
+    reason: str = Field(min_length=1, max_length=1024, description="Shown to the participant.")
     unique_token: str = Field(
         pattern=r"^[A-Za-z0-9_\-]{8,64}$",
-        description="MTurk's UniqueRequestToken: a retry with the same token pays nothing more.",
+        description="Identifies this bonus: a retry with the same token pays nothing more "
+        "(sent to MTurk as UniqueRequestToken).",
     )
+
+    @field_validator("reason", mode="after")
+    @classmethod
+    def _shown_text(cls, value: str) -> str:
+        return message_text(value, "reason")
 
 
 class ReviewView(BaseModel):
     decision: Literal["approved", "rejected"]
     feedback: str | None
+    rejection_category: str | None
     backend: str
-    decided_at: datetime
+    state: Literal["pending", "done"] = Field(
+        description="pending: recorded, not yet confirmed by the platform."
+    )
+    decided_at: datetime | None
 
 
 class BonusView(BaseModel):
-    amount: str = Field(description="US dollars.")
+    amount: str = Field(description="In ``currency``.")
+    currency: str
     reason: str
     unique_token: str
     backend: str
-    paid_at: datetime
+    state: str = Field(
+        description="paid; or pending, set_up, paying: recorded, not yet confirmed paid."
+    )
+    setup_id: str | None = Field(description="Prolific's bonus set-up id.")
+    paid_at: datetime | None
 
 
 class StatusChangeView(BaseModel):
@@ -318,6 +360,9 @@ class AdminParticipant(BaseModel):
     assignment_id: str | None
     hit_id: str | None
     status: str
+    prolific_status: str | None = Field(
+        None, description="Prolific's status of the submission (from its webhook or a poll)."
+    )
     domain: str | None
     excluded: bool
     exclusion_reason: str | None
@@ -338,6 +383,7 @@ class AdminSession(BaseModel):
     environment: str
     learner: str
     colour: str
+    colour_hex: str = Field(description="The agent's colour as drawn on the page (#rrggbb).")
     status: str
     mode: str
     task: int
@@ -383,3 +429,38 @@ class AdminEvent(BaseModel):
     record: str | None
     stay_state: int | None
     episode_end: str | None
+
+
+class AdminReplay(BaseModel):
+    """What a replay needs: the session, its grid, the first state and every event."""
+
+    session: AdminSession
+    environment: dict[str, Any] = Field(description="The grid as the teaching page draws it.")
+    start_state: int | None
+    events: list[AdminEvent]
+
+
+class ReplicaAssignmentView(BaseModel):
+    row: int
+    hit_id: str
+    assignment_id: str
+    worker_id: str
+    status: str
+    accepted_at: datetime
+    returned_at: datetime | None
+    submitted_at: datetime | None
+
+
+class ReplicaSubmissionView(BaseModel):
+    assignment_id: str
+    worker_id: str
+    hit_id: str
+    fields: dict[str, Any]
+    submitted_at: datetime
+
+
+class ReplicaRecords(BaseModel):
+    """The MTurk replica's assignments and every submission it recorded."""
+
+    assignments: list[ReplicaAssignmentView]
+    submissions: list[ReplicaSubmissionView]

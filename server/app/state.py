@@ -11,13 +11,14 @@ from starlette.concurrency import run_in_threadpool
 
 from server.app.admin_auth import AdminSessions, SignInGuard
 from server.app.config import StudyConfig
-from server.app.db import Database
-from server.app.policies import PolicyCache
-from server.app.review import ReviewBackend, make_backend
+from server.app.platforms.backends import make_backend
+from server.app.platforms.review import ReviewBackend
 from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.app.updates.policies import PolicyCache
 
 if TYPE_CHECKING:
-    from server.app.updates import UpdateManager
+    from server.app.updates.manager import UpdateManager
 
 T = TypeVar("T")
 
@@ -31,13 +32,15 @@ class ServerState:
     updates: UpdateManager | None = None
     sign_ins: SignInGuard = field(default_factory=SignInGuard)
     admin_sessions: AdminSessions = field(default_factory=AdminSessions)
-    review: ReviewBackend | None = None  # made on first use (BAM_REVIEW_BACKEND)
+    # By the participants' platform (mturk, prolific), each made on first use.
+    reviews: dict[str, ReviewBackend] = field(default_factory=dict)
 
-    def review_backend(self) -> ReviewBackend:
-        """The platform the experimenter's reviews and bonuses go to."""
-        if self.review is None:
-            self.review = make_backend(self.settings, self.db)
-        return self.review
+    def review_backend(self, platform: str) -> ReviewBackend:
+        """Where the reviews and bonuses of the platform's participants go
+        (``BAM_REVIEW_BACKEND``)."""
+        if platform not in self.reviews:
+            self.reviews[platform] = make_backend(self.settings, self.db, platform)
+        return self.reviews[platform]
 
     async def run_db(self, work: Callable[[], T]) -> T:
         """Run a short database transaction for a request. On SQLite, in the event loop itself:

@@ -5,7 +5,6 @@ client that keeps the participant's sequence number."""
 from __future__ import annotations
 
 import os
-import socket
 import threading
 import time
 import uuid
@@ -23,12 +22,14 @@ from sqlalchemy import create_engine, func, select, text
 from sqlalchemy.engine import make_url
 
 from server.app.config import DEFAULT_STUDY_CONFIG, StudyConfig, parse_study_config
-from server.app.db import Database, upgrade
-from server.app.flow import TOKEN_HEADER
 from server.app.main import create_app
-from server.app.models import Event, LearnerUpdate
+from server.app.participants.tokens import TOKEN_HEADER
 from server.app.settings import Settings
-from server.app.updates import new_executor
+from server.app.storage.db import Database, upgrade
+from server.app.storage.models import Event, LearnerUpdate
+from server.app.updates.pool import new_executor
+from server.commands.live import free_port
+from server.commands.serve import server_config
 
 POSTGRES_URL = os.environ.get(
     "BAM_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test"
@@ -127,20 +128,13 @@ def client(
         yield test_client
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 @contextmanager
 def live(app: FastAPI) -> Iterator[str]:
     """``app`` served by uvicorn in a thread on a free port, as ``serve`` runs it (one lifespan,
     real HTTP); yields its base URL."""
     port = free_port()
-    server = uvicorn.Server(
-        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", access_log=False)
-    )
+    settings = app.state.server.settings
+    server = uvicorn.Server(server_config(app, settings, "127.0.0.1", port, log_level="warning"))
     thread = threading.Thread(target=server.run, name=f"live-server-{port}", daemon=True)
     thread.start()
     deadline = time.monotonic() + 60

@@ -14,19 +14,15 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
 from server.app.config import StudyConfig
-from server.app.db import Database
 from server.app.errors import ApiError
-from server.app.export import dictionary_frame, load_tables
-from server.app.models import AssignmentReview, Bonus
-from server.app.replica_models import ReplicaAssignment, ReplicaBonus
-from server.app.review import (
-    MTurkClientBackend,
-    ReplicaReviewBackend,
-    ReviewRefused,
-    ReviewUnavailable,
-    make_backend,
-)
+from server.app.export.tables import dictionary_frame, export_tables
+from server.app.platforms.backends import make_backend
+from server.app.platforms.mturk import MTurkClientBackend, MTurkReplicaBackend
+from server.app.platforms.review import Reviewed, ReviewRefused, ReviewUnavailable
 from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.app.storage.models import AssignmentReview, Bonus
+from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus
 from tests.server.conftest import (
     ADMIN_TOKEN,
     Participant,
@@ -36,7 +32,7 @@ from tests.server.conftest import (
 )
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
-BASE = "/dashboard/api/participants"
+BASE = "/api/admin/participants"
 
 
 @pytest.fixture
@@ -110,7 +106,7 @@ def test_approve_reject_and_bonus_show_on_the_replica_and_in_the_export(
     )
     assert approved.status_code == 200, approved.text
     assert approved.json()["review"]["decision"] == "approved"
-    assert approved.json()["review"]["backend"] == "replica"
+    assert approved.json()["review"]["backend"] == "mturk-replica"
     rejected = client.post(
         f"{BASE}/{second}/rejection", json={"feedback": "No agent was taught"}, headers=ADMIN
     )
@@ -142,7 +138,7 @@ def test_approve_reject_and_bonus_show_on_the_replica_and_in_the_export(
     assert "bonus-token-1" in page
 
     # The export records them, pseudonymised like participants.csv, and documents them.
-    tables = load_tables(db)
+    tables = export_tables(db)
     participants = tables["participants"].set_index("participant_id")
     reviews = tables["reviews"]
     assert list(reviews["decision"]) == ["approved", "rejected"]
@@ -152,9 +148,10 @@ def test_approve_reject_and_bonus_show_on_the_replica_and_in_the_export(
     ]
     assert all(value.startswith("w_") for value in reviews["worker_id"])
     bonuses = tables["bonuses"]
-    assert list(bonuses["amount_usd"]) == [1.5, 0.25]
+    assert list(bonuses["amount"]) == ["1.50", "0.25"]
+    assert set(bonuses["payment_state"]) == {"paid"} and set(bonuses["currency"]) == {"USD"}
     assert list(bonuses["participant_id"]) == [first, first]
-    plain = load_tables(db, pseudonymize=False)
+    plain = export_tables(db, pseudonymize=False)
     assert list(plain["bonuses"]["worker_id"]) == ["WORKER1", "WORKER1"]
     dictionary = dictionary_frame()
     for name in ("reviews", "bonuses"):
@@ -196,9 +193,12 @@ def test_bad_review_requests_are_refused_and_store_nothing(
     assert client.post(f"/api/admin/participants/{done}/approval", json={}).status_code == 401
     assert counts(db) == (0, 0, 0, ["submitted"])
 
-    # Approving twice, or rejecting an approved assignment, is refused.
-    assert client.post(f"{BASE}/{done}/approval", json={}, headers=ADMIN).status_code == 200
-    refused(f"{BASE}/{done}/approval", {}, 409, "already approved")
+    # Approving again answers the same and does nothing more; rejecting an approved
+    # assignment is refused.
+    first = client.post(f"{BASE}/{done}/approval", json={}, headers=ADMIN)
+    assert first.status_code == 200
+    again = client.post(f"{BASE}/{done}/approval", json={}, headers=ADMIN)
+    assert again.status_code == 200 and again.json()["review"] == first.json()["review"]
     refused(f"{BASE}/{done}/rejection", {"feedback": "late"}, 409, "already approved")
     # A token used once is not reused for another bonus.
     assert client.post(f"{BASE}/{done}/bonuses", json=bonus, headers=ADMIN).status_code == 200
@@ -212,12 +212,13 @@ def test_a_platform_refusal_stores_nothing(client: TestClient, db: Database) -> 
     done = submitted_worker(client, db, "WORKER1")
     with db.read() as s:
         assignment = s.scalars(select(ReplicaAssignment.assignment_id)).one()
-    ReplicaReviewBackend(db).approve_assignment(assignment, "decided on the platform")
+    who = Reviewed(done, "mturk", "WORKER1", assignment, None)
+    MTurkReplicaBackend(db).approve(who, "decided on the platform")
     response = client.post(f"{BASE}/{done}/rejection", json={"feedback": "no"}, headers=ADMIN)
     assert response.status_code == 409 and "is approved" in response.text
     assert counts(db)[:3] == (0, 0, 0)
     with pytest.raises(ReviewRefused, match="no assignment"):
-        ReplicaReviewBackend(db).send_bonus("W", "NOSUCHASSIGNMENT", "1.00", "r", "tok-12345")
+        MTurkReplicaBackend(db).send_bonus("W", "NOSUCHASSIGNMENT", "1.00", "r", "tok-12345")
 
 
 class FakeMTurk:
@@ -244,10 +245,16 @@ class FakeMTurk:
 def test_the_boto3_adapter_sends_exactly_boto3s_keyword_arguments() -> None:
     fake = FakeMTurk()
     backend = MTurkClientBackend(fake)
-    backend.approve_assignment("ASSIGN1", "Thanks")
-    backend.approve_assignment("ASSIGN2", None)
-    backend.reject_assignment("ASSIGN3", "Not done")
-    backend.send_bonus("WORKER1", "ASSIGN1", "1.50", "Good teaching", "token-123")
+    backend.approve(Reviewed(1, "mturk", "WORKER1", "ASSIGN1", None), "Thanks")
+    backend.approve(Reviewed(2, "mturk", "WORKER2", "ASSIGN2", None), None)
+    backend.reject(Reviewed(3, "mturk", "WORKER3", "ASSIGN3", None), "Not done", None)
+    backend.pay_bonus(
+        Reviewed(1, "mturk", "WORKER1", "ASSIGN1", None),
+        "1.50",
+        "Good teaching",
+        "token-123",
+        None,
+    )
     assert fake.calls == [
         ("approve_assignment", {"AssignmentId": "ASSIGN1", "RequesterFeedback": "Thanks"}),
         ("approve_assignment", {"AssignmentId": "ASSIGN2"}),
@@ -264,9 +271,13 @@ def test_the_boto3_adapter_sends_exactly_boto3s_keyword_arguments() -> None:
         ),
     ]
     with pytest.raises(ReviewRefused, match="MTurk refused approve_assignment: the reason"):
-        MTurkClientBackend(FakeMTurk("RequestError")).approve_assignment("A", None)
+        MTurkClientBackend(FakeMTurk("RequestError")).approve(
+            Reviewed(1, "mturk", "W", "A", None), None
+        )
     with pytest.raises(ReviewUnavailable, match="send_bonus failed"):
-        MTurkClientBackend(FakeMTurk("ServiceFault")).send_bonus("W", "A", "1.00", "r", "t")
+        MTurkClientBackend(FakeMTurk("ServiceFault")).pay_bonus(
+            Reviewed(1, "mturk", "W", "A", None), "1.00", "r", "t", None
+        )
 
 
 def test_boto3_is_imported_only_when_chosen(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -277,9 +288,9 @@ def test_boto3_is_imported_only_when_chosen(monkeypatch: pytest.MonkeyPatch) -> 
     db: Any = object()
     monkeypatch.setitem(sys.modules, "boto3", None)  # not installed
     with pytest.raises(ApiError, match="needs the boto3 package"):
-        make_backend(settings, db)
+        make_backend(settings, db, "mturk")
     monkeypatch.setitem(sys.modules, "boto3", fake_boto3)
-    assert isinstance(make_backend(settings, db), MTurkClientBackend)
+    assert isinstance(make_backend(settings, db, "mturk"), MTurkClientBackend)
     assert made == [
         (
             ("mturk",),
@@ -290,7 +301,7 @@ def test_boto3_is_imported_only_when_chosen(monkeypatch: pytest.MonkeyPatch) -> 
         )
     ]
     replica = Settings(database_url="sqlite:///x.db")
-    assert isinstance(make_backend(replica, db), ReplicaReviewBackend)
+    assert isinstance(make_backend(replica, db, "mturk"), MTurkReplicaBackend)
     assert len(made) == 1
 
 
@@ -301,12 +312,12 @@ def test_the_dashboard_reviews_through_the_mturk_backend(client: TestClient, db:
     with db.read() as s:
         assignment = s.scalars(select(ReplicaAssignment.assignment_id)).one()
     state = client.app.state.server  # type: ignore[attr-defined]
-    state.review = MTurkClientBackend(FakeMTurk("RequestError"))
+    state.reviews["mturk"] = MTurkClientBackend(FakeMTurk("RequestError"))
     refused = client.post(f"{BASE}/{done}/approval", json={}, headers=ADMIN)
     assert refused.status_code == 409 and "MTurk refused" in refused.text
     assert counts(db)[:3] == (0, 0, 0)
     fake = FakeMTurk()
-    state.review = MTurkClientBackend(fake)
+    state.reviews["mturk"] = MTurkClientBackend(fake)
     assert client.post(f"{BASE}/{done}/approval", json={}, headers=ADMIN).status_code == 200
     bonus = {"amount": 5, "reason": "Well taught", "unique_token": "token-mturk-1"}
     paid = client.post(f"{BASE}/{done}/bonuses", json=bonus, headers=ADMIN)

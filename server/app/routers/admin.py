@@ -8,10 +8,31 @@ from fastapi import APIRouter, Query, Response
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from server.app import export, flow, review, teaching
 from server.app.deps import AdminDep, RowId, StateDep
 from server.app.errors import ApiError
-from server.app.models import (
+from server.app.export import tables as export
+from server.app.participants import assignment, teaching, tokens
+from server.app.platforms import prolific_sync, review
+from server.app.schemas import (
+    AdminEvaluation,
+    AdminEvent,
+    AdminParticipant,
+    AdminParticipantDetail,
+    AdminReplay,
+    AdminSession,
+    BonusRequest,
+    BonusView,
+    ExclusionRequest,
+    ReplicaAssignmentView,
+    ReplicaRecords,
+    ReplicaSubmissionView,
+    ReviewRequest,
+    ReviewView,
+    StatusChangeView,
+)
+from server.app.state import ServerState
+from server.app.storage.figures import participant_figures
+from server.app.storage.models import (
     AssignmentReview,
     Bonus,
     Event,
@@ -21,21 +42,7 @@ from server.app.models import (
     StatusChange,
     utcnow,
 )
-from server.app.schemas import (
-    AdminEvaluation,
-    AdminEvent,
-    AdminParticipant,
-    AdminParticipantDetail,
-    AdminSession,
-    BonusRequest,
-    BonusView,
-    ExclusionRequest,
-    ReviewRequest,
-    ReviewView,
-    StatusChangeView,
-    plain_text,
-)
-from server.app.state import ServerState
+from server.app.storage.replica_models import ReplicaAssignment, ReplicaSubmission
 
 router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
 
@@ -71,6 +78,7 @@ def _admin_sessions(s: Session, sessions: list[LearningSession]) -> list[AdminSe
             environment=x.environment,
             learner=x.learner,
             colour=x.colour_name,
+            colour_hex=x.colour_hex,
             status=x.status,
             mode=x.mode,
             task=x.task,
@@ -89,8 +97,7 @@ def _admin_sessions(s: Session, sessions: list[LearningSession]) -> list[AdminSe
 def _admin_participant(
     p: Participant, sessions: list[LearningSession], completed_at: Any
 ) -> AdminParticipant:
-    mine = [x for x in sessions if x.kind == "study"]
-    end = completed_at or p.last_seen_at
+    figures = participant_figures(p, [x for x in sessions if x.kind == "study"], completed_at)
     return AdminParticipant(
         participant_id=p.id,
         platform=p.platform,
@@ -98,14 +105,15 @@ def _admin_participant(
         assignment_id=p.assignment_id,
         hit_id=p.hit_id,
         status=p.status,
+        prolific_status=p.prolific_status,
         domain=p.domain,
         excluded=p.excluded_at is not None,
         exclusion_reason=p.exclusion_reason,
         created_at=p.created_at,
         last_seen_at=p.last_seen_at,
-        minutes=round((end - p.created_at).total_seconds() / 60, 2),
-        agents_finished=sum(1 for x in mine if x.completed),
-        agents=len(mine),
+        minutes=figures.minutes,
+        agents_finished=figures.agents_finished,
+        agents=figures.agents,
         completion_code=p.completion_code,
     )
 
@@ -125,8 +133,8 @@ def list_participants(
     status: Annotated[str | None, Query(description="Only this status.")] = None,
 ) -> list[AdminParticipant]:
     """Every participant with status, domain, progress and time spent."""
-    if status is not None and status not in flow.STATUSES:
-        raise ApiError(400, f"unknown status {status!r}; valid: {', '.join(flow.STATUSES)}")
+    if status is not None and status not in tokens.STATUSES:
+        raise ApiError(400, f"unknown status {status!r}; valid: {', '.join(tokens.STATUSES)}")
     with state.db.read() as s:
         query = select(Participant).order_by(Participant.id)
         if status is not None:
@@ -172,15 +180,20 @@ def _participant_detail(s: Session, participant_id: int) -> AdminParticipantDeta
         else ReviewView(
             decision=decision.decision,  # type: ignore[arg-type]
             feedback=decision.feedback,
+            rejection_category=decision.rejection_category,
             backend=decision.backend,
+            state=decision.state,  # type: ignore[arg-type]
             decided_at=decision.decided_at,
         ),
         bonuses=[
             BonusView(
-                amount=review.dollars(b.amount_cents),
+                amount=review.money(b.amount_cents),
+                currency=b.currency,
                 reason=b.reason,
                 unique_token=b.unique_token,
                 backend=b.backend,
+                state=b.state,
+                setup_id=b.setup_id,
                 paid_at=b.paid_at,
             )
             for b in bonuses
@@ -214,18 +227,12 @@ def exclude(
         return _participant_detail(s, participant_id)
 
 
-@router.delete("/participants/{participant_id}/exclusion", response_model=AdminParticipantDetail)
+@router.post("/participants/{participant_id}/inclusion", response_model=AdminParticipantDetail)
 def include(
-    participant_id: RowId,
-    state: StateDep,
-    reason: Annotated[str | None, Query(min_length=1, max_length=2000)] = None,
+    participant_id: RowId, body: ExclusionRequest, state: StateDep
 ) -> AdminParticipantDetail:
-    """Undo an exclusion (``reason``, optional here, is kept in the status history)."""
-    if reason is not None:
-        try:
-            plain_text(reason)
-        except ValueError as error:
-            raise ApiError(422, f"reason: {error}") from None
+    """Undo an exclusion, with the reason (kept in the status history)."""
+    reason = body.reason
     with state.db.write() as s:
         p = s.get(Participant, participant_id)
         if p is None:
@@ -241,34 +248,87 @@ def include(
 
 @router.post("/participants/{participant_id}/approval", response_model=AdminParticipantDetail)
 def approve(participant_id: RowId, body: ReviewRequest, state: StateDep) -> AdminParticipantDetail:
-    """Approve the participant's submitted MTurk assignment (``BAM_REVIEW_BACKEND``), once."""
+    """Approve the participant's submitted work on their platform (``BAM_REVIEW_BACKEND``),
+    once; a repeat answers the same."""
     return _decide(participant_id, "approved", body, state)
 
 
 @router.post("/participants/{participant_id}/rejection", response_model=AdminParticipantDetail)
 def reject(participant_id: RowId, body: ReviewRequest, state: StateDep) -> AdminParticipantDetail:
-    """Reject the participant's submitted MTurk assignment, with feedback, once."""
+    """Reject the participant's submitted work, with feedback (on Prolific: a category and a
+    message of at least 100 characters), once."""
     return _decide(participant_id, "rejected", body, state)
+
+
+def _backend_for(state: ServerState, participant_id: int) -> review.ReviewBackend:
+    with state.db.read() as s:
+        p = s.get(Participant, participant_id)
+        if p is None:
+            raise ApiError(404, f"no participant {participant_id}")
+        platform = p.platform
+    return state.review_backend(platform)
 
 
 def _decide(
     participant_id: int, decision: review.Decision, body: ReviewRequest, state: ServerState
 ) -> AdminParticipantDetail:
-    backend = state.review_backend()
-    review.review_submission(state.db, backend, participant_id, decision, body.feedback)
+    backend = _backend_for(state, participant_id)
+    review.review_submission(
+        state.db, backend, participant_id, decision, body.feedback, body.rejection_category
+    )
     with state.db.read() as s:
         return _participant_detail(s, participant_id)
+
+
+@router.post("/reconciliation")
+def reconcile(
+    state: StateDep,
+    prolific_study: Annotated[
+        str | None,
+        Query(
+            pattern=r"^[0-9a-f]{24}$", description="Also poll this Prolific study's submissions."
+        ),
+    ] = None,
+) -> dict[str, Any]:
+    """Settle the unsettled bonuses that can be settled without paying twice (MTurk's by their
+    UniqueRequestToken; Prolific's set up but never sent to pay), and, with ``prolific_study``,
+    apply Prolific's status of each of the study's submissions (for a server that Prolific's
+    webhook cannot reach)."""
+    settled: list[str] = []
+    with state.db.read() as s:
+        platforms = set(
+            s.scalars(
+                select(Participant.platform)
+                .join(Bonus, Bonus.participant_id == Participant.id)
+                .where(Bonus.state.in_(("pending", "set_up")))
+            )
+        )
+    for platform in sorted(platforms):
+        settled += review.reconcile_bonuses(state.db, state.review_backend(platform))
+    statuses: dict[str, str] = {}
+    if prolific_study is not None:
+        backend = state.review_backend("prolific")
+        client = getattr(backend, "client", None)
+        if client is None:
+            raise ApiError(409, "the review backend for Prolific has no Prolific client")
+        try:
+            statuses = prolific_sync.reconcile_submissions(state.db, client, prolific_study)
+        except review.ReviewRefused as refused:
+            raise ApiError(409, str(refused)) from None
+        except review.ReviewUnavailable as error:
+            raise ApiError(502, str(error)) from None
+    return {"settled_bonuses": settled, "prolific_statuses": statuses}
 
 
 @router.post("/participants/{participant_id}/bonuses", response_model=AdminParticipantDetail)
 def send_bonus(
     participant_id: RowId, body: BonusRequest, state: StateDep
 ) -> AdminParticipantDetail:
-    """Pay the participant's worker a bonus; a retry with the same ``unique_token`` pays
-    nothing more and answers the same."""
+    """Pay the participant a bonus; a retry with the same ``unique_token`` pays nothing more
+    and answers the same."""
     review.pay_bonus(
         state.db,
-        state.review_backend(),
+        _backend_for(state, participant_id),
         participant_id,
         body.amount,
         body.reason,
@@ -288,7 +348,7 @@ def list_sessions(
         query = select(LearningSession).order_by(LearningSession.id)
         if live:
             query = query.join(Participant).where(
-                LearningSession.status == "active", Participant.status.in_(flow.IN_PROGRESS)
+                LearningSession.status == "active", Participant.status.in_(tokens.IN_PROGRESS)
             )
         return _admin_sessions(s, list(s.scalars(query)))
 
@@ -322,8 +382,8 @@ def list_evaluations(session_id: RowId, state: StateDep) -> list[AdminEvaluation
     return [AdminEvaluation(**row._asdict()) for row in rows]
 
 
-@router.get("/sessions/{session_id}/replay")
-def replay(session_id: RowId, state: StateDep) -> dict[str, Any]:
+@router.get("/sessions/{session_id}/replay", response_model=AdminReplay)
+def replay(session_id: RowId, state: StateDep) -> AdminReplay:
     """What a replay needs: the grid, the first state and every event of the session."""
     with state.db.read() as s:
         session = _session(s, session_id)
@@ -331,11 +391,11 @@ def replay(session_id: RowId, state: StateDep) -> dict[str, Any]:
             select(Event).where(Event.session_id == session_id).order_by(Event.id)
         ).all()
         summary = _admin_sessions(s, [session])[0]
-    return {
-        "session": summary.model_dump(mode="json"),
-        "environment": teaching.environment_description(session.environment, reveal_gravity=True),
-        "start_state": flow.initial_state(session) if session.started_at else None,
-        "events": [
+    return AdminReplay(
+        session=summary,
+        environment=teaching.environment_description(session.environment, reveal_gravity=True),
+        start_state=assignment.initial_state(session) if session.started_at else None,
+        events=[
             AdminEvent(
                 event_id=e.id,
                 seq=e.seq,
@@ -351,10 +411,10 @@ def replay(session_id: RowId, state: StateDep) -> dict[str, Any]:
                 record=e.record,
                 stay_state=e.stay_state,
                 episode_end=e.episode_end,
-            ).model_dump(mode="json")
+            )
             for e in events
         ],
-    }
+    )
 
 
 @router.get(
@@ -368,10 +428,43 @@ def download_export(
 ) -> Response:
     """The export (CSV files and their data dictionary) as a zip."""
     secret = state.settings.secret.get_secret_value() if state.settings.secret else None
-    tables = export.load_tables(state.db, pseudonymize=pseudonymize, secret=secret)
+    tables = export.export_tables(state.db, pseudonymize=pseudonymize, secret=secret)
     stamp = utcnow().strftime("%Y%m%dT%H%M%SZ")
     return Response(
         content=export.export_zip(tables),
         media_type="application/zip",
         headers={"Content-Disposition": f'attachment; filename="bam-study-export-{stamp}.zip"'},
+    )
+
+
+@router.get("/mturk-replica", response_model=ReplicaRecords)
+def mturk_replica(state: StateDep) -> ReplicaRecords:
+    """The MTurk replica's assignments and every submission it recorded."""
+    with state.db.read() as s:
+        assignments = s.scalars(select(ReplicaAssignment).order_by(ReplicaAssignment.id)).all()
+        submissions = s.scalars(select(ReplicaSubmission).order_by(ReplicaSubmission.id)).all()
+    return ReplicaRecords(
+        assignments=[
+            ReplicaAssignmentView(
+                row=a.id,
+                hit_id=a.hit_id,
+                assignment_id=a.assignment_id,
+                worker_id=a.worker_id,
+                status=a.status,
+                accepted_at=a.accepted_at,
+                returned_at=a.returned_at,
+                submitted_at=a.submitted_at,
+            )
+            for a in assignments
+        ],
+        submissions=[
+            ReplicaSubmissionView(
+                assignment_id=x.assignment_id,
+                worker_id=x.worker_id,
+                hit_id=x.hit_id,
+                fields=x.fields,
+                submitted_at=x.submitted_at,
+            )
+            for x in submissions
+        ],
     )

@@ -3,19 +3,17 @@
 // recorded events on the participants' grid drawing.
 
 import { ApiError, getJSON, postJSON } from "./api.js";
-import { environmentTitle, h } from "./dom.js";
+import { environmentTitle, formatTime, h } from "./dom.js";
 import { GridView, decodeState, svg } from "./grid.js";
 
-const API = "/dashboard/api";
+const API = "/api/admin";
 const REFRESH_MS = 10000;
 const ACTIONS = ["STAY", "UP", "DOWN", "LEFT", "RIGHT"];
 const $ = (selector) => document.querySelector(selector);
 let selected = null;
 let replayTimer = null;
 
-function time(iso) {
-  return iso ? new Date(iso).toLocaleString() : "";
-}
+const time = formatTime;
 
 /** "1 episode", "2 episodes" */
 function count(n, noun) {
@@ -35,7 +33,8 @@ async function loadParticipants() {
       h("td", {}, p.platform),
       h("td", { class: "mono" }, p.worker_id ?? ""),
       h("td", { class: "mono" }, p.assignment_id ?? ""),
-      h("td", {}, badge(p.status), p.excluded ? [" ", badge("excluded")] : null),
+      h("td", {}, badge(p.status), p.excluded ? [" ", badge("excluded")] : null,
+        p.prolific_status ? [" ", h("span", { class: "badge", "data-prolific-status": p.prolific_status, title: "Prolific's status" }, `Prolific: ${p.prolific_status}`)] : null),
       h("td", {}, p.domain ?? ""),
       h("td", {}, `${p.agents_finished} / ${p.agents}`),
       h("td", {}, p.minutes.toFixed(1)),
@@ -45,19 +44,28 @@ async function loadParticipants() {
     row.addEventListener("keydown", (event) => event.key === "Enter" && open());
     return row;
   }));
-  const counts = {};
+  // Statuses and domains in rows of their own: a participant is counted once in each.
+  const statuses = {};
+  const domains = {};
   for (const p of participants) {
-    counts[p.status] = (counts[p.status] ?? 0) + 1;
-    if (p.domain) counts[p.domain] = (counts[p.domain] ?? 0) + 1;
+    statuses[p.status] = (statuses[p.status] ?? 0) + 1;
+    if (p.domain) domains[p.domain] = (domains[p.domain] ?? 0) + 1;
   }
+  const row = (group, label, counts, badges) => h("div", { class: "summary-row", "data-group": group, role: "group", "aria-label": label },
+    h("span", { class: "summary-label" }, label),
+    Object.keys(counts).length
+      ? Object.entries(counts).map(([name, n]) => h("span", { class: `badge ${badges ? name : ""}`, "data-name": name }, `${name}: ${n}`))
+      : h("span", { class: "muted" }, "none yet"));
   $("#summary").replaceChildren(
-    h("span", { class: "badge" }, count(participants.length, "participant")),
-    ...Object.entries(counts).map(([name, n]) => h("span", { class: `badge ${name}` }, `${name}: ${n}`)));
-  $("#refreshed").textContent = `updated ${new Date().toLocaleTimeString()}`;
+    h("p", { class: "summary-total" }, h("span", { class: "badge" }, count(participants.length, "participant"))),
+    row("status", "By status", statuses, true),
+    row("domain", "By domain", domains, false));
+  $("#refreshed").textContent = `updated ${formatTime(new Date())}`;
 }
 
 async function loadSubmissions() {
-  const { submissions } = await getJSON(`${API}/mturk`);
+  if (!$("#mturk-submissions")) return; // the MTurk replica is shown for an MTurk study only
+  const { submissions } = await getJSON(`${API}/mturk-replica`);
   $("#mturk-submissions tbody").replaceChildren(...(submissions.length
     ? submissions.map((x) => h("tr", { "data-assignment": x.assignment_id },
         h("td", {}, time(x.submitted_at)),
@@ -144,79 +152,103 @@ function requestToken() {
   return Array.from(bytes, (b) => b.toString(16).padStart(2, "0")).join("");
 }
 
-/** Approve or reject the participant's submitted MTurk assignment, and pay bonuses (sent to
- * the review backend: the local replica, or MTurk). */
+const REJECTION_CATEGORIES = ["TOO_QUICKLY", "TOO_SLOWLY", "FAILED_INSTRUCTIONS", "INCOMP_LONGITUDINAL",
+  "FAILED_CHECK", "LOW_EFFORT", "MALINGERING", "NO_CODE", "BAD_CODE", "NO_DATA", "UNSUPP_DEVICE", "OTHER"];
+
+/** Approve or reject the participant's submitted work (an MTurk assignment or a Prolific
+ * submission), and pay bonuses (sent to the review backend: the platform or its replica). */
 function reviewSection(p) {
   const heading = h("h3", { id: "review-heading" }, "Review of the submission");
-  if (p.platform !== "mturk") {
+  if (p.platform !== "mturk" && p.platform !== "prolific") {
     return h("section", { class: "review", "aria-labelledby": "review-heading" }, heading,
-      h("p", { class: "muted" }, `Approvals and bonuses are for MTurk assignments; this participant came from ${p.platform}.`));
+      h("p", { class: "muted" }, `Approvals and bonuses are for MTurk and Prolific participants; this participant came from ${p.platform}.`));
   }
+  const prolific = p.platform === "prolific";
   if (p.status !== "submitted") {
     return h("section", { class: "review", "aria-labelledby": "review-heading" }, heading,
-      h("p", { class: "muted" }, "The review opens once the worker has submitted the assignment."));
+      h("p", { class: "muted" }, "The review opens once the participant has submitted their work."));
   }
-  const message = h("p", { class: "form-error", role: "alert", hidden: true });
-  const fail = (error, buttons) => {
+  // Each form says what is wrong under its own buttons: the decision's, the bonus's.
+  const errorLine = (id) => h("p", { class: "form-error", id, role: "alert", hidden: true });
+  const complain = (message, text) => {
     message.hidden = false;
-    message.textContent = error instanceof ApiError ? error.detail : "The server could not be reached.";
-    buttons.forEach((b) => { b.disabled = false; });
+    message.textContent = text;
   };
-  const send = async (what, body, buttons) => {
+  const send = async (what, body, buttons, message) => {
     buttons.forEach((b) => { b.disabled = true; });
     message.hidden = true;
     try {
       await postJSON(`${API}/participants/${p.participant_id}/${what}`, body);
       await Promise.all([loadParticipants(), showParticipant(p.participant_id)]);
     } catch (error) {
-      fail(error, buttons);
+      complain(message, error instanceof ApiError ? error.detail : "The server could not be reached.");
+      buttons.forEach((b) => { b.disabled = false; });
     }
   };
   let decision;
   if (p.review) {
-    decision = h("p", { "data-review": p.review.decision }, badge(p.review.decision), " ", time(p.review.decided_at),
+    decision = h("p", { "data-review": p.review.decision }, badge(p.review.decision), " ",
+      p.review.state === "done" ? time(p.review.decided_at) : "not yet confirmed by the platform: send it again",
+      p.review.rejection_category ? ` ${p.review.rejection_category}` : "",
       p.review.feedback ? ` (${p.review.feedback})` : "");
   } else {
-    const feedback = h("textarea", { id: "review-feedback", name: "feedback", rows: 2, maxlength: 1024 });
+    const message = errorLine("review-error");
+    const feedback = h("textarea", { id: "review-feedback", name: "feedback", rows: 2, maxlength: 1024, "aria-describedby": message.id });
     const approve = h("button", { class: "btn", type: "button", "data-action": "approve" }, "Approve");
     const reject = h("button", { class: "btn", type: "button", "data-action": "reject" }, "Reject");
-    approve.addEventListener("click", () => send("approval", { feedback: feedback.value.trim() || null }, [approve, reject]));
+    const category = h("select", { id: "review-category", name: "rejection_category" },
+      h("option", { value: "" }, "(rejection category)"), ...REJECTION_CATEGORIES.map((c) => h("option", { value: c }, c)));
+    feedback.addEventListener("input", () => {
+      feedback.removeAttribute("aria-invalid");
+      message.hidden = true;
+    });
+    approve.addEventListener("click", () => {
+      if (!window.confirm("Approve this submission? A decision is final.")) return;
+      send("approval", { feedback: prolific ? null : feedback.value.trim() || null }, [approve, reject], message);
+    });
     reject.addEventListener("click", () => {
-      if (!feedback.value.trim()) {
-        message.hidden = false;
-        message.textContent = "A rejection needs feedback: the worker is shown why.";
+      const text = feedback.value.trim();
+      const problem = !text ? "A rejection needs feedback: the participant is shown why."
+        : prolific && text.length < 100 ? "Prolific needs a rejection message of at least 100 characters."
+        : prolific && !category.value ? "Prolific needs a rejection category." : null;
+      if (problem) {
+        complain(message, problem);
+        feedback.setAttribute("aria-invalid", "true");
         feedback.focus();
         return;
       }
-      send("rejection", { feedback: feedback.value.trim() }, [approve, reject]);
+      send("rejection", { feedback: text, rejection_category: prolific ? category.value : null }, [approve, reject], message);
     });
     decision = h("div", { class: "review-decision" },
       h("p", { class: "muted" }, "Not reviewed yet."),
-      h("label", { for: "review-feedback" }, "Feedback to the worker (needed to reject)"), feedback,
-      h("div", { class: "review-buttons" }, approve, reject));
+      h("label", { for: "review-feedback" }, prolific ? "Rejection message (at least 100 characters)" : "Feedback to the worker (needed to reject)"), feedback,
+      ...(prolific ? [category] : []),
+      h("div", { class: "review-buttons" }, approve, reject), message);
   }
+  const bonusMessage = errorLine("bonus-error");
   const amount = h("input", { id: "bonus-amount", name: "amount", type: "number", min: "0.01", step: "0.01", inputmode: "decimal", required: true });
   const reason = h("input", { id: "bonus-reason", name: "reason", type: "text", maxlength: 1024, required: true });
   const pay = h("button", { class: "btn", type: "submit", "data-action": "bonus" }, "Pay the bonus");
   const token = requestToken();
   const bonusForm = h("form", { class: "bonus" },
-    h("label", { for: "bonus-amount" }, "Bonus (USD)"), amount,
-    h("label", { for: "bonus-reason" }, "Reason, shown to the worker"), reason, pay);
+    h("label", { for: "bonus-amount" }, prolific ? "Bonus (the study's currency)" : "Bonus (USD)"), amount,
+    h("label", { for: "bonus-reason" }, "Reason, shown to the participant"), reason, pay, bonusMessage);
   bonusForm.addEventListener("submit", (event) => {
     event.preventDefault();
     if (!amount.value || !reason.value.trim()) {
-      message.hidden = false;
-      message.textContent = "A bonus needs an amount and a reason.";
+      complain(bonusMessage, "A bonus needs an amount and a reason.");
       return;
     }
-    send("bonuses", { amount: amount.value, reason: reason.value.trim(), unique_token: token }, [pay]);
+    if (!window.confirm(`Pay a bonus of ${amount.value}? It is paid once, with this form's request token.`)) return;
+    send("bonuses", { amount: amount.value, reason: reason.value.trim(), unique_token: token }, [pay], bonusMessage);
   });
   return h("section", { class: "review", "aria-labelledby": "review-heading" }, heading, decision,
     h("h4", {}, "Bonuses"),
     p.bonuses.length
-      ? h("ul", { class: "bonuses" }, p.bonuses.map((b) => h("li", { "data-amount": b.amount }, `${b.amount} USD · ${b.reason} · ${time(b.paid_at)}`)))
+      ? h("ul", { class: "bonuses" }, p.bonuses.map((b) => h("li", { "data-amount": b.amount, "data-state": b.state },
+        `${b.amount} ${b.currency} · ${b.reason} · ${b.state === "paid" ? time(b.paid_at) : `${b.state}: not yet confirmed paid`}`)))
       : h("p", { class: "muted" }, "No bonus paid."),
-    bonusForm, message);
+    bonusForm);
 }
 
 /** Normalised return (0..1) after each update, against the episodes so far. */
@@ -333,7 +365,7 @@ async function showReplay(sessionId) {
     index = Math.max(0, Math.min(frames.length - 1, i));
     const f = frames[index];
     view.setTask(f.task);
-    view.setAgent(decodeState(env, f.state), data.colour_hex ?? "#888888");
+    view.setAgent(decodeState(env, f.state), data.session.colour_hex ?? "#888888");
     board.dataset.frame = index;
     board.dataset.state = f.state;
     slider.value = index;

@@ -124,19 +124,27 @@ function consentPage() {
   };
   agree.addEventListener("click", () => answer(true));
   decline.addEventListener("click", () => answer(false));
+  // The text scrolls in its own box, which the keyboard can reach (Tab, then the arrow keys),
+  // so that the answers stay in view under it.
   show(sheet(
     h("h1", {}, study.title),
     h("p", { class: "lead" }, study.payment),
-    h("h2", {}, "Consent to take part"),
-    h("div", { class: "consent-text" }, paragraphs(study.consent)),
+    h("h2", { id: "consent-heading" }, "Consent to take part"),
+    h("div", { class: "consent-text", tabindex: 0, role: "region", "aria-labelledby": "consent-heading" }, paragraphs(study.consent)),
     h("div", { class: "actions" }, agree, decline)));
+  app.querySelector(".sheet").classList.add("consent-sheet");
 }
 
 function declinedPage() {
+  const back = participant.completion && participant.completion.redirect_url;
   show(sheet(
     h("h1", {}, "Thank you"),
-    h("p", {}, "You chose not to take part, and nothing more will be recorded. You may close this page."),
-    participant.platform === "mturk" ? h("p", {}, "Please return the HIT so that someone else can take it.") : null));
+    h("p", {}, "You chose not to take part, and nothing more will be recorded."),
+    participant.platform === "mturk" ? h("p", {}, "Please return the HIT so that someone else can take it.") : null,
+    back ? [h("p", {}, "You are being sent back to Prolific, which will ask you to return the study. If nothing happens, press the button."),
+      h("a", { class: "btn primary big", href: back, target: "_top", "data-action": "return-prolific" }, "Return to Prolific")]
+      : h("p", {}, "You may close this page.")));
+  if (back) window.open(back, "_top");
 }
 
 function instructionsPage() {
@@ -163,7 +171,7 @@ function instructionsPage() {
           h("li", {}, h("strong", {}, "Demonstrate"), " (", h("kbd", {}, "D"), "): move the agent to the task's goal with the arrow keys."),
           h("li", {}, h("strong", {}, "Let the agent try"), " (", h("kbd", {}, "T"), "): watch it act on its own, and press ", h("kbd", {}, "G"), " for a good move or ", h("kbd", {}, "B"), " for a bad one."),
           h("li", {}, "Switch tasks, ", h("strong", {}, "Stop"), " (", h("kbd", {}, "S"), ") and ", h("strong", {}, "Reset"), " (", h("kbd", {}, "R"), ") whenever you like."),
-          h("li", {}, "When an agent has been shown every task and does them well, go on with ", h("strong", {}, "Next agent"), " (", h("kbd", {}, "N"), ")."),
+          h("li", {}, h("strong", {}, "Next agent"), " (", h("kbd", {}, "N"), ") opens once every task has at least one demonstrated move; go on when the agent does them well."),
         ),
         study.tutorial ? h("p", {}, "A short tutorial shows you each of these first.") : null,
         h("p", { class: "muted" }, "Your progress is saved as you go: if the page reloads, you continue where you were."))),
@@ -365,13 +373,20 @@ async function completionPage() {
     });
     parts.push(h("p", {}, "Press the button to submit your work to Mechanical Turk. The code is sent with it."), form);
   } else if (completion.mode === "prolific") {
+    // Prolific's guidance: send the participant back automatically; the button is the fallback.
     const link = h("a", { class: "btn primary big", href: completion.redirect_url, target: "_top", "data-action": "return-prolific" }, "Return to Prolific");
-    link.addEventListener("click", async (event) => {
-      event.preventDefault();
+    const back = async () => {
       await recordSubmission();
       window.open(completion.redirect_url, "_top");
+    };
+    link.addEventListener("click", (event) => {
+      event.preventDefault();
+      back();
     });
-    parts.push(h("p", {}, "Press the button to go back to Prolific, which records that you completed the study."), link);
+    parts.push(h("p", {}, "You are being sent back to Prolific, which records that you completed the study. If nothing happens, press the button."), link);
+    show(sheet(...parts));
+    back();
+    return;
   } else {
     parts.push(h("p", {}, "Please give this code to the experimenter. You may close this page."));
   }

@@ -1,0 +1,182 @@
+"""Mechanical Turk behind ``ReviewBackend``: boto3's MTurk client (``BAM_REVIEW_BACKEND=mturk``;
+boto3 is imported only then) and the local replica's side (``routers/mturk.py``)."""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
+
+from server.app.errors import ApiError
+from server.app.platforms.review import (
+    AlreadyDone,
+    Decision,
+    Reviewed,
+    ReviewRefused,
+    ReviewUnavailable,
+)
+from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.app.storage.models import utcnow
+from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus
+
+# MTurk's answer to a SendBonus whose UniqueRequestToken it has already carried out (the docs:
+# "subsequent calls will return an error with a message containing the request ID").
+ALREADY_PAID = re.compile(r"already (exists|been (processed|granted|sent))|idempoten", re.I)
+
+
+class MTurkReplicaBackend:
+    """The replica's side: an assignment is approved or rejected once, after it was submitted,
+    and a bonus goes to the worker of a submitted assignment, once per UniqueRequestToken (a
+    second call with the token is answered "already exists", as MTurk does)."""
+
+    name = "mturk-replica"
+    platform = "mturk"
+    currency = "USD"
+    repeat_pay_is_safe = True
+
+    def __init__(self, db: Database) -> None:
+        self.db = db
+
+    @staticmethod
+    def _latest(s: Any, assignment_id: str) -> ReplicaAssignment:
+        row = s.scalar(
+            select(ReplicaAssignment)
+            .where(ReplicaAssignment.assignment_id == assignment_id)
+            .order_by(ReplicaAssignment.id.desc())
+            .limit(1)
+        )
+        if row is None:
+            raise ReviewRefused(f"the replica has no assignment {assignment_id}")
+        assert isinstance(row, ReplicaAssignment)
+        return row
+
+    def _decide(self, assignment_id: str, status: Decision, feedback: str | None) -> None:
+        with self.db.write() as s:
+            row = self._latest(s, assignment_id)
+            if row.status != "submitted":
+                raise ReviewRefused(
+                    f"assignment {assignment_id} is {row.status}: only a submitted assignment "
+                    "can be approved or rejected"
+                )
+            row.status = status
+            row.reviewed_at = utcnow()
+            row.requester_feedback = feedback
+
+    def approve(self, who: Reviewed, feedback: str | None) -> None:
+        self._decide(who.assignment_id, "approved", feedback)
+
+    def reject(self, who: Reviewed, feedback: str, category: str | None) -> None:
+        self._decide(who.assignment_id, "rejected", feedback)
+
+    def decision_of(self, who: Reviewed) -> Decision | None:
+        with self.db.read() as s:
+            status = self._latest(s, who.assignment_id).status
+        return status if status in ("approved", "rejected") else None  # type: ignore[return-value]
+
+    def set_up_bonus(self, who: Reviewed, amount: str, reason: str) -> str | None:
+        return None
+
+    def pay_bonus(
+        self, who: Reviewed, amount: str, reason: str, token: str, setup_id: str | None
+    ) -> None:
+        self.send_bonus(who.worker_id, who.assignment_id, amount, reason, token)
+
+    def send_bonus(
+        self, worker_id: str, assignment_id: str, amount: str, reason: str, token: str
+    ) -> None:
+        try:
+            with self.db.write() as s:
+                row = self._latest(s, assignment_id)
+                if row.worker_id != worker_id:
+                    raise ReviewRefused(f"assignment {assignment_id} is not worker {worker_id}'s")
+                if row.status not in ("submitted", "approved", "rejected"):
+                    raise ReviewRefused(
+                        f"assignment {assignment_id} is {row.status}: a bonus is paid for "
+                        "submitted work"
+                    )
+                s.add(
+                    ReplicaBonus(
+                        assignment_id=assignment_id,
+                        worker_id=worker_id,
+                        amount=amount,
+                        reason=reason,
+                        unique_request_token=token,
+                        granted_at=utcnow(),
+                    )
+                )
+        except IntegrityError:
+            raise AlreadyDone(f"the bonus with UniqueRequestToken {token} already exists") from None
+
+
+class MTurkClientBackend:
+    """boto3's MTurk client (or any object with its methods) behind ``ReviewBackend``."""
+
+    name = "mturk"
+    platform = "mturk"
+    currency = "USD"
+    repeat_pay_is_safe = True  # SendBonus's UniqueRequestToken
+
+    def __init__(self, client: Any) -> None:
+        self.client = client
+
+    def _call(self, method: str, **arguments: Any) -> Any:
+        try:
+            return getattr(self.client, method)(**arguments)
+        except Exception as error:
+            # botocore's ClientError carries MTurk's error code: RequestError is a refusal,
+            # ServiceFault (and anything else: no connection, no credentials) a failure.
+            response = getattr(error, "response", None)
+            details = response.get("Error", {}) if isinstance(response, dict) else {}
+            code, message = details.get("Code"), details.get("Message") or str(error)
+            if code == "RequestError":
+                token = arguments.get("UniqueRequestToken")
+                if token is not None and ALREADY_PAID.search(message):
+                    raise AlreadyDone(f"MTurk already carried out {token}: {message}") from None
+                raise ReviewRefused(f"MTurk refused {method}: {message}") from None
+            raise ReviewUnavailable(f"MTurk's {method} failed: {message}") from None
+
+    def approve(self, who: Reviewed, feedback: str | None) -> None:
+        arguments: dict[str, Any] = {"AssignmentId": who.assignment_id}
+        if feedback:
+            arguments["RequesterFeedback"] = feedback
+        self._call("approve_assignment", **arguments)
+
+    def reject(self, who: Reviewed, feedback: str, category: str | None) -> None:
+        self._call("reject_assignment", AssignmentId=who.assignment_id, RequesterFeedback=feedback)
+
+    def decision_of(self, who: Reviewed) -> Decision | None:
+        answer = self._call("get_assignment", AssignmentId=who.assignment_id) or {}
+        status = answer.get("Assignment", {}).get("AssignmentStatus")
+        return {"Approved": "approved", "Rejected": "rejected"}.get(status)  # type: ignore[return-value]
+
+    def set_up_bonus(self, who: Reviewed, amount: str, reason: str) -> str | None:
+        return None
+
+    def pay_bonus(
+        self, who: Reviewed, amount: str, reason: str, token: str, setup_id: str | None
+    ) -> None:
+        self._call(
+            "send_bonus",
+            WorkerId=who.worker_id,
+            BonusAmount=amount,
+            AssignmentId=who.assignment_id,
+            Reason=reason,
+            UniqueRequestToken=token,
+        )
+
+
+def mturk_client(settings: Settings) -> Any:
+    """boto3's MTurk client for ``BAM_MTURK_ENDPOINT_URL`` (credentials from boto3's usual
+    places: ``AWS_ACCESS_KEY_ID``, ``~/.aws``, ...)."""
+    try:
+        import boto3  # type: ignore[import-not-found,unused-ignore]
+    except ImportError:
+        raise ApiError(
+            503, "BAM_REVIEW_BACKEND=mturk needs the boto3 package: pip install boto3"
+        ) from None
+    return boto3.client(
+        "mturk", region_name=settings.mturk_region, endpoint_url=settings.mturk_endpoint_url
+    )

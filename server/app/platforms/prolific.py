@@ -1,0 +1,256 @@
+"""Prolific's API (https://api.prolific.com/api/v1, docs.prolific.com/api-reference) as the
+study server uses it, and Prolific behind ``ReviewBackend``.
+
+``ProlificClient`` is a small httpx client: the token goes in ``Authorization: Token ...`` and
+nowhere else (never logged, never in an error message); a 429 or a 5xx is retried with
+exponential back-off; a 4xx becomes ``ProlificRefused`` with Prolific's own message. Every call
+is scoped to one study: submissions are listed with ``?study=`` (never the account's whole
+list), and a submission or bonus of another study is refused here before anything is sent.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import httpx
+
+from server.app.platforms.review import (
+    Decision,
+    Reviewed,
+    ReviewRefused,
+    ReviewUnavailable,
+)
+
+# Prolific's submission statuses (the submission object's ``status``).
+SUBMISSION_STATUSES = (
+    "RESERVED",
+    "ACTIVE",
+    "TIMED-OUT",
+    "AWAITING REVIEW",
+    "APPROVED",
+    "RETURNED",
+    "REJECTED",
+    "SCREENED OUT",
+    "PARTIALLY APPROVED",
+)
+RETRIED = frozenset({429, 500, 502, 503, 504})
+
+
+class ProlificRefused(ReviewRefused):
+    """Prolific answered 4xx: the request was not carried out."""
+
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+class ProlificUnavailable(ReviewUnavailable):
+    """Prolific could not be reached or kept answering 429 or 5xx."""
+
+
+def _message(response: httpx.Response) -> str:
+    """Prolific's explanation of a refusal (its error body, or the status line)."""
+    try:
+        body = response.json()
+    except ValueError:
+        return response.text[:300] or response.reason_phrase
+    error = body.get("error", body) if isinstance(body, dict) else body
+    if isinstance(error, dict):
+        detail = error.get("detail") or error.get("title") or error
+        return detail if isinstance(detail, str) else str(detail)[:300]
+    return str(error)[:300]
+
+
+class ProlificClient:
+    """The calls the study server makes, each scoped to ``study_id`` where Prolific allows."""
+
+    def __init__(
+        self,
+        base_url: str,
+        token: str,
+        *,
+        attempts: int = 5,
+        first_wait: float = 0.5,
+        timeout: float = 30.0,
+        transport: httpx.BaseTransport | None = None,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
+        self._http = httpx.Client(
+            base_url=base_url.rstrip("/") + "/",
+            headers={"Authorization": f"Token {token}", "Accept": "application/json"},
+            timeout=timeout,
+            transport=transport,
+        )
+        self.attempts = attempts
+        self.first_wait = first_wait
+        self.sleep = sleep
+
+    def __repr__(self) -> str:  # no token in any representation
+        return f"ProlificClient({str(self._http.base_url)!r})"
+
+    def close(self) -> None:
+        self._http.close()
+
+    def request(self, method: str, path: str, *, retry: bool = True, **kwargs: Any) -> Any:
+        """Prolific's JSON answer (None for an empty one). ``retry=False`` for a call that must
+        not be sent twice (``pay``): a failure then is reported, never resent."""
+        wait = self.first_wait
+        for attempt in range(1, self.attempts + 1):
+            last = attempt == self.attempts or not retry
+            try:
+                response = self._http.request(method, path.lstrip("/"), **kwargs)
+            except httpx.HTTPError as error:
+                if last:
+                    raise ProlificUnavailable(
+                        f"Prolific did not answer {method} /{path.lstrip('/')}: "
+                        f"{type(error).__name__}"
+                    ) from None
+            else:
+                if response.status_code in RETRIED:
+                    if last:
+                        raise ProlificUnavailable(
+                            f"Prolific answered {response.status_code} to {method} "
+                            f"/{path.lstrip('/')}: {_message(response)}"
+                        )
+                    after = response.headers.get("Retry-After", "")
+                    if after.isdigit():
+                        wait = max(wait, min(float(after), 60.0))
+                elif response.status_code >= 400:
+                    raise ProlificRefused(
+                        response.status_code,
+                        f"Prolific refused {method} /{path.lstrip('/')} "
+                        f"({response.status_code}): {_message(response)}",
+                    )
+                else:
+                    return response.json() if response.content else None
+            self.sleep(wait)
+            wait *= 2
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    # -- studies --------------------------------------------------------------------------
+    def create_study(self, fields: dict[str, Any]) -> dict[str, Any]:
+        return dict(self.request("POST", "studies/", json=fields))
+
+    def get_study(self, study_id: str) -> dict[str, Any]:
+        return dict(self.request("GET", f"studies/{study_id}/"))
+
+    def transition_study(self, study_id: str, action: str) -> dict[str, Any]:
+        return dict(
+            self.request("POST", f"studies/{study_id}/transition/", json={"action": action})
+        )
+
+    def set_places(self, study_id: str, places: int) -> dict[str, Any]:
+        return dict(
+            self.request("PATCH", f"studies/{study_id}/", json={"total_available_places": places})
+        )
+
+    # -- submissions ----------------------------------------------------------------------
+    def submissions(self, study_id: str, page_size: int = 100) -> Iterator[dict[str, Any]]:
+        """Every submission of the study, page by page."""
+        page = 1
+        while True:
+            body = self.request(
+                "GET",
+                "submissions/",
+                params={"study": study_id, "page": page, "page_size": page_size},
+            )
+            yield from body.get("results", [])
+            links = body.get("_links", {})
+            following = links.get("next", {}) if isinstance(links, dict) else {}
+            if not (isinstance(following, dict) and following.get("href")):
+                return
+            page += 1
+
+    def submission(self, study_id: str, submission_id: str) -> dict[str, Any]:
+        body = dict(self.request("GET", f"submissions/{submission_id}/"))
+        if body.get("study_id") not in (None, study_id):
+            raise ProlificRefused(
+                403, f"submission {submission_id} is not a submission of study {study_id}"
+            )
+        return body
+
+    def transition_submission(
+        self, study_id: str, submission_id: str, action: str, **fields: Any
+    ) -> dict[str, Any]:
+        self.submission(study_id, submission_id)
+        return dict(
+            self.request(
+                "POST",
+                f"submissions/{submission_id}/transition/",
+                json={"action": action, **fields},
+            )
+        )
+
+    def bulk_approve(self, study_id: str, submission_ids: list[str]) -> None:
+        """Approve many submissions of the study (Prolific recommends at most 1,000 a call)."""
+        for start in range(0, len(submission_ids), 1000):
+            self.request(
+                "POST",
+                "submissions/bulk-approve/",
+                json={"submission_ids": submission_ids[start : start + 1000]},
+            )
+
+    # -- bonuses --------------------------------------------------------------------------
+    def set_up_bonuses(self, study_id: str, bonuses: list[tuple[str, str]]) -> dict[str, Any]:
+        """Set up (not pay) bonuses: ``(participant or submission id, amount in the study's
+        currency)``; Prolific's answer has the set-up's ``id`` that ``pay_bonuses`` pays."""
+        csv = "".join(f"{who},{amount}\n" for who, amount in bonuses)
+        return dict(
+            self.request(
+                "POST",
+                "submissions/bonus-payments/",
+                json={"study_id": study_id, "csv_bonuses": csv},
+            )
+        )
+
+    def pay_bonuses(self, setup_id: str) -> None:
+        """Pay a set-up: sent once, never retried (Prolific's pay is not idempotent)."""
+        self.request("POST", f"bulk-bonus-payments/{setup_id}/pay/", retry=False)
+
+
+class ProlificBackend:
+    """Prolific's API behind ``ReviewBackend`` (``BAM_REVIEW_BACKEND=prolific``, or the local
+    replica's API for a rehearsal)."""
+
+    platform = "prolific"
+    repeat_pay_is_safe = False  # Prolific's pay pays again
+
+    def __init__(self, client: ProlificClient, currency: str, name: str = "prolific") -> None:
+        self.client = client
+        self.currency = currency
+        self.name = name
+
+    @staticmethod
+    def _study(who: Reviewed) -> str:
+        if not who.study_id:
+            raise ReviewRefused(f"participant {who.participant_id} has no Prolific STUDY_ID")
+        return who.study_id
+
+    def approve(self, who: Reviewed, feedback: str | None) -> None:
+        self.client.transition_submission(self._study(who), who.assignment_id, "APPROVE")
+
+    def reject(self, who: Reviewed, feedback: str, category: str | None) -> None:
+        self.client.transition_submission(
+            self._study(who),
+            who.assignment_id,
+            "REJECT",
+            message=feedback,
+            rejection_category=category,
+        )
+
+    def decision_of(self, who: Reviewed) -> Decision | None:
+        status = self.client.submission(self._study(who), who.assignment_id).get("status")
+        return {"APPROVED": "approved", "REJECTED": "rejected"}.get(str(status))  # type: ignore[return-value]
+
+    def set_up_bonus(self, who: Reviewed, amount: str, reason: str) -> str | None:
+        made = self.client.set_up_bonuses(self._study(who), [(who.worker_id, amount)])
+        return str(made["id"])
+
+    def pay_bonus(
+        self, who: Reviewed, amount: str, reason: str, token: str, setup_id: str | None
+    ) -> None:
+        if setup_id is None:
+            raise ReviewRefused(f"bonus {token} has no set-up on Prolific to pay")
+        self.client.pay_bonuses(setup_id)

@@ -1,0 +1,446 @@
+"""The local Prolific replica's API: the subset of Prolific's REST API (``/api/v1``) that the
+study server's client uses, at the same paths, with the same fields, statuses, status codes
+and refusals, keeping its state in the database (``replica_models``).
+
+``handle`` answers one request; the router (``routers/prolific.py``) serves it over HTTP at
+``/prolific/api/v1/...``, and ``ReplicaTransport`` hands the client's requests to it inside the
+server (the dashboard's reviews on a rehearsal). As on Prolific:
+
+- a study is made as a draft (UNPUBLISHED) and published, paused and started with transitions;
+  after publishing its places can only go up;
+- submissions are listed for one study (``?study=`` is required), page by page;
+- a submission is approved or rejected once it is AWAITING REVIEW; a rejection needs one of
+  Prolific's categories and a message of at least 100 characters (400 otherwise); the same
+  transition sent again is ignored (the endpoint is idempotent);
+- bonuses are set up (``csv_bonuses``: participant or submission id, amount in the currency)
+  and paid with ``pay``, which is not idempotent: a second ``pay`` pays again.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import secrets
+from decimal import Decimal, InvalidOperation
+from typing import Any
+from urllib.parse import parse_qs
+
+import httpx
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from server.app.platforms.prolific_sync import signature
+from server.app.platforms.review import REJECTION_CATEGORIES
+from server.app.storage.db import Database
+from server.app.storage.models import utcnow
+from server.app.storage.replica_models import (
+    ProlificReplicaBonusSetup,
+    ProlificReplicaPayment,
+    ProlificReplicaStudy,
+    ProlificReplicaSubmission,
+)
+
+STUDY_ACTIONS = {
+    "PUBLISH": ({"UNPUBLISHED"}, "ACTIVE"),
+    "PAUSE": ({"ACTIVE"}, "PAUSED"),
+    "START": ({"PAUSED", "AWAITING REVIEW"}, "ACTIVE"),
+    "STOP": ({"ACTIVE", "PAUSED", "AWAITING REVIEW"}, "COMPLETED"),
+}
+SUBMISSION_ACTIONS = {"APPROVE": "APPROVED", "REJECT": "REJECTED"}
+# A place is held by these; RETURNED, TIMED-OUT and REJECTED give it back.
+HOLDING = ("RESERVED", "ACTIVE", "AWAITING REVIEW", "APPROVED")
+MIN_REJECTION_MESSAGE = 100
+PLACEHOLDERS = ("{{%PROLIFIC_PID%}}", "{{%STUDY_ID%}}", "{{%SESSION_ID%}}")
+
+
+class Refusal(Exception):
+    def __init__(self, status: int, detail: str) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.detail = detail
+
+
+def new_id() -> str:
+    """An id shaped like Prolific's (24 hexadecimal digits)."""
+    return secrets.token_hex(12)
+
+
+def error_body(status: int, detail: str) -> dict[str, Any]:
+    titles = {400: "Bad request", 401: "Unauthorized", 404: "Not found", 405: "Not allowed"}
+    return {"error": {"status": status, "title": titles.get(status, "Error"), "detail": detail}}
+
+
+# -- views ------------------------------------------------------------------------------------
+def places_taken(s: Session, study_id: str) -> int:
+    return int(
+        s.scalar(
+            select(func.count())
+            .select_from(ProlificReplicaSubmission)
+            .where(
+                ProlificReplicaSubmission.study_id == study_id,
+                ProlificReplicaSubmission.status.in_(HOLDING),
+            )
+        )
+        or 0
+    )
+
+
+def study_view(s: Session, study: ProlificReplicaStudy) -> dict[str, Any]:
+    return {
+        **study.fields,
+        "id": study.id,
+        "name": study.name,
+        "status": study.status,
+        "external_study_url": study.external_study_url,
+        "total_available_places": study.total_available_places,
+        "places_taken": places_taken(s, study.id),
+        "reward": study.reward,
+        "maximum_allowed_time": study.maximum_allowed_time,
+        "date_created": study.created_at.isoformat(),
+        "published_at": study.published_at.isoformat() if study.published_at else None,
+    }
+
+
+def submission_view(row: ProlificReplicaSubmission) -> dict[str, Any]:
+    return {
+        "id": row.id,
+        "study_id": row.study_id,
+        "participant_id": row.participant_id,
+        "status": row.status,
+        "started_at": row.started_at.isoformat(),
+        "completed_at": row.completed_at.isoformat() if row.completed_at else None,
+        "study_code": row.study_code,
+    }
+
+
+# -- the API ----------------------------------------------------------------------------------
+def _study(s: Session, study_id: str) -> ProlificReplicaStudy:
+    study = s.get(ProlificReplicaStudy, study_id)
+    if study is None:
+        raise Refusal(404, f"Study {study_id} not found.")
+    return study
+
+
+def _submission(s: Session, submission_id: str) -> ProlificReplicaSubmission:
+    row = s.get(ProlificReplicaSubmission, submission_id)
+    if row is None:
+        raise Refusal(404, f"Submission {submission_id} not found.")
+    return row
+
+
+def _positive_int(body: dict[str, Any], name: str) -> int:
+    value = body.get(name)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise Refusal(400, f"{name}: a positive whole number is required.")
+    return value
+
+
+def create_study(s: Session, body: dict[str, Any]) -> tuple[int, Any]:
+    name = body.get("name")
+    if not isinstance(name, str) or not name.strip():
+        raise Refusal(400, "name: This field is required.")
+    url = body.get("external_study_url")
+    if not isinstance(url, str) or not url.startswith(("https://", "http://")):
+        raise Refusal(400, "external_study_url: Enter a valid URL.")
+    if body.get("prolific_id_option") not in ("url_parameters", "question", "not_required"):
+        raise Refusal(400, "prolific_id_option: url_parameters, question or not_required.")
+    codes = body.get("completion_codes")
+    if not isinstance(codes, list) or not codes:
+        raise Refusal(400, "completion_codes: at least one completion code is required.")
+    for code in codes:
+        if not isinstance(code, dict) or not code.get("code") or not code.get("code_type"):
+            raise Refusal(400, "completion_codes: each needs a code and a code_type.")
+    places = _positive_int(body, "total_available_places")
+    reward = _positive_int(body, "reward")
+    estimated = _positive_int(body, "estimated_completion_time")
+    maximum = body.get("maximum_allowed_time") or 2 + 2 * estimated + int(2 * estimated**0.5)
+    if not isinstance(maximum, int) or not estimated <= maximum < 24 * 60:
+        raise Refusal(400, "maximum_allowed_time: from the estimated time to under 24 hours.")
+    study = ProlificReplicaStudy(
+        id=new_id(),
+        name=name,
+        status="UNPUBLISHED",
+        external_study_url=url,
+        total_available_places=places,
+        reward=reward,
+        maximum_allowed_time=maximum,
+        fields={k: v for k, v in body.items() if k not in ("id", "status")},
+        created_at=utcnow(),
+    )
+    s.add(study)
+    s.flush()
+    return 201, study_view(s, study)
+
+
+def update_study(s: Session, study_id: str, body: dict[str, Any]) -> tuple[int, Any]:
+    study = _study(s, study_id)
+    if set(body) - {"total_available_places"}:
+        raise Refusal(400, "Only total_available_places can be changed here.")
+    places = _positive_int(body, "total_available_places")
+    if study.status != "UNPUBLISHED" and places < study.total_available_places:
+        raise Refusal(400, "total_available_places: a published study's places can only go up.")
+    study.total_available_places = places
+    if study.status == "AWAITING REVIEW" and places > places_taken(s, study.id):
+        study.status = "ACTIVE"
+    return 200, study_view(s, study)
+
+
+def transition_study(s: Session, study_id: str, body: dict[str, Any]) -> tuple[int, Any]:
+    study = _study(s, study_id)
+    action = body.get("action")
+    if action not in STUDY_ACTIONS:
+        raise Refusal(400, f"action: one of {', '.join(STUDY_ACTIONS)}.")
+    sources, target = STUDY_ACTIONS[action]
+    if study.status not in sources:
+        raise Refusal(400, f"A study that is {study.status} cannot {action}.")
+    study.status = target
+    if action == "PUBLISH":
+        study.published_at = utcnow()
+    return 200, study_view(s, study)
+
+
+def list_submissions(s: Session, query: dict[str, str]) -> tuple[int, Any]:
+    study_id = query.get("study")
+    if not study_id:
+        raise Refusal(400, "study: a study id is required to list submissions.")
+    _study(s, study_id)
+    try:
+        page = int(query.get("page", "1"))
+        size = int(query.get("page_size", "20"))
+    except ValueError:
+        raise Refusal(400, "page and page_size are whole numbers.") from None
+    if page < 1 or not 1 <= size <= 200:
+        raise Refusal(400, "page from 1, page_size from 1 to 200.")
+    where = [ProlificReplicaSubmission.study_id == study_id]
+    if query.get("status"):
+        where.append(ProlificReplicaSubmission.status == query["status"])
+    total = int(
+        s.scalar(select(func.count()).select_from(ProlificReplicaSubmission).where(*where)) or 0
+    )
+    rows = s.scalars(
+        select(ProlificReplicaSubmission)
+        .where(*where)
+        .order_by(ProlificReplicaSubmission.started_at, ProlificReplicaSubmission.id)
+        .offset((page - 1) * size)
+        .limit(size)
+    ).all()
+    following = None
+    if page * size < total:
+        following = {"href": f"submissions/?study={study_id}&page={page + 1}&page_size={size}"}
+    return 200, {
+        "results": [submission_view(r) for r in rows],
+        "_links": {"next": following},
+        "meta": {"count": total},
+    }
+
+
+def transition_submission(s: Session, submission_id: str, body: dict[str, Any]) -> tuple[int, Any]:
+    row = _submission(s, submission_id)
+    action = body.get("action")
+    if action not in SUBMISSION_ACTIONS:
+        raise Refusal(400, f"action: one of {', '.join(SUBMISSION_ACTIONS)}.")
+    target = SUBMISSION_ACTIONS[action]
+    if action == "REJECT":
+        message = body.get("message")
+        if not isinstance(message, str) or len(message) < MIN_REJECTION_MESSAGE:
+            raise Refusal(400, "message: a rejection message is at least 100 characters long.")
+        if body.get("rejection_category") not in REJECTION_CATEGORIES:
+            raise Refusal(400, f"rejection_category: one of {', '.join(REJECTION_CATEGORIES)}.")
+    if row.status == target:  # idempotent: the same request again is ignored
+        return 200, submission_view(row)
+    if row.status != "AWAITING REVIEW":
+        raise Refusal(400, f"A submission that is {row.status} cannot be {target.lower()}.")
+    row.status = target
+    row.reviewed_at = utcnow()
+    if action == "REJECT":
+        row.message = body["message"]
+        row.rejection_category = body["rejection_category"]
+    return 200, submission_view(row)
+
+
+def bulk_approve(s: Session, body: dict[str, Any]) -> tuple[int, Any]:
+    ids = body.get("submission_ids")
+    if not isinstance(ids, list) or not ids or not all(isinstance(i, str) for i in ids):
+        raise Refusal(400, "submission_ids: a list of submission ids is required.")
+    rows = [_submission(s, i) for i in ids]
+    for row in rows:
+        if row.status not in ("AWAITING REVIEW", "APPROVED"):
+            raise Refusal(400, f"Submission {row.id} is {row.status}: it cannot be approved.")
+    for row in rows:
+        if row.status != "APPROVED":
+            row.status = "APPROVED"
+            row.reviewed_at = utcnow()
+    return 200, "The request to bulk approve has been made successfully."
+
+
+def _cents(text: str) -> int:
+    if not re.fullmatch(r"[0-9]+(\.[0-9]{1,2})?", text):
+        raise Refusal(400, f"csv_bonuses: {text!r} is not an amount.")
+    try:
+        return int(Decimal(text) * 100)
+    except InvalidOperation:  # pragma: no cover - the pattern above
+        raise Refusal(400, f"csv_bonuses: {text!r} is not an amount.") from None
+
+
+def set_up_bonuses(s: Session, body: dict[str, Any]) -> tuple[int, Any]:
+    study_id = body.get("study_id")
+    csv = body.get("csv_bonuses")
+    if not isinstance(study_id, str) or not isinstance(csv, str) or not csv.strip():
+        raise Refusal(400, "study_id and csv_bonuses are required.")
+    _study(s, study_id)
+    total = 0
+    for line in csv.strip().splitlines():
+        who, _, amount = line.partition(",")
+        cents = _cents(amount.strip())
+        if cents <= 0:
+            raise Refusal(400, f"csv_bonuses: the amount for {who} must be more than 0.")
+        taken = s.scalar(
+            select(ProlificReplicaSubmission).where(
+                ProlificReplicaSubmission.study_id == study_id,
+                (ProlificReplicaSubmission.participant_id == who.strip())
+                | (ProlificReplicaSubmission.id == who.strip()),
+            )
+        )
+        if taken is None:
+            raise Refusal(400, f"csv_bonuses: {who.strip()} did not take part in this study.")
+        total += cents
+    setup = ProlificReplicaBonusSetup(
+        id=new_id(), study_id=study_id, csv_bonuses=csv, amount=total, created_at=utcnow()
+    )
+    s.add(setup)
+    fees = round(total * 0.333)
+    return 201, {
+        "id": setup.id,
+        "study": study_id,
+        "amount": total,
+        "fees": fees,
+        "vat": 0,
+        "total_amount": total + fees,
+    }
+
+
+def pay_bonuses(s: Session, setup_id: str) -> tuple[int, Any]:
+    setup = s.get(ProlificReplicaBonusSetup, setup_id)
+    if setup is None:
+        raise Refusal(404, f"Bulk bonus payment {setup_id} not found.")
+    now = utcnow()
+    for line in setup.csv_bonuses.strip().splitlines():
+        who, _, amount = line.partition(",")
+        participant = who.strip()
+        submission = s.get(ProlificReplicaSubmission, participant)
+        if submission is not None:
+            participant = submission.participant_id
+        s.add(
+            ProlificReplicaPayment(
+                setup_id=setup.id,
+                participant_id=participant,
+                amount=_cents(amount.strip()),
+                paid_at=now,
+            )
+        )
+    return 202, None
+
+
+ROUTES: list[tuple[str, re.Pattern[str], str]] = [
+    ("POST", re.compile(r"studies/"), "create_study"),
+    ("GET", re.compile(r"studies/(?P<id>[0-9a-f]{24})/"), "get_study"),
+    ("PATCH", re.compile(r"studies/(?P<id>[0-9a-f]{24})/"), "update_study"),
+    ("POST", re.compile(r"studies/(?P<id>[0-9a-f]{24})/transition/"), "transition_study"),
+    ("GET", re.compile(r"submissions/"), "list_submissions"),
+    ("POST", re.compile(r"submissions/bulk-approve/"), "bulk_approve"),
+    ("POST", re.compile(r"submissions/bonus-payments/"), "set_up_bonuses"),
+    ("GET", re.compile(r"submissions/(?P<id>[0-9a-f]{24})/"), "get_submission"),
+    ("POST", re.compile(r"submissions/(?P<id>[0-9a-f]{24})/transition/"), "transition_submission"),
+    ("POST", re.compile(r"bulk-bonus-payments/(?P<id>[0-9a-f]{24})/pay/"), "pay_bonuses"),
+]
+
+
+def handle(
+    db: Database, method: str, path: str, query: dict[str, str], raw: bytes
+) -> tuple[int, Any]:
+    """Prolific's answer (status, JSON body) to one request under ``/api/v1/``."""
+    path = path.lstrip("/")
+    known = [(m, name, p.fullmatch(path)) for m, p, name in ROUTES]
+    matches = [(m, name, found) for m, name, found in known if found]
+    if not matches:
+        return 404, error_body(404, f"No endpoint /api/v1/{path}.")
+    chosen = [(name, found) for m, name, found in matches if m == method]
+    if not chosen:
+        return 405, error_body(405, f'Method "{method}" not allowed.')
+    name, found = chosen[0]
+    body: Any = {}
+    if raw:
+        try:
+            body = json.loads(raw)
+        except ValueError:
+            return 400, error_body(400, "JSON parse error.")
+    if not isinstance(body, dict):
+        return 400, error_body(400, "The body must be a JSON object.")
+    ident = found.groupdict().get("id", "")
+    try:
+        with db.write() as s:
+            if name == "create_study":
+                return create_study(s, body)
+            if name == "get_study":
+                return 200, study_view(s, _study(s, ident))
+            if name == "update_study":
+                return update_study(s, ident, body)
+            if name == "transition_study":
+                return transition_study(s, ident, body)
+            if name == "list_submissions":
+                return list_submissions(s, query)
+            if name == "bulk_approve":
+                return bulk_approve(s, body)
+            if name == "set_up_bonuses":
+                return set_up_bonuses(s, body)
+            if name == "get_submission":
+                return 200, submission_view(_submission(s, ident))
+            if name == "transition_submission":
+                return transition_submission(s, ident, body)
+            return pay_bonuses(s, ident)
+    except Refusal as refused:
+        return refused.status, error_body(refused.status, refused.detail)
+
+
+class ReplicaTransport(httpx.BaseTransport):
+    """The client's requests answered by the replica inside this process (no network): the
+    same code runs as against Prolific, with the token checked as Prolific does."""
+
+    def __init__(self, db: Database, token: str, prefix: str = "/prolific/api/v1/") -> None:
+        self.db = db
+        self.token = token
+        self.prefix = prefix
+
+    def handle_request(self, request: httpx.Request) -> httpx.Response:
+        if request.headers.get("Authorization") != f"Token {self.token}":
+            status, body = 401, error_body(401, "Invalid token.")
+        else:
+            path = request.url.path
+            path = path[len(self.prefix) :] if path.startswith(self.prefix) else path
+            query = {k: v[-1] for k, v in parse_qs(request.url.query.decode()).items()}
+            status, body = handle(self.db, request.method, path, query, request.read())
+        content = b"" if body is None else json.dumps(body).encode()
+        return httpx.Response(status, content=content, headers={"Content-Type": "application/json"})
+
+
+def status_event(
+    secret: str, submission: dict[str, Any], timestamp: int
+) -> tuple[dict[str, str], bytes]:
+    """The replica's ``submission.status.change`` webhook for a submission, signed as Prolific
+    signs it: the headers and the body."""
+    body = json.dumps(
+        {
+            "event_type": "submission.status.change",
+            "resource_id": submission["id"],
+            "study_id": submission["study_id"],
+            "participant_id": submission["participant_id"],
+            "status": submission["status"],
+        }
+    ).encode()
+    stamp = str(timestamp)
+    return {
+        "Content-Type": "application/json",
+        "X-Prolific-Request-Signature": signature(secret, stamp, body),
+        "X-Prolific-Request-Timestamp": stamp,
+        "X-Event-ID": secrets.token_hex(16),
+    }, body

@@ -1,0 +1,130 @@
+"""Prolific's submission statuses kept in step with the study: from Prolific's webhook
+(``submission.status.change``, signature checked, each event applied once) and from a poll of
+the study's submissions (for a server without a public https address).
+
+A participant whose submission is RETURNED or TIMED-OUT is released at once: their flow status
+becomes ``returned`` (so they no longer count in the balanced domain assignment, and the
+study's pages refuse to go on), their active learning sessions stop, and their data stays,
+marked with Prolific's status."""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import hmac
+import time
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
+
+from server.app.platforms.prolific import SUBMISSION_STATUSES, ProlificClient
+from server.app.storage.db import Database
+from server.app.storage.models import (
+    LearningSession,
+    Participant,
+    ProlificEvent,
+    StatusChange,
+    utcnow,
+)
+
+RELEASED = ("RETURNED", "TIMED-OUT")
+# A webhook older (or newer) than this is refused: a replay of a captured request.
+WEBHOOK_MAX_AGE_SECONDS = 300
+
+
+class WebhookRefused(Exception):
+    """Not a genuine, fresh Prolific webhook."""
+
+
+def signature(secret: str, timestamp: str, body: bytes) -> str:
+    """Prolific's X-Prolific-Request-Signature: base64(HMAC-SHA256(secret, timestamp + body))."""
+    digest = hmac.new(secret.encode(), timestamp.encode() + body, hashlib.sha256).digest()
+    return base64.b64encode(digest).decode()
+
+
+def verify(
+    secret: str, timestamp: str | None, given: str | None, body: bytes, now: float | None = None
+) -> None:
+    if not timestamp or not given:
+        raise WebhookRefused("the request is not signed")
+    if not timestamp.isdigit():
+        raise WebhookRefused("the timestamp is not a UNIX time")
+    age = (time.time() if now is None else now) - int(timestamp)
+    if abs(age) > WEBHOOK_MAX_AGE_SECONDS:
+        raise WebhookRefused(f"the request is {int(age)} s old: a replay is refused")
+    if not hmac.compare_digest(signature(secret, timestamp, body).encode(), given.encode()):
+        raise WebhookRefused("the signature does not match")
+
+
+def first_delivery(db: Database, event_id: str, event_type: str) -> bool:
+    """Record the event; False when it was applied before (a redelivery)."""
+    try:
+        with db.write() as s:
+            s.add(ProlificEvent(event_id=event_id, event_type=event_type, received_at=utcnow()))
+    except IntegrityError:
+        return False
+    return True
+
+
+def apply_status(db: Database, study_id: str | None, submission_id: str, status: str) -> bool:
+    """Store Prolific's status of the submission and release a returned or timed-out
+    participant; False when no participant of ours has that submission."""
+    if status not in SUBMISSION_STATUSES:
+        raise ValueError(f"unknown Prolific submission status {status!r}")
+    with db.write() as s:
+        query = select(Participant).where(
+            Participant.platform == "prolific", Participant.assignment_id == submission_id
+        )
+        if study_id:
+            query = query.where(Participant.hit_id == study_id)
+        p = s.scalar(query)
+        if p is None:
+            return False
+        p.prolific_status = status
+        if status in RELEASED and p.status not in ("returned", "declined"):
+            now = utcnow()
+            p.status = "returned"
+            s.add(
+                StatusChange(
+                    participant_id=p.id,
+                    status="returned",
+                    at=now,
+                    note=f"Prolific: submission {status}; the place went back to Prolific",
+                )
+            )
+            for session in s.scalars(
+                select(LearningSession).where(
+                    LearningSession.participant_id == p.id, LearningSession.status == "active"
+                )
+            ):
+                session.status = "finished"
+                session.finished_at = now
+    return True
+
+
+def reconcile_submissions(db: Database, client: ProlificClient, study_id: str) -> dict[str, str]:
+    """Poll the study's submissions (page by page) and apply every status; the statuses of
+    our participants' submissions."""
+    seen: dict[str, str] = {}
+    for submission in client.submissions(study_id):
+        status = str(submission.get("status"))
+        if status in SUBMISSION_STATUSES and apply_status(db, study_id, submission["id"], status):
+            seen[submission["id"]] = status
+    return seen
+
+
+def apply_webhook(db: Database, event_id: str, payload: dict[str, Any]) -> str:
+    """Apply one ``submission.status.change`` event once; what was done."""
+    event_type = str(payload.get("event_type", ""))
+    if event_type != "submission.status.change":
+        return f"event {event_type!r} ignored"
+    if not first_delivery(db, event_id, event_type):
+        return "already applied"
+    submission_id = payload.get("resource_id")
+    status = payload.get("status")
+    if not isinstance(submission_id, str) or not isinstance(status, str):
+        return "no submission or status"
+    study_id = payload.get("study_id")
+    known = apply_status(db, study_id if isinstance(study_id, str) else None, submission_id, status)
+    return "applied" if known else "not a participant of this study"

@@ -1,0 +1,306 @@
+"""The local Prolific replica, served by the study server to rehearse a Prolific study offline.
+
+- ``/prolific/api/v1/...``: the subset of Prolific's API the study server's client uses
+  (``platforms/prolific_replica.py``), with ``Authorization: Token $BAM_ADMIN_TOKEN``.
+- ``/prolific``: the researcher's view (each study, its places, each submission with Prolific's
+  statuses and times, the bonuses paid), behind the admin sign-in, and the participant's way
+  in: take part with a generated PROLIFIC_PID (the study's external URL, its placeholders
+  filled), return the submission, or let it time out at the study's maximum time.
+- ``/prolific/submissions/complete?cc=CODE``: where the study's completion redirect lands; the
+  code is checked against the study's completion codes.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import secrets
+import time
+from datetime import timedelta
+from typing import Any
+
+import httpx
+from fastapi import APIRouter, BackgroundTasks, Request, Response
+from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse
+from sqlalchemy import select
+
+from server.app.admin_auth import admin_token
+from server.app.deps import StateDep, is_admin
+from server.app.platforms.prolific_replica import (
+    PLACEHOLDERS,
+    error_body,
+    handle,
+    new_id,
+    places_taken,
+    status_event,
+    submission_view,
+)
+from server.app.platforms.prolific_sync import WebhookRefused, apply_webhook, verify
+from server.app.routers.common import login_redirect, notice, own_origin, templates
+from server.app.state import ServerState
+from server.app.storage.models import utcnow
+from server.app.storage.replica_models import (
+    ProlificReplicaBonusSetup,
+    ProlificReplicaPayment,
+    ProlificReplicaStudy,
+    ProlificReplicaSubmission,
+)
+
+router = APIRouter(prefix="/prolific", tags=["prolific replica"], include_in_schema=False)
+
+PID_COOKIE = "prolific_replica_pid"
+log = logging.getLogger(__name__)
+
+
+def send_status_event(url: str, secret: str, submission: dict[str, Any]) -> None:
+    """POST the signed webhook, as Prolific does (a failure is logged; the poll catches up)."""
+    headers, body = status_event(secret, submission, int(time.time()))
+    try:
+        httpx.post(url, content=body, headers=headers, timeout=10).raise_for_status()
+    except httpx.HTTPError as error:
+        log.warning("the Prolific replica's webhook to %s failed: %s", url, error)
+
+
+def notify(
+    background: BackgroundTasks, request: Request, state: ServerState, submission: Any
+) -> None:
+    """With BAM_PROLIFIC_WEBHOOK_SECRET set, the replica sends the submission's new status to
+    this server's webhook, signed with it, after answering."""
+    secret = state.settings.prolific_webhook_secret
+    if secret is not None and submission is not None:
+        background.add_task(
+            send_status_event,
+            f"{own_origin(request)}/prolific/webhook",
+            secret.get_secret_value(),
+            submission,
+        )
+
+
+@router.api_route("/api/v1/{path:path}", methods=["GET", "POST", "PATCH"])
+async def api(path: str, request: Request, state: StateDep) -> Response:
+    expected = admin_token(state.settings)
+    given = request.headers.get("Authorization", "")
+    if expected is None or not secrets.compare_digest(given.encode(), f"Token {expected}".encode()):
+        return JSONResponse(error_body(401, "Invalid token."), status_code=401)
+    raw = await request.body()
+    query = dict(request.query_params)
+    status, body = await state.run_db(lambda: handle(state.db, request.method, path, query, raw))
+    if body is None:
+        return Response(status_code=status)
+    return JSONResponse(body, status_code=status)
+
+
+def time_out_overdue(state: ServerState) -> None:
+    """Submissions still ACTIVE past their study's maximum time become TIMED-OUT."""
+    now = utcnow()
+    with state.db.write() as s:
+        rows = s.execute(
+            select(ProlificReplicaSubmission, ProlificReplicaStudy.maximum_allowed_time)
+            .join(
+                ProlificReplicaStudy, ProlificReplicaStudy.id == ProlificReplicaSubmission.study_id
+            )
+            .where(ProlificReplicaSubmission.status == "ACTIVE")
+        ).all()
+        for row, minutes in rows:
+            if row.started_at + timedelta(minutes=minutes) < now:
+                row.status = "TIMED-OUT"
+
+
+def study_url(study: ProlificReplicaStudy, submission: ProlificReplicaSubmission) -> str:
+    values = (submission.participant_id, study.id, submission.id)
+    url = study.external_study_url
+    for placeholder, value in zip(PLACEHOLDERS, values, strict=True):
+        url = url.replace(placeholder, value)
+    return url
+
+
+@router.get("", response_class=HTMLResponse)
+def researcher_view(request: Request, state: StateDep) -> Response:
+    if not is_admin(request, state):
+        return login_redirect("/prolific")
+    time_out_overdue(state)
+    with state.db.read() as s:
+        studies = s.scalars(
+            select(ProlificReplicaStudy).order_by(ProlificReplicaStudy.created_at.desc())
+        ).all()
+        listed: list[dict[str, Any]] = []
+        for study in studies:
+            listed.append(
+                {
+                    "study": study,
+                    "taken": places_taken(s, study.id),
+                    "submissions": s.scalars(
+                        select(ProlificReplicaSubmission)
+                        .where(ProlificReplicaSubmission.study_id == study.id)
+                        .order_by(ProlificReplicaSubmission.started_at.desc())
+                    ).all(),
+                    "payments": s.execute(
+                        select(ProlificReplicaPayment)
+                        .join(
+                            ProlificReplicaBonusSetup,
+                            ProlificReplicaBonusSetup.id == ProlificReplicaPayment.setup_id,
+                        )
+                        .where(ProlificReplicaBonusSetup.study_id == study.id)
+                        .order_by(ProlificReplicaPayment.id)
+                    )
+                    .scalars()
+                    .all(),
+                }
+            )
+    return templates.TemplateResponse(
+        request,
+        "prolific_replica.html",
+        {"studies": listed, "title": state.study.title, "study": state.study.public()},
+        headers={"Cache-Control": "no-store"},
+    )
+
+
+@router.post("/studies/{study_id}/take-part")
+def take_part(study_id: str, request: Request, state: StateDep) -> Response:
+    """A new participant (a generated PROLIFIC_PID) takes a place and is sent to the study."""
+    if not is_admin(request, state):
+        return login_redirect("/prolific")
+    time_out_overdue(state)
+    with state.db.write() as s:
+        study = s.get(ProlificReplicaStudy, study_id)
+        if study is None:
+            return notice(request, "No such study", f"The replica has no study {study_id}.", 404)
+        if study.status != "ACTIVE":
+            return notice(
+                request, "Not open", f"Study {study_id} is {study.status}: it takes no one.", 409
+            )
+        if places_taken(s, study.id) >= study.total_available_places:
+            study.status = "AWAITING REVIEW"
+            return notice(request, "Full", "Every place of this study is taken.", 409)
+        submission = ProlificReplicaSubmission(
+            id=new_id(),
+            study_id=study.id,
+            participant_id=new_id(),
+            status="ACTIVE",
+            started_at=utcnow(),
+        )
+        s.add(submission)
+        s.flush()
+        if places_taken(s, study.id) >= study.total_available_places:
+            study.status = "AWAITING REVIEW"  # as Prolific: no free place left
+        url = study_url(study, submission)
+        pid = submission.participant_id
+    response = RedirectResponse(url, status_code=303)
+    response.set_cookie(PID_COOKIE, pid, httponly=True, samesite="lax")
+    return response
+
+
+def _end(
+    request: Request,
+    state: ServerState,
+    background: BackgroundTasks,
+    submission_id: str,
+    status: str,
+) -> Response:
+    if not is_admin(request, state):
+        return login_redirect("/prolific")
+    with state.db.write() as s:
+        row = s.get(ProlificReplicaSubmission, submission_id)
+        if row is None or row.status != "ACTIVE":
+            return notice(request, "Cannot", "This submission is not active.", 409)
+        row.status = status
+        study = s.get(ProlificReplicaStudy, row.study_id)
+        if study is not None and study.status == "AWAITING REVIEW":
+            study.status = "ACTIVE"  # the place reopens
+        view = submission_view(row)
+    notify(background, request, state, view)
+    return RedirectResponse("/prolific", status_code=303)
+
+
+@router.post("/submissions/{submission_id}/return")
+def return_submission(
+    submission_id: str, request: Request, state: StateDep, background: BackgroundTasks
+) -> Response:
+    return _end(request, state, background, submission_id, "RETURNED")
+
+
+@router.post("/submissions/{submission_id}/time-out")
+def time_out(
+    submission_id: str, request: Request, state: StateDep, background: BackgroundTasks
+) -> Response:
+    return _end(request, state, background, submission_id, "TIMED-OUT")
+
+
+@router.get("/submissions/complete", response_class=HTMLResponse)
+def complete(
+    request: Request, state: StateDep, background: BackgroundTasks, cc: str = ""
+) -> Response:
+    """The completion redirect's landing: the participant's active submission is completed
+    with the code, when the code is one of the study's (else Prolific's 'invalid code')."""
+    pid = request.cookies.get(PID_COOKIE, "")
+    view = None
+    with state.db.write() as s:
+        row = s.scalar(
+            select(ProlificReplicaSubmission)
+            .where(ProlificReplicaSubmission.participant_id == pid)
+            .order_by(ProlificReplicaSubmission.started_at.desc())
+            .limit(1)
+        )
+        if row is None:
+            return notice(request, "No submission", "You have not taken part in a study.", 404)
+        study = s.get(ProlificReplicaStudy, row.study_id)
+        codes = {
+            c.get("code"): c for c in (study.fields.get("completion_codes", []) if study else [])
+        }
+        if cc not in codes:
+            return notice(
+                request,
+                "Invalid completion code",
+                f"{cc!r} is not a completion code of this study.",
+                400,
+            )
+        if row.status not in ("ACTIVE", "AWAITING REVIEW"):
+            return notice(request, "Already ended", f"This submission is {row.status}.", 409)
+        row.study_code = cc
+        row.completed_at = utcnow()
+        row.status = "AWAITING REVIEW"
+        if codes[cc].get("code_type") == "NO_CONSENT":
+            row.status = "RETURNED"  # the participant is asked to return, and does
+        status = row.status
+        view = submission_view(row)
+    notify(background, request, state, view)
+    return notice(
+        request,
+        "Submission recorded",
+        f"Completion code {cc} accepted: the submission is {status}.",
+        200,
+    )
+
+
+@router.post("/webhook")
+async def webhook(request: Request, state: StateDep) -> Response:
+    """Prolific's ``submission.status.change`` webhook (``BAM_PROLIFIC_WEBHOOK_SECRET``): a
+    forged, unsigned or old request is refused (401) and changes nothing; a redelivered event
+    is answered 200 and applied once."""
+    secret = state.settings.prolific_webhook_secret
+    if secret is None:
+        return JSONResponse({"detail": "set BAM_PROLIFIC_WEBHOOK_SECRET"}, status_code=503)
+    body = await request.body()
+    try:
+        verify(
+            secret.get_secret_value(),
+            request.headers.get("X-Prolific-Request-Timestamp"),
+            request.headers.get("X-Prolific-Request-Signature"),
+            body,
+        )
+    except WebhookRefused as refused:
+        return JSONResponse({"detail": f"webhook refused: {refused}"}, status_code=401)
+    event_id = request.headers.get("X-Event-ID", "")
+    if not event_id or len(event_id) > 128:
+        return JSONResponse({"detail": "the request has no X-Event-ID"}, status_code=400)
+    try:
+        payload = json.loads(body)
+    except ValueError:
+        return JSONResponse({"detail": "the body is not JSON"}, status_code=400)
+    if not isinstance(payload, dict):
+        return JSONResponse({"detail": "the body is not a JSON object"}, status_code=400)
+    try:
+        result = await state.run_db(lambda: apply_webhook(state.db, event_id, payload))
+    except ValueError as error:
+        return JSONResponse({"detail": str(error)}, status_code=400)
+    return JSONResponse({"result": result})

@@ -1,0 +1,339 @@
+"""The study's database tables (SQLAlchemy 2 ORM). Alembic migrations in ``migrations/`` are the
+only way these tables are created or changed; API responses are the separate Pydantic models in
+``schemas.py``.
+
+participants ─< status_changes
+             ─< learning_sessions ─< episodes
+                                  ─< learner_updates   (one per update: learner state + evaluation)
+             ─< events            (append-only, one per acknowledged request, keyed by seq)
+             ─< questionnaire_answers
+             ─< assignment_reviews (the experimenter's approval or rejection of the submission)
+             ─< bonuses
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+
+from sqlalchemy import (
+    JSON,
+    BigInteger,
+    Boolean,
+    DateTime,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    LargeBinary,
+    MetaData,
+    String,
+    Text,
+    TypeDecorator,
+    UniqueConstraint,
+)
+from sqlalchemy.engine import Dialect
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+
+# Autoincrementing 64-bit ids (SQLite only autoincrements INTEGER PRIMARY KEY).
+BigId = BigInteger().with_variant(Integer(), "sqlite")
+
+NAMING_CONVENTION = {
+    "ix": "ix_%(column_0_label)s",
+    "uq": "uq_%(table_name)s_%(column_0_N_name)s",
+    "ck": "ck_%(table_name)s_%(constraint_name)s",
+    "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
+    "pk": "pk_%(table_name)s",
+}
+
+
+def utcnow() -> datetime:
+    return datetime.now(UTC)
+
+
+class UTCDateTime(TypeDecorator[datetime]):
+    """Timezone-aware UTC timestamps on every backend (SQLite stores them naive)."""
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            raise ValueError("naive datetime given to a UTC column")
+        value = value.astimezone(UTC)
+        return value.replace(tzinfo=None) if dialect.name == "sqlite" else value
+
+    def process_result_value(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        if value is None:
+            return None
+        return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+
+
+class Base(DeclarativeBase):
+    metadata = MetaData(naming_convention=NAMING_CONVENTION)
+
+
+class Installation(Base):
+    """One row, created by the first migration: this database's own random salt."""
+
+    __tablename__ = "installation"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    secret: Mapped[str] = mapped_column(String(64))
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime())
+
+
+class Participant(Base):
+    __tablename__ = "participants"
+    __table_args__ = (
+        UniqueConstraint("platform", "worker_id", "assignment_id"),
+        Index("ix_participants_worker_id", "worker_id"),
+        Index("ix_participants_status_domain", "status", "domain"),
+    )
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    # SHA-256 of the participant's bearer token; the token itself is never stored.
+    token_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    platform: Mapped[str] = mapped_column(String(16))  # mturk, prolific or lab
+    worker_id: Mapped[str | None] = mapped_column(String(128))  # workerId or PROLIFIC_PID
+    assignment_id: Mapped[str | None] = mapped_column(String(128))  # assignmentId or SESSION_ID
+    hit_id: Mapped[str | None] = mapped_column(String(128))  # hitId or STUDY_ID
+    submit_to: Mapped[str | None] = mapped_column(String(512))  # turkSubmitTo
+    status: Mapped[str] = mapped_column(String(16))
+    domain: Mapped[str | None] = mapped_column(String(32))
+    next_seq: Mapped[int] = mapped_column(Integer, default=1)
+    completion_code: Mapped[str | None] = mapped_column(String(32))
+    # The tutorial's step reached (the page's steps, from 0), so that it continues anywhere.
+    tutorial_step: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    # Exclusion is the experimenter's judgement, beside the flow status, which it leaves as is.
+    excluded_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    exclusion_reason: Mapped[str | None] = mapped_column(Text)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    last_seen_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    # Prolific's status of the participant's submission (webhook or poll), e.g. RETURNED.
+    prolific_status: Mapped[str | None] = mapped_column(String(24))
+
+
+class ParticipantToken(Base):
+    """The token of each further browser of a participant (one that arrived again without the
+    first's cookie): every browser keeps its own. The first is ``participants.token_hash``."""
+
+    __tablename__ = "participant_tokens"
+
+    # SHA-256 of the token, as for the first.
+    token_hash: Mapped[str] = mapped_column(String(64), primary_key=True)
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), index=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class StatusChange(Base):
+    __tablename__ = "status_changes"
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), index=True)
+    status: Mapped[str] = mapped_column(String(16))
+    at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    note: Mapped[str | None] = mapped_column(Text)
+
+
+class LearningSession(Base):
+    """One agent taught by one participant in one environment (or the tutorial's agent)."""
+
+    __tablename__ = "learning_sessions"
+    __table_args__ = (UniqueConstraint("participant_id", "ordinal"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), index=True)
+    ordinal: Mapped[int] = mapped_column(Integer)  # order of the participant's sessions
+    kind: Mapped[str] = mapped_column(String(16))  # study or tutorial
+    position: Mapped[int | None] = mapped_column(Integer)  # 0.. among study sessions
+    domain: Mapped[str] = mapped_column(String(32))
+    environment: Mapped[str] = mapped_column(String(32))
+    learner: Mapped[str] = mapped_column(String(32))
+    colour_name: Mapped[str] = mapped_column(String(40))
+    colour_hex: Mapped[str] = mapped_column(String(7))
+    seed: Mapped[int] = mapped_column(BigInteger)
+    status: Mapped[str] = mapped_column(String(16), default="pending")  # pending/active/finished
+    started_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    # When the participant began teaching it, past its introduction page (None: not yet).
+    opened_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    completed: Mapped[bool] = mapped_column(Boolean, default=False)
+    # The live state of teaching.
+    task: Mapped[int] = mapped_column(Integer, default=0)
+    mode: Mapped[str] = mapped_column(String(16), default="idle")  # idle/demonstrate/agent
+    state: Mapped[int | None] = mapped_column(Integer)
+    open_episode: Mapped[int | None] = mapped_column(Integer)  # index of the open episode
+    episode_actions: Mapped[int] = mapped_column(Integer, default=0)
+    last_action: Mapped[str | None] = mapped_column(String(16))  # demonstration/agent/idle
+    demonstrated: Mapped[list[int]] = mapped_column(JSON, default=list)  # actions per task
+    episodes: Mapped[int] = mapped_column(Integer, default=0)  # episodes ended
+    actions: Mapped[int] = mapped_column(Integer, default=0)  # actions in episodes
+    idle_moves: Mapped[int] = mapped_column(Integer, default=0)
+    updates_requested: Mapped[int] = mapped_column(Integer, default=-1)  # latest index queued
+    updates_processed: Mapped[int] = mapped_column(Integer, default=-1)  # latest index finished
+    policy_update: Mapped[int | None] = mapped_column(
+        Integer
+    )  # latest index done: agent acts on it
+
+
+class Episode(Base):
+    __tablename__ = "episodes"
+    __table_args__ = (UniqueConstraint("session_id", "index"),)
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    session_id: Mapped[int] = mapped_column(ForeignKey("learning_sessions.id"))
+    index: Mapped[int] = mapped_column(Integer)
+    kind: Mapped[str] = mapped_column(String(16))  # demonstration or agent
+    task: Mapped[int] = mapped_column(Integer)
+    start_state: Mapped[int] = mapped_column(Integer)
+    end_state: Mapped[int | None] = mapped_column(Integer)
+    started_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    ended_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    end_reason: Mapped[str | None] = mapped_column(String(16))
+    actions: Mapped[int] = mapped_column(Integer, default=0)
+    update_index: Mapped[int | None] = mapped_column(Integer)
+
+
+class Event(Base):
+    """One acknowledged participant request, stored in the transaction that answered it.
+
+    ``record`` says what the learner observes from it (a demonstration step, an agent step,
+    a transition alone, or feedback on the latest agent step); ``stay_state`` is the outcome of
+    the synthetic STAY appended when the event ended a demonstration.
+    """
+
+    __tablename__ = "events"
+    __table_args__ = (
+        UniqueConstraint("participant_id", "seq"),
+        Index("ix_events_session_id_id", "session_id", "id"),
+    )
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"))
+    session_id: Mapped[int | None] = mapped_column(ForeignKey("learning_sessions.id"))
+    seq: Mapped[int] = mapped_column(Integer)
+    kind: Mapped[str] = mapped_column(String(24))
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    task: Mapped[int | None] = mapped_column(Integer)
+    mode: Mapped[str | None] = mapped_column(String(16))
+    state: Mapped[int | None] = mapped_column(Integer)
+    action: Mapped[int | None] = mapped_column(Integer)
+    next_state: Mapped[int | None] = mapped_column(Integer)
+    feedback: Mapped[int | None] = mapped_column(Integer)
+    episode_index: Mapped[int | None] = mapped_column(Integer)
+    record: Mapped[str | None] = mapped_column(String(16))
+    stay_state: Mapped[int | None] = mapped_column(Integer)
+    episode_end: Mapped[str | None] = mapped_column(String(16))  # why an episode ended here
+    request_hash: Mapped[str] = mapped_column(String(64))
+    response: Mapped[str] = mapped_column(Text)
+
+
+class LearnerUpdate(Base):
+    """A learner update and the evaluation of the policies it produced.
+
+    Index 0 is the untrained learner (no update); index k >= 1 is the update queued when the
+    k-th episode ended. ``through_event_id`` is the last event whose data it includes.
+    """
+
+    __tablename__ = "learner_updates"
+    __table_args__ = (
+        UniqueConstraint("session_id", "update_index"),
+        Index("ix_learner_updates_status", "status"),
+    )
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    session_id: Mapped[int] = mapped_column(ForeignKey("learning_sessions.id"))
+    update_index: Mapped[int] = mapped_column(Integer)
+    status: Mapped[str] = mapped_column(String(16), default="pending")  # pending/done/failed
+    through_event_id: Mapped[int] = mapped_column(BigInteger, default=0)
+    episodes: Mapped[int] = mapped_column(Integer)  # cumulative episodes
+    actions: Mapped[int] = mapped_column(Integer)  # cumulative actions
+    queued_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    seconds: Mapped[float | None] = mapped_column(Float)
+    objective: Mapped[float | None] = mapped_column(Float)
+    steps: Mapped[int | None] = mapped_column(Integer)
+    normalized_return: Mapped[float | None] = mapped_column(Float)
+    evaluation_seconds: Mapped[float | None] = mapped_column(Float)
+    learner_state: Mapped[bytes | None] = mapped_column(LargeBinary)
+    greedy_policy: Mapped[bytes | None] = mapped_column(LargeBinary)
+    error: Mapped[str | None] = mapped_column(Text)
+
+
+class QuestionnaireAnswer(Base):
+    """One answer to a question of the post-study questionnaire (the study file's
+    ``[questionnaire]``). A question left unanswered (an optional one) has no row. The
+    question's kind and text are kept with the answer, as they were asked."""
+
+    __tablename__ = "questionnaire_answers"
+    __table_args__ = (UniqueConstraint("participant_id", "question_id"),)
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"))
+    question_id: Mapped[str] = mapped_column(String(64))
+    kind: Mapped[str] = mapped_column(String(16))  # text, likert or choice
+    question: Mapped[str] = mapped_column(Text)
+    # The text typed, the choice picked, or the Likert point (1 to the scale's length).
+    answer: Mapped[str] = mapped_column(Text)
+    # Likert: the label of the point picked.
+    label: Mapped[str | None] = mapped_column(Text)
+    answered_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class AssignmentReview(Base):
+    """The experimenter's decision on a participant's submitted work (an MTurk assignment or a
+    Prolific submission): one per participant, final. The row is written as ``pending`` before
+    the platform is called and becomes ``done`` once the platform has taken the decision, so
+    that a decision the platform carried out is never missing here (``platforms/review.py``)."""
+
+    __tablename__ = "assignment_reviews"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), unique=True)
+    # The MTurk assignmentId or the Prolific submission id (SESSION_ID).
+    assignment_id: Mapped[str] = mapped_column(String(128), unique=True)
+    worker_id: Mapped[str] = mapped_column(String(128))  # workerId or PROLIFIC_PID
+    decision: Mapped[str] = mapped_column(String(16))  # approved or rejected
+    feedback: Mapped[str | None] = mapped_column(Text)  # shown to the participant
+    rejection_category: Mapped[str | None] = mapped_column(String(32))  # Prolific's category
+    backend: Mapped[str] = mapped_column(String(24))  # mturk, mturk-replica, prolific, ...
+    state: Mapped[str] = mapped_column(String(16), default="done")  # pending or done
+    requested_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    decided_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+
+
+class Bonus(Base):
+    """A bonus for a participant's submitted work. The row is written before the platform is
+    called (``pending``, with ``unique_token``, sent as MTurk's UniqueRequestToken); on Prolific
+    the bonus's set-up id is stored (``set_up``) before the one ``pay`` call (``paying``), so
+    that neither a retry nor a crash pays twice; ``paid`` once the platform took it."""
+
+    __tablename__ = "bonuses"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), index=True)
+    assignment_id: Mapped[str] = mapped_column(String(128))
+    worker_id: Mapped[str] = mapped_column(String(128))
+    amount_cents: Mapped[int] = mapped_column(Integer)  # cents of ``currency``
+    currency: Mapped[str] = mapped_column(String(3), default="USD")
+    reason: Mapped[str] = mapped_column(Text)  # shown to the participant
+    unique_token: Mapped[str] = mapped_column(String(64), unique=True)
+    backend: Mapped[str] = mapped_column(String(24))
+    state: Mapped[str] = mapped_column(String(16), default="paid")
+    setup_id: Mapped[str | None] = mapped_column(String(64))  # Prolific's bulk bonus payment id
+    requested_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    paid_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+
+
+class ProlificEvent(Base):
+    """A Prolific webhook event applied (``X-Event-ID``): delivery is at-least-once, so each
+    event is applied once."""
+
+    __tablename__ = "prolific_events"
+
+    event_id: Mapped[str] = mapped_column(String(128), primary_key=True)
+    event_type: Mapped[str] = mapped_column(String(64))
+    received_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)

@@ -1,5 +1,6 @@
 """Shared core of the grid-world domains: actions, tasks, sparse transition tables and the
-learner's parametric transition model T_theta.
+learner's parametric transition model T_theta (over 500 lines: the sparse tables, the
+environment and the model are read together, the model's layout being the tables').
 
 Every environment of the paper has at most a handful of possible successors for each
 (state, action) pair, so transitions are stored sparsely: ``next_states[s, a, m]`` with
@@ -118,7 +119,8 @@ class SparseTransitions:
 class TransitionModel:
     """The learner's parametric dynamics model T_theta (see the module docstring).
 
-    Subclasses define the primitive probabilities p(theta) and their vector-Jacobian product.
+    Over 250 lines because the model's transitions and the exact pull-back of a gradient to
+    theta must agree term by term, and are kept side by side. Subclasses define the primitive probabilities p(theta) and their vector-Jacobian product.
     """
 
     def __init__(

@@ -1,5 +1,10 @@
 """Compiled inner loops of soft value iteration (forward and reverse pass).
 
+One module, over 500 lines, on purpose: the passes inline the exp and Boltzmann helpers
+(``inline="always"``), and numba's on-disk cache (``cache=True``) checks only the source file
+of the function it compiled, so a helper edited in another module would leave stale compiled
+passes in the cache.
+
 The transitions are the padded sparse layout of ``SparseTransitions`` flattened to rows
 ``s * A + a`` with ``width`` entries each. Written as plain loops for numba: the NumPy version
 spent most of its time in call overhead on small arrays (about 100 us per backup on flip); these

@@ -46,7 +46,11 @@ def check_count(name: str, value: Any, minimum: int) -> None:
 
 class PlannerLearner(Learner):
     """Learned dynamics parameters theta (the environment's model space) and per-cell reward
-    parameters per task (the paper's cost C = -reward), acting greedily on soft Q."""
+    parameters per task (the paper's cost C = -reward), acting greedily on soft Q.
+
+    Over 250 lines: the core that BAM and both IRL baselines share (parameters, the fit's
+    schedule and optimiser state, saving and restoring them), kept in one class so that a
+    learner's state round-trips through one ``state_dict``."""
 
     default_settings = {**COMMON_SETTINGS, **COST_SETTINGS}
 

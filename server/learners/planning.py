@@ -1,6 +1,10 @@
 """Finite-horizon planning: soft value iteration (the paper's equations (1)-(2)) with an exact
 reverse-mode gradient, hard-max value iteration for the teacher, and exact expected returns.
 
+Over 500 lines because the passes, the transition operator's layouts and the thread pool share
+this module's per-process state (the pool and its owner after a fork, the scratch buffers,
+``run_pass``, which the benchmark's pass counter wraps), kept in one place.
+
 Conventions. Rewards are per state, ``reward[k, s]`` for task k (the paper's cost is
 C = -reward). Q after ``horizon`` backups is the expected sum of ``horizon`` rewards:
 

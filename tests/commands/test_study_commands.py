@@ -12,7 +12,7 @@ import gymnasium as gym
 import matplotlib.image
 import numpy as np
 import pytest
-from server.cli import main
+from server.commands.main import main
 
 from server import domains
 from server.commands import check
@@ -125,7 +125,7 @@ def test_a_study_s_environment_is_a_gymnasium_id(forget: None) -> None:
 def test_demo_runs_the_office_study_end_to_end(tmp_path: Path, forget: None) -> None:
     """``bam-study demo --study``: a server on SQLite, a simulated participant teaching the
     office floor, the export and the analysis, with small learner settings."""
-    from server.app.demo import DemoOptions, check, run_demo
+    from server.commands.demo import DemoOptions, check, run_demo
 
     options = DemoOptions(
         out=tmp_path / "demo",

@@ -18,6 +18,7 @@ from fastapi.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from server.app import flow
+from server.app.capacity import reference_jobs
 from server.app.config import StudyConfig, load_study_config
 from server.app.db import Database, SchemaError, current_revision, head_revision
 from server.app.errors import ApiError, InvalidInput, TurnedAway
@@ -102,11 +103,14 @@ def create_app(
     db: Database | None = None,
     executor: Executor | None = None,
     cluster: UpdateCluster | None = None,
+    measure_capacity: bool = False,
 ) -> FastAPI:
     """The app for one study database. ``executor`` runs learner updates (a process pool of
     ``BAM_UPDATE_WORKERS`` is made when None), or ``cluster``, a Dask cluster's client (one is
     connected to ``BAM_UPDATE_SCHEDULER`` when that is set and ``cluster`` is None); the schema must be up to date (``bam-study db
-    upgrade``, which ``bam-study serve`` runs itself on SQLite)."""
+    upgrade``, which ``bam-study serve`` runs itself on SQLite). ``measure_capacity``: time
+    the study's reference updates once the update processes are warm (``server.app.capacity``;
+    ``serve`` does)."""
     settings = settings or get_settings()
     study_config = study_config or load_study_config(settings.study_config)
     own_db = db is None
@@ -143,6 +147,12 @@ def create_app(
             threads=settings.update_threads,
             executor=executor,
             cluster=updates_cluster,
+            update_interval_seconds=settings.update_interval_seconds,
+            reference_jobs=(
+                reference_jobs(study_config.pairs(), study_config.settings_of)
+                if measure_capacity
+                else None
+            ),
         )
         state.updates = manager
         await manager.start()

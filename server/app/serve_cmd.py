@@ -131,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
     for line in startup_notes(settings.admin_token is not None, study):
         print(line, file=sys.stderr)
     logging.basicConfig(level=args.log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
-    app = create_app(settings, study, db=db, cluster=cluster)
+    app = create_app(settings, study, db=db, cluster=cluster, measure_capacity=True)
     server = uvicorn.Server(
         uvicorn.Config(
             app,

@@ -65,7 +65,8 @@ FLOW_STATUSES = (
     "submitted",
 )
 IN_PROGRESS = ("arrived", "consented", "tutorial", "teaching", "questionnaire")
-STATUSES = (*FLOW_STATUSES, "declined", "returned", "abandoned")
+# "waiting": arrived while the study was full, for a place (``places``); not yet in the flow.
+STATUSES = ("waiting", *FLOW_STATUSES, "declined", "returned", "abandoned")
 CODE_ALPHABET = "ABCDEFGHJKLMNPQRSTUVWXYZ23456789"
 TOKEN_HEADER = "X-Participant-Token"
 
@@ -272,21 +273,33 @@ class Arrival:
     resumed: bool
 
 
+Room = Callable[[Connection, datetime], bool]  # may a new participant go in now?
+
+
 def arrive(
-    db: Database, platform: Platform, cookie_token: str | None, study: StudyConfig
+    db: Database,
+    platform: Platform,
+    cookie_token: str | None,
+    study: StudyConfig,
+    room: Room | None = None,
 ) -> Arrival:
     """Create the participant, or find the one this arrival resumes: MTurk and Prolific
-    participants by their (worker, assignment) ids, lab participants by their cookie."""
+    participants by their (worker, assignment) ids, lab participants by their cookie. A new
+    participant for whom ``room`` finds no place waits for one (``places``)."""
     try:
-        return _arrive(db, platform, cookie_token, study)
+        return _arrive(db, platform, cookie_token, study, room)
     except IntegrityError:
         # The same worker and assignment arrived twice at once (PostgreSQL): the other
         # arrival created the participant, this one resumes it.
-        return _arrive(db, platform, cookie_token, study)
+        return _arrive(db, platform, cookie_token, study, room)
 
 
 def _arrive(
-    db: Database, platform: Platform, cookie_token: str | None, study: StudyConfig
+    db: Database,
+    platform: Platform,
+    cookie_token: str | None,
+    study: StudyConfig,
+    room: Room | None,
 ) -> Arrival:
     now = utcnow()
     with db.transaction() as c:
@@ -298,7 +311,7 @@ def _arrive(
                 reactivate(c, current, now)
                 current.save(c)
                 return Arrival(current, None, True)
-            return Arrival(*_create(c, platform, now), False)
+            return Arrival(*_create(c, platform, now, room), False)
         if c.dialect.name == "postgresql" and not study.allow_repeat_workers:
             # One worker's arrivals one at a time, until this one commits (SQLite's writes are
             # one at a time already: BEGIN IMMEDIATE).
@@ -335,7 +348,7 @@ def _arrive(
                 set_status(c, previous, "returned", now, note="assignment taken by another worker")
                 previous.save(c)
         if existing is None:
-            return Arrival(*_create(c, platform, now), False)
+            return Arrival(*_create(c, platform, now, room), False)
         if existing.status in ("abandoned", "returned"):
             restore_status(c, existing, now)
         token = None
@@ -371,7 +384,10 @@ def _took_part(c: Connection, platform: Platform, other_than: int | None) -> boo
     return bool(c.scalar(query))
 
 
-def _create(c: Connection, platform: Platform, now: datetime) -> tuple[Record, str]:
+def _create(
+    c: Connection, platform: Platform, now: datetime, room: Room | None
+) -> tuple[Record, str]:
+    status = "arrived" if room is None or room(c, now) else "waiting"
     token, token_hash = new_token()
     participant_id = add(
         c,
@@ -382,14 +398,14 @@ def _create(c: Connection, platform: Platform, now: datetime) -> tuple[Record, s
         assignment_id=platform.assignment_id,
         hit_id=platform.hit_id,
         submit_to=platform.submit_to,
-        status="arrived",
+        status=status,
         next_seq=1,
         created_at=now,
         last_seen_at=now,
     )
     participant = load(c, PARTICIPANTS, PARTICIPANTS.c.id == participant_id)
     assert participant is not None
-    set_status(c, participant, "arrived", now)
+    set_status(c, participant, status, now)
     participant.save(c)
     return participant, token
 
@@ -553,6 +569,8 @@ def perform(
 # -- consent, sessions and completion ---------------------------------------------------------
 def consent(action: Action, agree: bool) -> None:
     participant = action.participant
+    if participant.status == "waiting":
+        raise ApiError(409, "the study is full at the moment: wait for a place first")
     if participant.status != "arrived":
         raise ApiError(409, f"consent was already answered (status {participant.status})")
     if not agree:

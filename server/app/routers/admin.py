@@ -8,7 +8,7 @@ from fastapi import APIRouter, Query, Response
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from server.app import export, flow, review, teaching
+from server.app import export, flow, places, review, teaching
 from server.app.deps import AdminDep, RowId, StateDep
 from server.app.errors import ApiError
 from server.app.models import (
@@ -30,6 +30,7 @@ from server.app.schemas import (
     BonusRequest,
     BonusView,
     ExclusionRequest,
+    QueueView,
     ReviewRequest,
     ReviewView,
     StatusChangeView,
@@ -276,6 +277,14 @@ def send_bonus(
     )
     with state.db.read() as s:
         return _participant_detail(s, participant_id)
+
+
+@router.get("/queue", response_model=QueueView)
+async def read_queue(state: StateDep) -> QueueView:
+    """The learner updates' live queue (updates pending, the oldest wait, participants in the
+    study and waiting) beside the capacity and the limit of participants at once."""
+    queue = state.updates.queue() if state.updates is not None else None  # on its own loop
+    return await state.run_db(lambda: places.queue_view(state, queue))
 
 
 @router.get("/sessions", response_model=list[AdminSession])

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Request, Response, status
 
-from server.app import flow
+from server.app import flow, places
 from server.app.deps import StateDep
 from server.app.schemas import ArrivalRequest, ArrivalResponse
 from server.app.state import ServerState
@@ -45,7 +45,7 @@ def arrive(
     if platform is None:
         return ArrivalResponse(preview=True)
     cookie = request.cookies.get(state.settings.cookie_name)
-    arrival = flow.arrive(state.db, platform, cookie, state.study)
+    arrival = flow.arrive(state.db, platform, cookie, state.study, places.room_for(state))
     if arrival.token is not None:
         set_participant_cookie(response, state, arrival.token)
     with state.db.connect() as c:

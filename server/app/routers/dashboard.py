@@ -29,6 +29,7 @@ from server.app.schemas import (
     AdminParticipantDetail,
     BonusRequest,
     ExclusionRequest,
+    QueueView,
     ReviewRequest,
 )
 from server.app.state import ServerState
@@ -159,6 +160,11 @@ def dashboard_logout(request: Request, state: StateDep) -> Response:
 def dashboard_export(state: StateDep, pseudonymize: Annotated[bool, Query()] = True) -> Response:
     """The export (CSV files and their data dictionary) as a zip, as ``/api/admin/export.zip``."""
     return admin.download_export(state, pseudonymize)
+
+
+@api.get("/queue", response_model=QueueView)
+async def queue(state: StateDep) -> QueueView:
+    return await admin.read_queue(state)
 
 
 @api.get("/participants", response_model=list[AdminParticipant])

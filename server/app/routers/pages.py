@@ -15,10 +15,12 @@ from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
 from pydantic import ValidationError
 
+from server.app import places
 from server.app.deps import StateDep
 from server.app.errors import ApiError, TurnedAway
 from server.app.routers.arrivals import arrive
-from server.app.schemas import ArrivalRequest
+from server.app.schemas import ArrivalRequest, ArrivalResponse
+from server.app.state import ServerState
 
 TEMPLATES_DIR = Path(__file__).resolve().parents[2] / "templates"
 templates = Jinja2Templates(directory=str(TEMPLATES_DIR))
@@ -30,6 +32,26 @@ ARRIVAL_PARAMETERS = {field.alias or name for name, field in ArrivalRequest.mode
 def notice(request: Request, title: str, message: str, status_code: int) -> Response:
     return templates.TemplateResponse(
         request, "notice.html", {"title": title, "message": message}, status_code=status_code
+    )
+
+
+def waiting_page(
+    request: Request, state: ServerState, participant_id: int, token: str | None
+) -> Response:
+    """The study is full: the page that waits for a place (``places``), for this participant
+    alone (with their new token, as the study page)."""
+    place = places.admit(
+        state.db, participant_id, places.study_limit(state), state.settings.active_minutes
+    )
+    return templates.TemplateResponse(
+        request,
+        "waiting.html",
+        {
+            "study": state.study.public(),
+            "place": {"ahead": place.ahead, "ask_seconds": places.ASK_SECONDS},
+            "token": token,
+        },
+        headers={"Cache-Control": "no-store"},
     )
 
 
@@ -53,16 +75,24 @@ def study_page(request: Request, state: StateDep) -> Response:
         return notice(request, "This study link is not valid", error.message, error.status)
     if arrival.preview:
         return templates.TemplateResponse(request, "preview.html", {"study": state.study.public()})
+    assert arrival.participant is not None
+    if arrival.participant.status == places.WAITING:
+        page = waiting_page(request, state, arrival.participant.participant_id, arrival.token)
+    else:
+        page = study_page_of(request, state, arrival)
+    for key, value in response.headers.items():
+        if key == "set-cookie":
+            page.headers.append(key, value)
+    return page
+
+
+def study_page_of(request: Request, state: ServerState, arrival: ArrivalResponse) -> Response:
     # A new token is also given to the page itself, which sends it in the X-Participant-Token
     # header: in the platform's cross-site iframe the browser may keep no cookie. The page is
     # this participant's alone, so no cache may keep it.
-    page = templates.TemplateResponse(
+    return templates.TemplateResponse(
         request,
         "study.html",
         {"study": state.study.public(), "participant": arrival.participant, "token": arrival.token},
         headers={"Cache-Control": "no-store"},
     )
-    for key, value in response.headers.items():
-        if key == "set-cookie":
-            page.headers.append(key, value)
-    return page

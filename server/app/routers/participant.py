@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import asdict
 
 from fastapi import APIRouter, Response
 
-from server.app import flow
+from server.app import flow, places
 from server.app.deps import StateDep, TokenDep
 from server.app.errors import ApiError
 from server.app.flow import Action
@@ -16,6 +17,7 @@ from server.app.schemas import (
     ConsentRequest,
     Outcome,
     ParticipantState,
+    PlaceView,
     QuestionnaireRequest,
     SeqRequest,
     TutorialStepRequest,
@@ -66,6 +68,22 @@ async def read_participant(state: StateDep, token: TokenDep) -> ParticipantState
             return flow.participant_state(c, participant, state.study)
 
     return await state.run_db(read)
+
+
+@router.post("/place", response_model=PlaceView)
+async def ask_for_place(state: StateDep, token: TokenDep) -> PlaceView:
+    """A participant who arrived while the study was full asks for a place: in as soon as one
+    is free for them (the first in line first); anyone else is in already."""
+
+    def ask() -> PlaceView:
+        with state.db.connect() as c:
+            participant = flow.participant_for(c, token)
+        place = places.admit(
+            state.db, participant.id, places.study_limit(state), state.settings.active_minutes
+        )
+        return PlaceView(**asdict(place), ask_seconds=places.ASK_SECONDS)
+
+    return await state.run_db(ask)
 
 
 @router.post("/consent", response_model=ActionResponse)

@@ -6,6 +6,11 @@ and typing on tables given as data frames, so that another reader (a database, f
 can feed the same analysis. Every problem is an ``InputError`` whose message names the file,
 the row and the column.
 
+Table 1 counts the learning sessions of the participants who completed the study (as the
+paper's section 5 did: 58 of the 129 who began); ``include_unfinished`` adds the taught
+sessions (those with at least one evaluation) of the participants who did not. A note says how
+many sessions were left out and why (``UNFINISHED_REASONS``).
+
 Empty episodes are not counted. Before the study server refused to start an episode on its
 task's goal, letting the agent try while it stood on the goal recorded an agent episode of one
 action that ended at once, on the goal where it began (``end_reason`` goal, ``start_state`` =
@@ -68,6 +73,23 @@ SHARED_COLUMNS = ("participant_id", "domain", "environment", "learner", "positio
 # A policy can be exactly optimal; exact scoring can overshoot 1.0 by rounding only.
 RETURN_TOLERANCE = 1e-6
 
+# Participant statuses of those who completed the study (the server's flow statuses).
+COMPLETED_STATUSES = ("completed", "submitted")
+# Every other status the server gives a participant, as the notes name it: why the participant
+# did not finish. A status missing here is named as it is ("status 'x'"); a new status of the
+# server gets its entry here (tests/analysis/test_sessions.py checks that each has one).
+UNFINISHED_REASONS = {
+    "returned": "returned the task",
+    "abandoned": "timed out",
+    "declined": "declined consent",
+    "arrived": "still in the study",
+    "consented": "still in the study",
+    "tutorial": "still in the study",
+    "teaching": "still in the study",
+    "questionnaire": "still in the study",
+}
+NOT_LISTED = "not in {source}"
+
 _TRUE = {"true", "t", "yes", "y", "1"}
 _FALSE = {"false", "f", "no", "n", "0"}
 
@@ -76,13 +98,16 @@ def load_tables(
     data_dir: Path | str,
     *,
     exclude_excluded: bool = False,
+    include_unfinished: bool = False,
     notes: list[str] | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Read and validate an export folder: ``(sessions, evaluations)``.
 
-    With ``exclude_excluded``, the learning sessions of participants whose ``status`` in
-    ``participants.csv`` is ``excluded`` are dropped. Remarks for the reader of the results
-    (how many sessions were excluded, for example) are appended to ``notes``.
+    Only the learning sessions of participants who completed the study are kept (their
+    ``status`` in ``participants.csv``); with ``include_unfinished``, also the taught sessions
+    of those who did not. With ``exclude_excluded``, the learning sessions of participants the
+    experimenter excluded are dropped. Remarks for the reader of the results (how many
+    sessions were left out and why, for example) are appended to ``notes``.
     """
     folder = Path(data_dir)
     if not folder.exists():
@@ -93,15 +118,14 @@ def load_tables(
     evaluations = read_csv(folder / EVALUATIONS_FILE)
     participants_path = folder / PARTICIPANTS_FILE
     participants = None
+    unreadable = None
     if participants_path.exists():
         try:
             participants = read_csv(participants_path)
         except InputError as error:
             if exclude_excluded:
                 raise
-            # Only --exclude-excluded needs it; otherwise it is looked at for a remark only.
-            if notes is not None:
-                notes.append(f"participant statuses not checked: {error}")
+            unreadable = str(error)  # then every session is counted, and a note says why
     elif exclude_excluded:
         raise InputError(f"--exclude-excluded needs {PARTICIPANTS_FILE}, which is not in {folder}")
     episodes_path = folder / EPISODES_FILE
@@ -112,7 +136,9 @@ def load_tables(
         participants=participants,
         episodes=episodes,
         exclude_excluded=exclude_excluded,
+        include_unfinished=include_unfinished,
         notes=notes,
+        participants_unreadable=unreadable,
     )
 
 
@@ -120,6 +146,7 @@ def load_database(
     url: str,
     *,
     exclude_excluded: bool = False,
+    include_unfinished: bool = False,
     notes: list[str] | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Read and validate a study database directly: the tables ``bam-study export`` would
@@ -127,9 +154,9 @@ def load_database(
     from sqlalchemy.engine import make_url
     from sqlalchemy.exc import ArgumentError, SQLAlchemyError
 
-    from server.app.db import current_revision, head_revision
-    from server.app.export import load_tables as read_database
-    from server.app.export import open_study_database
+    from server.app.export.tables import export_tables as read_database
+    from server.app.export.tables import open_study_database
+    from server.app.storage.db import current_revision, head_revision
 
     try:
         shown = make_url(url).render_as_string(hide_password=True)
@@ -160,6 +187,7 @@ def load_database(
         participants=tables["participants"],
         episodes=tables["episodes"],
         exclude_excluded=exclude_excluded,
+        include_unfinished=include_unfinished,
         notes=notes,
         sources=(
             "the sessions table",
@@ -195,7 +223,9 @@ def validate_tables(
     participants: pd.DataFrame | None = None,
     episodes: pd.DataFrame | None = None,
     exclude_excluded: bool = False,
+    include_unfinished: bool = False,
     notes: list[str] | None = None,
+    participants_unreadable: str | None = None,
     sources: tuple[str, str, str, str] = (
         SESSIONS_FILE,
         EVALUATIONS_FILE,
@@ -205,7 +235,9 @@ def validate_tables(
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Check and type the learning sessions and evaluations; see ``load_tables``. With
     ``episodes``, empty episodes are taken out of the evaluations' counts (module docstring);
-    without, the counts are taken as they are, and a note says so.
+    without, the counts are taken as they are, and a note says so. Without ``participants``
+    (or without its ``status`` column), every learning session is counted, and a note says
+    why (``participants_unreadable``: the error that kept the caller from reading it).
 
     ``sources`` name the four tables in messages (file names, or table names for a
     database). Rows are counted from 1 in the order given.
@@ -240,6 +272,21 @@ def validate_tables(
                 f"{_count(int(dropped.sum()), 'learning session')} of participants marked "
                 f"excluded in {participants_source} are included (--exclude-excluded drops them)"
             )
+    sessions, evaluations = keep_finished(
+        sessions,
+        evaluations,
+        participants,
+        participants_source,
+        include_unfinished=include_unfinished,
+        notes=notes,
+        unreadable=participants_unreadable,
+    )
+    if sessions.empty:
+        raise InputError(
+            f"{sessions_source}: no learning sessions of participants who completed the study "
+            f"(status {' or '.join(COMPLETED_STATUSES)} in {participants_source}); "
+            "--include-unfinished adds the taught sessions of those who did not"
+        )
     if episodes is None:
         notes.append(
             f"no {episodes_source} given: episodes and actions are counted as the evaluations "
@@ -250,6 +297,98 @@ def validate_tables(
             evaluations, episodes.reset_index(drop=True), episodes_source, notes
         )
     return sessions, evaluations
+
+
+def keep_finished(
+    sessions: pd.DataFrame,
+    evaluations: pd.DataFrame,
+    participants: pd.DataFrame | None,
+    source: str,
+    *,
+    include_unfinished: bool,
+    notes: list[str],
+    unreadable: str | None = None,
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The learning sessions Table 1 counts, and their evaluations: those of the participants
+    who completed the study (``COMPLETED_STATUSES``) and, with ``include_unfinished``, the
+    taught ones (at least one evaluation) of the others. A note says how many were left out
+    (or added), by why their participants did not finish (``UNFINISHED_REASONS``)."""
+    if participants is None or not {"participant_id", "status"} <= set(participants.columns):
+        if unreadable is not None:
+            why = unreadable
+        elif participants is None:
+            why = f"no {source} given"
+        else:
+            why = f"{source} has no columns 'participant_id' and 'status'"
+        notes.append(
+            f"participant statuses not checked ({why}): every learning session is counted, "
+            "whether or not its participant completed the study"
+        )
+        return sessions, evaluations
+    statuses = dict(
+        zip(
+            participants["participant_id"].astype(str).str.strip(),
+            participants["status"].astype(str).str.strip().str.lower(),
+            strict=True,
+        )
+    )
+    status = sessions["participant_id"].map(statuses)
+    unfinished = ~status.isin(COMPLETED_STATUSES)
+    if not unfinished.any():
+        return sessions, evaluations
+    reason = status.map(lambda s: _unfinished_reason(s, source))
+    taught = sessions["session_id"].isin(set(evaluations["session_id"]))
+    left_out = unfinished & ~taught if include_unfinished else unfinished
+    people = int(sessions.loc[unfinished, "participant_id"].nunique())
+    if include_unfinished:
+        added = unfinished & taught
+        if added.any():
+            notes.append(
+                f"--include-unfinished: counted {_count(int(added.sum()), 'taught learning session')}"
+                f" of {_count(int(sessions.loc[added, 'participant_id'].nunique()), 'participant')}"
+                f" who did not complete the study ({_by_reason(reason[added])})"
+            )
+        if left_out.any():
+            notes.append(
+                f"left out {_count(int(left_out.sum()), 'learning session')} never taught (no "
+                "evaluations) of participants who did not complete the study "
+                f"({_by_reason(reason[left_out])})"
+            )
+    else:
+        untaught = int((unfinished & ~taught).sum())
+        never = (
+            "none was taught"
+            if untaught == int(unfinished.sum())
+            else f"{untaught} never taught (no evaluations)"
+            if untaught
+            else "all were taught"
+        )
+        addable = int((unfinished & taught).sum())
+        notes.append(
+            f"left out {_count(int(unfinished.sum()), 'learning session')} of "
+            f"{_count(people, 'participant')} who did not complete the study "
+            f"({_by_reason(reason[unfinished])}); {never}"
+            + (f"; --include-unfinished adds the {addable} taught" if addable else "")
+        )
+    keep = ~left_out
+    sessions = sessions.loc[keep].reset_index(drop=True)
+    evaluations = evaluations.loc[
+        evaluations["session_id"].isin(set(sessions["session_id"]))
+    ].reset_index(drop=True)
+    return sessions, evaluations
+
+
+def _unfinished_reason(status: object, source: str) -> str:
+    if not isinstance(status, str):  # the participant is not in the participants table
+        return NOT_LISTED.format(source=source)
+    return UNFINISHED_REASONS.get(status, f"status {status!r}")
+
+
+def _by_reason(reasons: pd.Series) -> str:
+    """``"returned the task: 6, timed out: 2"``: sessions per reason, most first."""
+    counts = reasons.value_counts(sort=False)
+    ordered = sorted(counts.items(), key=lambda item: (-item[1], item[0]))
+    return ", ".join(f"{reason}: {count}" for reason, count in ordered)
 
 
 def _count(number: int, noun: str) -> str:

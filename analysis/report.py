@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 
 from analysis.names import threshold_label
@@ -23,12 +24,36 @@ from analysis.tables import (
 
 
 def describe_outputs(analysis: Analysis) -> str:
-    """The README written beside the outputs: what each file holds."""
-    labels = ", ".join(threshold_label(t) for t in analysis.thresholds)
+    """The README written beside the outputs: the options, which sessions are counted, what
+    each file holds, and the notes on this study's data (the same as under Table 1)."""
+    if analysis.notes:
+        notes = "The same notes as under Table 1:\n\n" + "".join(
+            f"- {note}\n" for note in analysis.notes
+        )
+    else:
+        notes = (
+            "None: every learning session counted is of a participant who completed the study "
+            "and has evaluations, and `episodes.csv` holds no empty episode.\n"
+        )
     return f"""# Results of `bam-study analyze`
 
-Baseline learner: `{analysis.baseline}`. Thresholds (percent of the optimal total return):
-{labels}. False discovery rate of the Benjamini-Yekutieli correction: {analysis.fdr:g}.
+{describe_files(analysis.baseline, analysis.thresholds, analysis.fdr)}
+## Notes on this study's data
+
+{notes}"""
+
+
+def describe_files(baseline: str, thresholds: Sequence[float], fdr: float) -> str:
+    """What the analysis counts and what each output file holds, for these options."""
+    labels = ", ".join(threshold_label(t) for t in thresholds)
+    return f"""Baseline learner: `{baseline}`. Thresholds (percent of the optimal total return):
+{labels}. False discovery rate of the Benjamini-Yekutieli correction: {fdr:g}.
+
+Learning sessions counted: those of the participants who completed the study (`status`
+completed or submitted in `participants.csv`), as in the paper. `--include-unfinished` adds
+the taught sessions (at least one evaluation) of the participants who did not finish;
+`--exclude-excluded` drops those of the participants the experimenter excluded. A note says
+how many sessions were left out and why (returned the task, timed out, still in the study).
 
 - `table1.md`, `table1.tex`: the paper's Table 1. Per environment and learner, the total
   learning sessions, the sessions whose normalised return reached each threshold, and the mean
@@ -37,8 +62,8 @@ Baseline learner: `{analysis.baseline}`. Thresholds (percent of the optimal tota
   episodes, actions the demonstrated plus the agent's; empty episodes are not counted: an
   agent's try from the goal that ended there at once (one action, `start_state` =
   `end_state`, `end_reason` goal in `episodes.csv`), which older versions of the study server
-  recorded when the agent was let try on the goal (the notes under the table say how many were
-  found, or that no `episodes.csv` was given). `*`: significantly worse than the baseline
+  recorded when the agent was let try on the goal. A note says how many were found, if any,
+  or that no `episodes.csv` was given. `*`: significantly worse than the baseline
   (p <= 0.05); `†`: still significant after the correction. The `.tex` file needs booktabs.
 - `appendix_all.md`, `appendix_all.tex`: p-values of the comparisons across all environments
   (Fisher's exact test on pooled success counts; type II ANOVA of the OLS model
@@ -55,9 +80,9 @@ Baseline learner: `{analysis.baseline}`. Thresholds (percent of the optimal tota
   direction, `significant_adjusted` is p_adjusted <= the false discovery rate. `test` is
   `N/A` where a test could not be done, and `note` says why; otherwise `note` gives the
   counts and the direction of the difference.
-- `sessions_summary.csv`: one row per learning session: its number of evaluations, best and
-  final normalised return, and per threshold `reached_T`, `episodes_T` and `actions_T`
-  (empty where not reached).
+- `sessions_summary.csv`: one row per learning session counted: its number of evaluations,
+  best and final normalised return, and per threshold `reached_T`, `episodes_T` and
+  `actions_T` (empty where not reached).
 - `return_vs_episodes.png|svg`, `return_vs_actions.png|svg`: normalised return against the
   cumulative counts, mean and standard error per learner, one panel per environment; each
   session's latest evaluation is carried forward.

@@ -10,9 +10,9 @@ table in its place. NAME is one of ``GENERATORS``:
   ``default_settings``;
 - ``deployment-settings``: every ``BAM_*`` variable, from ``server/app/settings.py``;
 - ``export-tables``: every exported file and column, from ``DICTIONARY`` and ``DESCRIPTIONS``
-  in ``server/app/export.py`` (the definitions the export writes ``data_dictionary.csv`` from);
+  in ``server/app/export/tables.py`` (the definitions the export writes ``data_dictionary.csv`` from);
 - ``minari-infos``: the per-step ``infos`` of the Minari export, from ``INFOS`` in
-  ``server/app/minari_export.py``;
+  ``server/app/export/minari.py``;
 - ``analysis-outputs``: the files ``bam-study analyze`` writes, from the README it writes
   beside them (``analysis/report.py``).
 
@@ -58,14 +58,35 @@ TYPE_WORDS = {
 }
 
 
+def unwrapped(annotation: Any) -> Any:
+    """The type inside ``Annotated[...]`` (a field's constraints or a union's discriminator)."""
+    while typing.get_origin(annotation) is typing.Annotated:
+        annotation = typing.get_args(annotation)[0]
+    return annotation
+
+
+def table_models(annotation: Any) -> tuple[type[BaseModel], ...]:
+    """The models a value of this type is a table of: one model, or each model of a union of
+    models (tables told apart by a key, such as a question's ``kind``); empty for other types."""
+    annotation = unwrapped(annotation)
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return (annotation,)
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        members = typing.get_args(annotation)
+        if all(isinstance(m, type) and issubclass(m, BaseModel) for m in members):
+            return tuple(members)
+    return ()
+
+
 def type_name(annotation: Any) -> str:
     """A field's type in the words of TOML and environment variables."""
+    annotation = unwrapped(annotation)
     if annotation is type(None):
         return "unset"
+    if table_models(annotation):
+        return "table"
     origin = typing.get_origin(annotation)
     if origin is None:
-        if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-            return "table"
         name = getattr(annotation, "__name__", str(annotation))
         return TYPE_WORDS.get(name, name)
     arguments = typing.get_args(annotation)
@@ -75,7 +96,7 @@ def type_name(annotation: Any) -> str:
         return "one of " + ", ".join(f'"{a}"' if isinstance(a, str) else str(a) for a in arguments)
     if origin in (tuple, list):
         item = arguments[0]
-        if isinstance(item, type) and issubclass(item, BaseModel):
+        if table_models(item):
             return "list of tables"
         return f"list of {type_name(item)}s"
     if origin is dict:
@@ -109,6 +130,8 @@ def default_text(field: FieldInfo) -> str:
         return "unset"
     if isinstance(field.default, BaseModel):
         return code(toml_value(field.default.model_dump()))
+    if isinstance(field.default, tuple | list | dict) and not field.default:
+        return "empty"
     return code(toml_value(field.default))
 
 
@@ -152,17 +175,71 @@ def model_table(
     return rows
 
 
-def nested_models(model: type[BaseModel]) -> list[tuple[str, type[BaseModel], bool]]:
-    """The (key, model, is_array) of the model's fields that are tables of their own."""
+def nested_models(model: type[BaseModel]) -> list[tuple[str, tuple[type[BaseModel], ...], bool]]:
+    """The (key, models, is_array) of the model's fields that are tables of their own: a table
+    of one model, or of one of a union of models."""
     found = []
     for name, field in model.model_fields.items():
-        annotation = field.annotation
+        annotation = unwrapped(field.annotation)
         arguments = typing.get_args(annotation)
-        if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-            found.append((name, annotation, False))
-        elif arguments and isinstance(arguments[0], type) and issubclass(arguments[0], BaseModel):
-            found.append((name, arguments[0], True))
+        if table_models(annotation):
+            found.append((name, table_models(annotation), False))
+        elif typing.get_origin(annotation) in (tuple, list) and table_models(arguments[0]):
+            found.append((name, table_models(arguments[0]), True))
     return found
+
+
+def discriminator(models: tuple[type[BaseModel], ...]) -> str:
+    """The key whose value tells the models of a union apart: the one key that every model
+    has as a different ``Literal``."""
+    for name in models[0].model_fields:
+        values = []
+        for model in models:
+            other = model.model_fields.get(name)
+            if other is None or typing.get_origin(other.annotation) is not typing.Literal:
+                break
+            values.append(typing.get_args(other.annotation))
+        else:
+            if len(set(values)) == len(models):
+                return name
+    raise ValueError(f"no key tells {', '.join(m.__name__ for m in models)} apart")
+
+
+def union_table(models: tuple[type[BaseModel], ...], prefix: str) -> list[str]:
+    """One table for the tables of a union of models: each kind's description, then every key
+    of any kind (the telling key first) with the kinds it belongs to."""
+    key = discriminator(models)
+    kinds = {model: str(typing.get_args(model.model_fields[key].annotation)[0]) for model in models}
+    lines = [f"Each is one of {len(models)} kinds, chosen by its `{key}`:", ""]
+    for model in models:
+        doc = " ".join(inspect.cleandoc(model.__doc__ or "").split())
+        if not doc:
+            log.warning("%s has no docstring to describe its kind", model.__name__)
+        lines.append(f'- `{key} = "{kinds[model]}"`: {doc}')
+    lines += [
+        "",
+        "| key | kinds | type | default | rules | meaning |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    names = [key] + [name for model in models for name in model.model_fields if name != key]
+    for name in dict.fromkeys(names):
+        having = [model for model in models if name in model.model_fields]
+        fields = [model.model_fields[name] for model in having]
+        if name == key:
+            type_text = "one of " + ", ".join(f'"{kinds[m]}"' for m in models)
+        else:
+            type_text = type_name(fields[0].annotation)
+        which = "all" if len(having) == len(models) else ", ".join(kinds[m] for m in having)
+        meanings = dict.fromkeys(described(f"{prefix}{name}", field) for field in fields)
+        rows_of = dict.fromkeys((default_text(field), constraints(field)) for field in fields)
+        if len(rows_of) > 1:
+            raise ValueError(f"{prefix}{name} has different defaults or rules in its kinds")
+        ((default, rules),) = rows_of
+        lines.append(
+            f"| `{name}` | {cell(which)} | {cell(type_text)} | {cell(default)} | {cell(rules)} "
+            f"| {cell(' '.join(m for m in meanings if m))} |"
+        )
+    return lines
 
 
 def table_header(path: str, is_array: bool) -> str:
@@ -179,21 +256,30 @@ def study_file(root: type[BaseModel] | None = None) -> str:
 
         root = StudyConfig
     lines = ["### Top-level keys", "", *model_table(root, "")]
-    shown: dict[type[BaseModel], str] = {}
-    queue = [(key, model, is_array) for key, model, is_array in nested_models(root)]
+    shown: dict[tuple[type[BaseModel], ...], str] = {}
+    queue = [(key, models, is_array) for key, models, is_array in nested_models(root)]
     while queue:
-        path, model, is_array = queue.pop(0)
+        path, models, is_array = queue.pop(0)
         header = table_header(path, is_array)
-        if model in shown:
+        if models in shown:
             kind = "list of tables" if is_array else "table"
-            lines += ["", f"`{path}` is a {kind} with the keys of `{shown[model]}`."]
+            lines += ["", f"`{path}` is a {kind} with the keys of `{shown[models]}`."]
             continue
-        shown[model] = header
+        shown[models] = header
         lines += ["", f"### `{header}`", ""]
-        if model.__doc__ and model.__doc__ != BaseModel.__doc__:
-            lines += [" ".join(inspect.cleandoc(model.__doc__).split()), ""]
-        lines += model_table(model, f"{path}.")
-        queue += [(f"{path}.{key}", inner, array) for key, inner, array in nested_models(model)]
+        if len(models) > 1:
+            lines += union_table(models, f"{path}.")
+        else:
+            (model,) = models
+            if model.__doc__ and model.__doc__ != BaseModel.__doc__:
+                lines += [" ".join(inspect.cleandoc(model.__doc__).split()), ""]
+            lines += model_table(model, f"{path}.")
+        for model in models:
+            queue += [
+                (f"{path}.{key}", inner, array)
+                for key, inner, array in nested_models(model)
+                if (f"{path}.{key}", inner, array) not in queue
+            ]
     return "\n".join(lines)
 
 
@@ -235,7 +321,7 @@ def deployment_settings() -> str:
 
 
 def export_tables() -> str:
-    from server.app.export import DESCRIPTIONS, DICTIONARY, INTEGER_COLUMNS
+    from server.app.export.tables import DESCRIPTIONS, DICTIONARY, INTEGER_COLUMNS
 
     lines: list[str] = []
     for name, columns in DICTIONARY.items():
@@ -256,7 +342,7 @@ def export_tables() -> str:
 
 
 def minari_infos() -> str:
-    from server.app.minari_export import INFOS
+    from server.app.export.minari import INFOS
 
     lines = ["| key of `infos` | meaning |", "| --- | --- |"]
     lines += [f"| `{key}` | {cell(meaning)} |" for key, meaning in INFOS.items()]
@@ -264,18 +350,13 @@ def minari_infos() -> str:
 
 
 def analysis_outputs() -> str:
-    """What ``bam-study analyze`` writes, from the README it writes beside its outputs (with
-    the default baseline, thresholds and false discovery rate)."""
-    from types import SimpleNamespace
-
+    """What ``bam-study analyze`` counts and writes, from the README it writes beside its
+    outputs (with the default baseline, thresholds and false discovery rate; without the
+    notes on a study's data, which the README adds)."""
     from analysis.options import DEFAULT_BASELINE, DEFAULT_FDR, DEFAULT_THRESHOLDS
-    from analysis.report import describe_outputs
+    from analysis.report import describe_files
 
-    defaults = SimpleNamespace(
-        baseline=DEFAULT_BASELINE, thresholds=DEFAULT_THRESHOLDS, fdr=DEFAULT_FDR
-    )
-    text = describe_outputs(defaults)  # type: ignore[arg-type]
-    return text.split("\n", 1)[1].strip()
+    return describe_files(DEFAULT_BASELINE, DEFAULT_THRESHOLDS, DEFAULT_FDR).strip()
 
 
 GENERATORS: dict[str, Callable[[], str]] = {

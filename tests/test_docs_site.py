@@ -52,7 +52,7 @@ def sections(text: str) -> dict[str, str]:
 
 
 def test_every_exported_column_is_described_under_its_file(site: Path) -> None:
-    from server.app.export import DESCRIPTIONS, DICTIONARY
+    from server.app.export.tables import DESCRIPTIONS, DICTIONARY
 
     found = sections(page_text(site, "data"))
     for name, columns in DICTIONARY.items():
@@ -70,13 +70,20 @@ def study_keys(model: type[BaseModel]) -> list[tuple[str, str]]:
     seen: set[type[BaseModel]] = set()
     queue: list[tuple[str, type[BaseModel]]] = []
 
+    def models(annotation: object) -> list[type[BaseModel]]:
+        """The model, or each model of a union of them (inside ``Annotated``)."""
+        while typing.get_origin(annotation) is typing.Annotated:
+            annotation = typing.get_args(annotation)[0]
+        members = typing.get_args(annotation) if typing.get_origin(annotation) else (annotation,)
+        return [m for m in members if isinstance(m, type) and issubclass(m, BaseModel)]
+
     def nested(path: str, of: type[BaseModel]) -> None:
         for name, field in of.model_fields.items():
             inner = field.annotation
             items = typing.get_args(inner)
             where = f"{path}.{name}" if path else name
-            if items and isinstance(items[0], type) and issubclass(items[0], BaseModel):
-                queue.append((f"[[{where}]]", items[0]))
+            if typing.get_origin(inner) is tuple and models(items[0]):
+                queue.extend((f"[[{where}]]", m) for m in models(items[0]))
             elif isinstance(inner, type) and issubclass(inner, BaseModel):
                 queue.append((f"[{where}]", inner))
 
@@ -86,7 +93,7 @@ def study_keys(model: type[BaseModel]) -> list[tuple[str, str]]:
         if inner in seen:
             continue
         seen.add(inner)
-        keys += [(header, name) for name in inner.model_fields]
+        keys += [(header, name) for name in inner.model_fields if (header, name) not in keys]
         nested(header.strip("[]"), inner)
     return keys
 
@@ -148,6 +155,53 @@ def test_tables_nested_deeper_get_their_own_section_once() -> None:
     assert headers == ["[branch]", "[[branch.leaves]]"]
     assert "`branch.again` is a table with the keys of `[[branch.leaves]]`." in text
     assert "| `depth` | integer | `3` |  | The third level. |" in text
+
+
+class Said(BaseModel):
+    """Words."""
+
+    kind: typing.Literal["said"] = Field(description="said: words.")
+    words: str = Field(description="What was said.")
+    loud: bool = Field(False, description="Shouted.")
+
+
+class Shown(BaseModel):
+    """A picture."""
+
+    kind: typing.Literal["shown"] = Field(description="shown: a picture.")
+    picture: str = Field(description="The picture's file.")
+    loud: bool = Field(False, description="Shouted.")
+
+
+class Talk(BaseModel):
+    parts: tuple[typing.Annotated[Said | Shown, Field(discriminator="kind")], ...] = Field(
+        (), description="The talk's parts."
+    )
+
+
+def test_a_list_of_tables_of_several_kinds_gets_one_table_of_their_keys() -> None:
+    """A list of tables told apart by a key (the questionnaire's questions) reads as a list of
+    tables, with every kind's keys in one table, not as a Python type."""
+    text = hooks.study_file(Talk)
+    assert "| `parts` | list of tables | empty |  | The talk's parts. |" in text
+    assert "typing" not in text and "Annotated" not in text and "FieldInfo" not in text
+    assert re.findall(r"^### `(.*)`$", text, re.MULTILINE) == ["[[parts]]"]
+    assert '- `kind = "said"`: Words.' in text
+    assert '- `kind = "shown"`: A picture.' in text
+    assert (
+        '| `kind` | all | one of "said", "shown" | required |  | said: words. shown: a picture. |'
+    ) in text
+    assert "| `words` | said | string | required |  | What was said. |" in text
+    assert "| `picture` | shown | string | required |  | The picture's file. |" in text
+    assert "| `loud` | all | boolean | `false` |  | Shouted. |" in text
+
+
+def test_the_questionnaire_questions_keys_are_in_a_table() -> None:
+    text = hooks.study_file()
+    assert "typing." not in text and "Annotated" not in text
+    section = text.split("### `[[questionnaire.questions]]`", 1)[1].split("###", 1)[0]
+    for key in ("id", "kind", "text", "labels", "choices", "required"):
+        assert re.search(rf"^\| `{key}` \| ", section, re.MULTILINE), key
 
 
 class Undescribed(BaseModel):

@@ -6,8 +6,8 @@ A learner is taught one environment's tasks. It records what it observes:
   observed transition;
 - an agent step (task, state, action, next state, feedback in {+1, -1, 0}): the agent's own
   action, an observed transition and the teacher's feedback on it (0 = none given);
-- a transition alone (state, action, next state): the agent was moved without a demonstration
-  (the study's idle mode); it tells the learner about the dynamics only.
+- an idle move (state, action, next state): the agent was moved without a demonstration (the
+  study's idle mode), a transition alone; it tells the learner about the dynamics only.
 
 ``update()`` fits the learner to everything recorded so far (warm-started from the previous
 update), ``policy(task)`` gives its action probabilities per state and ``greedy_policy(task)``
@@ -28,6 +28,13 @@ import numpy as np
 from threadpoolctl import ThreadpoolController
 
 from server.domains.base import Environment
+from server.learners.records import (
+    AgentStep,
+    DemonstrationStep,
+    Feedback,
+    IdleMove,
+    Observation,
+)
 
 _blas: ThreadpoolController | None = None
 
@@ -47,7 +54,7 @@ def one_blas_thread() -> Any:
 # Columns of the recorded-data arrays.
 DEMONSTRATION_FIELDS = ("task", "state", "action", "next_state")
 AGENT_STEP_FIELDS = ("task", "state", "action", "next_state", "feedback")
-TRANSITION_FIELDS = ("state", "action", "next_state")
+IDLE_MOVE_FIELDS = ("state", "action", "next_state")
 
 
 @dataclass(frozen=True)
@@ -60,12 +67,12 @@ class UpdateResult:
 
 
 class DataLog:
-    """Append-only integer tables of demonstrations, agent steps and transitions alone."""
+    """Append-only integer tables of demonstrations, agent steps and idle moves."""
 
     def __init__(self) -> None:
         self._demonstrations: list[tuple[int, ...]] = []
         self._agent_steps: list[tuple[int, ...]] = []
-        self._transitions: list[tuple[int, ...]] = []
+        self._idle_moves: list[tuple[int, ...]] = []
 
     @staticmethod
     def _table(rows: list[tuple[int, ...]], width: int) -> np.ndarray:
@@ -80,8 +87,8 @@ class DataLog:
         return self._table(self._agent_steps, len(AGENT_STEP_FIELDS))
 
     @property
-    def transitions_alone(self) -> np.ndarray:
-        return self._table(self._transitions, len(TRANSITION_FIELDS))
+    def idle_moves(self) -> np.ndarray:
+        return self._table(self._idle_moves, len(IDLE_MOVE_FIELDS))
 
     def observed_transitions(self) -> np.ndarray:
         """Every observed (state, action, next_state): D_E of equation (5)."""
@@ -89,7 +96,7 @@ class DataLog:
             [
                 self.demonstrations[:, 1:4],
                 self.agent_steps[:, 1:4],
-                self.transitions_alone,
+                self.idle_moves,
             ]
         )
 
@@ -97,7 +104,7 @@ class DataLog:
         return {
             "demonstrations": self.demonstrations,
             "agent_steps": self.agent_steps,
-            "transitions_alone": self.transitions_alone,
+            "idle_moves": self.idle_moves,
         }
 
     @classmethod
@@ -109,9 +116,12 @@ class DataLog:
         log._agent_steps = [
             tuple(int(v) for v in row) for row in np.asarray(state["agent_steps"]).reshape(-1, 5)
         ]
-        log._transitions = [
+        log._idle_moves = [
             tuple(int(v) for v in row)
-            for row in np.asarray(state["transitions_alone"]).reshape(-1, 3)
+            # "transitions_alone": the key of learner states saved before it was "idle_moves".
+            for row in np.asarray(
+                state["idle_moves"] if "idle_moves" in state else state["transitions_alone"]
+            ).reshape(-1, 3)
         ]
         return log
 
@@ -144,6 +154,20 @@ class Learner(ABC):
             self.env.check_state(next_state),
         )
 
+    def observe(self, observation: Observation) -> None:
+        """Record one observation (``records``): the typed form of the ``record_*`` methods."""
+        match observation:
+            case DemonstrationStep(task, state, action, next_state):
+                self.record_demonstration(task, state, action, next_state)
+            case AgentStep(task, state, action, next_state, feedback):
+                self.record_agent_step(task, state, action, next_state, feedback)
+            case IdleMove(state, action, next_state):
+                self.record_idle_move(state, action, next_state)
+            case Feedback(feedback):
+                self.record_feedback(feedback)
+            case _:
+                raise TypeError(f"not an observation: {observation!r}")
+
     def record_demonstration(self, task: int, state: int, action: int, next_state: int) -> None:
         """Record a teacher's action for ``task`` and the transition it made."""
         task = self.env.check_task(task)
@@ -170,9 +194,9 @@ class Learner(ABC):
         *step, _ = self.data._agent_steps[-1]
         self.data._agent_steps[-1] = (*step, int(feedback))
 
-    def record_transition(self, state: int, action: int, next_state: int) -> None:
-        """Record a transition alone (the agent moved without a demonstration): dynamics only."""
-        self.data._transitions.append(self._check_step(state, action, next_state))
+    def record_idle_move(self, state: int, action: int, next_state: int) -> None:
+        """Record an idle move (the agent moved without a demonstration): dynamics only."""
+        self.data._idle_moves.append(self._check_step(state, action, next_state))
 
     # -- learning -------------------------------------------------------------------------
     def update(self) -> UpdateResult:
@@ -244,8 +268,8 @@ class Learner(ABC):
             learner.record_demonstration(task, s, a, s2)
         for task, s, a, s2, feedback in stored.agent_steps.tolist():
             learner.record_agent_step(task, s, a, s2, feedback)
-        for s, a, s2 in stored.transitions_alone.tolist():
-            learner.record_transition(s, a, s2)
+        for s, a, s2 in stored.idle_moves.tolist():
+            learner.record_idle_move(s, a, s2)
         learner._load_parameters_state(
             {key: np.array(value) for key, value in state["parameters"].items()}
         )

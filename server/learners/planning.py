@@ -39,9 +39,11 @@ from server.learners import _kernels
 # A pass's tasks are independent, and the compiled kernels release the GIL, so a pass can split
 # its tasks over threads. The numbers do not depend on the split (tested bit for bit). One
 # thread unless set: processes that already fill the cores (a simulation's pool) gain nothing.
+# The learners read no environment variable: whoever runs them sets the count (the server's
+# update processes from its Settings, a simulation from its cores, a library user by calling
+# ``set_planner_threads``).
 
-THREADS_VARIABLE = "BAM_PLANNER_THREADS"
-_threads: int | None = None
+_threads = 1
 _pool: ThreadPoolExecutor | None = None
 _pool_owner = (0, 0)  # (process id, threads) of the pool
 
@@ -76,10 +78,7 @@ def using_planner_threads(threads: int) -> Iterator[None]:
 
 
 def planner_threads() -> int:
-    """This process's planner threads: as set, else ``$BAM_PLANNER_THREADS``, else 1."""
-    global _threads
-    if _threads is None:
-        _threads = check_threads(os.environ.get(THREADS_VARIABLE, "1"), THREADS_VARIABLE)
+    """This process's planner threads: as set, else 1."""
     return _threads
 
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import csv
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from pathlib import Path
 
 import pytest
@@ -79,11 +79,13 @@ def write_export(
     sessions: Sequence[Session],
     *,
     participants: dict[str, str] | None = None,
+    excluded: Collection[str] = (),
     episodes: Sequence[dict[str, object]] = (),
 ) -> Path:
     """Write sessions.csv, evaluations.csv and episodes.csv (with ``episodes``' rows only; the
-    analysis reads it for empty episodes), and participants.csv with a status per participant
-    when given, into ``folder``."""
+    analysis reads it for empty episodes), and participants.csv into ``folder``: a status per
+    participant (``participants``; by default every participant of ``sessions`` submitted the
+    study, as after a whole study) and whether the experimenter excluded them."""
     folder.mkdir(parents=True, exist_ok=True)
     session_rows = []
     evaluation_rows = []
@@ -117,12 +119,16 @@ def write_export(
     write_csv(folder / "sessions.csv", SESSION_COLUMNS, session_rows)
     write_csv(folder / "evaluations.csv", EVALUATION_COLUMNS, evaluation_rows)
     write_csv(folder / "episodes.csv", EPISODE_COLUMNS, episodes)
-    if participants is not None:
-        write_csv(
-            folder / "participants.csv",
-            ("participant_id", "status"),
-            [{"participant_id": p, "status": s} for p, s in participants.items()],
-        )
+    if participants is None:
+        participants = {session[1]: "submitted" for session in sessions}
+    write_csv(
+        folder / "participants.csv",
+        ("participant_id", "status", "excluded"),
+        [
+            {"participant_id": p, "status": s, "excluded": str(p in excluded).lower()}
+            for p, s in participants.items()
+        ],
+    )
     return folder
 
 

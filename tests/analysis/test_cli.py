@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from analysis.stats import COMPARISON_COLUMNS
-from server.cli import main
+from server.commands.main import main
 
 from .conftest import small_study, write_export
 
@@ -196,8 +196,7 @@ def test_a_second_run_replaces_the_outputs(
 
 
 def test_exclude_excluded(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    statuses = {"p1": "excluded", "p2": "completed", "p3": "submitted", "p4": "completed"}
-    export = write_export(tmp_path / "export", small_study(), participants=statuses)
+    export = write_export(tmp_path / "export", small_study(), excluded={"p1"})
     code, stdout, _ = analyze(
         capsys, "--data", export, "--out", tmp_path / "out", "--exclude-excluded"
     )
@@ -205,6 +204,82 @@ def test_exclude_excluded(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
     assert "excluded 6 learning sessions of 1 participant marked excluded" in stdout
     assert "18 learning sessions of 3 participants" in stdout
     assert len(read_rows(tmp_path / "out" / "sessions_summary.csv")) == 18
+
+
+def notes_under(text: str, heading: str) -> list[str]:
+    """The ``- `` items after ``heading`` (a line of the text), up to the next heading."""
+    lines = text.split(heading, 1)[1].splitlines()
+    items = []
+    for line in lines[1:]:
+        if line.startswith("#"):
+            break
+        if line.startswith("- "):
+            items.append(line[2:])
+    return items
+
+
+def test_sessions_of_participants_who_did_not_finish_are_left_out_unless_asked_for(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The fourth participant returned the task after teaching five of six agents."""
+    statuses = {"p1": "submitted", "p2": "completed", "p3": "submitted", "p4": "returned"}
+    export = write_export(tmp_path / "export", small_study(), participants=statuses)
+    note = (
+        "left out 6 learning sessions of 1 participant who did not complete the study "
+        "(returned the task: 6); 1 never taught (no evaluations); --include-unfinished adds "
+        "the 5 taught"
+    )
+    out = tmp_path / "out"
+    code, stdout, stderr = analyze(capsys, "--data", export, "--out", out)
+    assert (code, stderr) == (0, "")
+    assert "18 learning sessions of 3 participants in 2 environments" in stdout
+    assert f"- {note}" in stdout
+    assert len(read_rows(out / "sessions_summary.csv")) == 18
+    table1 = (out / "table1.md").read_text(encoding="utf-8")
+    assert "| Behavioral Cloning |              3 |" in table1  # was 4 in each environment
+    readme = (out / "README.md").read_text(encoding="utf-8")
+    assert notes_under(readme, "## Notes on this study's data") == [note]
+    assert "Learning sessions counted: those of the participants who completed the study" in (
+        readme
+    )
+
+    out = tmp_path / "with-unfinished"
+    code, stdout, _ = analyze(capsys, "--data", export, "--out", out, "--include-unfinished")
+    assert code == 0
+    assert "23 learning sessions of 4 participants in 2 environments; 0 without" in stdout
+    assert (
+        "- --include-unfinished: counted 5 taught learning sessions of 1 participant who did "
+        "not complete the study (returned the task: 5)"
+    ) in stdout
+    assert "- left out 1 learning session never taught (no evaluations)" in stdout
+
+
+def test_the_readme_gives_the_notes_there_are_and_no_other(
+    export: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The outputs' README promises no note that Table 1 does not have (such as a count of
+    empty episodes where there are none): it lists Table 1's notes, or says there are none."""
+    out = tmp_path / "out"
+    assert analyze(capsys, "--data", export, "--out", out)[0] == 0
+    table_notes = notes_under((out / "table1.md").read_text(encoding="utf-8"), "Marks:")
+    readme = (out / "README.md").read_text(encoding="utf-8")
+    assert table_notes == [
+        "1 learning session had no evaluations; it counts in the total "
+        "sessions and reached no threshold"
+    ]
+    assert notes_under(readme, "## Notes on this study's data") == table_notes
+
+    # A study that needs no note: every session taught, episodes.csv without empty episodes.
+    whole = [s for s in small_study() if s[5]]
+    out = tmp_path / "out2"
+    assert analyze(capsys, "--data", write_export(tmp_path / "e2", whole), "--out", out)[0] == 0
+    assert notes_under((out / "table1.md").read_text(encoding="utf-8"), "Marks:") == []
+    readme = (out / "README.md").read_text(encoding="utf-8")
+    assert notes_under(readme, "## Notes on this study's data") == []
+    assert readme.rstrip().endswith(
+        "None: every learning session counted is of a participant who completed the study "
+        "and has evaluations, and `episodes.csv` holds no empty episode."
+    )
 
 
 def test_a_failure_while_writing_leaves_nothing(
@@ -422,7 +497,9 @@ def test_exclude_excluded_needs_participant_statuses(
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
 ) -> None:
-    if participants is not None:
+    if participants is None:
+        (export / "participants.csv").unlink()
+    else:
         (export / "participants.csv").write_text(participants, encoding="utf-8")
     out = tmp_path / "out"
     code, _, stderr = analyze(capsys, "--data", export, "--out", out, "--exclude-excluded")
@@ -448,7 +525,7 @@ def test_the_console_command_reports_bad_input_on_stderr(export: Path, tmp_path:
         [
             sys.executable,
             "-m",
-            "server.cli",
+            "server.commands.main",
             "analyze",
             "--data",
             str(export),
@@ -468,10 +545,10 @@ def test_the_console_command_reports_bad_input_on_stderr(export: Path, tmp_path:
 
 
 def test_the_subcommand_is_registered_without_loading_the_analysis_libraries() -> None:
-    # What `bam-study --help` does for this subcommand: import analysis.cli and configure.
+    # What `bam-study --help` does for this subcommand: import server.commands.analyze and configure.
     code = (
-        "import argparse, sys; from server.cli import SUBCOMMANDS; import analysis.cli as c; "
-        "assert SUBCOMMANDS['analyze'][0] == 'analysis.cli'; c.configure(argparse.ArgumentParser()); "
+        "import argparse, sys; from server.commands.main import SUBCOMMANDS; import server.commands.analyze as c; "
+        "assert SUBCOMMANDS['analyze'][0] == 'server.commands.analyze'; c.configure(argparse.ArgumentParser()); "
         "print(sorted(m for m in ('pandas', 'scipy', 'statsmodels', 'matplotlib') "
         "if m in sys.modules))"
     )

@@ -3,15 +3,19 @@ simulated participants over HTTP, the export, the analysis and Table 1; and its 
 
 from __future__ import annotations
 
+import io
 import os
 import shlex
+import stat
+import subprocess
+import threading
 from pathlib import Path
 
 import pandas as pd
 import pytest
 from sqlalchemy import create_engine, text
 
-from server.cli import main
+from server.commands.main import main
 
 LEARNERS = {"bam": "BAM", "model-based": "Model-Based IRL", "cloning": "Behavioral Cloning"}
 ENVIRONMENTS = {
@@ -47,7 +51,11 @@ def test_the_demo_runs_a_whole_study(tmp_path: Path, capsys: pytest.CaptureFixtu
     words = shlex.split(command)
     program = next(word for word in words if "=" not in word)
     assert Path(program).is_absolute() and os.access(program, os.X_OK), command
-    assert words[words.index(program) + 1 :] in (["serve"], ["-m", "server.cli", "serve"])
+    assert words[words.index(program) + 1 :] in (["serve"], ["-m", "server.commands.main", "serve"])
+    # It points to the dashboard's token, in a file only its owner can read, not shows it.
+    token = (out / "admin-token").read_text().strip()
+    assert token and token not in stdout and token not in stderr
+    assert f"BAM_ADMIN_TOKEN=$(cat {out.resolve() / 'admin-token'})" in words
 
     # Table 1 is printed, as written in the analysis folder, with every cell's learner.
     table = (out / "analysis" / "table1.md").read_text()
@@ -152,3 +160,75 @@ def test_bad_demo_arguments(
     assert code == 2
     assert message in stderr
     assert not out.exists()
+
+
+def test_the_dashboard_command_points_to_the_token_without_showing_it(tmp_path: Path) -> None:
+    """The printed command reads the token from a file only its owner can read; the token is
+    in no printed line, and a shell running the command's assignments gets it."""
+    from server.commands.demo import TOKEN_FILE, dashboard_instructions, write_admin_token
+
+    out = tmp_path / "my demo"  # a space: the paths must be quoted
+    out.mkdir()
+    token = write_admin_token(out)
+    token_file = out / TOKEN_FILE
+    assert len(token) >= 16
+    assert stat.S_IMODE(token_file.stat().st_mode) == 0o600
+    assert token_file.read_text() == token + "\n"
+    with pytest.raises(FileExistsError):  # never overwritten
+        write_admin_token(out)
+
+    lines = dashboard_instructions(out)
+    assert not any(token in line for line in lines)
+    assert str(token_file) in "\n".join(lines)
+    (command,) = [line for line in lines if line.strip().endswith(" serve")]
+    assignments = command.strip().rsplit(" ", 2)[0]  # without the program and "serve"
+    shown = subprocess.run(
+        ["sh", "-c", f"{assignments} env"], capture_output=True, text=True, check=True
+    ).stdout.splitlines()
+    assert f"BAM_ADMIN_TOKEN={token}" in shown
+    assert f"BAM_DATABASE_URL=sqlite:///{out / 'study.sqlite'}" in shown
+    assert f"BAM_STUDY_CONFIG={out / 'study.toml'}" in shown
+
+
+def test_waiting_for_the_learners_says_what_it_waits_for(tmp_path: Path) -> None:
+    """After the participants, the updates still queued are explained before their progress
+    bar, and the bar says what it counts."""
+    from server.app.storage.db import Database, upgrade
+    from server.app.storage.models import LearnerUpdate, LearningSession, Participant
+    from server.commands.demo import wait_for_learners
+
+    db = Database.from_url(f"sqlite:///{tmp_path / 'study.sqlite'}")
+    upgrade(db.engine)
+    with db.write() as s:
+        participant = Participant(token_hash="0" * 64, platform="lab", status="submitted")
+        s.add(participant)
+        s.flush()
+        session = LearningSession(
+            participant_id=participant.id, ordinal=0, kind="study", domain="navigation",
+            environment="two-rooms", learner="bam", colour_name="orange", colour_hex="#E69F00",
+            seed=1,
+        )  # fmt: skip
+        s.add(session)
+        s.flush()
+        s.add(LearnerUpdate(session_id=session.id, update_index=0, episodes=0, actions=0))
+        s.add(LearnerUpdate(session_id=session.id, update_index=1, episodes=1, actions=9))
+    err = io.StringIO()
+    waiting = threading.Thread(target=wait_for_learners, args=(db, err, tmp_path / "log", 3))
+    waiting.start()
+    for _ in range(600):  # until the bar is shown (a generous bound, not a timing)
+        if "queued learner updates done" in err.getvalue():
+            break
+        waiting.join(0.1)
+    with db.write() as s:
+        for update in s.query(LearnerUpdate):
+            update.status = "done"
+    waiting.join(60)
+    db.dispose()
+    assert not waiting.is_alive()
+    lines = err.getvalue().splitlines()
+    assert lines[0] == (
+        "All 3 participants have finished; the learners are still training on their last "
+        "demonstrations and feedback (2 learner updates queued). The export waits for them."
+    )
+    assert "0/2 queued learner updates done" in lines[1]
+    assert "2/2 queued learner updates done 100%" in lines[-1]

@@ -109,9 +109,7 @@ def test_exclude_excluded_drops_the_sessions_of_excluded_participants(tmp_path: 
         ("b", "p2", "two-rooms", "bam", 0, [(1, 5, 0.6)]),
         ("c", "p2", "two-rooms", "cloning", 1, [(1, 5, 0.6)]),
     ]
-    folder = write_export(
-        tmp_path / "export", sessions, participants={"p1": "completed", "p2": "excluded"}
-    )
+    folder = write_export(tmp_path / "export", sessions, excluded={"p2"})
     notes: list[str] = []
     kept, evaluations = load_tables(folder, exclude_excluded=True, notes=notes)
     assert kept["session_id"].tolist() == ["a"]
@@ -226,3 +224,106 @@ def test_an_empty_episode_without_its_update_is_a_clear_error(tmp_path: Path) ->
     )
     with pytest.raises(InputError, match=r"episodes.csv, row 1 \(line 2\), column 'update_index'"):
         load_tables(folder)
+
+
+# Participants who completed the study, and others who did not: returned during the tutorial
+# (nothing taught), timed out after teaching one agent, and one still teaching.
+TAUGHT = [(0, 0, 0.1), (1, 10, 0.6)]
+MIXED_STUDY = [
+    ("a1", "p1", "two-rooms", "bam", 0, TAUGHT),
+    ("a2", "p1", "two-rooms", "cloning", 1, TAUGHT),
+    ("b1", "p2", "two-rooms", "bam", 0, TAUGHT),
+    ("b2", "p2", "two-rooms", "cloning", 1, TAUGHT),
+    ("r1", "p3", "two-rooms", "bam", 0, []),
+    ("r2", "p3", "two-rooms", "cloning", 1, []),
+    ("t1", "p4", "two-rooms", "cloning", 0, TAUGHT),
+    ("t2", "p4", "two-rooms", "bam", 1, []),
+    ("s1", "p5", "two-rooms", "bam", 0, TAUGHT),
+    ("s2", "p5", "two-rooms", "cloning", 1, []),
+]
+MIXED_STATUSES = {
+    "p1": "completed",
+    "p2": "submitted",
+    "p3": "returned",
+    "p4": "abandoned",
+    "p5": "teaching",
+}
+
+
+def test_only_the_sessions_of_participants_who_completed_the_study_are_counted(
+    tmp_path: Path,
+) -> None:
+    """As the paper's Table 1 (58 of the 129 who began): a worker who returned the task during
+    the tutorial leaves sessions nobody taught, which must not count as sessions that reached
+    no threshold."""
+    folder = write_export(tmp_path / "export", MIXED_STUDY, participants=MIXED_STATUSES)
+    notes: list[str] = []
+    sessions, evaluations = load_tables(folder, notes=notes)
+    assert sessions["session_id"].tolist() == ["a1", "a2", "b1", "b2"]
+    assert sorted(set(evaluations["session_id"])) == ["a1", "a2", "b1", "b2"]
+    assert notes == [
+        "left out 6 learning sessions of 3 participants who did not complete the study "
+        "(returned the task: 2, still in the study: 2, timed out: 2); 4 never taught (no "
+        "evaluations); --include-unfinished adds the 2 taught"
+    ]
+
+    notes = []
+    sessions, evaluations = load_tables(folder, include_unfinished=True, notes=notes)
+    assert sessions["session_id"].tolist() == ["a1", "a2", "b1", "b2", "t1", "s1"]
+    assert sorted(set(evaluations["session_id"])) == ["a1", "a2", "b1", "b2", "s1", "t1"]
+    assert notes == [
+        "--include-unfinished: counted 2 taught learning sessions of 2 participants who did not "
+        "complete the study (still in the study: 1, timed out: 1)",
+        "left out 4 learning sessions never taught (no evaluations) of participants who did not "
+        "complete the study (returned the task: 2, still in the study: 1, timed out: 1)",
+    ]
+
+
+def test_every_participant_status_of_the_server_is_completed_or_has_a_reason() -> None:
+    """A status the server gives a participant is either completion or a reason, in the note,
+    for not finishing; a new status needs its entry in UNFINISHED_REASONS."""
+    from analysis.data import COMPLETED_STATUSES, UNFINISHED_REASONS
+    from server.app.participants.tokens import STATUSES
+
+    assert set(COMPLETED_STATUSES) <= set(STATUSES)
+    assert set(STATUSES) - set(COMPLETED_STATUSES) == set(UNFINISHED_REASONS)
+
+
+def test_an_unknown_or_missing_status_is_named_in_the_note(tmp_path: Path) -> None:
+    study = [
+        ("a", "p1", "two-rooms", "bam", 0, TAUGHT),
+        ("b", "p2", "two-rooms", "bam", 0, TAUGHT),
+        ("c", "p3", "two-rooms", "bam", 0, []),
+    ]
+    folder = write_export(tmp_path / "export", study, participants={"p1": "Submitted", "p2": "x"})
+    notes: list[str] = []
+    sessions, _ = load_tables(folder, notes=notes)
+    assert sessions["session_id"].tolist() == ["a"]
+    assert notes == [
+        "left out 2 learning sessions of 2 participants who did not complete the study "
+        "(not in participants.csv: 1, status 'x': 1); 1 never taught (no evaluations); "
+        "--include-unfinished adds the 1 taught"
+    ]
+
+
+def test_without_participant_statuses_every_session_is_counted_with_a_note(
+    tmp_path: Path,
+) -> None:
+    folder = write_export(tmp_path / "export", MIXED_STUDY, participants=MIXED_STATUSES)
+    (folder / "participants.csv").unlink()
+    notes: list[str] = []
+    sessions, _ = load_tables(folder, notes=notes)
+    assert len(sessions) == len(MIXED_STUDY)
+    assert notes == [
+        "participant statuses not checked (no participants.csv given): every learning session "
+        "is counted, whether or not its participant completed the study"
+    ]
+
+
+def test_no_participant_who_completed_the_study_is_a_clear_error(tmp_path: Path) -> None:
+    study = [row for row in MIXED_STUDY if row[1] in ("p3", "p4")]
+    folder = write_export(tmp_path / "export", study, participants=MIXED_STATUSES)
+    with pytest.raises(InputError, match="no learning sessions of participants who completed"):
+        load_tables(folder)
+    sessions, _ = load_tables(folder, include_unfinished=True)
+    assert sessions["session_id"].tolist() == ["t1"]

@@ -3,7 +3,9 @@ fetched) against the WCAG 2.0 and 2.1 A and AA rules: the MTurk replica's pages,
 consent, each tutorial step, the teaching page of each domain (idle, demonstrating, the agent
 trying, after feedback), the completion page, the error pages, the errors the study's page draws
 itself (a participant the server no longer knows, a request the server failed), the login page
-and the dashboard (its list, a participant, a curve, a replay). Each page or state is its own test.
+and the dashboard (its list, a participant, a curve, a replay). Each page or state is checked in
+a 1280x800, a 1280x720 and a 1024x640 window (what scrolls, and so must take the keyboard's
+focus, changes with the size); each page or state in each size is its own test.
 
 The pages are reached once per module by driving real studies (a Mechanical Turk study with its
 tutorial, a lab study with the three domains); each test looks at what axe found there."""
@@ -76,13 +78,26 @@ LAB_STATES = (
 )
 
 
+SIZES = ((1280, 800), (1280, 720), (1024, 640))
+SIZE_NAMES = tuple(f"{width}x{height}" for width, height in SIZES)
+SETTLED = "() => new Promise((done) => requestAnimationFrame(() => requestAnimationFrame(done)))"
+
+
 class Found(dict[str, list[str]]):
-    """State name -> its violations; ``error`` says where driving the pages stopped."""
+    """ "state@size" -> its violations; ``error`` says where driving the pages stopped."""
 
     error: str | None = None
 
     def check(self, name: str, target: Page | Frame) -> None:
-        self[name] = axe_violations(target)
+        """Axe's findings in each window size (the page laid out anew for each), then back to
+        the first size, in which the pages are driven."""
+        page = target if isinstance(target, Page) else target.page
+        for (width, height), size in zip(SIZES, SIZE_NAMES, strict=True):
+            page.set_viewport_size({"width": width, "height": height})
+            target.evaluate(SETTLED)
+            self[f"{name}@{size}"] = axe_violations(target)
+        page.set_viewport_size({"width": SIZES[0][0], "height": SIZES[0][1]})
+        target.evaluate(SETTLED)
 
 
 def drive(found: Found, steps: Callable[[], None]) -> Found:
@@ -199,10 +214,14 @@ def mturk_found(
     page.context.close()
 
 
+@pytest.mark.parametrize("size", SIZE_NAMES)
 @pytest.mark.parametrize("state", MTURK_STATES)
-def test_mturk_study_pages_have_no_wcag_violation(mturk_found: Found, state: str) -> None:
-    assert state in mturk_found, f"not reached: {mturk_found.error}"
-    assert mturk_found[state] == [], "\n".join(mturk_found[state])
+def test_mturk_study_pages_have_no_wcag_violation(
+    mturk_found: Found, state: str, size: str
+) -> None:
+    key = f"{state}@{size}"
+    assert key in mturk_found, f"not reached: {mturk_found.error}"
+    assert mturk_found[key] == [], "\n".join(mturk_found[key])
 
 
 # -- a lab study in each domain: the teaching page's states ------------------------------------
@@ -334,10 +353,12 @@ def in_page_errors(
     found.check("something-went-wrong", failing)
 
 
+@pytest.mark.parametrize("size", SIZE_NAMES)
 @pytest.mark.parametrize("state", LAB_STATES)
-def test_lab_study_pages_have_no_wcag_violation(lab_found: Found, state: str) -> None:
-    assert state in lab_found, f"not reached: {lab_found.error}"
-    assert lab_found[state] == [], "\n".join(lab_found[state])
+def test_lab_study_pages_have_no_wcag_violation(lab_found: Found, state: str, size: str) -> None:
+    key = f"{state}@{size}"
+    assert key in lab_found, f"not reached: {lab_found.error}"
+    assert lab_found[key] == [], "\n".join(lab_found[key])
 
 
 def test_the_rule_set_is_wcag_a_and_aa(tmp_path: Path, page: Page) -> None:

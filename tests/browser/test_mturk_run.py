@@ -84,7 +84,9 @@ def teach_agent(
     if first:
         # "Next agent" is refused before each task has a demonstration: by the page...
         expect(next_button()).to_be_disabled()
-        expect(study.frame.locator(".next-reason")).to_contain_text("Demonstrate every task")
+        expect(study.frame.locator(".next-reason")).to_contain_text(
+            "Every task needs at least one demonstrated move first"
+        )
         session = study.session
         study.press("n")
         expect(study.frame.locator(".status")).to_contain_text("Not yet")

@@ -1,16 +1,20 @@
-"""The teaching page in small windows: usable at 1024x640 (the grid large, Next agent in view
-without scrolling) and readable at 800x600."""
+"""The participant's pages in small windows: at 1024x640 the consent page's answers are in view
+and its text can be scrolled by keyboard, the teaching page (the grid large, Next agent in view)
+needs no scrolling, nor does its panel at any step of the tutorial; at 800x600 it stays
+readable."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
-from playwright.sync_api import Page, expect
+from playwright.sync_api import Page, Route, expect
 
 from tests.browser.conftest import (
     WAIT_MS,
     LiveServer,
+    Study,
     domain_toml,
     run_live_server,
     study_toml,
@@ -56,7 +60,13 @@ def in_view(page: Page, selector: str) -> bool:
     [(1024, 640, 520, 11.5), (800, 600, 440, 9.5)],
 )
 def test_the_teaching_page_fits_a_small_window(
-    page: Page, server: LiveServer, width: int, height: int, grid_width: int, font_px: float
+    page: Page,
+    server: LiveServer,
+    tmp_path: Path,
+    width: int,
+    height: int,
+    grid_width: int,
+    font_px: float,
 ) -> None:
     page.set_viewport_size({"width": width, "height": height})
     page.goto(f"{server.url}/study")
@@ -78,4 +88,68 @@ def test_the_teaching_page_fits_a_small_window(
     )
     print(f"{width}x{height}: smallest label {smallest:.1f} px")
     assert smallest >= font_px
-    page.screenshot(path=f"/tmp/sq-shots/{width}x{height}.png")
+    page.screenshot(path=str(tmp_path / f"{width}x{height}.png"))
+
+
+def panel_overflow(page: Page) -> int:
+    """How much taller the teaching panel's content is than the panel (scrolled inside)."""
+    return int(
+        page.evaluate(
+            "() => { const p = document.querySelector('.panel');"
+            " return p.scrollHeight - p.clientHeight; }"
+        )
+    )
+
+
+@pytest.mark.parametrize(("width", "height"), [(1024, 640), (1280, 720)])
+def test_the_consent_page_fits_and_its_text_scrolls_by_keyboard(
+    page: Page, server: LiveServer, width: int, height: int
+) -> None:
+    page.set_viewport_size({"width": width, "height": height})
+
+    # A consent text longer than the box: the box scrolls, the answers stay in view.
+    def longer_consent(route: Route) -> None:
+        response = route.fetch()
+        sentence = "We record what you do in the interface."
+        route.fulfill(response=response, body=response.text().replace(sentence, sentence * 60))
+
+    page.route("**/study", longer_consent)
+    page.goto(f"{server.url}/study")
+    text = page.locator(".consent-text")
+    expect(text).to_be_visible()
+    assert in_view(page, '[data-action="agree"]')
+    assert in_view(page, '[data-action="decline"]')
+    # A named region in the tab order, which the arrow keys scroll.
+    expect(text).to_have_attribute("tabindex", "0")
+    expect(text).to_have_attribute("role", "region")
+    expect(text).to_have_accessible_name("Consent to take part")
+    assert text.evaluate("(box) => box.scrollHeight > box.clientHeight")
+    page.keyboard.press("Tab")
+    expect(text).to_be_focused()
+    page.keyboard.press("PageDown")
+    page.wait_for_function(
+        "() => document.querySelector('.consent-text').scrollTop > 0", timeout=5000
+    )
+
+
+def test_the_tutorial_s_panel_needs_no_scrolling_at_1024x640(
+    page: Page, server: LiveServer
+) -> None:
+    page.set_viewport_size({"width": 1024, "height": 640})
+    page.goto(f"{server.url}/study")
+    page.click('[data-action="agree"]')
+    page.click('[data-action="start"]')
+    study = Study(page)
+    expect(study.teach).to_have_attribute("data-kind", "tutorial", timeout=WAIT_MS)
+    scrolling: list[tuple[str, int]] = []
+
+    def check(step: str) -> None:
+        page.wait_for_timeout(100)  # the card's text is laid out
+        overflow = panel_overflow(page)
+        if overflow > 1:
+            scrolling.append((step, overflow))
+
+    study.do_tutorial(on_step=check)
+    check("study")
+    assert scrolling == []
+    assert in_view(page, '[data-action="next"]')

@@ -168,10 +168,10 @@ def test_recorded_data_is_kept(name: str) -> None:
     learner.record_agent_step(0, 11, 3, 10, feedback=1)
     learner.record_agent_step(0, 10, 1, 1)
     learner.record_feedback(-1)
-    learner.record_transition(np.int64(5), np.int64(2), np.int64(14))
+    learner.record_idle_move(np.int64(5), np.int64(2), np.int64(14))
     np.testing.assert_array_equal(learner.data.demonstrations, [[1, 10, 4, 11]])
     np.testing.assert_array_equal(learner.data.agent_steps, [[0, 11, 3, 10, 1], [0, 10, 1, 1, -1]])
-    np.testing.assert_array_equal(learner.data.transitions_alone, [[5, 2, 14]])
+    np.testing.assert_array_equal(learner.data.idle_moves, [[5, 2, 14]])
 
 
 BAD_STEPS = [
@@ -204,10 +204,10 @@ def test_bad_records_are_rejected_and_not_kept(
         learner.record_agent_step(task, state, action, next_state, 1)
     if match != "task":
         with pytest.raises(ValueError, match=match):
-            learner.record_transition(state, action, next_state)
+            learner.record_idle_move(state, action, next_state)
     assert len(learner.data.demonstrations) == 0
     assert len(learner.data.agent_steps) == 0
-    assert len(learner.data.transitions_alone) == 0
+    assert len(learner.data.idle_moves) == 0
 
 
 @pytest.mark.parametrize("name", learners.NAMES)
@@ -317,7 +317,7 @@ def test_restoring_out_of_range_data_is_rejected(name: str) -> None:
         ("demonstrations", 2, env.num_actions),
         ("demonstrations", 0, len(env.tasks)),
         ("agent_steps", 4, 2),
-        ("transitions_alone", 2, -1),
+        ("idle_moves", 2, -1),
     ):
         broken = copy.deepcopy(state)
         rows = np.array(broken["data"][table])

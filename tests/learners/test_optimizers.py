@@ -178,6 +178,6 @@ def test_lbfgs_keeps_the_dynamics_parameters_where_observations_stay_possible(
     env = domains.make("three-rooms")
     learner = learners.make("bam", env, optimizer="lbfgs")
     learner.theta = np.full(env.model.num_parameters, -1000.0)  # as if saturated already
-    learner.record_transition(122, 4, 122)  # (9, 5) RIGHT into the wall at (9, 6): it fails
+    learner.record_idle_move(122, 4, 122)  # (9, 5) RIGHT into the wall at (9, 6): it fails
     learner.update()
     assert np.all(np.abs(learner.theta) <= THETA_BOUND)

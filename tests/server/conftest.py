@@ -5,7 +5,6 @@ client that keeps the participant's sequence number."""
 from __future__ import annotations
 
 import os
-import socket
 import threading
 import time
 import uuid
@@ -23,12 +22,13 @@ from sqlalchemy import create_engine, func, select, text
 from sqlalchemy.engine import make_url
 
 from server.app.config import DEFAULT_STUDY_CONFIG, StudyConfig, parse_study_config
-from server.app.db import Database, upgrade
-from server.app.flow import TOKEN_HEADER
 from server.app.main import create_app
-from server.app.models import Event, LearnerUpdate
+from server.app.participants.tokens import TOKEN_HEADER
 from server.app.settings import Settings
-from server.app.updates import new_executor
+from server.app.storage.db import Database, upgrade
+from server.app.storage.models import Event, LearnerUpdate
+from server.app.updates.pool import new_executor
+from server.commands.live import free_port
 
 POSTGRES_URL = os.environ.get(
     "BAM_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test"
@@ -125,12 +125,6 @@ def client(
     app = create_app(settings, study, db=db, executor=executor)
     with TestClient(app) as test_client:
         yield test_client
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 @contextmanager

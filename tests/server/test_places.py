@@ -12,13 +12,13 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import update
 
-from server.app.capacity import LIVE_MINIMUM, participants_at_once
-from server.app.db import Database
-from server.app.flow import mark_abandoned
 from server.app.main import create_app
-from server.app.models import Participant as ParticipantRow
-from server.app.models import utcnow
+from server.app.participants.tokens import mark_abandoned
 from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.app.storage.models import Participant as ParticipantRow
+from server.app.storage.models import utcnow
+from server.app.updates.capacity import LIVE_MINIMUM, participants_at_once
 from tests.server.conftest import (
     ADMIN_TOKEN,
     Participant,
@@ -177,11 +177,11 @@ def test_the_queue_shows_updates_pending_and_the_oldest_wait(
     wait_for_updates(db)  # its first update done: nothing of the server's changes the mark
     # As if the participant had been waiting 12.5 s for the agent after their fifth episode.
     manager._awaited[session] = (manager._loop.time() - 12.5, 5)
-    queue = full_client.get("/dashboard/api/queue", headers=ADMIN).json()
+    queue = full_client.get("/api/admin/queue", headers=ADMIN).json()
     assert queue["sessions_awaited"] == 1 and queue["oldest_wait_seconds"] >= 12.5
     assert queue["participants_active"] == 1 and queue["limit"] == 2
     assert queue["limit_from"] == "study file"
-    assert full_client.get("/dashboard/api/queue").status_code == 401
+    assert full_client.get("/api/admin/queue").status_code == 401
 
 
 def test_the_capacity_follows_the_cost_of_an_update_and_the_slots() -> None:
@@ -195,8 +195,8 @@ def test_the_capacity_follows_the_cost_of_an_update_and_the_slots() -> None:
 
 
 def test_the_capacity_is_measured_on_the_latest_updates_once_there_are_enough() -> None:
-    from server.app.policies import PolicyCache
-    from server.app.updates import UpdateManager
+    from server.app.updates.manager import UpdateManager
+    from server.app.updates.policies import PolicyCache
 
     db: Database = None  # type: ignore[assignment]
     manager = UpdateManager(db, PolicyCache(), lambda name: {}, workers=1)

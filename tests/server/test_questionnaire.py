@@ -19,9 +19,9 @@ from server.app.config import (
     load_study_config,
     parse_study_config,
 )
-from server.app.db import Database
-from server.app.export import dictionary_frame, load_tables
-from server.app.models import QuestionnaireAnswer, StatusChange
+from server.app.export.tables import dictionary_frame, export_tables
+from server.app.storage.db import Database
+from server.app.storage.models import QuestionnaireAnswer, StatusChange
 from tests.server.conftest import FAST_LEARNERS, Participant, demonstrate_each_task
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "server" / "examples" / "questionnaire-study.toml"
@@ -122,7 +122,7 @@ def test_the_questionnaire_comes_before_the_completion_code(
             select(StatusChange.status).where(StatusChange.participant_id == 1)
         ).all()
     assert statuses[-3:] == ["teaching", "questionnaire", "completed"]
-    tables = load_tables(db)
+    tables = export_tables(db)
     rows = tables["questionnaire_answers"]
     assert rows[["participant_id", "question_id", "kind", "answer", "label"]].fillna(
         ""
@@ -143,7 +143,7 @@ def test_the_questionnaire_comes_before_the_completion_code(
 @pytest.mark.parametrize("database_url", ["sqlite"], indirect=True)
 def test_simulated_participants_answer_the_questionnaire(db: Database, executor: Any) -> None:
     from server.app.main import create_app
-    from server.app.simulated import SimulatedParticipant, TeachingPlan
+    from server.commands.simulated import SimulatedParticipant, TeachingPlan
     from tests.server.conftest import make_settings
 
     mturk = parse_study_config(
@@ -157,7 +157,7 @@ def test_simulated_participants_answer_the_questionnaire(db: Database, executor:
     with TestClient(app) as client:
         run = SimulatedParticipant("http://testserver", 0, 3, plan, client=client).take_part()
     assert run.error is None and run.completed
-    rows = load_tables(db)["questionnaire_answers"]
+    rows = export_tables(db)["questionnaire_answers"]
     assert list(rows["question_id"]) == ["difficulty", "best_agent", "comments"]
     assert 1 <= int(rows["answer"].iloc[0]) <= 5
     assert rows["answer"].iloc[1] in mturk.questionnaire.questions[1].choices  # type: ignore[union-attr]

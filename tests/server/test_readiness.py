@@ -14,10 +14,10 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import text
 
-from server.app.db import Database
-from server.app.live import LiveServer
 from server.app.main import create_app
 from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.commands.live import ServerProcess
 from tests.server.conftest import ADMIN_TOKEN, make_settings, study_config
 from tests.server.test_live import fast_study_file
 
@@ -81,7 +81,7 @@ def test_serve_says_what_it_waits_for_and_is_ready_after_its_update_processes(
         "BAM_STUDY_CONFIG": str(fast_study_file(tmp_path)),
         "BAM_UPDATE_WORKERS": "2",
     }
-    with LiveServer(tmp_path, environment) as server:  # started: /api/health answered 200
+    with ServerProcess(tmp_path, environment) as server:  # started: /api/health answered 200
         log = server.log()
     waiting = log.index("waiting for 2 update process(es) to load the learners' compiled kernels")
     ready = log.index("the server is ready")

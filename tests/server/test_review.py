@@ -14,12 +14,9 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
 from server.app.config import StudyConfig
-from server.app.db import Database
 from server.app.errors import ApiError
-from server.app.export import dictionary_frame, load_tables
-from server.app.models import AssignmentReview, Bonus
-from server.app.replica_models import ReplicaAssignment, ReplicaBonus
-from server.app.review import (
+from server.app.export.tables import dictionary_frame, export_tables
+from server.app.platforms.review import (
     MTurkClientBackend,
     ReplicaReviewBackend,
     ReviewRefused,
@@ -27,6 +24,9 @@ from server.app.review import (
     make_backend,
 )
 from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.app.storage.models import AssignmentReview, Bonus
+from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus
 from tests.server.conftest import (
     ADMIN_TOKEN,
     Participant,
@@ -36,7 +36,7 @@ from tests.server.conftest import (
 )
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
-BASE = "/dashboard/api/participants"
+BASE = "/api/admin/participants"
 
 
 @pytest.fixture
@@ -142,7 +142,7 @@ def test_approve_reject_and_bonus_show_on_the_replica_and_in_the_export(
     assert "bonus-token-1" in page
 
     # The export records them, pseudonymised like participants.csv, and documents them.
-    tables = load_tables(db)
+    tables = export_tables(db)
     participants = tables["participants"].set_index("participant_id")
     reviews = tables["reviews"]
     assert list(reviews["decision"]) == ["approved", "rejected"]
@@ -154,7 +154,7 @@ def test_approve_reject_and_bonus_show_on_the_replica_and_in_the_export(
     bonuses = tables["bonuses"]
     assert list(bonuses["amount_usd"]) == [1.5, 0.25]
     assert list(bonuses["participant_id"]) == [first, first]
-    plain = load_tables(db, pseudonymize=False)
+    plain = export_tables(db, pseudonymize=False)
     assert list(plain["bonuses"]["worker_id"]) == ["WORKER1", "WORKER1"]
     dictionary = dictionary_frame()
     for name in ("reviews", "bonuses"):

@@ -13,12 +13,13 @@ import numpy as np
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from server.app import updates as updates_module
-from server.app.db import Database
 from server.app.main import create_app
-from server.app.models import LearnerUpdate, LearningSession
-from server.app.policies import PolicyCache
 from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.app.storage.models import LearnerUpdate, LearningSession
+from server.app.updates.manager import UpdateManager
+from server.app.updates.policies import PolicyCache
+from server.app.updates.worker import run_update
 from server.domains import make
 from server.domains.base import ACTIONS
 from tests.server.conftest import study_config, teaching_participant, wait_for_updates
@@ -33,7 +34,7 @@ class Scripted:
 
     def __init__(self, loop: asyncio.AbstractEventLoop, pending: dict[int, int]) -> None:
         db: Any = None
-        self.manager = manager = updates_module.UpdateManager(db, PolicyCache(), lambda n: {})
+        self.manager = manager = UpdateManager(db, PolicyCache(), lambda n: {})
         manager._capacity = 1
         self.pending = pending
         self.processed = dict.fromkeys(pending, 0)
@@ -146,7 +147,7 @@ class Gated(Executor):
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future[Any]:
         def held() -> Any:
-            if fn is updates_module.run_update:
+            if fn is run_update:
                 self.gate.wait(BOUND)
                 with self.lock:
                     self.started.append(int(args[0]["seed"]))

@@ -8,51 +8,20 @@ keeps no cookie in the platform's iframe).
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from fastapi import APIRouter, Request, Response
 from fastapi.responses import HTMLResponse
-from fastapi.templating import Jinja2Templates
 from pydantic import ValidationError
 
-from server.app import places
 from server.app.deps import StateDep
 from server.app.errors import ApiError, TurnedAway
-from server.app.routers.arrivals import arrive
+from server.app.participants import places
+from server.app.routers.common import arrive, notice, templates
 from server.app.schemas import ArrivalRequest, ArrivalResponse
 from server.app.state import ServerState
 
-TEMPLATES_DIR = Path(__file__).resolve().parents[2] / "templates"
-templates = Jinja2Templates(directory=str(TEMPLATES_DIR))
 router = APIRouter(tags=["pages"])
 
 ARRIVAL_PARAMETERS = {field.alias or name for name, field in ArrivalRequest.model_fields.items()}
-
-
-def notice(request: Request, title: str, message: str, status_code: int) -> Response:
-    return templates.TemplateResponse(
-        request, "notice.html", {"title": title, "message": message}, status_code=status_code
-    )
-
-
-def waiting_page(
-    request: Request, state: ServerState, participant_id: int, token: str | None
-) -> Response:
-    """The study is full: the page that waits for a place (``places``), for this participant
-    alone (with their new token, as the study page)."""
-    place = places.admit(
-        state.db, participant_id, places.study_limit(state), state.settings.active_minutes
-    )
-    return templates.TemplateResponse(
-        request,
-        "waiting.html",
-        {
-            "study": state.study.public(),
-            "place": {"ahead": place.ahead, "ask_seconds": places.ASK_SECONDS},
-            "token": token,
-        },
-        headers={"Cache-Control": "no-store"},
-    )
 
 
 @router.get("/study", response_class=HTMLResponse)
@@ -94,5 +63,25 @@ def study_page_of(request: Request, state: ServerState, arrival: ArrivalResponse
         request,
         "study.html",
         {"study": state.study.public(), "participant": arrival.participant, "token": arrival.token},
+        headers={"Cache-Control": "no-store"},
+    )
+
+
+def waiting_page(
+    request: Request, state: ServerState, participant_id: int, token: str | None
+) -> Response:
+    """The study is full: the page that waits for a place (``places``), for this participant
+    alone (with their new token, as the study page)."""
+    place = places.admit(
+        state.db, participant_id, places.study_limit(state), state.settings.active_minutes
+    )
+    return templates.TemplateResponse(
+        request,
+        "waiting.html",
+        {
+            "study": state.study.public(),
+            "place": {"ahead": place.ahead, "ask_seconds": places.ASK_SECONDS},
+            "token": token,
+        },
         headers={"Cache-Control": "no-store"},
     )

@@ -3,19 +3,17 @@
 // recorded events on the participants' grid drawing.
 
 import { ApiError, getJSON, postJSON } from "./api.js";
-import { environmentTitle, h } from "./dom.js";
+import { environmentTitle, formatTime, h } from "./dom.js";
 import { GridView, decodeState, svg } from "./grid.js";
 
-const API = "/dashboard/api";
+const API = "/api/admin";
 const REFRESH_MS = 10000;
 const ACTIONS = ["STAY", "UP", "DOWN", "LEFT", "RIGHT"];
 const $ = (selector) => document.querySelector(selector);
 let selected = null;
 let replayTimer = null;
 
-function time(iso) {
-  return iso ? new Date(iso).toLocaleString() : "";
-}
+const time = formatTime;
 
 /** "1 episode", "2 episodes" */
 function count(n, noun) {
@@ -45,19 +43,27 @@ async function loadParticipants() {
     row.addEventListener("keydown", (event) => event.key === "Enter" && open());
     return row;
   }));
-  const counts = {};
+  // Statuses and domains in rows of their own: a participant is counted once in each.
+  const statuses = {};
+  const domains = {};
   for (const p of participants) {
-    counts[p.status] = (counts[p.status] ?? 0) + 1;
-    if (p.domain) counts[p.domain] = (counts[p.domain] ?? 0) + 1;
+    statuses[p.status] = (statuses[p.status] ?? 0) + 1;
+    if (p.domain) domains[p.domain] = (domains[p.domain] ?? 0) + 1;
   }
+  const row = (group, label, counts, badges) => h("div", { class: "summary-row", "data-group": group, role: "group", "aria-label": label },
+    h("span", { class: "summary-label" }, label),
+    Object.keys(counts).length
+      ? Object.entries(counts).map(([name, n]) => h("span", { class: `badge ${badges ? name : ""}`, "data-name": name }, `${name}: ${n}`))
+      : h("span", { class: "muted" }, "none yet"));
   $("#summary").replaceChildren(
-    h("span", { class: "badge" }, count(participants.length, "participant")),
-    ...Object.entries(counts).map(([name, n]) => h("span", { class: `badge ${name}` }, `${name}: ${n}`)));
-  $("#refreshed").textContent = `updated ${new Date().toLocaleTimeString()}`;
+    h("p", { class: "summary-total" }, h("span", { class: "badge" }, count(participants.length, "participant"))),
+    row("status", "By status", statuses, true),
+    row("domain", "By domain", domains, false));
+  $("#refreshed").textContent = `updated ${formatTime(new Date())}`;
 }
 
 async function loadSubmissions() {
-  const { submissions } = await getJSON(`${API}/mturk`);
+  const { submissions } = await getJSON(`${API}/mturk-replica`);
   $("#mturk-submissions tbody").replaceChildren(...(submissions.length
     ? submissions.map((x) => h("tr", { "data-assignment": x.assignment_id },
         h("td", {}, time(x.submitted_at)),
@@ -156,20 +162,21 @@ function reviewSection(p) {
     return h("section", { class: "review", "aria-labelledby": "review-heading" }, heading,
       h("p", { class: "muted" }, "The review opens once the worker has submitted the assignment."));
   }
-  const message = h("p", { class: "form-error", role: "alert", hidden: true });
-  const fail = (error, buttons) => {
+  // Each form says what is wrong under its own buttons: the decision's, the bonus's.
+  const errorLine = (id) => h("p", { class: "form-error", id, role: "alert", hidden: true });
+  const complain = (message, text) => {
     message.hidden = false;
-    message.textContent = error instanceof ApiError ? error.detail : "The server could not be reached.";
-    buttons.forEach((b) => { b.disabled = false; });
+    message.textContent = text;
   };
-  const send = async (what, body, buttons) => {
+  const send = async (what, body, buttons, message) => {
     buttons.forEach((b) => { b.disabled = true; });
     message.hidden = true;
     try {
       await postJSON(`${API}/participants/${p.participant_id}/${what}`, body);
       await Promise.all([loadParticipants(), showParticipant(p.participant_id)]);
     } catch (error) {
-      fail(error, buttons);
+      complain(message, error instanceof ApiError ? error.detail : "The server could not be reached.");
+      buttons.forEach((b) => { b.disabled = false; });
     }
   };
   let decision;
@@ -177,46 +184,51 @@ function reviewSection(p) {
     decision = h("p", { "data-review": p.review.decision }, badge(p.review.decision), " ", time(p.review.decided_at),
       p.review.feedback ? ` (${p.review.feedback})` : "");
   } else {
-    const feedback = h("textarea", { id: "review-feedback", name: "feedback", rows: 2, maxlength: 1024 });
+    const message = errorLine("review-error");
+    const feedback = h("textarea", { id: "review-feedback", name: "feedback", rows: 2, maxlength: 1024, "aria-describedby": message.id });
     const approve = h("button", { class: "btn", type: "button", "data-action": "approve" }, "Approve");
     const reject = h("button", { class: "btn", type: "button", "data-action": "reject" }, "Reject");
-    approve.addEventListener("click", () => send("approval", { feedback: feedback.value.trim() || null }, [approve, reject]));
+    feedback.addEventListener("input", () => {
+      feedback.removeAttribute("aria-invalid");
+      message.hidden = true;
+    });
+    approve.addEventListener("click", () => send("approval", { feedback: feedback.value.trim() || null }, [approve, reject], message));
     reject.addEventListener("click", () => {
       if (!feedback.value.trim()) {
-        message.hidden = false;
-        message.textContent = "A rejection needs feedback: the worker is shown why.";
+        complain(message, "A rejection needs feedback: the worker is shown why.");
+        feedback.setAttribute("aria-invalid", "true");
         feedback.focus();
         return;
       }
-      send("rejection", { feedback: feedback.value.trim() }, [approve, reject]);
+      send("rejection", { feedback: feedback.value.trim() }, [approve, reject], message);
     });
     decision = h("div", { class: "review-decision" },
       h("p", { class: "muted" }, "Not reviewed yet."),
       h("label", { for: "review-feedback" }, "Feedback to the worker (needed to reject)"), feedback,
-      h("div", { class: "review-buttons" }, approve, reject));
+      h("div", { class: "review-buttons" }, approve, reject), message);
   }
+  const bonusMessage = errorLine("bonus-error");
   const amount = h("input", { id: "bonus-amount", name: "amount", type: "number", min: "0.01", step: "0.01", inputmode: "decimal", required: true });
   const reason = h("input", { id: "bonus-reason", name: "reason", type: "text", maxlength: 1024, required: true });
   const pay = h("button", { class: "btn", type: "submit", "data-action": "bonus" }, "Pay the bonus");
   const token = requestToken();
   const bonusForm = h("form", { class: "bonus" },
     h("label", { for: "bonus-amount" }, "Bonus (USD)"), amount,
-    h("label", { for: "bonus-reason" }, "Reason, shown to the worker"), reason, pay);
+    h("label", { for: "bonus-reason" }, "Reason, shown to the worker"), reason, pay, bonusMessage);
   bonusForm.addEventListener("submit", (event) => {
     event.preventDefault();
     if (!amount.value || !reason.value.trim()) {
-      message.hidden = false;
-      message.textContent = "A bonus needs an amount and a reason.";
+      complain(bonusMessage, "A bonus needs an amount and a reason.");
       return;
     }
-    send("bonuses", { amount: amount.value, reason: reason.value.trim(), unique_token: token }, [pay]);
+    send("bonuses", { amount: amount.value, reason: reason.value.trim(), unique_token: token }, [pay], bonusMessage);
   });
   return h("section", { class: "review", "aria-labelledby": "review-heading" }, heading, decision,
     h("h4", {}, "Bonuses"),
     p.bonuses.length
       ? h("ul", { class: "bonuses" }, p.bonuses.map((b) => h("li", { "data-amount": b.amount }, `${b.amount} USD · ${b.reason} · ${time(b.paid_at)}`)))
       : h("p", { class: "muted" }, "No bonus paid."),
-    bonusForm, message);
+    bonusForm);
 }
 
 /** Normalised return (0..1) after each update, against the episodes so far. */
@@ -333,7 +345,7 @@ async function showReplay(sessionId) {
     index = Math.max(0, Math.min(frames.length - 1, i));
     const f = frames[index];
     view.setTask(f.task);
-    view.setAgent(decodeState(env, f.state), data.colour_hex ?? "#888888");
+    view.setAgent(decodeState(env, f.state), data.session.colour_hex ?? "#888888");
     board.dataset.frame = index;
     board.dataset.state = f.state;
     slider.value = index;

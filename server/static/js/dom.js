@@ -49,3 +49,14 @@ export function environmentTitle(name) {
 export function capitalise(text) {
   return text.charAt(0).toUpperCase() + text.slice(1);
 }
+
+/** "2026-11-26 10:42:07 UTC": how every time is written on the experimenter's pages (the
+ * server writes the replica's the same way, ``format_time`` in routers/common.py). ``value`` is
+ * a Date or an ISO 8601 text; one without a zone is UTC, as the server keeps times. */
+export function formatTime(value) {
+  if (value === null || value === undefined || value === "") return "";
+  const text = String(value);
+  const date = value instanceof Date ? value : new Date(/(Z|[+-]\d\d:?\d\d)$/.test(text) ? text : `${text}Z`);
+  if (Number.isNaN(date.getTime())) return text;
+  return `${date.toISOString().slice(0, 19).replace("T", " ")} UTC`;
+}

@@ -186,6 +186,30 @@ export class GridView {
     this.agentInner = svg("g", {}, this.agent);
     this.robot = robotIcon(this.agentInner, "#888");
     this.badge = svg("g", { class: "agent-badge" }, this.agentInner);
+    this.bumpMark = svg("rect", { class: "bump-mark", "aria-hidden": "true" }, this.agent);
+    this.bumps = 0;
+  }
+
+  /** A move towards ``direction`` (UP, DOWN, LEFT, RIGHT) that left the agent where it was: it
+   * nudges that way and back, and a red bar on that side of its cell shows where it stopped. */
+  bump(direction) {
+    const edge = { UP: [8, 0, 84, 9], DOWN: [8, 91, 84, 9], LEFT: [0, 8, 9, 84], RIGHT: [91, 8, 9, 84] }[direction];
+    if (!edge) return;
+    const [x, y, width, height] = edge;
+    for (const [name, value] of Object.entries({ x, y, width, height })) this.bumpMark.setAttribute(name, value);
+    this.bumps += 1;
+    this.agent.dataset.bumps = this.bumps;
+    this.agent.dataset.bump = direction.toLowerCase();
+    for (const node of [this.agentInner, this.bumpMark]) {
+      node.classList.remove("on");
+      void node.getBoundingClientRect(); // restart the animation
+      node.classList.add("on");
+    }
+    clearTimeout(this.bumpTimer);
+    this.bumpTimer = setTimeout(() => {
+      this.agentInner.classList.remove("on");
+      this.bumpMark.classList.remove("on");
+    }, 700);
   }
 
   drawTerrain() {

@@ -124,12 +124,15 @@ function consentPage() {
   };
   agree.addEventListener("click", () => answer(true));
   decline.addEventListener("click", () => answer(false));
+  // The text scrolls in its own box, which the keyboard can reach (Tab, then the arrow keys),
+  // so that the answers stay in view under it.
   show(sheet(
     h("h1", {}, study.title),
     h("p", { class: "lead" }, study.payment),
-    h("h2", {}, "Consent to take part"),
-    h("div", { class: "consent-text" }, paragraphs(study.consent)),
+    h("h2", { id: "consent-heading" }, "Consent to take part"),
+    h("div", { class: "consent-text", tabindex: 0, role: "region", "aria-labelledby": "consent-heading" }, paragraphs(study.consent)),
     h("div", { class: "actions" }, agree, decline)));
+  app.querySelector(".sheet").classList.add("consent-sheet");
 }
 
 function declinedPage() {
@@ -163,7 +166,7 @@ function instructionsPage() {
           h("li", {}, h("strong", {}, "Demonstrate"), " (", h("kbd", {}, "D"), "): move the agent to the task's goal with the arrow keys."),
           h("li", {}, h("strong", {}, "Let the agent try"), " (", h("kbd", {}, "T"), "): watch it act on its own, and press ", h("kbd", {}, "G"), " for a good move or ", h("kbd", {}, "B"), " for a bad one."),
           h("li", {}, "Switch tasks, ", h("strong", {}, "Stop"), " (", h("kbd", {}, "S"), ") and ", h("strong", {}, "Reset"), " (", h("kbd", {}, "R"), ") whenever you like."),
-          h("li", {}, "When an agent has been shown every task and does them well, go on with ", h("strong", {}, "Next agent"), " (", h("kbd", {}, "N"), ")."),
+          h("li", {}, h("strong", {}, "Next agent"), " (", h("kbd", {}, "N"), ") opens once every task has at least one demonstrated move; go on when the agent does them well."),
         ),
         study.tutorial ? h("p", {}, "A short tutorial shows you each of these first.") : null,
         h("p", { class: "muted" }, "Your progress is saved as you go: if the page reloads, you continue where you were."))),

@@ -134,7 +134,9 @@ export class Teacher {
       h("div", { class: "feedback-row", role: "group", "aria-label": "Feedback on the agent's moves" },
         h("span", { class: "feedback-label" }, "Feedback"), this.goodButton, this.badButton));
     const stage = h("section", { class: "stage", "aria-label": "The grid world" },
-      h("div", { class: "board-frame" }, this.board, this.flashBox, this.focusHint),
+      // Above the grid, not over it: the hint never hides the first row or the goals' labels.
+      this.focusHint,
+      h("div", { class: "board-frame" }, this.board, this.flashBox),
       this.gridText,
       controls,
       h("p", { class: "hint" }, h("kbd", {}, "←"), h("kbd", {}, "↑"), h("kbd", {}, "↓"), h("kbd", {}, "→"),
@@ -254,7 +256,7 @@ export class Teacher {
     this.badButton.disabled = !feedbackOn;
     const reason = this.finishBlocked();
     this.nextButton.disabled = reason !== null;
-    this.nextReason.textContent = reason ?? (this.isTutorial ? "" : "Every task has a demonstration: you may go on when you are ready.");
+    this.nextReason.textContent = reason ?? (this.isTutorial ? "" : "Every task has at least one demonstrated move: go on when the agent does them well.");
     this.nextReason.classList.toggle("ok", reason === null);
     this.featureLine.textContent = t.agent?.carrying !== undefined
       ? `Carrying: ${t.agent.carrying === "none" ? "nothing" : MACHINES[t.agent.carrying]}`
@@ -326,14 +328,27 @@ export class Teacher {
     if (!this.t.can_finish) {
       const missing = this.t.demonstrated.map((n, k) => (n === 0 ? `“${this.taskName(k)}”` : null)).filter(Boolean);
       return missing.length
-        ? `Demonstrate every task at least once first. Not yet: ${missing.join(", ")}.`
+        ? `Every task needs at least one demonstrated move first. Not yet: ${missing.join(", ")}.`
         : capitalise(this.t.finish_blocked ?? "not yet");
     }
     return null;
   }
 
+  /** What stopped the last move, in words (the agent stayed where it was). */
+  blockedText() {
+    const { direction, mode } = this.blocked;
+    if (mode === "agent") return `The agent's last move (${direction}) was blocked: it stayed where it was, and the move still counts.`;
+    if (mode === "demonstrate") return `Blocked: the agent could not move ${direction} and stayed where it was; the move still counts as demonstrated.`;
+    return `Blocked: the agent could not move ${direction} and stayed where it was.`;
+  }
+
   statusText(atGoal) {
     if (this.notice && this.notice.until > Date.now()) return this.notice.text;
+    const text = this.modeStatus(atGoal);
+    return this.blocked ? `${this.blockedText()} ${text}` : text;
+  }
+
+  modeStatus(atGoal) {
     const { t, env } = this;
     const task = `“${this.taskName()}”`;
     if (t.mode === "demonstrate") {
@@ -419,8 +434,17 @@ export class Teacher {
 
   apply(response, kind, modeBefore, taskBefore) {
     this.brief = response.participant;
+    const before = this.t.agent;
     if (response.session) this.t = response.session;
     const outcome = response.outcome;
+    const after = this.t.agent;
+    // A move (the participant's or the agent's) that left the agent on its cell is shown and
+    // said: otherwise only a move counter would change.
+    this.blocked = ["move", "agent-step"].includes(kind) && outcome.action && outcome.action !== "STAY"
+      && before && after && before.row === after.row && before.column === after.column
+      ? { direction: outcome.action.toLowerCase(), mode: modeBefore }
+      : kind === "feedback" ? this.blocked : null;
+    if (this.blocked) this.grid.bump(outcome.action);
     if (outcome.episode_ended) {
       this.lastEnd = { reason: outcome.episode_ended, kind: modeBefore };
     } else if (["reset", "mode", "task"].includes(kind) || (kind === "move" && modeBefore === "demonstrate")) {
@@ -438,6 +462,7 @@ export class Teacher {
       if (outcome.feedback) this.announce(`Feedback recorded: ${outcome.feedback > 0 ? "good" : "bad"}.`);
       if (kind === "mode" && this.t.mode !== modeBefore && !outcome.episode_ended) this.announce(this.modeText());
       if (kind === "task" && this.t.task !== taskBefore) this.announce(`Task “${this.taskName()}” selected.`);
+      if (this.blocked) this.announce(this.blockedText());
       this.update();
     }
     this.emit({ kind, outcome, modeBefore, taskBefore, state: this.t });
@@ -539,11 +564,19 @@ export class Teacher {
         this.dialog.close();
         resolve(answer);
       };
-      const yes = h("button", { type: "button", class: "btn primary", "data-action": "confirm-next", onclick: () => done(true) }, h("kbd", {}, "Enter"), "Yes, next agent");
+      // After the last agent there is no next one: the study ends (or its questions follow).
+      const last = this.summary.position + 1 >= this.participant.progress.of;
+      const yes = h("button", { type: "button", class: "btn primary", "data-action": "confirm-next", onclick: () => done(true) },
+        h("kbd", {}, "Enter"), last ? "Yes, finish teaching" : "Yes, next agent");
       const no = h("button", { type: "button", class: "btn", "data-action": "cancel-next", onclick: () => done(false) }, h("kbd", {}, "Esc"), "Keep teaching");
+      const after = !last
+        ? "You cannot come back to this agent once you move on."
+        : this.study.questionnaire
+          ? "This is the last agent: a few questions follow, and you cannot come back to it."
+          : "This is the last agent: the study ends here, and you cannot come back to it.";
       this.dialog.replaceChildren(
         h("h2", {}, `Finish teaching the ${this.summary.colour.name} agent?`),
-        h("p", {}, "You cannot come back to this agent once you move on."),
+        h("p", {}, after),
         h("div", { class: "dialog-buttons" }, no, yes));
       this.dialog.oncancel = (event) => {
         event.preventDefault();
@@ -628,6 +661,7 @@ export class Teacher {
       n: () => this.next(),
       g: () => this.feedback(1),
       "+": () => this.feedback(1),
+      "=": () => this.feedback(1), // the "+" key unshifted
       b: () => this.feedback(-1),
       "-": () => this.feedback(-1),
     };

@@ -19,6 +19,14 @@ function demonstratedToGoal(event, task) {
     && event.outcome.goal_reached && event.outcome.episode_ended === "goal";
 }
 
+/** The rule for going on, as the study applies it (the server refuses Next agent until then). */
+export const RULE = "In the study, Next agent opens once every task has at least one demonstrated move (stopping early counts too; reaching the goal teaches more).";
+
+/** The names of the tasks with no demonstrated move yet, quoted. */
+function notShown(state, env) {
+  return state.demonstrated.map((n, k) => (n === 0 ? `“${env.tasks[k].name}”` : null)).filter(Boolean);
+}
+
 function steps(teacher) {
   const { env } = teacher;
   const [first, second] = env.tasks.map((task) => `“${task.name}”`);
@@ -39,7 +47,7 @@ function steps(teacher) {
     {
       id: "demonstrate",
       title: "Show it a task",
-      text: `The selected task is ${first} (★). Press Demonstrate (D), then walk the agent to its goal with the arrow keys; reaching it ends the demonstration (stopping before the goal does not count here). ${domainHint}`,
+      text: `The selected task is ${first} (★). Press Demonstrate (D), then walk the agent to its goal with the arrow keys; reaching it ends the demonstration. For this step, go all the way to the goal: Stop (S) ends a demonstration earlier. ${domainHint}`,
       done: (e) => demonstratedToGoal(e, 0),
     },
     {
@@ -81,9 +89,14 @@ function steps(teacher) {
     },
     {
       id: "demonstrate-second",
-      title: "Demonstrate the other task",
-      text: `Now demonstrate ${second}: press D and walk the agent to its goal. Each agent needs a demonstration of every task before you can go on.`,
-      done: (e) => demonstratedToGoal(e, 1),
+      title: env.tasks.length > 2 ? "Demonstrate the other tasks" : "Demonstrate the other task",
+      text: (t) => {
+        const missing = notShown(t, env);
+        const which = missing.length ? missing.join(" and ") : second;
+        return `Now demonstrate ${which}: select it, press D and walk the agent to its goal. ${RULE}`;
+      },
+      done: (e) => e.kind === "move" && e.modeBefore === "demonstrate" && e.outcome.episode_ended === "goal"
+        && notShown(e.state, env).length === 0,
     },
     {
       id: "ready",
@@ -144,6 +157,6 @@ export class Tutorial {
       h("p", { class: "tutorial-count" }, `Tutorial step ${this.index + 1} of ${total}`),
       bar,
       h("h2", {}, step.title),
-      h("p", {}, step.text));
+      h("p", {}, typeof step.text === "function" ? step.text(this.teacher.t) : step.text));
   }
 }

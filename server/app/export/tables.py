@@ -1,0 +1,650 @@
+"""The study's data as tables: CSV files with a data dictionary, a zip, or pandas DataFrames.
+
+``open_study_database`` opens a study database for reading only (it never creates one);
+``export_tables`` reads it (the analysis can use it directly); ``write_export`` writes the CSVs
+and ``data_dictionary.csv``. Worker and assignment ids are pseudonymised with a salted hash
+(HMAC-SHA256 with ``BAM_SECRET``, or the random secret created with the database) and
+completion codes left out, unless ``pseudonymize=False``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import io
+import zipfile
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+from sqlalchemy import create_engine, select
+from sqlalchemy.engine import make_url
+
+from server.app.storage.db import Database
+from server.app.storage.figures import participant_figures, study_sessions_by_participant
+from server.app.storage.models import (
+    AssignmentReview,
+    Bonus,
+    Episode,
+    Event,
+    Installation,
+    LearnerUpdate,
+    LearningSession,
+    Participant,
+    QuestionnaireAnswer,
+    StatusChange,
+)
+from server.domains import make as make_environment
+from server.domains.base import ACTIONS
+
+STATUS_COLUMNS = (
+    "arrived",
+    "consented",
+    "declined",
+    "tutorial",
+    "teaching",
+    "questionnaire",
+    "completed",
+    "submitted",
+    "returned",
+    "abandoned",
+)
+
+# file -> column -> description: the data dictionary, and the columns in order.
+DICTIONARY: dict[str, dict[str, str]] = {
+    "participants": {
+        "participant_id": "Participant number (database id).",
+        "platform": "mturk, prolific or lab.",
+        "worker_id": "MTurk workerId or Prolific PROLIFIC_PID (pseudonymised: w_ + salted hash).",
+        "assignment_id": "MTurk assignmentId or Prolific SESSION_ID (pseudonymised: a_ + hash).",
+        "hit_id": "MTurk hitId or Prolific STUDY_ID.",
+        "status": "Latest status: arrived, consented, declined, tutorial, teaching, "
+        "questionnaire (answering the post-study questionnaire), completed, submitted, returned "
+        "(MTurk HIT returned) or abandoned (idle too long).",
+        "domain": "Domain assigned at consent (empty before).",
+        "excluded": "True if the experimenter excluded the participant from analysis.",
+        "exclusion_reason": "The experimenter's reason for the exclusion.",
+        **{
+            f"{status}_at": f"First time the participant's status became {status} (UTC, ISO 8601)."
+            for status in STATUS_COLUMNS
+        },
+        "excluded_at": "When the participant was excluded (UTC).",
+        "last_seen_at": "The participant's latest request that changed something (UTC).",
+        "minutes": "Minutes from arrival to completion (or to the latest request if not completed).",
+        "agents": "Study agents (learning sessions) assigned.",
+        "agents_finished": "Study agents the participant finished.",
+        "tutorial_step": "The tutorial step the participant reached (from 0).",
+        "completion_code": "The completion code issued (left out when pseudonymised).",
+    },
+    "sessions": {
+        "session_id": "Learning session number (database id): one agent taught by one participant.",
+        "participant_id": "The participant (participants.csv).",
+        "domain": "navigation, farming or gravity.",
+        "environment": "The environment taught.",
+        "learner": "The agent's learning algorithm (bam, model-based, global-cost, cloning).",
+        "position": "Order among the participant's study agents, from 0.",
+        "started_at": "When this agent's turn came (UTC).",
+        "finished_at": "When the participant finished this agent (UTC; empty if not).",
+        "completed": "True if the participant finished teaching this agent.",
+        "opened_at": "When the participant began teaching it, past its introduction page (UTC).",
+        "colour": "The agent's colour on screen.",
+        "seed": "Seed of the session's learner and of its random starts and dynamics.",
+        "episodes": "Episodes ended (demonstrations plus agent episodes).",
+        "demonstrations": "Demonstration episodes ended.",
+        "agent_episodes": "Agent episodes ended.",
+        "actions": "Actions in episodes (demonstrated plus agent actions; no synthetic STAY).",
+        "demonstrated_actions": "Demonstrated actions (teacher moves in demonstrate mode).",
+        "agent_actions": "Actions the agent took on its own.",
+        "idle_moves": "Moves in idle mode (not demonstrations; their transitions are observed).",
+        "feedback_given": "Feedback signals given (+ or -).",
+        "updates": "Learner updates after episodes processed (update 0, the untrained learner's evaluation, is not one; the API's `learning.updates` counts the same).",
+        "final_normalized_return": "Normalised return after the session's last processed update.",
+    },
+    "episodes": {
+        "episode_id": "Episode number (database id).",
+        "session_id": "The learning session (sessions.csv, or tutorial_sessions.csv).",
+        "participant_id": "The participant.",
+        "session_kind": "study or tutorial.",
+        "index": "Order of the episode in its session, from 0.",
+        "kind": "demonstration or agent.",
+        "task": "Index of the task selected during the episode.",
+        "task_name": "Name of that task.",
+        "start_state": "State before the episode's first action (never the task's goal in "
+        "data recorded since no episode may start there; before, a demonstration's start_state "
+        "was the state after its first move).",
+        "end_state": "State when it ended (after the synthetic STAY, if any).",
+        "started_at": "Time of the first action (UTC).",
+        "ended_at": "When it ended (UTC; empty if still open).",
+        "end_reason": "end (the participant), goal, horizon (agent episodes), or implicitly: "
+        "task, mode, reset, finish.",
+        "actions": "Actions in the episode (no synthetic STAY).",
+        "update_index": "The learner update queued when it ended (evaluations.csv).",
+    },
+    "events": {
+        "event_id": "Event number (database id; increasing in time).",
+        "participant_id": "The participant.",
+        "session_id": "The learning session (empty for consent, start, tutorial, submission).",
+        "seq": "The participant's sequence number of the request.",
+        "kind": "consent, start, tutorial (a tutorial step reached), submission, open (teaching "
+        "begun after the agent's introduction page), task, mode, move, agent_step, feedback, "
+        "reset, end_episode or finish.",
+        "created_at": "When the request was committed (UTC).",
+        "task": "Task selected (for task: the new one).",
+        "mode": "Mode after the event: idle, demonstrate or agent.",
+        "state": "The agent's state before the event.",
+        "action": "The action taken (move, agent_step): STAY, UP, DOWN, LEFT or RIGHT.",
+        "next_state": "The agent's state after the event (before a synthetic STAY); differs "
+        "from state for a mode or task event when the agent stood on the selected task's goal "
+        "with a mode on and was put at a random start.",
+        "feedback": "+1 or -1 (feedback events); 0 on agent steps.",
+        "episode_index": "The episode the event belongs to or ended.",
+        "record": "What the learner observed: demonstration, agent_step, transition (idle move) "
+        "or feedback (on the latest agent step).",
+        "stay_state": "Outcome of the synthetic STAY appended to a demonstration that ended here.",
+        "episode_end": "Why an episode ended at this event (see episodes.csv end_reason).",
+    },
+    "evaluations": {
+        "session_id": "The learning session (sessions.csv).",
+        "participant_id": "The participant.",
+        "domain": "The session's domain.",
+        "environment": "The session's environment.",
+        "learner": "The session's learner.",
+        "position": "The session's position.",
+        "update_index": "0: the untrained learner; k >= 1: the update after the k-th episode.",
+        "episodes": "Episodes ended in the session when the update was queued (cumulative).",
+        "actions": "Actions in the session's episodes by then (cumulative).",
+        "normalized_return": "Exact expected total return of the agent's greedy policies over all "
+        "tasks divided by the optimal total return (empty if the update failed).",
+        "status": "done, or failed (the update raised an error; the next one includes its data).",
+        "objective": "The learner's objective after the update.",
+        "update_seconds": "Time the learner update took.",
+        "queued_at": "When the episode ended and the update was queued (UTC).",
+        "finished_at": "When the update and its evaluation were committed (UTC).",
+    },
+    "status_changes": {
+        "participant_id": "The participant.",
+        "status": "The new status, or excluded / included (the experimenter's marks).",
+        "at": "When (UTC).",
+        "note": "Details (the session begun, the reason for an exclusion, ...).",
+    },
+    "questionnaire_answers": {
+        "participant_id": "The participant.",
+        "question_id": "The question's id in the study file ([[questionnaire.questions]] id).",
+        "kind": "text (free text), likert (a point on a labelled scale) or choice (one of the "
+        "choices offered).",
+        "question": "The question as it was shown.",
+        "answer": "The text typed, the choice picked, or the Likert point (1 to the number of "
+        "labels).",
+        "label": "Likert: the label of the point picked (empty for the other kinds).",
+        "answered_at": "When the questionnaire was submitted (UTC).",
+    },
+    "reviews": {
+        "participant_id": "The participant.",
+        "assignment_id": "The MTurk assignmentId reviewed (pseudonymised as in participants.csv).",
+        "worker_id": "The worker (pseudonymised as in participants.csv).",
+        "decision": "approved or rejected (final; sent to the review backend).",
+        "requester_feedback": "The feedback sent to the worker with the decision (MTurk's "
+        "RequesterFeedback).",
+        "backend": "Where the decision was sent: replica (the local MTurk replica) or mturk.",
+        "decided_at": "When the platform took the decision (UTC).",
+    },
+    "bonuses": {
+        "participant_id": "The participant.",
+        "assignment_id": "The MTurk assignmentId the bonus was paid for (pseudonymised).",
+        "worker_id": "The worker paid (pseudonymised).",
+        "amount_usd": "The bonus, in US dollars.",
+        "reason": "The reason sent to the worker with the bonus.",
+        "unique_token": "The request's UniqueRequestToken (a retry with it pays nothing more).",
+        "backend": "Where the bonus was sent: replica or mturk.",
+        "paid_at": "When the platform took the bonus (UTC).",
+    },
+}
+# Integer columns, some of them with empty cells (written without a decimal point).
+INTEGER_COLUMNS = frozenset(
+    {
+        "participant_id",
+        "session_id",
+        "episode_id",
+        "event_id",
+        "position",
+        "seed",
+        "seq",
+        "task",
+        "state",
+        "next_state",
+        "feedback",
+        "episode_index",
+        "stay_state",
+        "index",
+        "start_state",
+        "end_state",
+        "update_index",
+        "episodes",
+        "actions",
+        "agents",
+        "agents_finished",
+        "tutorial_step",
+        "demonstrations",
+        "agent_episodes",
+        "demonstrated_actions",
+        "agent_actions",
+        "idle_moves",
+        "feedback_given",
+        "updates",
+    }
+)
+DICTIONARY["tutorial_sessions"] = {
+    key: value for key, value in DICTIONARY["sessions"].items() if key != "position"
+}
+DESCRIPTIONS = {
+    "participants": "One row per participant (an arrival that was not a preview).",
+    "sessions": "One row per learning session of the study (the tutorial's are apart).",
+    "tutorial_sessions": "One row per tutorial learning session (not analysed).",
+    "episodes": "One row per episode of every learning session, tutorials included.",
+    "events": "One row per acknowledged participant request, in order (append-only log).",
+    "evaluations": "One row per processed learner update of the study's sessions.",
+    "status_changes": "One row per change of a participant's status.",
+    "questionnaire_answers": "One row per question answered in the post-study questionnaire "
+    "(an optional question left unanswered has none; a study without a questionnaire, none).",
+    "reviews": "One row per submitted MTurk assignment the experimenter approved or rejected.",
+    "bonuses": "One row per bonus paid to a participant's worker.",
+    "data_dictionary": "Every file's columns. In every file, a text cell that begins with =, +, "
+    "-, @, a tab or a carriage return is written with an apostrophe (') before it, so that a "
+    "spreadsheet shows it as text instead of running it as a formula; remove that first "
+    "apostrophe to get the text as stored. Numbers are written as they are.",
+}
+FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
+
+
+def pseudonym(secret: str, value: str | None, prefix: str) -> str | None:
+    if value is None:
+        return None
+    digest = hmac.new(secret.encode(), value.encode(), hashlib.sha256).hexdigest()
+    return f"{prefix}_{digest[:16]}"
+
+
+def open_study_database(url: str) -> Database:
+    """The study database at ``url``, to read from (the export, the analysis).
+
+    A SQLite file is opened read-only: SQLite would create an empty database for a path that
+    does not exist, and a reader never writes to (or changes the journal mode of) a study.
+    Raises ``FileNotFoundError`` or ``ValueError`` (a bad URL) with a message that names no
+    password.
+    """
+    from urllib.parse import quote
+
+    from sqlalchemy.exc import ArgumentError
+
+    try:
+        parsed = make_url(url)
+    except ArgumentError as error:
+        raise ValueError(f"{url!r} is not a database URL: {error}") from None
+    if parsed.get_backend_name() != "sqlite":
+        return Database.from_url(url)
+    if not parsed.database or parsed.database == ":memory:":
+        raise ValueError("a SQLite URL needs the database file")
+    file = Path(parsed.database)
+    if not file.is_file():
+        raise FileNotFoundError(f"no database file {file}")
+    path = quote(file.resolve().as_posix())
+    return Database(create_engine(f"sqlite:///file:{path}?mode=ro&uri=true"))
+
+
+def database_secret(db: Database) -> str:
+    with db.read() as s:
+        secret = s.scalar(select(Installation.secret).where(Installation.id == 1))
+    if not secret:
+        raise RuntimeError("the database has no installation secret: run `bam-study db upgrade`")
+    return secret
+
+
+def _iso(value: Any) -> Any:
+    return value.isoformat() if value is not None and hasattr(value, "isoformat") else value
+
+
+def _frame(name: str, rows: Iterable[dict[str, Any]]) -> pd.DataFrame:
+    return pd.DataFrame(list(rows), columns=list(DICTIONARY[name]))
+
+
+def export_tables(
+    db: Database | str, pseudonymize: bool = True, secret: str | None = None
+) -> dict[str, pd.DataFrame]:
+    """Every export table as a DataFrame (columns as in ``DICTIONARY``; times as ISO strings),
+    from a study database or its URL."""
+    if isinstance(db, str):
+        database = open_study_database(db)
+        try:
+            return export_tables(database, pseudonymize, secret)
+        finally:
+            database.dispose()
+    if pseudonymize and secret is None:
+        secret = database_secret(db)
+    with db.read() as s:
+        participants = s.scalars(select(Participant).order_by(Participant.id)).all()
+        changes = s.scalars(select(StatusChange).order_by(StatusChange.id)).all()
+        answers = s.scalars(select(QuestionnaireAnswer).order_by(QuestionnaireAnswer.id)).all()
+        reviews = s.scalars(select(AssignmentReview).order_by(AssignmentReview.id)).all()
+        bonuses = s.scalars(select(Bonus).order_by(Bonus.id)).all()
+        sessions = s.scalars(select(LearningSession).order_by(LearningSession.id)).all()
+        episodes = s.scalars(select(Episode).order_by(Episode.id)).all()
+        updates = s.execute(
+            select(
+                LearnerUpdate.session_id,
+                LearnerUpdate.update_index,
+                LearnerUpdate.status,
+                LearnerUpdate.episodes,
+                LearnerUpdate.actions,
+                LearnerUpdate.normalized_return,
+                LearnerUpdate.objective,
+                LearnerUpdate.seconds,
+                LearnerUpdate.queued_at,
+                LearnerUpdate.finished_at,
+            )
+            .where(LearnerUpdate.status != "pending")
+            .order_by(LearnerUpdate.session_id, LearnerUpdate.update_index)
+        ).all()
+        events = s.execute(
+            select(
+                Event.id,
+                Event.participant_id,
+                Event.session_id,
+                Event.seq,
+                Event.kind,
+                Event.created_at,
+                Event.task,
+                Event.mode,
+                Event.state,
+                Event.action,
+                Event.next_state,
+                Event.feedback,
+                Event.episode_index,
+                Event.record,
+                Event.stay_state,
+                Event.episode_end,
+            ).order_by(Event.id)
+        ).all()
+
+    first_at: dict[int, dict[str, Any]] = {}
+    for change in changes:
+        first_at.setdefault(change.participant_id, {}).setdefault(change.status, change.at)
+    session_by_id = {x.id: x for x in sessions}
+    counts: dict[int, dict[str, int]] = {}
+    for event in events:
+        if event.session_id is None:
+            continue
+        c = counts.setdefault(event.session_id, {"demo": 0, "agent": 0, "feedback": 0})
+        if event.record == "demonstration":
+            c["demo"] += 1
+        elif event.record == "agent_step":
+            c["agent"] += 1
+        elif event.record == "feedback":
+            c["feedback"] += 1
+    episode_kinds: dict[int, dict[str, int]] = {}
+    for episode in episodes:
+        if episode.ended_at is not None:
+            k = episode_kinds.setdefault(episode.session_id, {"demonstration": 0, "agent": 0})
+            k[episode.kind] += 1
+    last_return: dict[int, float | None] = {}
+    processed: dict[int, int] = {}
+    for update in updates:
+        last_return[update.session_id] = update.normalized_return
+        if update.update_index > 0:
+            processed[update.session_id] = processed.get(update.session_id, 0) + 1
+
+    def platform_ids(worker_id: str | None, assignment_id: str | None) -> dict[str, str | None]:
+        if not pseudonymize:
+            return {"worker_id": worker_id, "assignment_id": assignment_id}
+        assert secret is not None
+        return {
+            "worker_id": pseudonym(secret, worker_id, "w"),
+            "assignment_id": pseudonym(secret, assignment_id, "a"),
+        }
+
+    study_sessions = study_sessions_by_participant(sessions)
+
+    def participant_row(p: Participant) -> dict[str, Any]:
+        at = first_at.get(p.id, {})
+        figures = participant_figures(p, study_sessions.get(p.id, []), at.get("completed"))
+        row = {
+            "participant_id": p.id,
+            "platform": p.platform,
+            "worker_id": p.worker_id,
+            "assignment_id": p.assignment_id,
+            "hit_id": p.hit_id,
+            "status": p.status,
+            "domain": p.domain,
+            "excluded": p.excluded_at is not None,
+            "exclusion_reason": p.exclusion_reason,
+            **{f"{status}_at": _iso(at.get(status)) for status in STATUS_COLUMNS},
+            "excluded_at": _iso(p.excluded_at),
+            "last_seen_at": _iso(p.last_seen_at),
+            "minutes": figures.minutes,
+            "agents": figures.agents,
+            "agents_finished": figures.agents_finished,
+            "tutorial_step": p.tutorial_step,
+            "completion_code": p.completion_code,
+        }
+        if pseudonymize:
+            row.update(platform_ids(p.worker_id, p.assignment_id))
+            row["completion_code"] = None
+        return row
+
+    def review_row(r: AssignmentReview) -> dict[str, Any]:
+        return {
+            "participant_id": r.participant_id,
+            **platform_ids(r.worker_id, r.assignment_id),
+            "decision": r.decision,
+            "requester_feedback": r.feedback,
+            "backend": r.backend,
+            "decided_at": _iso(r.decided_at),
+        }
+
+    def bonus_row(b: Bonus) -> dict[str, Any]:
+        return {
+            "participant_id": b.participant_id,
+            **platform_ids(b.worker_id, b.assignment_id),
+            "amount_usd": b.amount_cents / 100,
+            "reason": b.reason,
+            "unique_token": b.unique_token,
+            "backend": b.backend,
+            "paid_at": _iso(b.paid_at),
+        }
+
+    def answer_row(a: QuestionnaireAnswer) -> dict[str, Any]:
+        return {
+            "participant_id": a.participant_id,
+            "question_id": a.question_id,
+            "kind": a.kind,
+            "question": a.question,
+            "answer": a.answer,
+            "label": a.label,
+            "answered_at": _iso(a.answered_at),
+        }
+
+    def session_row(x: LearningSession) -> dict[str, Any]:
+        c = counts.get(x.id, {"demo": 0, "agent": 0, "feedback": 0})
+        k = episode_kinds.get(x.id, {"demonstration": 0, "agent": 0})
+        return {
+            "session_id": x.id,
+            "participant_id": x.participant_id,
+            "domain": x.domain,
+            "environment": x.environment,
+            "learner": x.learner,
+            "position": x.position,
+            "started_at": _iso(x.started_at),
+            "finished_at": _iso(x.finished_at),
+            "completed": bool(x.completed),
+            "opened_at": _iso(x.opened_at),
+            "colour": x.colour_name,
+            "seed": x.seed,
+            "episodes": x.episodes,
+            "demonstrations": k["demonstration"],
+            "agent_episodes": k["agent"],
+            "actions": x.actions,
+            "demonstrated_actions": c["demo"],
+            "agent_actions": c["agent"],
+            "idle_moves": x.idle_moves,
+            "feedback_given": c["feedback"],
+            "updates": processed.get(x.id, 0),
+            "final_normalized_return": last_return.get(x.id),
+        }
+
+    def episode_row(e: Episode) -> dict[str, Any]:
+        session = session_by_id[e.session_id]
+        env = make_environment(session.environment)
+        return {
+            "episode_id": e.id,
+            "session_id": e.session_id,
+            "participant_id": session.participant_id,
+            "session_kind": session.kind,
+            "index": e.index,
+            "kind": e.kind,
+            "task": e.task,
+            "task_name": env.tasks[e.task].name,
+            "start_state": e.start_state,
+            "end_state": e.end_state,
+            "started_at": _iso(e.started_at),
+            "ended_at": _iso(e.ended_at),
+            "end_reason": e.end_reason,
+            "actions": e.actions,
+            "update_index": e.update_index,
+        }
+
+    def event_row(e: Any) -> dict[str, Any]:
+        return {
+            "event_id": e.id,
+            "participant_id": e.participant_id,
+            "session_id": e.session_id,
+            "seq": e.seq,
+            "kind": e.kind,
+            "created_at": _iso(e.created_at),
+            "task": e.task,
+            "mode": e.mode,
+            "state": e.state,
+            "action": ACTIONS[e.action] if e.action is not None else None,
+            "next_state": e.next_state,
+            "feedback": e.feedback,
+            "episode_index": e.episode_index,
+            "record": e.record,
+            "stay_state": e.stay_state,
+            "episode_end": e.episode_end,
+        }
+
+    def evaluation_rows() -> Iterable[dict[str, Any]]:
+        for u in updates:
+            session = session_by_id[u.session_id]
+            if session.kind != "study":
+                continue
+            yield {
+                "session_id": u.session_id,
+                "participant_id": session.participant_id,
+                "domain": session.domain,
+                "environment": session.environment,
+                "learner": session.learner,
+                "position": session.position,
+                "update_index": u.update_index,
+                "episodes": u.episodes,
+                "actions": u.actions,
+                "normalized_return": u.normalized_return,
+                "status": u.status,
+                "objective": u.objective,
+                "update_seconds": u.seconds,
+                "queued_at": _iso(u.queued_at),
+                "finished_at": _iso(u.finished_at),
+            }
+
+    tutorial_columns = DICTIONARY["tutorial_sessions"]
+    tables = {
+        "participants": _frame("participants", map(participant_row, participants)),
+        "sessions": _frame("sessions", (session_row(x) for x in sessions if x.kind == "study")),
+        "tutorial_sessions": _frame(
+            "tutorial_sessions",
+            (
+                {k: v for k, v in session_row(x).items() if k in tutorial_columns}
+                for x in sessions
+                if x.kind == "tutorial"
+            ),
+        ),
+        "episodes": _frame("episodes", map(episode_row, episodes)),
+        "events": _frame("events", map(event_row, events)),
+        "evaluations": _frame("evaluations", evaluation_rows()),
+        "status_changes": _frame(
+            "status_changes",
+            (
+                {
+                    "participant_id": c.participant_id,
+                    "status": c.status,
+                    "at": _iso(c.at),
+                    "note": c.note,
+                }
+                for c in changes
+            ),
+        ),
+        "questionnaire_answers": _frame("questionnaire_answers", map(answer_row, answers)),
+        "reviews": _frame("reviews", map(review_row, reviews)),
+        "bonuses": _frame("bonuses", map(bonus_row, bonuses)),
+    }
+    for frame in tables.values():
+        for column in frame.columns:
+            if column in INTEGER_COLUMNS:
+                frame[column] = frame[column].astype("Int64")
+    return tables
+
+
+def dictionary_frame() -> pd.DataFrame:
+    rows = [
+        {"file": f"{name}.csv", "column": column, "description": description}
+        for name, columns in DICTIONARY.items()
+        for column, description in columns.items()
+    ]
+    rows += [
+        {"file": f"{name}.csv", "column": "", "description": text}
+        for name, text in DESCRIPTIONS.items()
+    ]
+    return pd.DataFrame(rows, columns=["file", "column", "description"])
+
+
+def as_text(value: Any) -> Any:
+    """A text cell a spreadsheet will not run as a formula (``DESCRIPTIONS``)."""
+    if isinstance(value, str) and value.startswith(FORMULA_STARTS):
+        return "'" + value
+    return value
+
+
+def neutralised(frame: pd.DataFrame) -> pd.DataFrame:
+    text = [name for name in frame.columns if pd.api.types.is_string_dtype(frame[name].dtype)]
+    if not text:
+        return frame
+    frame = frame.copy()
+    for name in text:
+        frame[name] = frame[name].map(as_text)
+    return frame
+
+
+def export_files(tables: dict[str, pd.DataFrame]) -> dict[str, bytes]:
+    files = {
+        f"{name}.csv": neutralised(frame).to_csv(index=False).encode()
+        for name, frame in tables.items()
+    }
+    files["data_dictionary.csv"] = neutralised(dictionary_frame()).to_csv(index=False).encode()
+    return files
+
+
+def write_export(tables: dict[str, pd.DataFrame], out: Path) -> list[Path]:
+    """Write the CSVs and the data dictionary into ``out``; returns the files written."""
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name, content in export_files(tables).items():
+        path = out / name
+        path.write_bytes(content)
+        written.append(path)
+    return written
+
+
+def export_zip(tables: dict[str, pd.DataFrame]) -> bytes:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
+        for name, content in export_files(tables).items():
+            archive.writestr(name, content)
+    return buffer.getvalue()

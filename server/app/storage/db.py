@@ -1,0 +1,205 @@
+"""Database engines, transactions and the Alembic migrations.
+
+SQLite (the embedded default) runs in WAL mode with a busy timeout and foreign keys on, and
+with ``synchronous=FULL`` by default: every commit (every acknowledged request) is on disk
+before it is answered, through an OS crash or power loss too. ``NORMAL``
+(``BAM_SQLITE_SYNCHRONOUS=normal``) survives a crash of the server process but may lose the
+last commits to an OS crash or power loss. All of
+one server's writes go through ``Database.write()``: on SQLite they queue on a lock inside the
+process and open with ``BEGIN IMMEDIATE``, so concurrent participants never see "database is
+locked" and never wait in SQLite's sleeping busy handler; on PostgreSQL each transaction locks
+the participant's row instead (``lock_participant``), so concurrent requests of different
+participants run in parallel.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import Connection, Engine, create_engine, event
+from sqlalchemy.engine import make_url
+from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.pool import NullPool
+
+# The source tree: alembic.ini and migrations/ sit at its root (editable installs and the
+# Docker image both run from the tree).
+ROOT = Path(__file__).resolve().parents[3]
+ALEMBIC_INI = ROOT / "alembic.ini"
+MIGRATIONS = ROOT / "migrations"
+
+
+class SchemaError(RuntimeError):
+    """The database schema is not at the version this code needs."""
+
+
+SQLITE_SYNCHRONOUS = ("full", "normal")
+
+
+def create_db_engine(
+    url: str,
+    busy_timeout_ms: int = 10_000,
+    pool_size: int = 20,
+    synchronous: str = "full",
+    **kwargs: Any,
+) -> Engine:
+    """An engine for ``url`` with the settings the study server relies on."""
+    parsed = make_url(url)
+    if kwargs.get("poolclass") is not NullPool:
+        kwargs.update(pool_size=pool_size, max_overflow=pool_size)
+    if parsed.get_backend_name() == "sqlite":
+        if parsed.database in (None, "", ":memory:"):
+            raise ValueError("the study needs a SQLite file, not an in-memory database")
+        connect_args = {"check_same_thread": False, "timeout": busy_timeout_ms / 1000}
+        engine = create_engine(url, connect_args=connect_args, **kwargs)
+        if synchronous not in SQLITE_SYNCHRONOUS:
+            raise ValueError(f"SQLite synchronous must be one of {SQLITE_SYNCHRONOUS}")
+        _configure_sqlite(engine, busy_timeout_ms, synchronous)
+        return engine
+    return create_engine(url, pool_pre_ping=True, **kwargs)
+
+
+def _configure_sqlite(engine: Engine, busy_timeout_ms: int, synchronous: str) -> None:
+    @event.listens_for(engine, "connect")
+    def _on_connect(dbapi_connection: Any, _record: Any) -> None:
+        # Take over BEGIN from the driver so that writes can BEGIN IMMEDIATE (see do_begin).
+        dbapi_connection.isolation_level = None
+        cursor = dbapi_connection.cursor()
+        cursor.execute("PRAGMA journal_mode=WAL")
+        cursor.execute(f"PRAGMA busy_timeout={int(busy_timeout_ms)}")
+        cursor.execute("PRAGMA foreign_keys=ON")
+        cursor.execute(f"PRAGMA synchronous={synchronous.upper()}")
+        cursor.close()
+
+    @event.listens_for(engine, "begin")
+    def _do_begin(connection: Any) -> None:
+        immediate = connection.get_execution_options().get("sqlite_immediate", False)
+        connection.exec_driver_sql("BEGIN IMMEDIATE" if immediate else "BEGIN")
+
+
+class Database:
+    """An engine with read and write transactions (see the module docstring)."""
+
+    def __init__(self, engine: Engine) -> None:
+        self.engine = engine
+        self.is_sqlite = engine.dialect.name == "sqlite"
+        self._write_lock = threading.Lock() if self.is_sqlite else None
+        self._write_engine = (
+            engine.execution_options(sqlite_immediate=True) if self.is_sqlite else engine
+        )
+        self._reader = sessionmaker(engine, expire_on_commit=False, autoflush=False)
+        self._writer = sessionmaker(self._write_engine, expire_on_commit=False, autoflush=False)
+
+    @classmethod
+    def from_url(cls, url: str, **kwargs: Any) -> Database:
+        return cls(create_db_engine(url, **kwargs))
+
+    @contextmanager
+    def read(self) -> Iterator[Session]:
+        # Closing (not rolling back) keeps the objects read usable after the block; the pool
+        # ends the transaction when the connection goes back.
+        with self._reader() as session:
+            yield session
+
+    @contextmanager
+    def write(self) -> Iterator[Session]:
+        """A write transaction, committed when the block ends without an exception."""
+        if self._write_lock is None:
+            with self._writer.begin() as session:
+                yield session
+            return
+        with self._write_lock, self._writer.begin() as session:
+            yield session
+
+    @contextmanager
+    def transaction(self) -> Iterator[Connection]:
+        """A write transaction on a Core connection (the request path; see ``records.py``)."""
+        if self._write_lock is None:
+            with self._write_engine.begin() as connection:
+                yield connection
+            return
+        with self._write_lock, self._write_engine.begin() as connection:
+            yield connection
+
+    @contextmanager
+    def connect(self) -> Iterator[Connection]:
+        """A read-only Core connection."""
+        with self.engine.connect() as connection:
+            yield connection
+
+    def dispose(self) -> None:
+        self.engine.dispose()
+
+
+# -- migrations ------------------------------------------------------------------------------
+def alembic_config(url: str | None = None) -> Any:
+    from alembic.config import Config
+
+    if not ALEMBIC_INI.is_file():
+        raise SchemaError(
+            f"{ALEMBIC_INI} is missing: run the server from its source tree "
+            "(pip install -e .) or the Docker image"
+        )
+    config = Config(str(ALEMBIC_INI))
+    config.set_main_option("script_location", str(MIGRATIONS))
+    if url is not None:
+        config.attributes["database_url"] = url
+    return config
+
+
+def head_revision() -> str:
+    from alembic.script import ScriptDirectory
+
+    head = ScriptDirectory.from_config(alembic_config()).get_current_head()
+    if head is None:
+        raise SchemaError(f"no migrations found in {MIGRATIONS}")
+    return head
+
+
+def current_revision(engine: Engine) -> str | None:
+    from alembic.runtime.migration import MigrationContext
+
+    with engine.connect() as connection:
+        return MigrationContext.configure(connection).get_current_revision()
+
+
+def upgrade(engine: Engine, revision: str = "head") -> None:
+    """Apply the migrations up to ``revision`` on the engine's database."""
+    from alembic import command
+
+    config = alembic_config()
+    with engine.begin() as connection:
+        config.attributes["connection"] = connection
+        command.upgrade(config, revision)
+
+
+def downgrade(engine: Engine, revision: str) -> None:
+    from alembic import command
+
+    config = alembic_config()
+    with engine.begin() as connection:
+        config.attributes["connection"] = connection
+        command.downgrade(config, revision)
+
+
+def prepare_schema(engine: Engine) -> str:
+    """Bring the schema up to date before serving: migrate SQLite, check PostgreSQL.
+
+    Returns what was done; raises ``SchemaError`` with the command to run otherwise.
+    """
+    head = head_revision()
+    current = current_revision(engine)
+    if current == head:
+        return f"database schema is up to date ({head})"
+    if engine.dialect.name == "sqlite":
+        upgrade(engine)
+        return f"database schema upgraded from {current or 'empty'} to {head}"
+    url = engine.url.render_as_string(hide_password=True)
+    raise SchemaError(
+        f"the database schema at {url} is at revision {current or 'none (empty database)'}, "
+        f"this server needs {head}: run `bam-study db upgrade` first (with BAM_DATABASE_URL "
+        "set), after a backup"
+    )

@@ -1,0 +1,80 @@
+"""Tables of the local Mechanical Turk replica (``routers/mturk.py``): the study's HIT, the
+assignments workers accepted, returned or submitted (and the requester approved or rejected),
+what each submission posted, and the bonuses the requester paid.
+
+They live beside the study's tables (same declarative ``Base``, created by migration 0002) but
+hold the platform's side only: the study's own data never refers to them.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import JSON, ForeignKey, Index, Integer, String, Text
+from sqlalchemy.orm import Mapped, mapped_column
+
+from server.app.storage.models import Base, UTCDateTime, utcnow
+
+ASSIGNMENT_STATUSES = ("accepted", "returned", "submitted", "approved", "rejected")
+
+
+class ReplicaHit(Base):
+    """The study listed as a HIT (one per database, made when the replica is first opened)."""
+
+    __tablename__ = "mturk_replica_hits"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    hit_id: Mapped[str] = mapped_column(String(64), unique=True)
+    title: Mapped[str] = mapped_column(String(200))
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class ReplicaAssignment(Base):
+    """One worker's turn at an assignment. A returned assignment id is given to the next worker
+    who accepts, as MTurk does, in a new row."""
+
+    __tablename__ = "mturk_replica_assignments"
+    __table_args__ = (Index("ix_mturk_replica_assignments_assignment_id", "assignment_id"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    hit_id: Mapped[str] = mapped_column(String(64))
+    assignment_id: Mapped[str] = mapped_column(String(64))
+    worker_id: Mapped[str] = mapped_column(String(128))
+    # accepted, returned, submitted, then approved or rejected by the requester
+    status: Mapped[str] = mapped_column(String(16))
+    accepted_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    returned_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    submitted_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    reviewed_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    requester_feedback: Mapped[str | None] = mapped_column(Text)
+
+
+class ReplicaSubmission(Base):
+    """What a page posted to ``/mturk/externalSubmit``: the assignment id and every field."""
+
+    __tablename__ = "mturk_replica_submissions"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    assignment_row_id: Mapped[int] = mapped_column(
+        ForeignKey("mturk_replica_assignments.id"), index=True
+    )
+    hit_id: Mapped[str] = mapped_column(String(64))
+    assignment_id: Mapped[str] = mapped_column(String(64))
+    worker_id: Mapped[str] = mapped_column(String(128))
+    fields: Mapped[dict[str, Any]] = mapped_column(JSON)
+    submitted_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class ReplicaBonus(Base):
+    """A bonus the requester sent (``send_bonus``); a UniqueRequestToken is used once."""
+
+    __tablename__ = "mturk_replica_bonuses"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    assignment_id: Mapped[str] = mapped_column(String(64), index=True)
+    worker_id: Mapped[str] = mapped_column(String(128))
+    amount: Mapped[str] = mapped_column(String(16))  # BonusAmount, US dollars as text
+    reason: Mapped[str] = mapped_column(Text)
+    unique_request_token: Mapped[str] = mapped_column(String(64), unique=True)
+    granted_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)

@@ -1,0 +1,115 @@
+"""``bam-study export``: the study's data as CSV files with a data dictionary, or as Minari
+datasets (one per environment) for offline and imitation learning."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+FORMATS = ("csv", "minari")
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--database-url", help="overrides BAM_DATABASE_URL")
+    parser.add_argument(
+        "--out",
+        required=True,
+        type=Path,
+        help="folder to write into (minari: a new or empty folder, the MINARI_DATASETS_PATH "
+        "to read the datasets from)",
+    )
+    parser.add_argument(
+        "--format",
+        choices=FORMATS,
+        default="csv",
+        help="csv (default): the tables and data_dictionary.csv; minari: one Minari dataset "
+        "per environment with the participants' episodes",
+    )
+    parser.add_argument(
+        "--no-pseudonymize",
+        dest="pseudonymize",
+        action="store_false",
+        help="keep worker and assignment ids and completion codes as they are",
+    )
+    parser.add_argument(
+        "--include-excluded",
+        action="store_true",
+        help="minari: keep the episodes of participants the experimenter excluded",
+    )
+    parser.add_argument(
+        "--study",
+        type=Path,
+        help="minari: the study file named in the datasets' metadata (default: "
+        "BAM_STUDY_CONFIG, else the paper's study)",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from server.app.config import DEFAULT_STUDY_CONFIG
+    from server.app.export.tables import export_tables, open_study_database, write_export
+    from server.app.settings import SettingsError, load_settings
+    from server.app.storage import db as database
+    from server.rl.datasets import DatasetError, check_out_folder
+
+    try:
+        settings = load_settings({"database_url": ("--database-url", args.database_url)})
+    except SettingsError as error:
+        print(f"bam-study export: {error}", file=sys.stderr)
+        return 2
+    minari = args.format == "minari"
+    if not minari and (args.include_excluded or args.study is not None):
+        print(
+            "bam-study export: --include-excluded and --study apply to --format minari only "
+            "(the CSVs mark exclusions in participants.csv)",
+            file=sys.stderr,
+        )
+        return 2
+    if minari:
+        try:
+            check_out_folder(args.out)  # before any work: an older export stays as it is
+        except DatasetError as error:
+            print(f"bam-study export: {error}", file=sys.stderr)
+            return 1
+    try:
+        db = open_study_database(settings.database_url)  # read-only: never creates a database
+    except (OSError, ValueError, ImportError) as error:
+        print(f"bam-study export: {error}", file=sys.stderr)
+        return 1
+    try:
+        current, head = database.current_revision(db.engine), database.head_revision()
+        if current != head:
+            print(
+                f"bam-study export: the database is at schema {current or 'none'}, not {head}: "
+                "is this a study database? (`bam-study db upgrade` brings it up to date)",
+                file=sys.stderr,
+            )
+            return 1
+        secret = settings.secret.get_secret_value() if settings.secret else None
+        if minari:
+            from server.app.export.minari import StudyFile, study_datasets
+            from server.rl.datasets import write_datasets
+
+            study = StudyFile.read(args.study or settings.study_config or DEFAULT_STUDY_CONFIG)
+            datasets = study_datasets(
+                db,
+                study,
+                pseudonymize=args.pseudonymize,
+                secret=secret,
+                include_excluded=args.include_excluded,
+            )
+            for dataset_id in write_datasets(datasets, args.out):
+                dataset = next(x for x in datasets if x.id == dataset_id)
+                print(f"{args.out / dataset_id}  ({len(dataset.episodes)} episodes)")
+            return 0
+        tables = export_tables(db, pseudonymize=args.pseudonymize, secret=secret)
+        written = write_export(tables, args.out)
+    except Exception as error:
+        print(f"bam-study export: {error}", file=sys.stderr)
+        return 1
+    finally:
+        db.dispose()
+    for path in written:
+        rows = tables[path.stem].shape[0] if path.stem in tables else None
+        print(f"{path}" + (f"  ({rows} rows)" if rows is not None else ""))
+    return 0

@@ -1,0 +1,62 @@
+"""The ``bam-study`` console command: one subcommand per job a user runs.
+
+Each subcommand lives in its own module exposing ``configure(parser)`` and ``run(args) -> int``;
+modules are imported only when their subcommand runs, so ``bam-study --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+# name -> (module, one-line help)
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "demo": (
+        "server.commands.demo",
+        "Run a whole study end to end: server, simulated participants, export, Table 1.",
+    ),
+    "analyze": (
+        "server.commands.analyze",
+        "Turn a study's data (export or database) into the paper's tables and plots.",
+    ),
+    "simulate": (
+        "server.commands.simulate",
+        "Run the paper's simulated-teacher experiments and write curves, figures and a report.",
+    ),
+    "serve": ("server.commands.serve", "Run the study server (settings from BAM_* variables)."),
+    "db": ("server.commands.db", "Create or upgrade the study database's schema (migrations)."),
+    "export": ("server.commands.export", "Export the study's data as CSV files with a dictionary."),
+    "teach": ("server.commands.teach", "Run simulated participants against a study server."),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="bam-study",
+        description="BAM Study: interactive-learning user studies with Behavior Aware Modeling.",
+    )
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    subparsers.required = True
+    for name, (module_name, help_text) in SUBCOMMANDS.items():
+        sub = subparsers.add_parser(name, help=help_text, description=help_text)
+        module = importlib.import_module(module_name)
+        module.configure(sub)
+        sub.set_defaults(_module=module_name)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    module = importlib.import_module(args._module)
+    try:
+        return int(module.run(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

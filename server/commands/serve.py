@@ -1,0 +1,172 @@
+"""``bam-study serve``: run the study server (settings from BAM_* environment variables)."""
+
+from __future__ import annotations
+
+import argparse
+import socket
+import sys
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from server.app.config import StudyConfig
+
+PROG = "bam-study serve"
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--host", default="127.0.0.1", help="address to listen on (127.0.0.1)")
+    parser.add_argument("--port", type=int, default=8000, help="port (8000)")
+    parser.add_argument("--database-url", help="overrides BAM_DATABASE_URL")
+    parser.add_argument(
+        "--lab",
+        action="store_true",
+        help="also let in participants who open /study with no platform parameters (a lab "
+        "study: the page gives them a completion code), whatever the study file says",
+    )
+    parser.add_argument(
+        "--update-scheduler",
+        metavar="ADDRESS",
+        help="run the learner updates on the Dask cluster of this scheduler (tcp://host:8786); "
+        "overrides BAM_UPDATE_SCHEDULER",
+    )
+    parser.add_argument(
+        "--log-level", default="info", choices=("debug", "info", "warning", "error")
+    )
+    parser.add_argument("--access-log", action="store_true", help="log every request")
+
+
+def listen(host: str, port: int) -> socket.socket:
+    """The server's listening socket, bound now, so that a port in use fails before anything
+    starts (uvicorn would first start the app and its update processes). Raises OSError."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind((host, port))
+        sock.listen(2048)
+    except OSError:
+        sock.close()
+        raise
+    sock.set_inheritable(True)
+    return sock
+
+
+def run(args: argparse.Namespace) -> int:
+    import errno
+
+    from server.app.config import StudyConfigError, load_study_config
+    from server.app.settings import SettingsError, load_settings
+
+    try:
+        settings = load_settings(
+            {
+                "database_url": ("--database-url", args.database_url),
+                "update_scheduler": ("--update-scheduler", args.update_scheduler),
+            }
+        )
+    except SettingsError as error:
+        print(f"{PROG}: {error}", file=sys.stderr)
+        return 2
+    try:
+        study = load_study_config(settings.study_config)
+    except StudyConfigError as error:
+        problems = "; ".join(line.strip() for line in str(error).splitlines() if line.strip())
+        where = "BAM_STUDY_CONFIG: " if settings.study_config else ""
+        print(f"{PROG}: {where}{problems.replace(':;', ':')}", file=sys.stderr)
+        return 2
+    if args.lab:
+        study = study.model_copy(update={"allow_anonymous": True})
+    from server.app.admin_auth import weak_admin_token
+
+    weak = weak_admin_token(settings)
+    if weak is not None:
+        print(f"{PROG}: {weak}", file=sys.stderr)
+        return 2
+    try:
+        sock = listen(args.host, args.port)
+    except OSError as error:
+        reason = error.strerror or str(error)
+        if error.errno == errno.EADDRINUSE:
+            reason = "the address is already in use (another server?); choose another --port"
+        print(f"{PROG}: cannot listen on {args.host}:{args.port}: {reason}", file=sys.stderr)
+        return 1
+    # The server's own modules (the learners among them) are imported once the port is ours.
+    import logging
+
+    import uvicorn
+
+    from server.app.main import create_app
+    from server.app.storage.db import Database, SchemaError, prepare_schema
+
+    db = Database.from_url(
+        settings.database_url,
+        busy_timeout_ms=settings.sqlite_busy_timeout_ms,
+        synchronous=settings.sqlite_synchronous,
+    )
+    try:
+        print(prepare_schema(db.engine), file=sys.stderr)
+    except SchemaError as error:
+        print(f"{PROG}: {error}", file=sys.stderr)
+        db.dispose()
+        sock.close()
+        return 1
+    except Exception as error:  # the database cannot be reached
+        print(f"{PROG}: cannot use the database: {error}", file=sys.stderr)
+        db.dispose()
+        sock.close()
+        return 1
+    cluster = None
+    if settings.update_scheduler:
+        from server.app.updates.cluster import UpdateCluster
+        from server.dask_client import SchedulerError
+
+        try:
+            cluster = UpdateCluster.connect(settings.update_scheduler)
+        except SchedulerError as error:
+            print(f"{PROG}: {error}", file=sys.stderr)
+            db.dispose()
+            sock.close()
+            return 1
+        print(f"Learner updates run on the Dask cluster at {cluster.address}.", file=sys.stderr)
+    for line in startup_notes(settings.admin_token is not None, study):
+        print(line, file=sys.stderr)
+    logging.basicConfig(level=args.log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
+    app = create_app(settings, study, db=db, cluster=cluster, measure_capacity=True)
+    server = uvicorn.Server(
+        uvicorn.Config(
+            app,
+            host=args.host,
+            port=args.port,
+            log_level=args.log_level,
+            access_log=args.access_log,
+            timeout_graceful_shutdown=5,
+        )
+    )
+    try:
+        server.run(sockets=[sock])
+    finally:
+        sock.close()
+        db.dispose()
+        if cluster is not None:
+            cluster.close()
+    return 0
+
+
+def startup_notes(admin_token: bool, study: StudyConfig) -> list[str]:
+    """What the console says before the server starts: who may enter, and what is locked."""
+    mode = study.completion.mode
+    lines = []
+    if mode == "lab" or study.allow_anonymous:
+        lines.append("Lab participants enter at /study with no parameters.")
+    else:
+        where = "Mechanical Turk" if mode == "mturk" else "Prolific"
+        lines.append(
+            f"This study runs on {where}: /study turns away visitors without its parameters "
+            "(serve --lab lets them in)."
+        )
+    if not admin_token:
+        lines.append(
+            "BAM_ADMIN_TOKEN is not set: the dashboard (/dashboard), the MTurk replica (/mturk) "
+            "and the admin API are locked. Set it and restart to use them."
+        )
+    return lines

@@ -1,0 +1,89 @@
+"""``bam-study teach``: simulated participants take the study over HTTP and a summary is printed."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--url", required=True, help="the study server, e.g. http://127.0.0.1:8000")
+    parser.add_argument("--participants", type=int, default=4, help="how many (default 4)")
+    parser.add_argument("--concurrency", type=int, default=2, help="at a time (default 2)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the simulated teachers")
+    parser.add_argument(
+        "--mistake-probability", type=float, default=0.1, help="chance of a random move (0.1)"
+    )
+    parser.add_argument(
+        "--rounds", default="1-3", help="rounds of demonstrations per agent, e.g. 2 or 1-3"
+    )
+    parser.add_argument(
+        "--agent-try-probability", type=float, default=0.5, help="chance of an agent try (0.5)"
+    )
+    parser.add_argument(
+        "--think-seconds", type=float, default=0.0, help="mean pause before each move"
+    )
+    parser.add_argument(
+        "--first-index", type=int, default=0, help="number of the first participant (new ids)"
+    )
+
+
+def parse_rounds(text: str) -> tuple[int, int]:
+    low, _, high = text.partition("-")
+    try:
+        bounds = (int(low), int(high or low))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--rounds must be N or N-M, got {text!r}") from None
+    if not 1 <= bounds[0] <= bounds[1]:
+        raise argparse.ArgumentTypeError(f"--rounds must be 1 <= N <= M, got {text!r}")
+    return bounds
+
+
+def run(args: argparse.Namespace) -> int:
+    from server.commands.simulated import TeachingPlan, run_participants, summary_table
+
+    try:
+        low, high = parse_rounds(args.rounds)
+    except argparse.ArgumentTypeError as error:
+        print(f"bam-study teach: {error}", file=sys.stderr)
+        return 2
+    if args.participants < 1 or args.concurrency < 1:
+        print(
+            "bam-study teach: --participants and --concurrency must be at least 1", file=sys.stderr
+        )
+        return 2
+    if not 0.0 <= args.mistake_probability <= 1.0 or not 0.0 <= args.agent_try_probability <= 1.0:
+        print("bam-study teach: probabilities must be in [0, 1]", file=sys.stderr)
+        return 2
+    plan = TeachingPlan(
+        min_rounds=low,
+        max_rounds=high,
+        mistake_probability=args.mistake_probability,
+        agent_try_probability=args.agent_try_probability,
+        think_seconds=args.think_seconds,
+    )
+
+    def progress(participant: object) -> None:
+        done = getattr(participant, "completed", False)
+        error = getattr(participant, "error", None)
+        index = getattr(participant, "index", "?")
+        print(
+            f"participant {index}: {'completed' if done else 'FAILED: ' + str(error)}", flush=True
+        )
+
+    study = run_participants(
+        args.url, args.participants, args.concurrency, args.seed, plan, args.first_index, progress
+    )
+    failed = [p for p in study.participants if not p.completed]
+    print()
+    print(f"participants completed  {study.completed} of {len(study.participants)}")
+    print(f"learning sessions       {sum(p.sessions for p in study.participants)}")
+    print(f"episodes                {sum(p.episodes for p in study.participants)}")
+    print(f"events acknowledged     {study.acknowledged}")
+    print(f"retried requests        {sum(p.retries for p in study.participants)}")
+    print(f"wall time               {study.seconds:.1f} s")
+    print()
+    print(summary_table(study))
+    for participant in failed:
+        print(f"participant {participant.index} failed: {participant.error}", file=sys.stderr)
+    return 1 if failed else 0

@@ -48,6 +48,6 @@ EXPOSE 8000
 HEALTHCHECK --interval=10s --timeout=5s --start-period=120s --retries=3 \
     CMD python -c "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/api/health', timeout=4)"
 
-# Behind a TLS proxy (needed for MTurk's https iframe), set FORWARDED_ALLOW_IPS to the proxy's
-# address so that uvicorn trusts its X-Forwarded-* headers.
+# Behind a TLS proxy (needed for MTurk's https iframe), set BAM_FORWARDED_ALLOW_IPS to the
+# proxy's address so that the server believes its X-Forwarded-* headers (none by default).
 CMD ["bam-study", "serve", "--host", "0.0.0.0", "--port", "8000"]

@@ -21,77 +21,33 @@ episodes are taken out of the cumulative counts of the evaluations from their up
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from analysis import cells
+from analysis.columns import (
+    EPISODES_FILE,
+    EVALUATION_COLUMNS,
+    EVALUATIONS_FILE,
+    PARTICIPANTS_FILE,
+    SESSION_COLUMNS,
+    SESSIONS_FILE,
+    SHARED_COLUMNS,
+)
 from analysis.names import LEARNERS
 from analysis.options import InputError
-
-SESSIONS_FILE = "sessions.csv"
-EVALUATIONS_FILE = "evaluations.csv"
-PARTICIPANTS_FILE = "participants.csv"
-EPISODES_FILE = "episodes.csv"
-EPISODE_COLUMNS = (
-    "session_id",
-    "kind",
-    "start_state",
-    "end_state",
-    "end_reason",
-    "actions",
-    "update_index",
+from analysis.selection import (
+    COMPLETED_STATUSES,
+    count_phrase,
+    discount_empty_episodes,
+    excluded_participants,
+    keep_finished,
 )
-
-SESSION_COLUMNS = (
-    "session_id",
-    "participant_id",
-    "domain",
-    "environment",
-    "learner",
-    "position",
-    "started_at",
-    "finished_at",
-    "completed",
-)
-EVALUATION_COLUMNS = (
-    "session_id",
-    "participant_id",
-    "domain",
-    "environment",
-    "learner",
-    "position",
-    "update_index",
-    "episodes",
-    "actions",
-    "normalized_return",
-)
-# Columns of an evaluation that must agree with its learning session.
-SHARED_COLUMNS = ("participant_id", "domain", "environment", "learner", "position")
 
 # A policy can be exactly optimal; exact scoring can overshoot 1.0 by rounding only.
 RETURN_TOLERANCE = 1e-6
-
-# Participant statuses of those who completed the study (the server's flow statuses).
-COMPLETED_STATUSES = ("completed", "submitted")
-# Every other status the server gives a participant, as the notes name it: why the participant
-# did not finish. A status missing here is named as it is ("status 'x'"); a new status of the
-# server gets its entry here (tests/analysis/test_sessions.py checks that each has one).
-UNFINISHED_REASONS = {
-    "returned": "returned the task",
-    "abandoned": "timed out",
-    "declined": "declined consent",
-    "arrived": "still in the study",
-    "consented": "still in the study",
-    "tutorial": "still in the study",
-    "teaching": "still in the study",
-    "questionnaire": "still in the study",
-}
-NOT_LISTED = "not in {source}"
-
-_TRUE = {"true", "t", "yes", "y", "1"}
-_FALSE = {"false", "f", "no", "n", "0"}
 
 
 def load_tables(
@@ -249,14 +205,14 @@ def validate_tables(
         evaluations.reset_index(drop=True), evaluations_source, sessions, sessions_source, notes
     )
 
-    excluded = _excluded_participants(participants, participants_source, exclude_excluded)
+    excluded = excluded_participants(participants, participants_source, exclude_excluded)
     if excluded is not None:
         dropped = sessions["participant_id"].isin(excluded)
         if exclude_excluded:
             people = int(sessions.loc[dropped, "participant_id"].nunique())
             notes.append(
-                f"excluded {_count(int(dropped.sum()), 'learning session')} of "
-                f"{_count(people, 'participant')} marked excluded in {participants_source}"
+                f"excluded {count_phrase(int(dropped.sum()), 'learning session')} of "
+                f"{count_phrase(people, 'participant')} marked excluded in {participants_source}"
             )
             sessions = sessions.loc[~dropped].reset_index(drop=True)
             evaluations = evaluations.loc[
@@ -269,7 +225,7 @@ def validate_tables(
                 )
         elif dropped.any():
             notes.append(
-                f"{_count(int(dropped.sum()), 'learning session')} of participants marked "
+                f"{count_phrase(int(dropped.sum()), 'learning session')} of participants marked "
                 f"excluded in {participants_source} are included (--exclude-excluded drops them)"
             )
     sessions, evaluations = keep_finished(
@@ -299,125 +255,29 @@ def validate_tables(
     return sessions, evaluations
 
 
-def keep_finished(
-    sessions: pd.DataFrame,
-    evaluations: pd.DataFrame,
-    participants: pd.DataFrame | None,
-    source: str,
-    *,
-    include_unfinished: bool,
-    notes: list[str],
-    unreadable: str | None = None,
-) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """The learning sessions Table 1 counts, and their evaluations: those of the participants
-    who completed the study (``COMPLETED_STATUSES``) and, with ``include_unfinished``, the
-    taught ones (at least one evaluation) of the others. A note says how many were left out
-    (or added), by why their participants did not finish (``UNFINISHED_REASONS``)."""
-    if participants is None or not {"participant_id", "status"} <= set(participants.columns):
-        if unreadable is not None:
-            why = unreadable
-        elif participants is None:
-            why = f"no {source} given"
-        else:
-            why = f"{source} has no columns 'participant_id' and 'status'"
-        notes.append(
-            f"participant statuses not checked ({why}): every learning session is counted, "
-            "whether or not its participant completed the study"
-        )
-        return sessions, evaluations
-    statuses = dict(
-        zip(
-            participants["participant_id"].astype(str).str.strip(),
-            participants["status"].astype(str).str.strip().str.lower(),
-            strict=True,
-        )
-    )
-    status = sessions["participant_id"].map(statuses)
-    unfinished = ~status.isin(COMPLETED_STATUSES)
-    if not unfinished.any():
-        return sessions, evaluations
-    reason = status.map(lambda s: _unfinished_reason(s, source))
-    taught = sessions["session_id"].isin(set(evaluations["session_id"]))
-    left_out = unfinished & ~taught if include_unfinished else unfinished
-    people = int(sessions.loc[unfinished, "participant_id"].nunique())
-    if include_unfinished:
-        added = unfinished & taught
-        if added.any():
-            notes.append(
-                f"--include-unfinished: counted {_count(int(added.sum()), 'taught learning session')}"
-                f" of {_count(int(sessions.loc[added, 'participant_id'].nunique()), 'participant')}"
-                f" who did not complete the study ({_by_reason(reason[added])})"
-            )
-        if left_out.any():
-            notes.append(
-                f"left out {_count(int(left_out.sum()), 'learning session')} never taught (no "
-                "evaluations) of participants who did not complete the study "
-                f"({_by_reason(reason[left_out])})"
-            )
-    else:
-        untaught = int((unfinished & ~taught).sum())
-        never = (
-            "none was taught"
-            if untaught == int(unfinished.sum())
-            else f"{untaught} never taught (no evaluations)"
-            if untaught
-            else "all were taught"
-        )
-        addable = int((unfinished & taught).sum())
-        notes.append(
-            f"left out {_count(int(unfinished.sum()), 'learning session')} of "
-            f"{_count(people, 'participant')} who did not complete the study "
-            f"({_by_reason(reason[unfinished])}); {never}"
-            + (f"; --include-unfinished adds the {addable} taught" if addable else "")
-        )
-    keep = ~left_out
-    sessions = sessions.loc[keep].reset_index(drop=True)
-    evaluations = evaluations.loc[
-        evaluations["session_id"].isin(set(sessions["session_id"]))
-    ].reset_index(drop=True)
-    return sessions, evaluations
-
-
-def _unfinished_reason(status: object, source: str) -> str:
-    if not isinstance(status, str):  # the participant is not in the participants table
-        return NOT_LISTED.format(source=source)
-    return UNFINISHED_REASONS.get(status, f"status {status!r}")
-
-
-def _by_reason(reasons: pd.Series) -> str:
-    """``"returned the task: 6, timed out: 2"``: sessions per reason, most first."""
-    counts = reasons.value_counts(sort=False)
-    ordered = sorted(counts.items(), key=lambda item: (-item[1], item[0]))
-    return ", ".join(f"{reason}: {count}" for reason, count in ordered)
-
-
-def _count(number: int, noun: str) -> str:
-    return f"{number} {noun}{'' if number == 1 else 's'}"
-
-
 def _validate_sessions(frame: pd.DataFrame, source: str) -> pd.DataFrame:
-    _require_columns(frame, SESSION_COLUMNS, source)
+    cells.require_columns(frame, SESSION_COLUMNS, source)
     if frame.empty:
         raise InputError(f"{source}: no learning sessions (the file has a header only)")
     out = pd.DataFrame(index=frame.index)
     for column in ("session_id", "participant_id", "environment", "learner"):
-        out[column] = _text(frame, column, source)
-    out["domain"] = _optional_text(frame["domain"])
-    out["position"] = _integer(frame, "position", source)
-    out["started_at"] = _optional_text(frame["started_at"])
-    out["finished_at"] = _optional_text(frame["finished_at"])
-    out["completed"] = _boolean(frame, "completed", source)
+        out[column] = cells.text(frame, column, source)
+    out["domain"] = cells.optional_text(frame["domain"])
+    out["position"] = cells.integer(frame, "position", source)
+    out["started_at"] = cells.optional_text(frame["started_at"])
+    out["finished_at"] = cells.optional_text(frame["finished_at"])
+    out["completed"] = cells.boolean(frame, "completed", source)
     _check_known_learners(out, source)
     duplicated = out["session_id"].duplicated(keep="first")
     if duplicated.any():
         row = int(np.flatnonzero(duplicated.to_numpy())[0])
         first = int(np.flatnonzero((out["session_id"] == out.at[row, "session_id"]).to_numpy())[0])
-        _fail(
+        cells.fail(
             source,
             row,
             "session_id",
             f"learning session {out.at[row, 'session_id']!r} appears again "
-            f"(first at {_where(source, first)})",
+            f"(first at {cells.where(source, first)})",
             int(duplicated.sum()),
         )
     return out[list(SESSION_COLUMNS)]
@@ -430,7 +290,7 @@ def _validate_evaluations(
     sessions_source: str,
     notes: list[str],
 ) -> pd.DataFrame:
-    _require_columns(frame, EVALUATION_COLUMNS, source)
+    cells.require_columns(frame, EVALUATION_COLUMNS, source)
     # The study server exports failed learner updates too (status "failed", no return):
     # they are checked like the others but have no evaluation to analyse.
     failed = pd.Series(False, index=frame.index)
@@ -441,19 +301,19 @@ def _validate_evaluations(
             frame.loc[failed, "normalized_return"] = "0"
     out = pd.DataFrame(index=frame.index)
     for column in ("session_id", "participant_id", "environment", "learner"):
-        out[column] = _text(frame, column, source)
-    out["domain"] = _optional_text(frame["domain"])
+        out[column] = cells.text(frame, column, source)
+    out["domain"] = cells.optional_text(frame["domain"])
     for column in ("position", "update_index", "episodes", "actions"):
-        out[column] = _integer(frame, column, source)
-    out["normalized_return"] = _number(frame, "normalized_return", source)
+        out[column] = cells.integer(frame, column, source)
+    out["normalized_return"] = cells.number(frame, "normalized_return", source)
     outside = (out["normalized_return"] < 0) | (out["normalized_return"] > 1.0 + RETURN_TOLERANCE)
     if outside.any():
         row = int(np.flatnonzero(outside.to_numpy())[0])
-        _fail(
+        cells.fail(
             source,
             row,
             "normalized_return",
-            f"{_raw(frame, 'normalized_return')[0].iloc[row]} is outside [0, 1] "
+            f"{cells.raw(frame, 'normalized_return')[0].iloc[row]} is outside [0, 1] "
             "(a normalised return is a fraction of the optimal return)",
             int(outside.sum()),
         )
@@ -464,7 +324,7 @@ def _validate_evaluations(
     unknown = ~out["session_id"].isin(by_id.index)
     if unknown.any():
         row = int(np.flatnonzero(unknown.to_numpy())[0])
-        _fail(
+        cells.fail(
             source,
             row,
             "session_id",
@@ -478,7 +338,7 @@ def _validate_evaluations(
             differs &= (out[column] != "") & (expected != "")
         if differs.any():
             row = int(np.flatnonzero(differs.to_numpy())[0])
-            _fail(
+            cells.fail(
                 source,
                 row,
                 column,
@@ -490,7 +350,7 @@ def _validate_evaluations(
     duplicated = out.duplicated(["session_id", "update_index"], keep="first")
     if duplicated.any():
         row = int(np.flatnonzero(duplicated.to_numpy())[0])
-        _fail(
+        cells.fail(
             source,
             row,
             "update_index",
@@ -508,7 +368,7 @@ def _validate_evaluations(
         decreasing = ordered[column] < previous
         if decreasing.any():
             row = int(decreasing[decreasing].index.min())
-            _fail(
+            cells.fail(
                 source,
                 row,
                 column,
@@ -519,173 +379,17 @@ def _validate_evaluations(
             )
     if failed.any():
         notes.append(
-            f"{_count(int(failed.sum()), 'failed learner update')} in {source} left out "
+            f"{count_phrase(int(failed.sum()), 'failed learner update')} in {source} left out "
             "(no evaluation; the server's log says why)"
         )
     return out.loc[~failed, list(EVALUATION_COLUMNS)].reset_index(drop=True)
-
-
-def empty_episodes(episodes: pd.DataFrame, source: str = EPISODES_FILE) -> pd.Series:
-    """Which episodes are empty (module docstring): agent episodes of one action that ended
-    at the goal where they began."""
-    _require_columns(episodes, EPISODE_COLUMNS, source)
-    start, start_missing = _raw(episodes, "start_state")
-    end, _ = _raw(episodes, "end_state")
-    kind, _ = _raw(episodes, "kind")
-    reason, _ = _raw(episodes, "end_reason")
-    actions, _ = _raw(episodes, "actions")
-    return (
-        (kind == "agent") & (reason == "goal") & (actions == "1") & ~start_missing & (start == end)
-    )
-
-
-def discount_empty_episodes(
-    evaluations: pd.DataFrame, episodes: pd.DataFrame, source: str, notes: list[str]
-) -> pd.DataFrame:
-    """The evaluations with empty episodes taken out of their cumulative counts: an empty
-    episode ended by update u takes one episode and its action from every evaluation of its
-    session from update u on. Episodes of sessions that have no evaluations here (tutorials,
-    sessions left out) are ignored."""
-    empty = empty_episodes(episodes, source)
-    session_ids, _ = _raw(episodes, "session_id")
-    empty &= session_ids.isin(set(evaluations["session_id"]))
-    if not empty.any():
-        return evaluations
-    text, _ = _raw(episodes, "update_index")
-    numbers = pd.to_numeric(text, errors="coerce")
-    bad = empty & ~((numbers >= 0) & (numbers == np.round(numbers)))
-    _first_bad(
-        episodes,
-        "update_index",
-        source,
-        bad,
-        lambda value: f"{value!r} is not the update of an ended episode (a whole number >= 0)",
-    )
-    updates = numbers[empty].astype(np.int64)
-    out = evaluations.copy()
-    for session_id, update in zip(session_ids[empty], updates, strict=True):
-        later = (out["session_id"] == session_id) & (out["update_index"] >= update)
-        out.loc[later, "episodes"] -= 1
-        out.loc[later, "actions"] -= 1
-    count = int(empty.sum())
-    sessions = int(session_ids[empty].nunique())
-    notes.append(
-        f"{_count(count, 'empty episode')} in {_count(sessions, 'learning session')} not "
-        "counted (an agent's try from the goal that ended there at once: one action, "
-        "start_state = end_state, end_reason goal; the server no longer records these)"
-    )
-    return out
-
-
-def _excluded_participants(
-    participants: pd.DataFrame | None, source: str, required: bool
-) -> set[str] | None:
-    """Ids of participants marked excluded (an ``excluded`` column that is true, as the study
-    server exports it, or a ``status`` of ``excluded``); None when that is unknown (an error
-    instead when ``required``)."""
-    if participants is None:
-        if required:
-            raise InputError(f"--exclude-excluded needs {source}, which was not given")
-        return None
-    markers = [c for c in ("excluded", "status") if c in participants.columns]
-    if "participant_id" not in participants.columns or not markers:
-        if required:
-            needed = "'participant_id' and 'excluded' (or 'status')"
-            raise InputError(
-                f"{source}: --exclude-excluded needs the columns {needed}, which the file "
-                f"does not have (found: {', '.join(repr(str(c)) for c in participants.columns)})"
-            )
-        return None
-    marked = pd.Series(False, index=participants.index)
-    if "excluded" in participants.columns:
-        marked |= participants["excluded"].astype(str).str.strip().str.lower().isin(_TRUE)
-    if "status" in participants.columns:
-        marked |= participants["status"].astype(str).str.strip().str.lower() == "excluded"
-    return set(participants.loc[marked, "participant_id"].astype(str).str.strip())
-
-
-def _require_columns(frame: pd.DataFrame, columns: tuple[str, ...], source: str) -> None:
-    missing = [column for column in columns if column not in frame.columns]
-    if missing:
-        found = ", ".join(repr(str(c)) for c in frame.columns) or "none"
-        raise InputError(
-            f"{source}: missing column(s) {', '.join(repr(c) for c in missing)} (found: {found})"
-        )
-
-
-def _where(source: str, row: int) -> str:
-    """Row ``row`` (0-based, in the table's order) as a reader finds it: rows count from 1,
-    and in a CSV file the header is line 1."""
-    if source.endswith(".csv"):
-        return f"{source}, row {row + 1} (line {row + 2})"
-    return f"{source}, row {row + 1}"
-
-
-def _fail(source: str, row: int, column: str, message: str, count: int = 1) -> None:
-    more = f" (and {count - 1} more such row{'s' if count > 2 else ''})" if count > 1 else ""
-    raise InputError(f"{_where(source, row)}, column {column!r}: {message}{more}")
-
-
-def _raw(frame: pd.DataFrame, column: str) -> tuple[pd.Series, pd.Series]:
-    """The column as stripped strings, and where it is missing (empty, NaN or None)."""
-    values = frame[column]
-    missing = values.isna()
-    text = values.astype(object).where(~missing, "").map(str).str.strip()
-    return text, missing | (text == "")
-
-
-def _first_bad(
-    frame: pd.DataFrame, column: str, source: str, bad: pd.Series, describe: Callable[[str], str]
-) -> None:
-    if bad.any():
-        row = int(np.flatnonzero(bad.to_numpy())[0])
-        text, _ = _raw(frame, column)
-        _fail(source, row, column, describe(text.iloc[row]), int(bad.sum()))
-
-
-def _check_missing(frame: pd.DataFrame, column: str, source: str) -> pd.Series:
-    text, missing = _raw(frame, column)
-    _first_bad(frame, column, source, missing, lambda _: "missing value")
-    return text
-
-
-def _text(frame: pd.DataFrame, column: str, source: str) -> pd.Series:
-    return _check_missing(frame, column, source)
-
-
-def _optional_text(values: pd.Series) -> pd.Series:
-    return values.astype(object).where(values.notna(), "").map(str).str.strip()
-
-
-def _number(frame: pd.DataFrame, column: str, source: str) -> pd.Series:
-    text = _check_missing(frame, column, source)
-    numbers = pd.to_numeric(text, errors="coerce").astype(float)
-    bad = ~np.isfinite(numbers)
-    _first_bad(frame, column, source, bad, lambda value: f"{value!r} is not a number")
-    return numbers
-
-
-def _integer(frame: pd.DataFrame, column: str, source: str) -> pd.Series:
-    numbers = _number(frame, column, source)
-    fractional = numbers != np.round(numbers)
-    _first_bad(frame, column, source, fractional, lambda value: f"{value} is not a whole number")
-    negative = numbers < 0
-    _first_bad(frame, column, source, negative, lambda value: f"{value} is negative")
-    return numbers.astype(np.int64)
-
-
-def _boolean(frame: pd.DataFrame, column: str, source: str) -> pd.Series:
-    text = _check_missing(frame, column, source).str.lower()
-    bad = ~text.isin(_TRUE | _FALSE)
-    _first_bad(frame, column, source, bad, lambda value: f"{value!r} is not true or false")
-    return text.isin(_TRUE)
 
 
 def _check_known_learners(frame: pd.DataFrame, source: str) -> None:
     unknown = ~frame["learner"].isin(list(LEARNERS))
     if unknown.any():
         row = int(np.flatnonzero(unknown.to_numpy())[0])
-        _fail(
+        cells.fail(
             source,
             row,
             "learner",

@@ -6,11 +6,11 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 from server.domains import title as environment_display
-from server.learners import DISPLAY_NAMES
+from server.names import LEARNER_DISPLAY_NAMES
 
-# Learner name (as in the export) -> display name (``server.learners.DISPLAY_NAMES``), in the
-# order the tables list them after the baseline.
-LEARNERS: dict[str, str] = DISPLAY_NAMES
+# Learner name (as in the export) -> display name (``server.names``), in the order the tables
+# list them after the baseline.
+LEARNERS: dict[str, str] = LEARNER_DISPLAY_NAMES
 
 # The four environments of the user study first, in the order of the paper's Table 1, then
 # the other four (display names from ``server.domains.title``).

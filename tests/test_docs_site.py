@@ -60,7 +60,8 @@ def test_every_exported_column_is_described_under_its_file(site: Path) -> None:
         assert DESCRIPTIONS[name] in body
         for column, meaning in columns.items():
             assert f"<code>{column}</code>" in body, (name, column)
-            assert meaning in body, (name, column)
+            # As the page renders it: `x` in a description is code.
+            assert re.sub(r"`([^`]*)`", r"<code>\1</code>", meaning) in body, (name, column)
 
 
 def study_keys(model: type[BaseModel]) -> list[tuple[str, str]]:

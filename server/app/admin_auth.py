@@ -41,7 +41,15 @@ def admin_token(settings: Settings) -> str | None:
 
 
 def weak_admin_token(settings: Settings) -> str | None:
-    """Why the admin token is not good enough to serve with, or None."""
+    """Why the admin token is not good enough to serve with, or None. Set but empty is refused
+    too: it would lock the dashboard as an unset token does, where the experimenter meant to
+    open it (an empty variable in a shell or a compose file)."""
+    if settings.admin_token is not None and not settings.admin_token.get_secret_value():
+        return (
+            f"BAM_ADMIN_TOKEN is set but empty: give it a token of {MIN_ADMIN_TOKEN} characters "
+            "or more (python3 -c 'import secrets; print(secrets.token_urlsafe())'), or unset it "
+            "to serve with the dashboard, the MTurk replica and the admin API locked"
+        )
     token = admin_token(settings)
     if token is not None and len(token) < MIN_ADMIN_TOKEN:
         return (

@@ -8,9 +8,10 @@ reports every problem with its place in the file.
 
 from __future__ import annotations
 
+import difflib
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, get_args
 from urllib.parse import urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -364,8 +365,48 @@ def _format_errors(error: ValidationError) -> str:
         message = item["msg"].removeprefix("Value error, ")
         if item["type"] == "union_tag_not_found":  # a question without its kind
             message = "needs kind = 'text', 'likert' or 'choice'"
+        elif item["type"] == "extra_forbidden":
+            message = _unknown_key(item["loc"])
         lines.append(f"  {where}: {message}")
     return "\n".join(lines)
+
+
+def _unknown_key(loc: tuple[int | str, ...]) -> str:
+    """A key no table at ``loc`` has: the nearest valid key, or all of them."""
+    valid = sorted(_keys_at(loc[:-1]))
+    nearest = difflib.get_close_matches(str(loc[-1]), valid, n=1)
+    if nearest:
+        return f"unknown key; did you mean {nearest[0]}?"
+    return f"unknown key; valid keys: {', '.join(valid)}"
+
+
+def _keys_at(loc: tuple[int | str, ...]) -> set[str]:
+    """The keys of the table at ``loc`` (list indexes skipped; a question's kind picks its
+    class, as in Pydantic's locations)."""
+    tables: list[type[BaseModel]] = [StudyConfig]
+    for part in loc:
+        if isinstance(part, int):
+            continue
+        kinds = [
+            table
+            for table in tables
+            if "kind" in table.model_fields
+            and part in get_args(table.model_fields["kind"].annotation)
+        ]
+        if len(tables) > 1 and kinds:
+            tables = kinds
+            continue
+        fields = [table.model_fields[part] for table in tables if part in table.model_fields]
+        if not fields:
+            return set()
+        tables = list(_tables_in(fields[0].annotation))
+    return {name for table in tables for name in table.model_fields}
+
+
+def _tables_in(annotation: Any) -> set[type[BaseModel]]:
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return {annotation}
+    return {table for argument in get_args(annotation) for table in _tables_in(argument)}
 
 
 def parse_study_config(data: dict[str, Any], source: str = "study configuration") -> StudyConfig:

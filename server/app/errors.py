@@ -12,10 +12,11 @@ class ApiError(Exception):
 
 
 class TurnedAway(ApiError):
-    """The arrival is refused (a repeat worker, or an arrival the study does not accept)."""
+    """The arrival is refused (a repeat worker, or an arrival the study does not accept: 403;
+    a worker who returned an assignment another worker holds now: 409)."""
 
-    def __init__(self, title: str, message: str) -> None:
-        super().__init__(403, message)
+    def __init__(self, title: str, message: str, status: int = 403) -> None:
+        super().__init__(status, message)
         self.title = title
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import math
 from collections.abc import AsyncIterator
@@ -45,9 +46,16 @@ STATIC_DIR = Path(__file__).resolve().parents[1] / "static"
 SWEEP_SECONDS = 60.0
 
 
+# The most bytes JSON spends on one byte of text: "\u0001" for a control character.
+ESCAPE_EXPANSION = 6
+
+
 class BodyLimit:
     """413 for request bodies over ``limit`` bytes (or the path's own limit in ``larger``),
-    declared or streamed: the body is read (it is small) before the app sees it."""
+    declared or streamed: the body is read (it is small) before the app sees it. A JSON body is
+    measured by the text it holds (written compactly in UTF-8), so that \\u escapes (Python's
+    json module writes every character past ASCII as one or two) do not make a valid request
+    too large; no more than ``ESCAPE_EXPANSION`` times the limit is read."""
 
     def __init__(self, app: ASGIApp, limit: int, larger: dict[str, int] | None = None) -> None:
         self.app = app
@@ -59,8 +67,9 @@ class BodyLimit:
             await self.app(scope, receive, send)
             return
         limit = max(self.default_limit, self.larger.get(scope["path"], 0))
+        ceiling = ESCAPE_EXPANSION * limit
         for name, value in scope["headers"]:
-            if name == b"content-length" and (not value.isdigit() or int(value) > limit):
+            if name == b"content-length" and (not value.isdigit() or int(value) > ceiling):
                 await self._refuse(scope, send, limit)
                 return
         body = bytearray()
@@ -69,12 +78,15 @@ class BodyLimit:
             if message["type"] != "http.request":
                 break
             body += message.get("body", b"")
-            if len(body) > limit:
+            if len(body) > ceiling:
                 await self._refuse(scope, send, limit)
                 return
             if not message.get("more_body", False):
                 message = {"type": "http.request", "body": bytes(body), "more_body": False}
                 break
+        if len(body) > limit and text_size(bytes(body)) > limit:
+            await self._refuse(scope, send, limit)
+            return
         replayed = False
 
         async def replay() -> Message:
@@ -91,6 +103,17 @@ class BodyLimit:
             {"detail": f"request body too large (more than {limit} bytes)"}, status_code=413
         )
         await response(scope, _no_receive, send)
+
+
+def text_size(body: bytes) -> int:
+    """The bytes of the text a JSON body holds, written compactly in UTF-8 (a lone surrogate as
+    its three bytes); another body's own size."""
+    try:
+        value = json.loads(body)
+        text = json.dumps(value, ensure_ascii=False, separators=(",", ":"))
+    except (ValueError, RecursionError):
+        return len(body)
+    return len(text.encode("utf-8", "surrogatepass"))
 
 
 async def _no_receive() -> Message:
@@ -184,12 +207,14 @@ def create_app(
     @app.exception_handler(ApiError)
     async def api_error(request: Request, error: ApiError) -> JSONResponse:
         content: dict[str, Any] = {"detail": error.message}
-        if isinstance(error, InvalidInput):
-            problem = {"type": "value_error", "loc": list(error.loc), "msg": error.message}
-            content = {"detail": [problem]}
+        if error.status == 422:
+            # Every 422 in the shape of FastAPI's own (HTTPValidationError): a list of problems.
+            loc = list(error.loc) if isinstance(error, InvalidInput) else []
+            content = {"detail": [{"type": "value_error", "loc": loc, "msg": error.message}]}
         if isinstance(error, TurnedAway):
             content["turned_away"] = True
-        return JSONResponse(content, status_code=error.status, headers=error.headers)
+        # The message may quote the request (a question id), which may hold a lone surrogate.
+        return JSONResponse(_writable(content), status_code=error.status, headers=error.headers)
 
     @app.exception_handler(RequestValidationError)
     async def invalid_request(request: Request, error: RequestValidationError) -> JSONResponse:

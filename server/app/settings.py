@@ -6,6 +6,7 @@ The study itself (domains, environments, learners, texts) is in the study config
 
 from __future__ import annotations
 
+import ipaddress
 import re
 from functools import lru_cache
 from pathlib import Path
@@ -13,6 +14,8 @@ from typing import Literal
 
 from pydantic import Field, SecretStr, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+from sqlalchemy.engine import make_url
+from sqlalchemy.exc import ArgumentError
 
 from server.cores import available_cores
 
@@ -119,6 +122,13 @@ class Settings(BaseSettings):
         pattern=r"^[a-z0-9-]+$",
         description="AWS region of MTurk's requester API (MTurk runs in us-east-1).",
     )
+    forwarded_allow_ips: str = Field(
+        "",
+        description="The addresses of the proxies in front of the server (comma-separated IPs "
+        "or networks, or '*' for any), whose X-Forwarded-For and X-Forwarded-Proto headers are "
+        "believed: the client's address (its sign-in limit) and scheme are then theirs. Empty: "
+        "no proxy is trusted and the headers are ignored.",
+    )
     sqlite_busy_timeout_ms: int = Field(
         10_000, ge=0, description="How long a SQLite connection waits for a lock held elsewhere."
     )
@@ -133,7 +143,29 @@ class Settings(BaseSettings):
     def _known_backend(cls, value: str) -> str:
         if not value.startswith(("sqlite", "postgresql")):
             raise ValueError("must be a sqlite:// or postgresql:// URL")
+        folder = sqlite_folder(value)
+        if folder is not None and not folder.is_dir():
+            raise ValueError(
+                f"the folder {folder} does not exist"
+                if not folder.exists()
+                else f"{folder} is not a folder"
+            )
         return value
+
+    @field_validator("forwarded_allow_ips")
+    @classmethod
+    def _proxy_addresses(cls, value: str) -> str:
+        for address in value.split(","):
+            address = address.strip()
+            if not address or address == "*":
+                continue
+            try:
+                ipaddress.ip_network(address)
+            except ValueError:
+                raise ValueError(
+                    f"lists IP addresses or networks (or '*'), got {address!r}"
+                ) from None
+        return value.strip()
 
     @field_validator("update_scheduler")
     @classmethod
@@ -174,6 +206,20 @@ class Settings(BaseSettings):
         """The origins accepted in turkSubmitTo (HTTPS on the default port)."""
         hosts = (h.strip().lower() for h in self.mturk_submit_hosts.split(","))
         return frozenset(f"https://{host}" for host in hosts if host)
+
+
+def sqlite_folder(url: str) -> Path | None:
+    """The folder of a SQLite database file (None for another database, or one in memory)."""
+    try:
+        parsed = make_url(url)
+    except ArgumentError:
+        return None
+    database = parsed.database
+    if parsed.get_backend_name() != "sqlite" or not database or database == ":memory:":
+        return None
+    if database.startswith("file:") or parsed.query.get("mode") == "memory":
+        return None
+    return Path(database).parent
 
 
 class SettingsError(ValueError):

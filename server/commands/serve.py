@@ -8,7 +8,11 @@ import sys
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    import uvicorn
+    from fastapi import FastAPI
+
     from server.app.config import StudyConfig
+    from server.app.settings import Settings
 
 PROG = "bam-study serve"
 
@@ -76,11 +80,14 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.lab:
         study = study.model_copy(update={"allow_anonymous": True})
-    from server.app.admin_auth import weak_admin_token
+    from server.app.admin_auth import admin_token, weak_admin_token
 
     weak = weak_admin_token(settings)
     if weak is not None:
         print(f"{PROG}: {weak}", file=sys.stderr)
+        return 2
+    if not 1 <= args.port <= 65535:
+        print(f"{PROG}: --port must be a number from 1 to 65535, got {args.port}", file=sys.stderr)
         return 2
     try:
         sock = listen(args.host, args.port)
@@ -128,19 +135,13 @@ def run(args: argparse.Namespace) -> int:
             sock.close()
             return 1
         print(f"Learner updates run on the Dask cluster at {cluster.address}.", file=sys.stderr)
-    for line in startup_notes(settings.admin_token is not None, study):
+    address = listening_address(args.host, args.port)
+    for line in startup_notes(address, admin_token(settings) is not None, study):
         print(line, file=sys.stderr)
     logging.basicConfig(level=args.log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
     app = create_app(settings, study, db=db, cluster=cluster, measure_capacity=True)
     server = uvicorn.Server(
-        uvicorn.Config(
-            app,
-            host=args.host,
-            port=args.port,
-            log_level=args.log_level,
-            access_log=args.access_log,
-            timeout_graceful_shutdown=5,
-        )
+        server_config(app, settings, args.host, args.port, args.log_level, args.access_log)
     )
     try:
         server.run(sockets=[sock])
@@ -152,10 +153,42 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def startup_notes(admin_token: bool, study: StudyConfig) -> list[str]:
-    """What the console says before the server starts: who may enter, and what is locked."""
+def server_config(
+    app: FastAPI,
+    settings: Settings,
+    host: str,
+    port: int,
+    log_level: str = "info",
+    access_log: bool = False,
+) -> uvicorn.Config:
+    """How uvicorn serves the app. X-Forwarded-* headers are believed only from the proxies
+    ``BAM_FORWARDED_ALLOW_IPS`` names (uvicorn's own default believes 127.0.0.1, so a client
+    on the server's host could pose as any address and escape the sign-in limit)."""
+    import uvicorn
+
+    proxies = settings.forwarded_allow_ips
+    return uvicorn.Config(
+        app,
+        host=host,
+        port=port,
+        log_level=log_level,
+        access_log=access_log,
+        timeout_graceful_shutdown=5,
+        proxy_headers=bool(proxies),
+        forwarded_allow_ips=proxies or [],
+    )
+
+
+def listening_address(host: str, port: int) -> str:
+    """The server's base URL as the console shows it."""
+    return f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"
+
+
+def startup_notes(address: str, admin_token: bool, study: StudyConfig) -> list[str]:
+    """What the console says before the server starts: where it listens, who may enter, and
+    whether the dashboard is open."""
     mode = study.completion.mode
-    lines = []
+    lines = [f"Serving at {address} (the study at /study)."]
     if mode == "lab" or study.allow_anonymous:
         lines.append("Lab participants enter at /study with no parameters.")
     else:
@@ -164,7 +197,9 @@ def startup_notes(admin_token: bool, study: StudyConfig) -> list[str]:
             f"This study runs on {where}: /study turns away visitors without its parameters "
             "(serve --lab lets them in)."
         )
-    if not admin_token:
+    if admin_token:
+        lines.append(f"The dashboard is open at {address}/dashboard: sign in with BAM_ADMIN_TOKEN.")
+    else:
         lines.append(
             "BAM_ADMIN_TOKEN is not set: the dashboard (/dashboard), the MTurk replica (/mturk) "
             "and the admin API are locked. Set it and restart to use them."

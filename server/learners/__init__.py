@@ -11,18 +11,14 @@ from server.learners.base import Learner, UpdateResult, dumps, loads
 from server.learners.cloning import BehavioralCloning
 from server.learners.global_cost import GlobalCostIRL
 from server.learners.model_based import ModelBasedIRL
+from server.names import LEARNER_DISPLAY_NAMES
 
 LEARNERS: dict[str, type[Learner]] = {
     cls.name: cls for cls in (BAM, ModelBasedIRL, GlobalCostIRL, BehavioralCloning)
 }
 NAMES: tuple[str, ...] = tuple(LEARNERS)
 
-DISPLAY_NAMES: dict[str, str] = {
-    "bam": "BAM",
-    "model-based": "Model-Based IRL",
-    "global-cost": "Model-Based IRL (global cost)",
-    "cloning": "Behavioral Cloning",
-}
+DISPLAY_NAMES: dict[str, str] = LEARNER_DISPLAY_NAMES
 
 
 def learner_class(name: str) -> type[Learner]:

@@ -86,7 +86,10 @@ def test_a_move_that_leaves_the_agent_in_place_is_shown_and_said(
     study.move(direction)
     expect(agent).to_have_attribute("data-bumps", "1")
     expect(agent).to_have_attribute("data-bump", direction.lower())
-    expect(page.locator(".bump-mark.on")).to_have_count(1)
+    # The red bar marks that side of the agent's cell (it shows for a moment only).
+    edge = {"UP": ("y", "0"), "DOWN": ("y", "91"), "LEFT": ("x", "0"), "RIGHT": ("x", "91")}
+    name, value = edge[direction]
+    expect(page.locator("g.agent .bump-mark")).to_have_attribute(name, value)
     expect(status).to_contain_text(
         f"Blocked: the agent could not move {direction.lower()} and stayed where it was."
     )

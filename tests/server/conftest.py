@@ -29,6 +29,7 @@ from server.app.storage.db import Database, upgrade
 from server.app.storage.models import Event, LearnerUpdate
 from server.app.updates.pool import new_executor
 from server.commands.live import free_port
+from server.commands.serve import server_config
 
 POSTGRES_URL = os.environ.get(
     "BAM_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test"
@@ -132,9 +133,8 @@ def live(app: FastAPI) -> Iterator[str]:
     """``app`` served by uvicorn in a thread on a free port, as ``serve`` runs it (one lifespan,
     real HTTP); yields its base URL."""
     port = free_port()
-    server = uvicorn.Server(
-        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", access_log=False)
-    )
+    settings = app.state.server.settings
+    server = uvicorn.Server(server_config(app, settings, "127.0.0.1", port, log_level="warning"))
     thread = threading.Thread(target=server.run, name=f"live-server-{port}", daemon=True)
     thread.start()
     deadline = time.monotonic() + 60

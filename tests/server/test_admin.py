@@ -6,6 +6,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+import httpx
 import pytest
 from fastapi.testclient import TestClient
 
@@ -17,6 +18,8 @@ from server.commands.main import main
 from tests.server.conftest import (
     ADMIN_TOKEN,
     demonstrate_each_task,
+    live,
+    make_settings,
     study_config,
     teaching_participant,
     wait_for_updates,
@@ -264,3 +267,29 @@ def test_the_dashboard_excludes_and_includes_again_with_the_reasons(
     ]
     not_excluded = client.post(f"{base}/1/inclusion", json={"reason": "x"}, headers=ADMIN)
     assert not_excluded.status_code == 409 and "not excluded" in not_excluded.text
+
+
+@pytest.mark.parametrize("database_url", ["sqlite"], indirect=True)
+@pytest.mark.parametrize(("proxies", "limited"), [("", True), ("127.0.0.1", False)])
+def test_the_sign_in_limit_trusts_forwarded_addresses_only_from_named_proxies(
+    db: Database, executor: ProcessPoolExecutor, proxies: str, limited: bool
+) -> None:
+    """Served as `serve` serves it: a client that makes up a new X-Forwarded-For for each guess
+    is still one address, unless BAM_FORWARDED_ALLOW_IPS names it as a proxy."""
+    settings = make_settings(
+        db.engine.url.render_as_string(hide_password=False), forwarded_allow_ips=proxies
+    )
+    app = create_app(settings, study_config(), db=db, executor=executor)
+    guesses = FAILURES_ALLOWED + 5
+    with live(app) as url, httpx.Client(base_url=url, timeout=30) as http:
+        statuses = [
+            http.get(
+                "/api/admin/participants",
+                headers={"Authorization": "Bearer guess", "X-Forwarded-For": f"198.51.100.{n}"},
+            ).status_code
+            for n in range(guesses)
+        ]
+    if limited:
+        assert statuses == [401] * FAILURES_ALLOWED + [429] * (guesses - FAILURES_ALLOWED)
+    else:
+        assert statuses == [401] * guesses

@@ -210,20 +210,62 @@ def test_a_returned_assignment_goes_to_another_worker(client: TestClient, db: Da
     assert first.get("/api/participant")["status"] == "returned"
     refused = first.post(f"/api/sessions/{tutorial}/move", action="UP")
     assert refused.status_code == 409 and "returned" in refused.json()["detail"]
-    # The first worker accepts the assignment again (after the second returned it): the first
-    # continues where they were and the second is the one who returned it.
-    again = arrive(TestClient(client.app), "W1", "A1")
-    assert again.status_code == 200 and again.json()["participant"]["status"] == "tutorial"
-    assert again.json()["participant"]["current_session_id"] == tutorial
     with db.read() as s:
         statuses = s.scalars(
             select(StatusChange.status)
             .where(StatusChange.participant_id == 1)
             .order_by(StatusChange.id)
         ).all()
-        second_status = s.get(ParticipantRow, 2).status
-    assert statuses == ["arrived", "consented", "tutorial", "returned", "tutorial"]
-    assert second_status == "returned"
+    assert statuses == ["arrived", "consented", "tutorial", "returned"]
+
+
+def test_a_returned_worker_cannot_take_the_assignment_back_from_its_holder(
+    client: TestClient, db: Database
+) -> None:
+    first, tutorial = teaching_participant(client, "W1", "A1")
+    second_client = TestClient(client.app)
+    arrived = arrive(second_client, "W2", "A1")
+    assert arrived.status_code == 201
+    second = Participant(second_client, arrived.json()["token"])
+    second.act("/api/participant/consent", agree=True)
+
+    def statuses() -> list[tuple[int, str]]:
+        with db.read() as s:
+            rows = s.execute(
+                select(ParticipantRow.id, ParticipantRow.status).order_by(ParticipantRow.id)
+            ).all()
+        return [(row.id, row.status) for row in rows]
+
+    before = statuses()
+    assert before == [(1, "returned"), (2, "consented")]
+    # W1 opens the old study URL in a new browser: W2 holds the assignment and keeps it.
+    again = arrive(TestClient(client.app), "W1", "A1")
+    assert again.status_code == 409, again.text
+    assert again.json()["turned_away"] is True
+    assert "returned" in again.json()["detail"] and "another worker" in again.json()["detail"]
+    page = TestClient(client.app).get(
+        "/study",
+        params={"assignmentId": "A1", "hitId": "H1", "workerId": "W1", "turkSubmitTo": MTURK},
+    )
+    assert page.status_code == 409 and "You returned this task" in page.text
+    assert statuses() == before
+    # The holder goes on; the one who returned it is still refused.
+    assert second.act("/api/participant/start")["participant"]["status"] == "tutorial"
+    assert first.post(f"/api/sessions/{tutorial}/move", action="UP").status_code == 409
+
+
+def test_worker_ids_are_compared_whatever_their_case(client: TestClient, db: Database) -> None:
+    participant = new_participant(client, "AW7", "A1")
+    participant.act("/api/participant/consent", agree=True)
+    # The same worker, its id in lower case: a new assignment is a second participation.
+    refused = arrive(TestClient(client.app), "aw7", "A2")
+    assert refused.status_code == 403 and "already taken part" in refused.json()["detail"]
+    # With the same assignment, it is the same participation, resumed (not taken over).
+    resumed = arrive(TestClient(client.app), "aw7", "A1")
+    assert resumed.status_code == 200, resumed.text
+    assert resumed.json()["participant"]["participant_id"] == 1
+    assert resumed.json()["participant"]["status"] == "consented"
+    assert participants_in(db) == 1
 
 
 def test_bad_arrivals_are_refused_and_create_nothing(client: TestClient, db: Database) -> None:

@@ -10,6 +10,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
+from server.app.errors import ApiError
 from server.app.storage.db import Database
 from server.app.storage.models import Event, Participant, StatusChange
 from tests.server.conftest import ADMIN_TOKEN, MTURK, teaching_participant
@@ -124,3 +125,34 @@ def test_bad_requests_get_4xx_and_change_nothing(
     assert stored(db) == before
     # The participant goes on where it was.
     learner.act(f"/api/sessions/{session}/mode", mode="demonstrate")
+
+
+def test_every_422_has_its_detail_as_a_list_of_problems(
+    client: TestClient, db: Database, participant: Any
+) -> None:
+    """The documented shape of a 422 (HTTPValidationError): FastAPI's own (a bad query value, a
+    bad body) and any the server raises itself."""
+    learner, session = participant
+    before = stored(db)
+
+    def refuse() -> None:
+        raise ApiError(422, "reason: NUL (\\x00) is not allowed in text")
+
+    client.app.add_api_route("/api/probe-422", refuse)
+    responses = [
+        client.get(f"/api/sessions/{session}/learning?wait=%00", headers=learner.headers),
+        client.post("/api/admin/participants/1/exclusion", json={"reason": ""}, headers=ADMIN),
+        client.get("/api/probe-422"),
+    ]
+    for response in responses:
+        assert response.status_code == 422, response.text
+        detail = response.json()["detail"]
+        assert isinstance(detail, list) and detail, detail
+        for problem in detail:
+            assert isinstance(problem["loc"], list) and problem["msg"] and problem["type"]
+    assert responses[-1].json()["detail"] == [
+        {"type": "value_error", "loc": [], "msg": "reason: NUL (\\x00) is not allowed in text"}
+    ]
+    assert stored(db) == before
+    schema = client.get("/openapi.json").json()["components"]["schemas"]
+    assert schema["HTTPValidationError"]["properties"]["detail"]["type"] == "array"

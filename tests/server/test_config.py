@@ -3,12 +3,18 @@
 from __future__ import annotations
 
 import os
+import tomllib
 from pathlib import Path
 
 import pytest
 from pydantic import ValidationError
 
-from server.app.config import DEFAULT_STUDY_CONFIG, StudyConfigError, load_study_config
+from server.app.config import (
+    DEFAULT_STUDY_CONFIG,
+    StudyConfigError,
+    load_study_config,
+    parse_study_config,
+)
 from server.app.settings import Settings
 from server.commands.main import main
 
@@ -42,7 +48,10 @@ def test_the_default_is_the_papers_study() -> None:
         (('mode = "mturk"', 'mode = "prolific"'), "needs prolific_code"),
         (('mode = "mturk"', 'mode = "email"'), "completion.mode"),
         (('title = "Teach a robot"', 'title = ""'), "title"),
-        (('title = "Teach a robot"', 'title = "x"\nsurprise = 1'), "surprise: Extra inputs"),
+        (
+            ('title = "Teach a robot"', 'title = "x"\nsurprise = 1'),
+            "surprise: unknown key; valid keys: ",
+        ),
         (
             ("# [learner_settings.bam]", "learner_settings = { bam = { speed = 2 } }"),
             "learner_settings.bam: unknown setting(s) speed",
@@ -129,3 +138,46 @@ def test_the_cores_counted_are_the_process_s_not_the_host_s(
     assert Settings().update_threads == 3
     monkeypatch.delattr(cores.os, "sched_getaffinity")
     assert cores.available_cores() == 64
+
+
+@pytest.mark.parametrize(
+    ("change", "where", "suggestion"),
+    [
+        ({"agents_per_enviroment": 2}, "agents_per_enviroment", "agents_per_environment"),
+        ({"tutorial": {"enabeld": False}}, "tutorial.enabeld", "enabled"),
+        (
+            {"domains": [{"name": "navigation", "environmnets": ["two-rooms"]}]},
+            "domains.0.environmnets",
+            "environments",
+        ),
+        (
+            {
+                "questionnaire": {
+                    "questions": [{"id": "q", "kind": "text", "text": "Q?", "max_lenght": 5}]
+                }
+            },
+            "questionnaire.questions.0.text.max_lenght",
+            "max_length",
+        ),
+    ],
+)
+def test_a_misspelt_key_is_unknown_and_the_nearest_is_suggested(
+    change: dict[str, object], where: str, suggestion: str
+) -> None:
+    data = tomllib.loads(PAPER)
+    data.update(change)
+    with pytest.raises(StudyConfigError) as raised:
+        parse_study_config(data, "study.toml")
+    lines = str(raised.value).splitlines()
+    assert f"  {where}: unknown key; did you mean {suggestion}?" in lines, lines
+    assert "Extra inputs are not permitted" not in str(raised.value)
+
+
+def test_an_unknown_key_with_no_near_one_lists_the_valid_keys() -> None:
+    data = tomllib.loads(PAPER)
+    data["completion"] = {**data["completion"], "zzzz": 1}
+    with pytest.raises(StudyConfigError) as raised:
+        parse_study_config(data, "study.toml")
+    [line] = [line for line in str(raised.value).splitlines() if "zzzz" in line]
+    assert line.startswith("  completion.zzzz: unknown key; valid keys: ")
+    assert "mode" in line

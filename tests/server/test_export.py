@@ -14,7 +14,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
-from server.app.export.tables import DICTIONARY, export_tables
+from server.app.export.tables import DICTIONARY, export_files, export_tables
 from server.app.storage.db import Database
 from server.app.storage.models import Event, LearnerUpdate, LearningSession
 from server.commands.main import main
@@ -198,3 +198,45 @@ def test_text_cells_that_a_spreadsheet_would_run_are_neutralised(
     assert (
         client.get("/api/admin/participants/1", headers=admin).json()["exclusion_reason"] == "-2+3"
     )
+
+
+LINE_BREAKS = [
+    "\r",
+    "\n",
+    "\r\n",
+    "\x0b",
+    "\x0c",
+    "\x1c",
+    "\x1d",
+    "\x1e",
+    "\x85",
+    "\u2028",
+    "\u2029",
+]
+
+
+@pytest.mark.parametrize(
+    "brk", LINE_BREAKS, ids=[f"U+{ord(b[0]):04X}{len(b)}" for b in LINE_BREAKS]
+)
+def test_every_line_of_a_text_cell_is_guarded_and_its_line_breaks_quoted(brk: str) -> None:
+    """A line break inside a text answer neither splits the row (for a CSV reader or one that
+    splits lines as Python does) nor lets a line after it run as a formula."""
+    answers = [f"fine{brk}@SUM(1+1)", f"ok{brk}={brk}-2", "=1", "plain"]
+    frame = pd.DataFrame(
+        {"participant_id": [1, 2, 3, 4], "answer": answers, "points": [1.5, -2.0, 3.0, 4.0]}
+    )
+    text = export_files({"questionnaire_answers": frame})["questionnaire_answers.csv"].decode()
+    # Read back as CSV: four rows, each answer whole, every line after a break guarded.
+    rows = list(csv.DictReader(io.StringIO(text, newline="")))
+    assert [row["participant_id"] for row in rows] == ["1", "2", "3", "4"]
+    assert [row["answer"] for row in rows] == [
+        f"fine{brk}'@SUM(1+1)",
+        f"ok{brk}'={brk}'-2",
+        "'=1",
+        "plain",
+    ]
+    assert [row["points"] for row in rows] == ["1.5", "-2.0", "3.0", "4.0"]
+    # Split as Python splits lines: no line starts a formula, and every break is in quotes.
+    for line in text.splitlines():
+        assert not line.startswith(("=", "+", "-", "@", "\t")), repr(line)
+    assert text.count('"') == 4  # the two answers with a break, quoted; nothing else

@@ -4,6 +4,7 @@ for a bad one), stored and exported; the paper's study has none and ends as befo
 
 from __future__ import annotations
 
+import json
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -230,3 +231,48 @@ def test_two_questions_with_one_id_are_refused() -> None:
     twice = {"id": "q", "kind": "text", "text": "Why?"}
     with pytest.raises(StudyConfigError, match="two questions have the same id"):
         parse_study_config(example_data(questionnaire={"questions": [twice, twice]}))
+
+
+def test_an_answer_sent_with_json_escapes_is_measured_as_text(
+    client: TestClient, db: Database
+) -> None:
+    """Python's json module (and others) write every non-ASCII character as \\u escapes: an
+    answer within its length is taken however it was written; the limit still holds."""
+    participant = lab_participant_after_the_last_agent(client)
+    longest = "\U0001f600" * 2000  # 2000 characters, 8000 bytes of UTF-8, 24000 as escapes
+    body = json.dumps({"seq": participant.seq, "answers": {**GOOD, "comments": longest}})
+    assert body.isascii() and len(body) > 24_000
+    headers = {**participant.headers, "content-type": "application/json"}
+    answered = client.post("/api/participant/questionnaire", content=body, headers=headers)
+    assert answered.status_code == 200, answered.text
+    tables = export_tables(db)
+    assert longest in tables["questionnaire_answers"]["answer"].tolist()
+    # A body whose text is over the limit is still refused, escaped or not.
+    second = lab_participant_after_the_last_agent(client)
+    padding = {f"x{number}": "\U0001f600" * 2000 for number in range(3)}
+    body = json.dumps({"seq": second.seq, "answers": {**GOOD, **padding}})
+    too_large = client.post(
+        "/api/participant/questionnaire",
+        content=body,
+        headers={**second.headers, "content-type": "application/json"},
+    )
+    assert too_large.status_code == 413, too_large.text
+    assert second.get("/api/participant")["status"] == "questionnaire"
+
+
+def test_an_answer_keyed_by_a_lone_surrogate_is_refused_with_a_message(
+    client: TestClient, db: Database
+) -> None:
+    participant = lab_participant_after_the_last_agent(client)
+    for key in ("\\ud800", "\\udfff", "a\\ud800b"):
+        body = f'{{"seq": {participant.seq}, "answers": {{"{key}": 1}}}}'
+        response = client.post(
+            "/api/participant/questionnaire",
+            content=body.encode(),
+            headers={**participant.headers, "content-type": "application/json"},
+        )
+        assert response.status_code == 422, response.text
+        [problem] = response.json()["detail"]
+        assert problem["loc"][:2] == ["body", "answers"] and "no question" in problem["msg"]
+    assert participant.get("/api/participant")["status"] == "questionnaire"
+    assert stored_answers(db) == 0

@@ -17,7 +17,7 @@ import pytest
 
 from server.app.config import load_study_config
 from server.commands.main import main
-from server.commands.serve import startup_notes
+from server.commands.serve import listening_address, startup_notes
 from tests.server.conftest import free_port
 
 
@@ -97,18 +97,23 @@ def test_a_bad_study_file_is_one_line_naming_the_variable(
     assert "agents_per_environment" in lines[0]
 
 
-def test_the_console_says_who_may_enter_and_what_is_locked() -> None:
+def test_the_console_says_where_it_listens_who_may_enter_and_what_is_locked() -> None:
     paper = load_study_config()
-    assert startup_notes(True, paper) == [
+    assert startup_notes("http://127.0.0.1:8000", True, paper) == [
+        "Serving at http://127.0.0.1:8000 (the study at /study).",
         "This study runs on Mechanical Turk: /study turns away visitors without its parameters "
-        "(serve --lab lets them in)."
+        "(serve --lab lets them in).",
+        "The dashboard is open at http://127.0.0.1:8000/dashboard: sign in with BAM_ADMIN_TOKEN.",
     ]
     lab = paper.model_copy(update={"allow_anonymous": True})
-    assert startup_notes(False, lab) == [
+    assert startup_notes("http://[::1]:8080", False, lab) == [
+        "Serving at http://[::1]:8080 (the study at /study).",
         "Lab participants enter at /study with no parameters.",
         "BAM_ADMIN_TOKEN is not set: the dashboard (/dashboard), the MTurk replica (/mturk) "
         "and the admin API are locked. Set it and restart to use them.",
     ]
+    assert listening_address("0.0.0.0", 8000) == "http://0.0.0.0:8000"
+    assert listening_address("::1", 8080) == "http://[::1]:8080"
 
 
 def test_serve_lab_lets_a_participant_in_without_parameters(tmp_path: Path) -> None:
@@ -136,6 +141,7 @@ def test_serve_lab_lets_a_participant_in_without_parameters(tmp_path: Path) -> N
     text = log.read_text()
     assert "Lab participants enter at /study with no parameters." in text
     assert "BAM_ADMIN_TOKEN is not set: the dashboard (/dashboard)" in text
+    assert f"Serving at http://127.0.0.1:{port} (the study at /study)." in text
 
 
 def test_a_server_stopped_after_serving_participants_leaves_nothing_behind(
@@ -275,3 +281,51 @@ def wait_until_answering(
             pass
         assert time.monotonic() < deadline, log.read_text()
         time.sleep(0.2)
+
+
+@pytest.mark.parametrize("port", ["99999", "65536", "-5", "0"])
+def test_a_port_out_of_range_is_one_line(
+    port: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    database = tmp_path / "study.db"
+    assert main(["serve", "--port", port, "--database-url", f"sqlite:///{database}"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"bam-study serve: --port must be a number from 1 to 65535, got {port}"
+    ]
+    assert not database.exists()
+
+
+def test_an_empty_admin_token_is_refused_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("BAM_ADMIN_TOKEN", "")
+    database = tmp_path / "study.db"
+    code = main(["serve", "--port", str(free_port()), "--database-url", f"sqlite:///{database}"])
+    assert code == 2
+    [line] = capsys.readouterr().err.splitlines()
+    assert line.startswith("bam-study serve: BAM_ADMIN_TOKEN is set but empty")
+    assert "unset it" in line and "16 characters" in line
+    assert not database.exists()
+
+
+@pytest.mark.parametrize("command", [["serve", "--port", "8000"], ["db", "upgrade"]])
+def test_a_sqlite_file_in_a_missing_folder_is_named(
+    command: list[str],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    url = "sqlite:////no/such/dir/x.db"
+    assert main([*command, "--database-url", url]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"bam-study {command[0]}: --database-url={url!r}: the folder /no/such/dir does not exist"
+    ]
+    monkeypatch.setenv("BAM_DATABASE_URL", f"sqlite:///{tmp_path / 'missing' / 'x.db'}")
+    assert main(["db", "check"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"bam-study db: BAM_DATABASE_URL='sqlite:///{tmp_path / 'missing' / 'x.db'}': the folder "
+        f"{tmp_path / 'missing'} does not exist"
+    ]

@@ -249,12 +249,16 @@ DESCRIPTIONS = {
     "(an optional question left unanswered has none; a study without a questionnaire, none).",
     "reviews": "One row per submitted MTurk assignment the experimenter approved or rejected.",
     "bonuses": "One row per bonus paid to a participant's worker.",
-    "data_dictionary": "Every file's columns. In every file, a text cell that begins with =, +, "
-    "-, @, a tab or a carriage return is written with an apostrophe (') before it, so that a "
-    "spreadsheet shows it as text instead of running it as a formula; remove that first "
-    "apostrophe to get the text as stored. Numbers are written as they are.",
+    "data_dictionary": "Every file's columns. In every file, each line of a text cell that "
+    "begins with =, +, -, @, a tab or a carriage return is written with an apostrophe (') "
+    "before it, so that a spreadsheet shows it as text instead of running it as a formula; "
+    "remove the apostrophe that begins each such line to get the text as stored. A text cell "
+    "that holds a line break (any of Unicode's) is in double quotes. Numbers are written as "
+    "they are.",
 }
 FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
+# What str.splitlines splits on; "\n" ends the rows.
+OTHER_LINE_BREAKS = "\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029"
 
 
 def pseudonym(secret: str, value: str | None, prefix: str) -> str | None:
@@ -606,10 +610,13 @@ def dictionary_frame() -> pd.DataFrame:
 
 
 def as_text(value: Any) -> Any:
-    """A text cell a spreadsheet will not run as a formula (``DESCRIPTIONS``)."""
-    if isinstance(value, str) and value.startswith(FORMULA_STARTS):
-        return "'" + value
-    return value
+    """A text cell no line of which a spreadsheet will run as a formula (``DESCRIPTIONS``)."""
+    if not isinstance(value, str):
+        return value
+    lines = value.splitlines(keepends=True)
+    if not any(line.startswith(FORMULA_STARTS) for line in lines):
+        return value
+    return "".join("'" + line if line.startswith(FORMULA_STARTS) else line for line in lines)
 
 
 def neutralised(frame: pd.DataFrame) -> pd.DataFrame:
@@ -622,12 +629,24 @@ def neutralised(frame: pd.DataFrame) -> pd.DataFrame:
     return frame
 
 
+def csv_text(frame: pd.DataFrame) -> str:
+    """``frame`` as CSV, its text cells guarded (``as_text``) and every cell holding a line
+    break in quotes, so that no reader splits its row. The csv module quotes a cell holding a
+    character of the line terminator only: the rows are written ended by every line break, and
+    each such ending outside quotes then becomes "\\n"."""
+    row_end = "\n" + OTHER_LINE_BREAKS
+    pieces = neutralised(frame).to_csv(index=False, lineterminator=row_end).split(row_end)
+    text, quoted = [], False
+    for piece in pieces[:-1]:
+        quoted ^= piece.count('"') % 2 == 1  # a quote inside quotes is doubled
+        text += [piece, row_end if quoted else "\n"]
+    text.append(pieces[-1])
+    return "".join(text)
+
+
 def export_files(tables: dict[str, pd.DataFrame]) -> dict[str, bytes]:
-    files = {
-        f"{name}.csv": neutralised(frame).to_csv(index=False).encode()
-        for name, frame in tables.items()
-    }
-    files["data_dictionary.csv"] = neutralised(dictionary_frame()).to_csv(index=False).encode()
+    files = {f"{name}.csv": csv_text(frame).encode() for name, frame in tables.items()}
+    files["data_dictionary.csv"] = csv_text(dictionary_frame()).encode()
     return files
 
 

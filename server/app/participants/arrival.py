@@ -8,7 +8,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
 
-from sqlalchemy import Connection, func, select
+from sqlalchemy import ColumnElement, Connection, func, select
 from sqlalchemy.exc import IntegrityError
 
 from server.app.config import StudyConfig
@@ -164,18 +164,27 @@ def _arrive(
                 current.save(c)
                 return Arrival(current, None, True)
             return Arrival(*_create(c, platform, now, room), False)
+        worker = (platform.worker_id or "").lower()
         if c.dialect.name == "postgresql" and not study.allow_repeat_workers:
             # One worker's arrivals one at a time, until this one commits (SQLite's writes are
             # one at a time already: BEGIN IMMEDIATE).
-            key = advisory_lock_key(f"bam-study worker {platform.name} {platform.worker_id}")
+            key = advisory_lock_key(f"bam-study worker {platform.name} {worker}")
             c.execute(select(func.pg_advisory_xact_lock(key)))
-        existing = load(
+        if c.dialect.name == "postgresql" and platform.name == "mturk":
+            # And one assignment's (who holds it is decided below), always after the worker's.
+            key = advisory_lock_key(f"bam-study assignment {platform.assignment_id}")
+            c.execute(select(func.pg_advisory_xact_lock(key)))
+        # (Ids that differ in case only, stored before they were compared so, are one worker:
+        # the participation with the id as given comes first, then the oldest.)
+        candidates = load_all(
             c,
             PARTICIPANTS,
             PARTICIPANTS.c.platform == platform.name,
-            PARTICIPANTS.c.worker_id == platform.worker_id,
+            same_worker(worker),
             PARTICIPANTS.c.assignment_id == platform.assignment_id,
+            order_by=PARTICIPANTS.c.id,
         )
+        existing = min(candidates, key=lambda p: p.worker_id != platform.worker_id, default=None)
         coming_back = existing is None or existing.status == "returned"
         if (
             coming_back
@@ -188,17 +197,26 @@ def _arrive(
                 "each person only once. Please return this task; thank you for your interest.",
             )
         if platform.name == "mturk":
-            # MTurk gives a returned assignment to the next worker who accepts it.
-            for previous in load_all(
+            # MTurk gives a returned assignment to the next worker who accepts it, who holds it
+            # from then on: the worker who returned it cannot take it back.
+            others = load_all(
                 c,
                 PARTICIPANTS,
                 PARTICIPANTS.c.platform == "mturk",
                 PARTICIPANTS.c.assignment_id == platform.assignment_id,
-                PARTICIPANTS.c.worker_id != platform.worker_id,
-                PARTICIPANTS.c.status.in_((*IN_PROGRESS, "abandoned")),
-            ):
-                set_status(c, previous, "returned", now, note="assignment taken by another worker")
-                previous.save(c)
+                ~same_worker(worker),
+                PARTICIPANTS.c.status.not_in(("returned", "declined")),
+            )
+            if existing is not None and existing.status == "returned" and others:
+                raise TurnedAway(
+                    "You returned this task",
+                    "You returned this task, and its assignment went to another worker, who "
+                    "holds it now. To take part, accept the task again on Mechanical Turk: you "
+                    "will get an assignment of your own.",
+                    409,
+                )
+            in_progress = [p for p in others if p.status in (*IN_PROGRESS, "abandoned")]
+            mark_returned(c, in_progress, now, "assignment taken by another worker")
         if existing is None:
             return Arrival(*_create(c, platform, now, room), False)
         if existing.status in ("abandoned", "returned"):
@@ -227,13 +245,39 @@ def _took_part(c: Connection, platform: Platform, other_than: int | None) -> boo
         .select_from(PARTICIPANTS)
         .where(
             PARTICIPANTS.c.platform == platform.name,
-            PARTICIPANTS.c.worker_id == platform.worker_id,
+            same_worker(platform.worker_id or ""),
             PARTICIPANTS.c.status.not_in(("returned", "declined")),
         )
     )
     if other_than is not None:
         query = query.where(PARTICIPANTS.c.id != other_than)
     return bool(c.scalar(query))
+
+
+def same_worker(worker_id: str) -> ColumnElement[bool]:
+    """The participant is this worker's, whatever the case of the id: an id typed or pasted in
+    another case is the same worker (ids are stored as they came, so no stored row changes)."""
+    return func.lower(PARTICIPANTS.c.worker_id) == worker_id.lower()
+
+
+def mark_returned(c: Connection, participants: list[Record], now: datetime, note: str) -> None:
+    for participant in participants:
+        set_status(c, participant, "returned", now, note=note)
+        participant.save(c)
+
+
+def return_assignment(c: Connection, worker_id: str, assignment_id: str) -> None:
+    """The worker returned the HIT (the local MTurk replica says so at once; MTurk itself does
+    not): their participation with that assignment, if it is going on, is returned."""
+    going_on = load_all(
+        c,
+        PARTICIPANTS,
+        PARTICIPANTS.c.platform == "mturk",
+        same_worker(worker_id),
+        PARTICIPANTS.c.assignment_id == assignment_id,
+        PARTICIPANTS.c.status.in_((*IN_PROGRESS, "abandoned")),
+    )
+    mark_returned(c, going_on, utcnow(), "returned the HIT")
 
 
 def _create(

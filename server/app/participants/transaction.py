@@ -159,7 +159,7 @@ def perform(
         if participant.status == "returned":
             raise ApiError(
                 409,
-                "this task was returned and its assignment went to another worker; "
+                "this task was returned (its assignment may have gone to another worker); "
                 "to take part, accept the task again",
             )
         now = utcnow()

@@ -7,6 +7,8 @@ study in an iframe with exactly ``assignmentId``, ``hitId``, ``workerId`` and ``
 which points back at this server), and either submits (the page POSTs its form from the top
 window to ``{turkSubmitTo}/mturk/externalSubmit``, recorded here with every field) or returns
 the HIT, after which the same assignment id goes to the next worker who accepts, as on MTurk.
+Unlike MTurk, the replica tells the study of a return at once (the participant is marked
+returned).
 The requester's approvals, rejections and bonuses (``review.ReplicaReviewBackend``, from the
 dashboard) show on the HIT page.
 """
@@ -24,6 +26,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from server.app.deps import RowId, StateDep, is_admin
+from server.app.participants.arrival import return_assignment
 from server.app.participants.tokens import PREVIEW_ASSIGNMENT
 from server.app.routers.common import login_redirect, notice, own_origin, templates
 from server.app.schemas import ID_PATTERN
@@ -228,6 +231,9 @@ def return_hit(row_id: RowId, request: Request, state: StateDep) -> Response:
             return notice(request, "Cannot return", "This assignment is not being worked on.", 409)
         row.status = "returned"
         row.returned_at = utcnow()
+        # The study hears of it at once, so that the replica and the study agree on who holds
+        # the assignment when it goes to the next worker (or back to this one).
+        return_assignment(s.connection(), row.worker_id, row.assignment_id)
     return RedirectResponse("/mturk", status_code=303)
 
 

@@ -28,6 +28,7 @@ UNFINISHED_REASONS = {
     "tutorial": "still in the study",
     "teaching": "still in the study",
     "questionnaire": "still in the study",
+    "waiting": "waiting for a place (never started)",
 }
 
 

@@ -389,6 +389,14 @@ class StudyConfig(_Strict):
         False, description="Accept arrivals without platform ids (a lab participant)."
     )
     reveal_gravity: bool = Field(False, description="Show gravity directions to participants.")
+    max_active_participants: int | None = Field(
+        None,
+        ge=1,
+        description="Participants in the study at once (arrived and not finished, seen in the "
+        "last BAM_ACTIVE_MINUTES); an arrival beyond it waits on a page that lets them in as "
+        "soon as a place frees. Default: the capacity the server measures at start (none "
+        "before it has).",
+    )
     questionnaire: Questionnaire = Field(
         Questionnaire(),
         description="A post-study questionnaire, shown after the last agent and before the "
@@ -501,6 +509,15 @@ class StudyConfig(_Strict):
             if domain.name == name:
                 return domain
         raise KeyError(name)
+
+    def pairs(self) -> list[tuple[str, str]]:
+        """Every (environment, learner) of the study's agents."""
+        return [
+            (environment, learner)
+            for domain in self.domains
+            for environment in domain.environments
+            for learner in self.learners
+        ]
 
     def settings_of(self, learner: str) -> dict[str, Any]:
         return dict(self.learner_settings.get(learner, {}))

@@ -36,6 +36,7 @@ from server.app.schemas import ERROR_RESPONSES
 from server.app.settings import Settings, get_settings
 from server.app.state import ServerState
 from server.app.storage.db import Database, SchemaError, current_revision, head_revision
+from server.app.updates.capacity import reference_jobs
 from server.app.updates.manager import UpdateManager
 
 if TYPE_CHECKING:
@@ -126,11 +127,14 @@ def create_app(
     db: Database | None = None,
     executor: Executor | None = None,
     cluster: UpdateCluster | None = None,
+    measure_capacity: bool = False,
 ) -> FastAPI:
     """The app for one study database. ``executor`` runs learner updates (a process pool of
     ``BAM_UPDATE_WORKERS`` is made when None), or ``cluster``, a Dask cluster's client (one is
     connected to ``BAM_UPDATE_SCHEDULER`` when that is set and ``cluster`` is None); the schema must be up to date (``bam-study db
-    upgrade``, which ``bam-study serve`` runs itself on SQLite)."""
+    upgrade``, which ``bam-study serve`` runs itself on SQLite). ``measure_capacity``: time
+    the study's reference updates once the update processes are warm
+    (``server.app.updates.capacity``; ``serve`` does)."""
     settings = settings or get_settings()
     study_config = study_config or load_study_config(settings.study_config)
     study_config.register_environments()
@@ -168,6 +172,12 @@ def create_app(
             threads=settings.update_threads,
             executor=executor,
             cluster=updates_cluster,
+            update_interval_seconds=settings.update_interval_seconds,
+            reference_jobs=(
+                reference_jobs(study_config.pairs(), study_config.settings_of)
+                if measure_capacity
+                else None
+            ),
         )
         state.updates = manager
         await manager.start()

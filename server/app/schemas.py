@@ -133,6 +133,16 @@ class Colour(BaseModel):
     hex: str
 
 
+class PlaceView(BaseModel):
+    """A waiting participant's place in line (``places``)."""
+
+    admitted: bool = Field(description="In the study: load the study page again.")
+    ahead: int = Field(description="Participants waiting before this one.")
+    active: int = Field(description="Participants in the study now.")
+    limit: int | None = Field(description="Participants in the study at once (none: no limit).")
+    ask_seconds: int = Field(description="Ask again after this long.")
+
+
 class Completion(BaseModel):
     """How the participant finishes, issued once the completion is committed."""
 
@@ -351,6 +361,33 @@ class StatusChangeView(BaseModel):
     status: str
     at: datetime
     note: str | None
+
+
+class QueueView(BaseModel):
+    """The learner updates' live queue beside the capacity (``server.app.capacity``)."""
+
+    capacity: int | None = Field(
+        description="Participants who can teach at once without waiting (none: not measured yet)."
+    )
+    update_seconds: float | None = Field(description="The measured wall time of one update.")
+    measured_on: str | None = Field(description="What the update time was measured on.")
+    slots: int = Field(
+        description="Updates run at once (processes on their own cores, or workers)."
+    )
+    update_interval_seconds: float = Field(
+        description="How often a participant teaching queues an update (BAM_UPDATE_INTERVAL_SECONDS)."
+    )
+    limit: int | None = Field(description="Participants in the study at once (none: no limit yet).")
+    limit_from: Literal["study file", "capacity"] | None
+    participants_active: int = Field(description="In the study now (seen in BAM_ACTIVE_MINUTES).")
+    participants_waiting: int = Field(description="Waiting for a place.")
+    updates_pending: int = Field(description="Learner updates queued or running.")
+    sessions_updating: int = Field(description="Sessions with an update running.")
+    sessions_awaited: int = Field(description="Sessions whose agent someone waits for.")
+    oldest_wait_seconds: float = Field(
+        description="How long the longest of those waits has lasted."
+    )
+    updates_done: int = Field(description="Updates done since the server started.")
 
 
 class AdminParticipant(BaseModel):

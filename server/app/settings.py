@@ -73,6 +73,14 @@ class Settings(BaseSettings):
     agent_wait_seconds: float = Field(
         30.0, gt=0, le=600, description="How long an agent step waits for its learner's update."
     )
+    update_interval_seconds: float = Field(
+        10.0,
+        gt=0,
+        le=3600,
+        description="How often a participant teaching queues a learner update on average (an "
+        "episode end, a new agent), for the capacity that serve prints and the dashboard "
+        "shows (the simulated participants of benchmarks/server.py queue one about every 10 s).",
+    )
     active_minutes: float = Field(
         30.0, gt=0, description="A participant idle for longer no longer counts for balancing."
     )

@@ -139,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
     for line in startup_notes(address, admin_token(settings) is not None, study):
         print(line, file=sys.stderr)
     logging.basicConfig(level=args.log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
-    app = create_app(settings, study, db=db, cluster=cluster)
+    app = create_app(settings, study, db=db, cluster=cluster, measure_capacity=True)
     server = uvicorn.Server(
         server_config(app, settings, args.host, args.port, args.log_level, args.access_log)
     )

@@ -282,6 +282,13 @@ class SimulatedParticipant:
         self.token = arrival["token"]
         self.run.participant_id = arrival["participant"]["participant_id"]
         self.seq = arrival["participant"]["next_seq"]
+        if arrival["participant"]["status"] == "waiting":  # the study is full: as the page does
+            while not (place := self.request("POST", "/api/participant/place", "place"))[
+                "admitted"
+            ]:
+                if self.stop is not None and self.stop.is_set():
+                    raise Stopped
+                time.sleep(place["ask_seconds"])
         self.act("/api/participant/consent", "consent", agree=True)
 
     def questionnaire_answers(self) -> dict[str, int | str]:

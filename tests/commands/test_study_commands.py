@@ -12,10 +12,10 @@ import gymnasium as gym
 import matplotlib.image
 import numpy as np
 import pytest
-from server.commands.main import main
 
 from server import domains
 from server.commands import check
+from server.commands.main import main
 from server.learners.evaluation import optimal_returns
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "server" / "examples"

@@ -4,6 +4,7 @@ participant row and token made for a newcomer.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
 
@@ -124,21 +125,33 @@ class Arrival:
     resumed: bool
 
 
+Room = Callable[[Connection, datetime], bool]  # may a new participant go in now?
+
+
 def arrive(
-    db: Database, platform: Platform, cookie_token: str | None, study: StudyConfig
+    db: Database,
+    platform: Platform,
+    cookie_token: str | None,
+    study: StudyConfig,
+    room: Room | None = None,
 ) -> Arrival:
     """Create the participant, or find the one this arrival resumes: MTurk and Prolific
-    participants by their (worker, assignment) ids, lab participants by their cookie."""
+    participants by their (worker, assignment) ids, lab participants by their cookie. A new
+    participant for whom ``room`` finds no place waits for one (``places``)."""
     try:
-        return _arrive(db, platform, cookie_token, study)
+        return _arrive(db, platform, cookie_token, study, room)
     except IntegrityError:
         # The same worker and assignment arrived twice at once (PostgreSQL): the other
         # arrival created the participant, this one resumes it.
-        return _arrive(db, platform, cookie_token, study)
+        return _arrive(db, platform, cookie_token, study, room)
 
 
 def _arrive(
-    db: Database, platform: Platform, cookie_token: str | None, study: StudyConfig
+    db: Database,
+    platform: Platform,
+    cookie_token: str | None,
+    study: StudyConfig,
+    room: Room | None,
 ) -> Arrival:
     now = utcnow()
     with db.transaction() as c:
@@ -150,7 +163,7 @@ def _arrive(
                 reactivate(c, current, now)
                 current.save(c)
                 return Arrival(current, None, True)
-            return Arrival(*_create(c, platform, now), False)
+            return Arrival(*_create(c, platform, now, room), False)
         worker = (platform.worker_id or "").lower()
         if c.dialect.name == "postgresql" and not study.allow_repeat_workers:
             # One worker's arrivals one at a time, until this one commits (SQLite's writes are
@@ -205,7 +218,7 @@ def _arrive(
             in_progress = [p for p in others if p.status in (*IN_PROGRESS, "abandoned")]
             mark_returned(c, in_progress, now, "assignment taken by another worker")
         if existing is None:
-            return Arrival(*_create(c, platform, now), False)
+            return Arrival(*_create(c, platform, now, room), False)
         if platform.name == "prolific" and existing.status == "returned":
             # Released on Prolific's word (RETURNED or TIMED-OUT): the place went to another.
             raise TurnedAway(
@@ -275,7 +288,10 @@ def return_assignment(c: Connection, worker_id: str, assignment_id: str) -> None
     mark_returned(c, going_on, utcnow(), "returned the HIT")
 
 
-def _create(c: Connection, platform: Platform, now: datetime) -> tuple[Record, str]:
+def _create(
+    c: Connection, platform: Platform, now: datetime, room: Room | None
+) -> tuple[Record, str]:
+    status = "arrived" if room is None or room(c, now) else "waiting"
     token, token_hash = new_token()
     participant_id = add(
         c,
@@ -286,14 +302,14 @@ def _create(c: Connection, platform: Platform, now: datetime) -> tuple[Record, s
         assignment_id=platform.assignment_id,
         hit_id=platform.hit_id,
         submit_to=platform.submit_to,
-        status="arrived",
+        status=status,
         next_seq=1,
         created_at=now,
         last_seen_at=now,
     )
     participant = load(c, PARTICIPANTS, PARTICIPANTS.c.id == participant_id)
     assert participant is not None
-    set_status(c, participant, "arrived", now)
+    set_status(c, participant, status, now)
     participant.save(c)
     return participant, token
 

@@ -30,6 +30,8 @@ from server.domains import make as make_environment
 
 def consent(transaction: Transaction, agree: bool) -> None:
     participant = transaction.participant
+    if participant.status == "waiting":
+        raise ApiError(409, "the study is full at the moment: wait for a place first")
     if participant.status != "arrived":
         raise ApiError(409, f"consent was already answered (status {participant.status})")
     if not agree:

@@ -39,7 +39,8 @@ FLOW_STATUSES = (
     "submitted",
 )
 IN_PROGRESS = ("arrived", "consented", "tutorial", "teaching", "questionnaire")
-STATUSES = (*FLOW_STATUSES, "declined", "returned", "abandoned")
+# "waiting": arrived while the study was full, for a place (``places``); not yet in the flow.
+STATUSES = ("waiting", *FLOW_STATUSES, "declined", "returned", "abandoned")
 CODE_ALPHABET = "ABCDEFGHJKLMNPQRSTUVWXYZ23456789"
 TOKEN_HEADER = "X-Participant-Token"
 

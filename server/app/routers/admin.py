@@ -11,7 +11,7 @@ from sqlalchemy.orm import Session
 from server.app.deps import AdminDep, RowId, StateDep
 from server.app.errors import ApiError
 from server.app.export import tables as export
-from server.app.participants import assignment, teaching, tokens
+from server.app.participants import assignment, places, teaching, tokens
 from server.app.platforms import prolific_sync, review
 from server.app.schemas import (
     AdminEvaluation,
@@ -23,6 +23,7 @@ from server.app.schemas import (
     BonusRequest,
     BonusView,
     ExclusionRequest,
+    QueueView,
     ReplicaAssignmentView,
     ReplicaRecords,
     ReplicaSubmissionView,
@@ -336,6 +337,14 @@ def send_bonus(
     )
     with state.db.read() as s:
         return _participant_detail(s, participant_id)
+
+
+@router.get("/queue", response_model=QueueView)
+async def read_queue(state: StateDep) -> QueueView:
+    """The learner updates' live queue (updates pending, the oldest wait, participants in the
+    study and waiting) beside the capacity and the limit of participants at once."""
+    queue = state.updates.queue() if state.updates is not None else None  # on its own loop
+    return await state.run_db(lambda: places.queue_view(state, queue))
 
 
 @router.get("/sessions", response_model=list[AdminSession])

@@ -12,7 +12,7 @@ from fastapi import Request, Response
 from fastapi.responses import RedirectResponse
 from fastapi.templating import Jinja2Templates
 
-from server.app.participants import arrival, transaction, views
+from server.app.participants import arrival, places, transaction, views
 from server.app.schemas import ArrivalRequest, ArrivalResponse
 from server.app.state import ServerState
 
@@ -80,7 +80,7 @@ def arrive(
     if platform is None:
         return ArrivalResponse(preview=True)
     cookie = request.cookies.get(state.settings.cookie_name)
-    arrived = arrival.arrive(state.db, platform, cookie, state.study)
+    arrived = arrival.arrive(state.db, platform, cookie, state.study, places.room_for(state))
     if arrived.token is not None:
         set_participant_cookie(response, state, arrived.token)
     with state.db.connect() as c:

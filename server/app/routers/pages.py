@@ -14,8 +14,10 @@ from pydantic import ValidationError
 
 from server.app.deps import StateDep
 from server.app.errors import ApiError, TurnedAway
+from server.app.participants import places
 from server.app.routers.common import arrive, notice, templates
-from server.app.schemas import ArrivalRequest
+from server.app.schemas import ArrivalRequest, ArrivalResponse
+from server.app.state import ServerState
 
 router = APIRouter(tags=["pages"])
 
@@ -42,16 +44,44 @@ def study_page(request: Request, state: StateDep) -> Response:
         return notice(request, "This study link is not valid", error.message, error.status)
     if arrival.preview:
         return templates.TemplateResponse(request, "preview.html", {"study": state.study.public()})
+    assert arrival.participant is not None
+    if arrival.participant.status == places.WAITING:
+        page = waiting_page(request, state, arrival.participant.participant_id, arrival.token)
+    else:
+        page = study_page_of(request, state, arrival)
+    for key, value in response.headers.items():
+        if key == "set-cookie":
+            page.headers.append(key, value)
+    return page
+
+
+def study_page_of(request: Request, state: ServerState, arrival: ArrivalResponse) -> Response:
     # A new token is also given to the page itself, which sends it in the X-Participant-Token
     # header: in the platform's cross-site iframe the browser may keep no cookie. The page is
     # this participant's alone, so no cache may keep it.
-    page = templates.TemplateResponse(
+    return templates.TemplateResponse(
         request,
         "study.html",
         {"study": state.study.public(), "participant": arrival.participant, "token": arrival.token},
         headers={"Cache-Control": "no-store"},
     )
-    for key, value in response.headers.items():
-        if key == "set-cookie":
-            page.headers.append(key, value)
-    return page
+
+
+def waiting_page(
+    request: Request, state: ServerState, participant_id: int, token: str | None
+) -> Response:
+    """The study is full: the page that waits for a place (``places``), for this participant
+    alone (with their new token, as the study page)."""
+    place = places.admit(
+        state.db, participant_id, places.study_limit(state), state.settings.active_minutes
+    )
+    return templates.TemplateResponse(
+        request,
+        "waiting.html",
+        {
+            "study": state.study.public(),
+            "place": {"ahead": place.ahead, "ask_seconds": places.ASK_SECONDS},
+            "token": token,
+        },
+        headers={"Cache-Control": "no-store"},
+    )

@@ -3,12 +3,20 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import asdict
 
 from fastapi import APIRouter, Response
 
 from server.app.deps import StateDep, TokenDep
 from server.app.errors import ApiError
-from server.app.participants import assignment, completion, tokens, transaction, views
+from server.app.participants import (
+    assignment,
+    completion,
+    places,
+    tokens,
+    transaction,
+    views,
+)
 from server.app.participants.transaction import Transaction
 from server.app.routers.common import answer
 from server.app.schemas import (
@@ -16,6 +24,7 @@ from server.app.schemas import (
     ConsentRequest,
     Outcome,
     ParticipantState,
+    PlaceView,
     QuestionnaireRequest,
     RequestOutcome,
     SeqRequest,
@@ -60,6 +69,22 @@ async def read_participant(state: StateDep, token: TokenDep) -> ParticipantState
             return views.participant_state(c, participant, state.study)
 
     return await state.run_db(read)
+
+
+@router.post("/place", response_model=PlaceView)
+async def ask_for_place(state: StateDep, token: TokenDep) -> PlaceView:
+    """A participant who arrived while the study was full asks for a place: in as soon as one
+    is free for them (the first in line first); anyone else is in already."""
+
+    def ask() -> PlaceView:
+        with state.db.connect() as c:
+            participant = tokens.participant_for(c, token)
+        place = places.admit(
+            state.db, participant.id, places.study_limit(state), state.settings.active_minutes
+        )
+        return PlaceView(**asdict(place), ask_seconds=places.ASK_SECONDS)
+
+    return await state.run_db(ask)
 
 
 @router.post("/consent", response_model=RequestOutcome)

@@ -75,17 +75,23 @@ async def read_learning(
 ) -> Learning:
     """Whether the agent is learning (pending updates), optionally waiting until it is done."""
 
-    def read() -> Learning:
+    def read() -> tuple[Learning, bool]:
         with state.db.connect() as c:
             participant = tokens.participant_for(c, token)
-            return teaching.learning(teaching.own_session(c, participant, session_id))
+            session = teaching.own_session(c, participant, session_id)
+            return teaching.learning(session), session.mode == "agent"
 
-    learning = await state.run_db(read)
+    learning, agent_mode = await state.run_db(read)
     if learning.pending and wait > 0 and state.updates is not None:
-        target = learning.updates - 1 + learning.pending
-        await state.updates.wait(session_id, target, wait)
-        learning = await state.run_db(read)
+        # In agent mode the participant waits for the agent; otherwise the page only follows.
+        await state.updates.wait(session_id, awaited_update(learning), wait, awaited=agent_mode)
+        learning, _ = await state.run_db(read)
     return learning
+
+
+def awaited_update(learning: Learning) -> int:
+    """The index of the session's last update requested (the one its agent will be)."""
+    return learning.updates + learning.pending
 
 
 @router.post("/{session_id}/task", response_model=RequestOutcome)
@@ -104,10 +110,20 @@ async def select_mode(
     session_id: RowId, body: ModeRequest, state: StateDep, token: TokenDep
 ) -> Response:
     """Demonstrate, let the agent try, or idle (ends an open episode)."""
-    return await teach(
-        state, token, "mode", body, session_id,
-        lambda transaction: teaching.set_mode(transaction, session_id, body.mode),
-    )  # fmt: skip
+
+    def handle(transaction: Transaction) -> RequestOutcome:
+        response = teaching.set_mode(transaction, session_id, body.mode)
+        learning = response.session.learning if response.session is not None else None
+        if body.mode == "agent" and learning is not None and learning.pending:
+            # The agent's turn is next: its pending updates are awaited from now on.
+            expected.append(awaited_update(learning))
+        return response
+
+    expected: list[int] = []
+    answered = await teach(state, token, "mode", body, session_id, handle)
+    if expected and state.updates is not None:
+        state.updates.expect(session_id, expected[-1])
+    return answered
 
 
 @router.post("/{session_id}/move", response_model=RequestOutcome)

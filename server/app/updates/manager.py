@@ -8,7 +8,18 @@ server so that moves stay fast; an update running alone splits its planner's tas
 learner from the latest saved state (or builds a new one), replays the events since, updates
 it, stores its greedy policies and scores them (exact normalised return). The server then
 commits the new learner state with the evaluation, and an agent step waiting for that
-session's update goes on. Sessions with an agent step waiting go first; the others take turns.
+session's update goes on.
+
+The order minimises what participants wait for. A session's updates are awaited from the moment
+its agent's turn is next (the participant lets the agent try: ``expect``) or an agent step or the
+page waits for them in agent mode (``wait``), until they are done, across the waiter's retries;
+awaited sessions go first, the one awaited longest first (the longest wait is the one the
+participant feels), and the others take turns in the order their updates were queued. Order
+changes only between sessions: a session's updates run one at a time in episode order, each from
+the learner state the one before saved, so the agent shown after episode k is the agent recorded
+after episode k. No request but the agent step waits for an update: demonstrations, moves and
+episode ends go on while the session's updates are pending.
+
 Pending updates are found again in the database when the server starts, so none is lost by a
 restart. With ``BAM_UPDATE_SCHEDULER`` the same function runs on the workers of a Dask cluster
 instead of the local processes (``server.app.updates.cluster``), in the same order.
@@ -20,23 +31,33 @@ import asyncio
 import logging
 import time
 import traceback
+from collections import deque
 from concurrent.futures import Executor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 from sqlalchemy import func, select
 
 from server.app.storage.db import Database
 from server.app.storage.models import Event, LearnerUpdate, LearningSession, utcnow
 from server.app.updates.policies import PolicyCache, decode
-from server.cores import share_threads
+from server.cores import available_cores, share_threads
 from server.domains import make as make_environment
 
 if TYPE_CHECKING:
     from server.app.updates.cluster import UpdateCluster
 
 
+from server.app.updates.capacity import (
+    LIVE_MINIMUM,
+    LIVE_UPDATES,
+    Capacity,
+    describe,
+    measure_update_cost,
+    participants_at_once,
+)
 from server.app.updates.pool import UpdatesUnavailable, WorkerDied, new_executor
 from server.app.updates.worker import records_of, run_update, worker_ready
 
@@ -50,6 +71,17 @@ RESCAN_SECONDS = 30.0
 DB_POLL_SECONDS = 5.0
 RETRY_SECONDS = 5.0  # a session whose update could not be run (database, scheduler) waits
 CLUSTER_WATCH_SECONDS = 10.0  # how often a ready server asks its Dask cluster about the workers
+
+
+@dataclass(frozen=True)
+class QueueState:
+    sessions_queued: int  # sessions with updates pending, waiting for a slot
+    sessions_updating: int  # sessions with an update running
+    sessions_awaited: int  # of those, sessions someone waits for
+    oldest_wait_seconds: float  # how long the longest of those waits has lasted
+    slots: int  # updates that run at once
+    completed: int  # updates done since the server started
+    failed: int
 
 
 @dataclass
@@ -74,6 +106,8 @@ class UpdateManager:
         executor: Executor | None = None,
         threads: int = 1,
         cluster: UpdateCluster | None = None,
+        update_interval_seconds: float = 10.0,
+        reference_jobs: list[dict[str, Any]] | None = None,
     ) -> None:
         self.db = db
         self.policies = policies
@@ -90,7 +124,8 @@ class UpdateManager:
         self._turn = 0
         self._running: set[int] = set()
         self._again: set[int] = set()
-        self._urgent: dict[int, int] = {}
+        # session -> (when someone began waiting, the update index they wait for)
+        self._awaited: dict[int, tuple[float, int]] = {}
         self._processed: dict[int, int] = {}
         self._waiters: dict[int, list[asyncio.Future[None]]] = {}
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -102,6 +137,12 @@ class UpdateManager:
         self.warm_processes = 0  # update processes known to have loaded the kernels
         self.ready = False  # every update process is warm
         self._stopping = False
+        # The capacity (server.app.capacity): jobs timed once the processes are warm (none:
+        # not measured at start), their mean wall time, and the wall times of the latest updates.
+        self.update_interval_seconds = update_interval_seconds
+        self.reference_jobs = reference_jobs
+        self.reference_seconds: float | None = None
+        self._costs: deque[float] = deque(maxlen=LIVE_UPDATES)
 
     # -- lifecycle ---------------------------------------------------------------------------
     async def start(self) -> None:
@@ -118,6 +159,8 @@ class UpdateManager:
             self._spawn(self._await_warm())
         self._spawn(self._dispatch())
         self._spawn(self._rescan_forever())
+        if self.reference_jobs:
+            self._spawn(self._measure_reference())
 
     async def stop(self) -> None:
         self._stopping = True
@@ -171,55 +214,98 @@ class UpdateManager:
         """Sessions waiting for a worker or being updated."""
         return len(self._ready) + len(self._running)
 
-    async def wait(self, session_id: int, target: int, timeout: float) -> bool:
-        """Wait until the session's update ``target`` is processed; False on timeout. Callable
-        from any event loop (the manager's state lives on its own)."""
+    def expect(self, session_id: int, target: int) -> None:
+        """Thread-safe: the session's agent's turn is next (the participant let it try) and its
+        update ``target`` is pending: someone waits for it from now on."""
+        if self._loop is None:
+            return
+        self._loop.call_soon_threadsafe(self._expect, session_id, target)
+
+    def _expect(self, session_id: int, target: int) -> None:
+        assert self._loop is not None
+        if self._processed.get(session_id, -1) >= target:
+            return
+        since, awaited = self._awaited.get(session_id, (self._loop.time(), target))
+        self._awaited[session_id] = (since, max(awaited, target))
+        self._enqueue(session_id)
+
+    async def wait(
+        self, session_id: int, target: int, timeout: float, awaited: bool = True
+    ) -> bool:
+        """Wait until the session's update ``target`` is processed; False on timeout. With
+        ``awaited`` (an agent step, or the page in agent mode) someone waits for it: the
+        session goes first until it is done, also after this wait times out (the waiter
+        retries). Callable from any event loop (the manager's state lives on its own)."""
         assert self._loop is not None
         if asyncio.get_running_loop() is not self._loop:
             waiting = asyncio.run_coroutine_threadsafe(
-                self._wait(session_id, target, timeout), self._loop
+                self._wait(session_id, target, timeout, awaited), self._loop
             )
             return await asyncio.wrap_future(waiting)
-        return await self._wait(session_id, target, timeout)
+        return await self._wait(session_id, target, timeout, awaited)
 
-    async def _wait(self, session_id: int, target: int, timeout: float) -> bool:
+    async def _wait(self, session_id: int, target: int, timeout: float, awaited: bool) -> bool:
         assert self._loop is not None
         deadline = self._loop.time() + timeout
-        self._urgent[session_id] = self._urgent.get(session_id, 0) + 1
-        self._enqueue(session_id)
-        try:
-            while True:
-                if self._processed.get(session_id, -1) >= target:
-                    return True
-                remaining = deadline - self._loop.time()
-                if remaining <= 0:
-                    return False
-                future: asyncio.Future[None] = self._loop.create_future()
-                self._waiters.setdefault(session_id, []).append(future)
-                try:
-                    await asyncio.wait_for(future, min(remaining, DB_POLL_SECONDS))
-                except TimeoutError:
-                    # Also look in the database, in case another process did the update.
-                    processed = await asyncio.to_thread(self._processed_in_db, session_id)
-                    self._processed[session_id] = max(
-                        self._processed.get(session_id, -1), processed
-                    )
-                finally:
-                    waiters = self._waiters.get(session_id, [])
-                    if future in waiters:
-                        waiters.remove(future)
-                    if not waiters:
-                        self._waiters.pop(session_id, None)
-        finally:
-            self._urgent[session_id] -= 1
-            if self._urgent[session_id] <= 0:
-                del self._urgent[session_id]
+        if awaited:
+            self._expect(session_id, target)
+        else:
+            self._enqueue(session_id)
+        while True:
+            if self._processed.get(session_id, -1) >= target:
+                return True
+            remaining = deadline - self._loop.time()
+            if remaining <= 0:
+                return False
+            future: asyncio.Future[None] = self._loop.create_future()
+            self._waiters.setdefault(session_id, []).append(future)
+            try:
+                await asyncio.wait_for(future, min(remaining, DB_POLL_SECONDS))
+            except TimeoutError:
+                # Also look in the database, in case another process did the update.
+                processed = await asyncio.to_thread(self._processed_in_db, session_id)
+                self._note_processed(session_id, processed)
+            finally:
+                waiters = self._waiters.get(session_id, [])
+                if future in waiters:
+                    waiters.remove(future)
+                if not waiters:
+                    self._waiters.pop(session_id, None)
+
+    def _note_processed(self, session_id: int, index: int) -> None:
+        self._processed[session_id] = max(self._processed.get(session_id, -1), index)
+        awaited = self._awaited.get(session_id)
+        if awaited is not None and awaited[1] <= self._processed[session_id]:
+            del self._awaited[session_id]
 
     def _notify(self, session_id: int, index: int) -> None:
-        self._processed[session_id] = max(self._processed.get(session_id, -1), index)
+        self._note_processed(session_id, index)
         for future in self._waiters.get(session_id, []):
             if not future.done():
                 future.set_result(None)
+
+    def priority(self, session_id: int) -> tuple[int, float]:
+        """The dispatch order (smallest first): awaited sessions by how long they have been
+        awaited, then the others by when their updates were queued."""
+        awaited = self._awaited.get(session_id)
+        if awaited is not None:
+            return (0, awaited[0])
+        return (1, float(self._ready.get(session_id, 0)))
+
+    def queue(self) -> QueueState:
+        """What the dashboard shows of the live queue (call it on the manager's loop, or
+        accept a snapshot a moment old)."""
+        now = self._loop.time() if self._loop is not None else 0.0
+        waits = [now - since for since, _ in list(self._awaited.values())]
+        return QueueState(
+            sessions_queued=len(self._ready),
+            sessions_updating=len(self._running),
+            sessions_awaited=len(waits),
+            oldest_wait_seconds=max(waits, default=0.0),
+            slots=self._capacity,
+            completed=self.completed,
+            failed=self.failed,
+        )
 
     # -- dispatching -------------------------------------------------------------------------
     async def _dispatch(self) -> None:
@@ -233,9 +319,7 @@ class UpdateManager:
             except BaseException:
                 self._slots.release()
                 raise
-            session_id = min(
-                self._ready, key=lambda k: (0 if k in self._urgent else 1, self._ready[k])
-            )
+            session_id = min(self._ready, key=self.priority)
             del self._ready[session_id]
             self._running.add(session_id)
             self._spawn(self._process(session_id))
@@ -289,11 +373,18 @@ class UpdateManager:
             log.exception("learner updates of session %s could not be run; retrying", session_id)
             self._retry_later(session_id)
         finally:
-            self._running.discard(session_id)
-            self._slots.release()
-            if more or session_id in self._again:
-                self._again.discard(session_id)
-                self._enqueue(session_id)
+            self._finish(session_id, more)
+
+    def _finish(self, session_id: int, more: bool) -> None:
+        """The session's update ended (``more``: it has further updates pending)."""
+        assert self._slots is not None
+        self._running.discard(session_id)
+        self._slots.release()
+        if more or session_id in self._again:
+            self._again.discard(session_id)
+            self._enqueue(session_id)
+        else:  # nothing left to wait for (a mark from a race, or updates that failed)
+            self._awaited.pop(session_id, None)
 
     def _retry_later(self, session_id: int) -> None:
         assert self._loop is not None
@@ -303,17 +394,21 @@ class UpdateManager:
         """``run_update`` on the cluster or in an update process: its outcome, and how many
         processes died running it before it came back. Raises ``WorkerDied`` when the
         processes running it died (and gave no outcome)."""
+        started = time.perf_counter()
         if self.cluster is not None:
             name = f"learner-update-{job.session_id}-{job.update_index}"
             outcome, deaths = await self.cluster.run(run_update, job.payload, name)
+            self._costs.append(time.perf_counter() - started)
             return outcome, deaths
         executor = self._executor
         assert executor is not None
         try:
-            return await self._run_in_process(executor, job.payload), 0
+            outcome = await self._run_in_process(executor, job.payload)
         except BrokenProcessPool:
             self._replace_executor(executor)
             raise WorkerDied() from None
+        self._costs.append(time.perf_counter() - started)
+        return outcome, 0
 
     async def _run_in_process(self, executor: Executor, payload: dict[str, Any]) -> Any:
         """``run_update`` in an update process, its planner given this server's threads
@@ -327,6 +422,63 @@ class UpdateManager:
             )
         finally:
             self._in_flight -= 1
+
+    # -- capacity ----------------------------------------------------------------------------
+    @property
+    def slots(self) -> int:
+        """Updates that run side by side on cores of their own: the cluster's worker threads,
+        or the local update processes up to this machine's cores."""
+        if self.cluster is not None:
+            return max(1, self.workers)
+        return max(1, min(self.workers, available_cores()))
+
+    def capacity(self) -> Capacity | None:
+        """Participants who can teach at once without waiting (``server.app.capacity``): from
+        the mean wall time of the latest updates once there are enough, else from the
+        reference updates timed at start; None before either."""
+        if len(self._costs) >= LIVE_MINIMUM:
+            seconds = float(np.mean(self._costs))
+            measured_on = f"the latest {len(self._costs)} updates"
+        elif self.reference_seconds is not None:
+            seconds = self.reference_seconds
+            measured_on = "the study's learners at start"
+        else:
+            return None
+        return Capacity(
+            participants=participants_at_once(seconds, self.slots, self.update_interval_seconds),
+            update_seconds=seconds,
+            slots=self.slots,
+            update_interval_seconds=self.update_interval_seconds,
+            measured_on=measured_on,
+        )
+
+    async def _measure_reference(self) -> None:
+        """Once the update processes (or workers) are warm: time the reference updates on one
+        of them, holding one slot meanwhile, and say the capacity."""
+        assert self._slots is not None and self.reference_jobs is not None
+        while not self.ready:
+            await asyncio.sleep(0.5)
+        request = {"jobs": self.reference_jobs}
+        async with self._slots:
+            try:
+                if self.cluster is not None:
+                    seconds, _ = await self.cluster.run(
+                        measure_update_cost, request, "learner-update-reference"
+                    )
+                else:
+                    assert self._executor is not None
+                    seconds = await asyncio.wrap_future(
+                        self._executor.submit(measure_update_cost, request)
+                    )
+            except asyncio.CancelledError:
+                raise
+            except Exception:
+                log.exception("could not time the reference learner updates")
+                return
+        self.reference_seconds = float(seconds)
+        capacity = self.capacity()
+        assert capacity is not None
+        log.info("%s", describe(capacity))
 
     def _replace_executor(self, broken: Executor) -> None:
         if self._stopping:  # no new workers while shutting down: they would outlive the server

@@ -397,9 +397,31 @@ async function showReplay(sessionId) {
   box.scrollIntoView({ behavior: still ? "auto" : "smooth", block: "start" });
 }
 
+function seconds(value) {
+  return value < 60 ? `${value.toFixed(1)} s` : `${(value / 60).toFixed(1)} min`;
+}
+
+async function loadQueue() {
+  const q = await getJSON(`${API}/queue`);
+  const item = (key, label, value, note = null, alert = false) =>
+    h("div", { "data-queue": key },
+      h("dt", {}, label, note ? h("span", { class: "muted" }, ` (${note})`) : null),
+      h("dd", { class: alert ? "alert" : "" }, value));
+  const capacity = q.capacity === null ? "not measured yet" : String(q.capacity);
+  const limit = q.limit === null ? "none" : `${q.participants_active} / ${q.limit}`;
+  $("#queue").replaceChildren(
+    item("capacity", "Capacity: participants at once without waiting", capacity,
+      q.capacity === null ? null : `an update takes ${q.update_seconds.toFixed(2)} s on ${q.measured_on}, ${count(q.slots, "slot")}`),
+    item("active", "Participants in the study / limit", limit, q.limit_from ? `limit from the ${q.limit_from}` : "no limit"),
+    item("waiting", "Participants waiting for a place", String(q.participants_waiting)),
+    item("pending", "Learner updates pending", String(q.updates_pending), `${q.sessions_updating} running`),
+    item("awaited", "Agents someone waits for", String(q.sessions_awaited)),
+    item("oldest-wait", "The oldest wait", seconds(q.oldest_wait_seconds), null, q.oldest_wait_seconds > 2));
+}
+
 async function refresh() {
   try {
-    await Promise.all([loadParticipants(), loadSubmissions()]);
+    await Promise.all([loadParticipants(), loadSubmissions(), loadQueue()]);
   } catch (error) {
     $("#refreshed").textContent = `could not update: ${error.message}`;
   }

@@ -1,0 +1,134 @@
+"""How many participants can teach at once without waiting for their agents.
+
+Each active participant queues a learner update every ``update_interval_seconds`` on average
+(an episode end, or a new agent's untrained learner); the update slots (local update processes,
+or the Dask cluster's worker threads) each run one update at a time, taking ``update_seconds``
+(the measured wall time of one). Updates that someone waits for go first (``updates``), so a
+participant waits about one update as long as the slots are busy less than
+``TARGET_UTILISATION`` of the time; the capacity is the participant count that keeps them so:
+
+    capacity = TARGET_UTILISATION x slots x update_interval_seconds / update_seconds
+
+The cost is measured at start on the study's own learners and environments (``reference_jobs``,
+``measure_update_cost``, in an update process), then from the updates the server runs.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+# Busier than this, queues grow faster than the priority of awaited updates can hide.
+TARGET_UTILISATION = 0.75
+# Rounds of demonstrations (every task once) of the reference sessions: the fewest the
+# simulated participants of benchmarks/server.py teach (2 to 4).
+REFERENCE_ROUNDS = 2
+LIVE_UPDATES = 200  # the updates the live cost is the mean of
+LIVE_MINIMUM = 30  # fewer run since the start: the reference cost still stands
+
+
+@dataclass(frozen=True)
+class Capacity:
+    participants: int  # teaching at once without waiting
+    update_seconds: float  # wall time of one update
+    slots: int  # updates run at once
+    update_interval_seconds: float  # how often an active participant queues an update
+    measured_on: str  # what the update cost was measured on
+
+
+def participants_at_once(update_seconds: float, slots: int, update_interval_seconds: float) -> int:
+    """The capacity (module docstring); at least 1."""
+    if update_seconds <= 0:
+        raise ValueError("an update takes some time")
+    share = TARGET_UTILISATION * max(1, slots) * update_interval_seconds / update_seconds
+    return max(1, math.floor(share))
+
+
+def reference_jobs(
+    pairs: Iterable[tuple[str, str]],
+    settings_of: Callable[[str], dict[str, Any]],
+    rounds: int = REFERENCE_ROUNDS,
+) -> list[dict[str, Any]]:
+    """A learning session for each (environment, learner), as ``measure_update_cost`` replays
+    it: the untrained learner, then ``rounds`` rounds of the simulated teacher's
+    demonstrations (every task once a round), one episode at a time."""
+    from server.domains import make
+    from server.domains.base import STAY
+    from server.learners.records import DemonstrationStep
+    from server.teacher import Teacher
+
+    sessions = []
+    for environment, learner in pairs:
+        env = make(environment)
+        teacher = Teacher(env, seed=0)
+        rng = np.random.default_rng(0)
+        episodes: list[list[DemonstrationStep]] = []
+        for _ in range(rounds):
+            for task in range(len(env.tasks)):
+                start = int(rng.choice(env.num_states, p=env.tasks[task].start))
+                steps = teacher.demonstration(task, start)
+                records = [
+                    DemonstrationStep(task, state, action, next_state)
+                    for state, action, next_state in steps
+                ]
+                if steps:  # the synthetic STAY that ends a demonstration
+                    end = steps[-1][2]
+                    records.append(DemonstrationStep(task, end, STAY, env.step(end, STAY, rng)))
+                episodes.append(records)
+        sessions.append(
+            {
+                "environment": environment,
+                "learner": learner,
+                "settings": settings_of(learner),
+                "seed": 0,
+                "episodes": episodes,
+            }
+        )
+    return sessions
+
+
+def measure_update_cost(request: dict[str, Any]) -> float:
+    """In an update process: the mean wall time of the updates of ``request["jobs"]``
+    (``reference_jobs``), each session's run as the server runs them: update 0 (the untrained
+    learner), then one update per episode from the learner state the one before saved. The
+    first session is run once untimed first, to load whatever the process has not loaded."""
+    from server.app.updates.worker import run_update
+
+    sessions = request["jobs"]
+    if not sessions:
+        raise ValueError("no reference update to time")
+
+    def replay(session: dict[str, Any]) -> list[float]:
+        seconds = []
+        state = None
+        for index, records in enumerate([[], *session["episodes"]]):
+            job = {
+                **{key: session[key] for key in ("environment", "learner", "settings", "seed")},
+                "base_state": state,
+                "records": records,
+                "fit": index > 0,
+                "threads": 1,
+            }
+            started = time.perf_counter()
+            state = run_update(job)["learner_state"]
+            seconds.append(time.perf_counter() - started)
+        return seconds
+
+    replay(sessions[0])
+    return float(np.mean([x for session in sessions for x in replay(session)]))
+
+
+def describe(capacity: Capacity) -> str:
+    """The line ``serve`` prints."""
+    return (
+        f"Capacity: {capacity.participants} participants teaching at once without waiting "
+        f"for their agents ({capacity.slots} update slot(s), an update takes "
+        f"{capacity.update_seconds:.2f} s measured on {capacity.measured_on}, a participant "
+        f"queues one every {capacity.update_interval_seconds:.0f} s, slots busy at most "
+        f"{TARGET_UTILISATION:.0%})."
+    )

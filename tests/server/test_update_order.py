@@ -1,0 +1,225 @@
+"""The order of learner updates: what someone waits for goes first, a demonstration never waits
+for an update, and the agent shown after episode k is the agent recorded after episode k."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections.abc import Callable
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
+from typing import Any
+
+import numpy as np
+from fastapi.testclient import TestClient
+from sqlalchemy import select
+
+from server.app.main import create_app
+from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.app.storage.models import LearnerUpdate, LearningSession
+from server.app.updates.manager import UpdateManager
+from server.app.updates.policies import PolicyCache
+from server.app.updates.worker import run_update
+from server.domains import make
+from server.domains.base import ACTIONS
+from tests.server.conftest import study_config, teaching_participant, wait_for_updates
+from tests.server.test_updates import demonstrate
+
+BOUND = 60.0  # seconds: a generous bound on anything that should happen at once
+
+
+class Scripted:
+    """An ``UpdateManager`` whose updates are held until released, on one slot, recording the
+    order in which sessions were dispatched. Session ``s`` has ``pending[s]`` updates."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, pending: dict[int, int]) -> None:
+        db: Any = None
+        self.manager = manager = UpdateManager(db, PolicyCache(), lambda n: {})
+        manager._capacity = 1
+        self.pending = pending
+        self.processed = dict.fromkeys(pending, 0)
+        self.order: list[int] = []
+        self.release = asyncio.Event()
+        self.started = asyncio.Event()
+        manager._loop = loop
+        manager._wake = asyncio.Event()
+        manager._slots = asyncio.Semaphore(1)
+        manager._process = self._process  # type: ignore[method-assign]
+        manager._processed_in_db = lambda session_id: self.processed[session_id]  # type: ignore
+
+    async def _process(self, session_id: int) -> None:
+        manager = self.manager
+        more = False
+        try:
+            if self.processed[session_id] < self.pending[session_id]:
+                self.order.append(session_id)
+                self.started.set()
+                await self.release.wait()
+                self.release.clear()
+                self.processed[session_id] += 1
+                more = self.processed[session_id] < self.pending[session_id]
+            manager._notify(session_id, self.processed[session_id])
+        finally:
+            manager._finish(session_id, more)
+
+    async def next_started(self) -> None:
+        await asyncio.wait_for(self.started.wait(), BOUND)
+        self.started.clear()
+
+    async def step(self) -> None:
+        """Let the running update finish, and wait until the next one starts."""
+        self.release.set()
+        await self.next_started()
+
+
+def run_apart(scenario: Callable[[], Any]) -> Any:
+    # In a thread of its own: after the browser tests, this thread may run an event loop.
+    with ThreadPoolExecutor(1) as pool:
+        return pool.submit(asyncio.run, scenario()).result()
+
+
+def test_an_update_someone_waits_for_goes_before_one_nobody_waits_for() -> None:
+    async def scenario() -> tuple[list[int], dict[int, tuple[float, int]], list[bool]]:
+        loop = asyncio.get_running_loop()
+        script = Scripted(loop, {1: 1, 2: 2, 3: 1, 4: 1, 5: 1})
+        manager = script.manager
+        dispatcher = asyncio.ensure_future(manager._dispatch())
+        manager._enqueue_many([1])  # runs at once: the one slot is free
+        await script.next_started()
+        manager._enqueue_many([2, 3])  # queued in this order, nobody waiting
+        # Session 4's agent step waits, gives up (503) and its participant retries later:
+        # the wait was for nothing meanwhile, but the session stays awaited.
+        gave_up = await manager.wait(4, 1, timeout=0.05)
+        manager._expect(3, 1)  # session 3's participant lets its agent try, after 4's wait
+        manager._enqueue_many([5])
+        await script.step()  # 1 done: 4 (awaited first), not 2 (queued first)
+        await script.step()  # 4 done: 3 (awaited second)
+        marks = dict(manager._awaited)
+        await script.step()  # 3 done: nobody waits; 2 then 5 in the order they were queued
+        await script.step()  # 2's first update done: 5 was queued before 2 came back
+        await script.step()
+        waited = [await manager.wait(s, 1, timeout=BOUND) for s in (1, 3, 4, 5)]
+        script.release.set()
+        await asyncio.sleep(0)
+        dispatcher.cancel()
+        await asyncio.gather(dispatcher, return_exceptions=True)
+        return script.order, marks, [gave_up, *waited]
+
+    order, marks, waits = run_apart(scenario)
+    assert order == [1, 4, 3, 2, 5, 2]
+    # While 3 was being updated it was still awaited, and 4, done, was not any more.
+    assert list(marks) == [3]
+    assert waits == [False, True, True, True, True]
+
+
+def test_a_session_awaited_for_a_later_update_stays_first_until_that_one_is_done() -> None:
+    async def scenario() -> list[int]:
+        loop = asyncio.get_running_loop()
+        script = Scripted(loop, {1: 1, 2: 3, 3: 1})
+        manager = script.manager
+        dispatcher = asyncio.ensure_future(manager._dispatch())
+        manager._enqueue_many([1])
+        await script.next_started()
+        manager._enqueue_many([3])
+        manager._expect(2, 3)  # the agent after episode 3 is awaited: three updates
+        for _ in range(4):
+            await script.step()
+        script.release.set()
+        await asyncio.sleep(0)
+        dispatcher.cancel()
+        await asyncio.gather(dispatcher, return_exceptions=True)
+        return script.order
+
+    # 2's updates one after the other, in its episodes' order, before 3 (nobody waits for it).
+    assert run_apart(scenario) == [1, 2, 2, 2, 3]
+
+
+class Gated(Executor):
+    """Runs ``run_update`` in a thread, but only once the gate is open; records each job's
+    learner seed (which names its session) in the order the updates were started."""
+
+    def __init__(self) -> None:
+        self.gate = threading.Event()
+        self.gate.set()
+        self.started: list[int] = []
+        self.lock = threading.Lock()
+        self.pool = ThreadPoolExecutor(1)
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future[Any]:
+        def held() -> Any:
+            if fn is run_update:
+                self.gate.wait(BOUND)
+                with self.lock:
+                    self.started.append(int(args[0]["seed"]))
+            return fn(*args, **kwargs)
+
+        return self.pool.submit(held)
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        self.gate.set()
+        self.pool.shutdown(wait=wait, cancel_futures=cancel_futures)
+
+
+ONE_AGENT = {
+    "domains": [{"name": "navigation", "environments": ["wall"]}],
+    "learners": ["bam"],
+    "tutorial": {"enabled": False},
+    "agents_per_environment": 1,
+}
+
+
+def test_demonstrations_go_on_while_updates_wait_and_each_agent_is_the_one_recorded(
+    db: Database, settings: Settings
+) -> None:
+    gated = Gated()
+    # One update process (this thread pool's one thread) to warm up and run the updates, and
+    # an agent step that waits as long as the test's bound.
+    one = settings.model_copy(update={"update_workers": 1, "agent_wait_seconds": BOUND})
+    app = create_app(one, study_config(**ONE_AGENT), db=db, executor=gated)
+    with TestClient(app) as client:
+        teacher, taught = teaching_participant(client)
+        trier, tried = teaching_participant(TestClient(app), "W2", "A2")
+        demonstrate(teacher, taught, 0)  # its update loads the kernels in this process
+        wait_for_updates(db)
+        gated.gate.clear()  # from now on no update runs until the gate opens
+        gated.started.clear()
+        # The first participant demonstrates three episodes in a row: none waits for an update.
+        # (The first of their updates takes the one slot at once, and waits there.)
+        for episode in range(3):
+            ended = demonstrate(teacher, taught, (episode + 1) % 2, seed=episode)
+            assert ended["session"]["learning"]["pending"] == episode + 1
+        # The second demonstrates once (after the first's three) and lets the agent try.
+        demonstrate(trier, tried, 0)
+        base = trier.session(tried)
+        trier.act(f"{base}/reset")
+        assert trier.act(f"{base}/mode", mode="agent")["session"]["learning"]["pending"] == 1
+        with db.read() as s:
+            seeds = {s.get(LearningSession, i).seed: i for i in (taught, tried)}  # type: ignore[union-attr]
+        gated.gate.set()
+        step = trier.act(f"{base}/agent-step")
+        wait_for_updates(db)
+        teacher_base = teacher.session(taught)
+        teacher.act(f"{teacher_base}/reset")
+        teacher.act(f"{teacher_base}/mode", mode="agent")
+        teacher_step = teacher.act(f"{teacher_base}/agent-step")
+    # After the update already running, the one the trier waited for went first, before the
+    # two queued before it.
+    assert [seeds[seed] for seed in gated.started] == [taught, tried, taught, taught]
+    # Each agent step is the greedy action of the learner recorded after the latest episode.
+    for session_id, response, index in ((tried, step, 1), (taught, teacher_step, 4)):
+        with db.read() as s:
+            row = s.scalar(
+                select(LearnerUpdate).where(
+                    LearnerUpdate.session_id == session_id, LearnerUpdate.update_index == index
+                )
+            )
+            assert row is not None and row.status == "done"
+            session = s.get(LearningSession, session_id)
+            assert session is not None and session.policy_update == index
+        env = make("wall")
+        policy = np.frombuffer(row.greedy_policy, dtype=np.int8).reshape(
+            len(env.tasks), env.num_states
+        )
+        outcome = response["outcome"]
+        task = response["session"]["task"]
+        assert outcome["action"] == ACTIONS[policy[task, outcome["state"]]]

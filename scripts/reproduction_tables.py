@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from analysis.names import ENVIRONMENTS, LEARNERS
+from analysis.names import ENVIRONMENTS, LEARNERS, environment_display
 
 ROUNDS = (1, 3, 5, 10)
 
@@ -61,7 +61,7 @@ def experiment_tables(folder: Path) -> str:
                 mean, se = mean_se(100 * rows.loc[rows["round"] == r, "normalized_return"])
                 cells.append(f"{mean:.1f} ± {se:.1f}")
             lines.append(
-                f"| {ENVIRONMENTS[environment]} | {LEARNERS[learner]} | " + " | ".join(cells) + " |"
+                f"| {environment_display(environment)} | {LEARNERS[learner]} | " + " | ".join(cells) + " |"
             )
     pairs = [("bam", name) for name in learners if name != "bam" and "bam" in learners]
     if "global-cost" in learners and "model-based" in learners:
@@ -91,7 +91,7 @@ def experiment_tables(folder: Path) -> str:
         for a, b in pairs:
             cells.append(_difference(per_agent[a], per_agent[b]))
             cells.append(_difference(final[a], final[b]))
-        lines.append(f"| {ENVIRONMENTS[environment]} | " + " | ".join(cells) + " |")
+        lines.append(f"| {environment_display(environment)} | " + " | ".join(cells) + " |")
     lines += [
         "",
         f"### {experiment}: agents far from the optimum at round {last}",
@@ -105,7 +105,7 @@ def experiment_tables(folder: Path) -> str:
         final = curves[(curves["environment"] == environment) & (curves["round"] == last)]
         shares = final.groupby("learner")["normalized_return"].apply(lambda v: (v < 0.5).mean())
         lines.append(
-            f"| {ENVIRONMENTS[environment]} | "
+            f"| {environment_display(environment)} | "
             + " | ".join(f"{100 * shares[name]:.0f}%" for name in learners)
             + " |"
         )
@@ -158,14 +158,14 @@ def versus_tables(first_folder: Path, second_folder: Path) -> str:
         for learner in learners:
             cells.append(_paired(b_mean[learner], a_mean[learner]))
             cells.append(_paired(b_last[learner], a_last[learner]))
-        lines.append(f"| {ENVIRONMENTS[environment]} | " + " | ".join(cells) + " |")
+        lines.append(f"| {environment_display(environment)} | " + " | ".join(cells) + " |")
         if "bam" in learners and len(learners) > 1:
             row = []
             for other in (n for n in learners if n != "bam"):
                 gap_a = _paired(a_mean["bam"], a_mean[other])
                 gap_b = _paired(b_mean["bam"], b_mean[other])
                 row.append(f"{gap_a} | {gap_b}")
-            gaps.append(f"| {ENVIRONMENTS[environment]} | " + " | ".join(row) + " |")
+            gaps.append(f"| {environment_display(environment)} | " + " | ".join(row) + " |")
     if gaps:
         others = [n for n in learners if n != "bam"]
         lines += [

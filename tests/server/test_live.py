@@ -17,7 +17,7 @@ from sqlalchemy import func, select
 from server.app.config import DEFAULT_STUDY_CONFIG
 from server.app.storage.db import Database
 from server.app.storage.models import Event, LearnerUpdate, LearningSession
-from server.commands.live import LiveServer
+from server.commands.live import ServerProcess
 from server.commands.simulated import TeachingPlan, run_participants
 from tests.server.conftest import ADMIN_TOKEN, FAST_LEARNERS, count_events, wait_for_updates
 
@@ -34,19 +34,21 @@ def fast_study_file(folder: Path) -> Path:
 
 
 @pytest.fixture
-def live(db: Database, tmp_path: Path) -> Iterator[LiveServer]:
+def live(db: Database, tmp_path: Path) -> Iterator[ServerProcess]:
     environment = {
         "BAM_DATABASE_URL": db.engine.url.render_as_string(hide_password=False),
         "BAM_ADMIN_TOKEN": ADMIN_TOKEN,
         "BAM_STUDY_CONFIG": str(fast_study_file(tmp_path)),
         "BAM_UPDATE_WORKERS": "2",
     }
-    with LiveServer(tmp_path, environment) as server:
+    with ServerProcess(tmp_path, environment) as server:
         yield server
 
 
 @pytest.mark.slow
-def test_a_study_survives_a_server_crash_with_nothing_lost(live: LiveServer, db: Database) -> None:
+def test_a_study_survives_a_server_crash_with_nothing_lost(
+    live: ServerProcess, db: Database
+) -> None:
     plan = TeachingPlan(min_rounds=1, max_rounds=2, agent_try_probability=0.5, max_agent_steps=10)
     result: dict[str, object] = {}
 
@@ -103,7 +105,7 @@ def test_a_study_survives_a_server_crash_with_nothing_lost(live: LiveServer, db:
 
 
 @pytest.mark.slow
-def test_the_teach_command_against_a_live_server(live: LiveServer, db: Database) -> None:
+def test_the_teach_command_against_a_live_server(live: ServerProcess, db: Database) -> None:
     completed = subprocess.run(
         [
             sys.executable,

@@ -26,6 +26,7 @@ from server.app.models import (
     AssignmentReview,
     Bonus,
     Episode,
+    Erasure,
     Event,
     Installation,
     LearnerUpdate,
@@ -198,6 +199,36 @@ DICTIONARY: dict[str, dict[str, str]] = {
         "backend": "Where the bonus was sent: replica or mturk.",
         "paid_at": "When the platform took the bonus (UTC).",
     },
+    "erasures": {
+        "erasure_id": "Erasure number (database id).",
+        "erased_at": "When the participant's data was erased (UTC).",
+        "erased_by": "participant (they withdrew from the study page) or experimenter (the "
+        "dashboard or bam-study erase, on the participant's request).",
+        "participant_id": "The participant erased (participant_id of earlier exports; no row "
+        "of any other file refers to it any more).",
+        "platform": "mturk, prolific or lab.",
+        "worker_id": "The participant's worker pseudonym, as in earlier exports (w_ + salted "
+        "hash; empty for lab participants).",
+        "assignment_id": "The participant's assignment pseudonym (a_ + salted hash).",
+        **{
+            f"{table}_rows": f"Rows of the {table} table erased."
+            for table in (
+                "participants",
+                "learning_sessions",
+                "episodes",
+                "events",
+                "learner_updates",
+                "status_changes",
+                "questionnaire_answers",
+                "participant_tokens",
+                "assignment_reviews",
+                "bonuses",
+                "mturk_replica_assignments",
+                "mturk_replica_submissions",
+                "mturk_replica_bonuses",
+            )
+        },
+    },
 }
 # Integer columns, some of them with empty cells (written without a decimal point).
 INTEGER_COLUMNS = frozenset(
@@ -231,6 +262,8 @@ INTEGER_COLUMNS = frozenset(
         "idle_moves",
         "feedback_given",
         "updates",
+        "erasure_id",
+        *(name for name in DICTIONARY["erasures"] if name.endswith("_rows")),
     }
 )
 DICTIONARY["tutorial_sessions"] = {
@@ -248,6 +281,9 @@ DESCRIPTIONS = {
     "(an optional question left unanswered has none; a study without a questionnaire, none).",
     "reviews": "One row per submitted MTurk assignment the experimenter approved or rejected.",
     "bonuses": "One row per bonus paid to a participant's worker.",
+    "erasures": "One row per participant whose data was erased (withdrawal or request): the "
+    "other files hold nothing of theirs; remove their rows (by participant_id or pseudonym) "
+    "from copies exported before.",
     "data_dictionary": "Every file's columns. In every file, a text cell that begins with =, +, "
     "-, @, a tab or a carriage return is written with an apostrophe (') before it, so that a "
     "spreadsheet shows it as text instead of running it as a formula; remove that first "
@@ -325,6 +361,7 @@ def load_tables(
         answers = s.scalars(select(QuestionnaireAnswer).order_by(QuestionnaireAnswer.id)).all()
         reviews = s.scalars(select(AssignmentReview).order_by(AssignmentReview.id)).all()
         bonuses = s.scalars(select(Bonus).order_by(Bonus.id)).all()
+        erasures = s.scalars(select(Erasure).order_by(Erasure.id)).all()
         sessions = s.scalars(select(LearningSession).order_by(LearningSession.id)).all()
         episodes = s.scalars(select(Episode).order_by(Episode.id)).all()
         updates = s.execute(
@@ -368,6 +405,11 @@ def load_tables(
     for change in changes:
         first_at.setdefault(change.participant_id, {}).setdefault(change.status, change.at)
     session_by_id = {x.id: x for x in sessions}
+    scrubbed_ids = {p.id for p in participants if p.identifiers_scrubbed_at is not None}
+
+    def scrubbed(participant_id: int) -> bool:
+        return participant_id in scrubbed_ids
+
     counts: dict[int, dict[str, int]] = {}
     for event in events:
         if event.session_id is None:
@@ -391,8 +433,10 @@ def load_tables(
         if update.update_index > 0:
             processed[update.session_id] = processed.get(update.session_id, 0) + 1
 
-    def platform_ids(worker_id: str | None, assignment_id: str | None) -> dict[str, str | None]:
-        if not pseudonymize:
+    def platform_ids(
+        worker_id: str | None, assignment_id: str | None, scrubbed: bool = False
+    ) -> dict[str, str | None]:
+        if not pseudonymize or scrubbed:  # a scrubbed participant's ids are pseudonyms already
             return {"worker_id": worker_id, "assignment_id": assignment_id}
         assert secret is not None
         return {
@@ -424,14 +468,30 @@ def load_tables(
             "completion_code": p.completion_code,
         }
         if pseudonymize:
-            row.update(platform_ids(p.worker_id, p.assignment_id))
+            row.update(platform_ids(p.worker_id, p.assignment_id, scrubbed(p.id)))
             row["completion_code"] = None
         return row
+
+    def erasure_row(e: Erasure) -> dict[str, Any]:
+        return {
+            "erasure_id": e.id,
+            "erased_at": _iso(e.erased_at),
+            "erased_by": e.erased_by,
+            "participant_id": e.participant_id,
+            "platform": e.platform,
+            "worker_id": e.worker_pseudonym,
+            "assignment_id": e.assignment_pseudonym,
+            **{
+                name: e.rows.get(name.removesuffix("_rows"), 0)
+                for name in DICTIONARY["erasures"]
+                if name.endswith("_rows")
+            },
+        }
 
     def review_row(r: AssignmentReview) -> dict[str, Any]:
         return {
             "participant_id": r.participant_id,
-            **platform_ids(r.worker_id, r.assignment_id),
+            **platform_ids(r.worker_id, r.assignment_id, scrubbed(r.participant_id)),
             "decision": r.decision,
             "requester_feedback": r.feedback,
             "backend": r.backend,
@@ -441,7 +501,7 @@ def load_tables(
     def bonus_row(b: Bonus) -> dict[str, Any]:
         return {
             "participant_id": b.participant_id,
-            **platform_ids(b.worker_id, b.assignment_id),
+            **platform_ids(b.worker_id, b.assignment_id, scrubbed(b.participant_id)),
             "amount_usd": b.amount_cents / 100,
             "reason": b.reason,
             "unique_token": b.unique_token,
@@ -582,6 +642,7 @@ def load_tables(
         "questionnaire_answers": _frame("questionnaire_answers", map(answer_row, answers)),
         "reviews": _frame("reviews", map(review_row, reviews)),
         "bonuses": _frame("bonuses", map(bonus_row, bonuses)),
+        "erasures": _frame("erasures", map(erasure_row, erasures)),
     }
     for frame in tables.values():
         for column in frame.columns:

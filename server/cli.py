@@ -28,6 +28,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("server.app.serve_cmd", "Run the study server (settings from BAM_* variables)."),
     "db": ("server.app.db_cmd", "Create or upgrade the study database's schema (migrations)."),
     "export": ("server.app.export_cmd", "Export the study's data as CSV files with a dictionary."),
+    "erase": (
+        "server.app.erase_cmd",
+        "Erase one participant's data on their request (by number, worker id or pseudonym).",
+    ),
     "teach": ("server.app.teach_cli", "Run simulated participants against a study server."),
 }
 

@@ -107,6 +107,13 @@ class Completion(_Strict):
         pattern=r"^[A-Za-z0-9_\-]{1,64}$",
         description="The study's Prolific completion code (required with mode prolific).",
     )
+    prolific_no_consent_code: str | None = Field(
+        None,
+        pattern=r"^[A-Za-z0-9_\-]{1,64}$",
+        description="The study's Prolific NO_CONSENT completion code: a participant who "
+        "withdraws is sent to prolific_url with it, so that Prolific asks them to return the "
+        "submission (without it, the page asks them to return it themselves).",
+    )
     prolific_url: str = Field(
         "https://app.prolific.com/submissions/complete?cc={code}",
         description="Where a Prolific participant is sent at the end: an https URL with "
@@ -122,8 +129,8 @@ class Completion(_Strict):
                 raise ValueError("prolific_url must be an https URL containing '{code}'")
         return self
 
-    def prolific_redirect(self) -> str:
-        return self.prolific_url.replace("{code}", self.prolific_code or "")
+    def prolific_redirect(self, code: str | None = None) -> str:
+        return self.prolific_url.replace("{code}", code or self.prolific_code or "")
 
 
 QUESTION_ID = r"^[a-z][a-z0-9_]{0,63}$"

@@ -21,6 +21,7 @@ from server.app.models import (
     StatusChange,
     utcnow,
 )
+from server.app.rights.erasure import Erased, erase_participant
 from server.app.schemas import (
     AdminEvaluation,
     AdminEvent,
@@ -237,6 +238,14 @@ def include(
         s.add(StatusChange(participant_id=p.id, status="included", at=utcnow(), note=reason))
     with state.db.read() as s:
         return _participant_detail(s, participant_id)
+
+
+@router.post("/participants/{participant_id}/erasure", response_model=Erased)
+def erase(participant_id: RowId, state: StateDep) -> Erased:
+    """Erase the participant on their request: every row of theirs, in every table, in one
+    transaction; one audit row (``erasures.csv``) keeps when, the pseudonyms and the counts."""
+    secret = state.settings.secret.get_secret_value() if state.settings.secret else None
+    return erase_participant(state.db, participant_id, "experimenter", secret)
 
 
 @router.post("/participants/{participant_id}/approval", response_model=AdminParticipantDetail)

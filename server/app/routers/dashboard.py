@@ -198,6 +198,12 @@ def include(
     return admin.include(participant_id, state, body.reason)
 
 
+@api.post("/participants/{participant_id}/erasure", response_model=admin.Erased)
+def erase(participant_id: RowId, state: StateDep) -> admin.Erased:
+    """Erase the participant on their request (as ``/api/admin``)."""
+    return admin.erase(participant_id, state)
+
+
 @api.post("/participants/{participant_id}/approval", response_model=AdminParticipantDetail)
 def approve(participant_id: RowId, body: ReviewRequest, state: StateDep) -> AdminParticipantDetail:
     """Approve the participant's submitted MTurk assignment (as ``/api/admin``)."""

@@ -84,6 +84,7 @@ async function showParticipant(id) {
         h("p", {}, h("strong", {}, "Domain "), p.domain ?? "(not yet)", h("strong", {}, "  Time "), `${p.minutes.toFixed(1)} min`),
         exclusionForm(p),
         reviewSection(p),
+        erasureSection(p),
         h("h3", {}, "Status history"),
         h("ol", { class: "history" }, p.status_changes.map((c) => h("li", {}, badge(c.status), " ", time(c.at), c.note ? ` (${c.note})` : "")))),
       sessions));
@@ -135,6 +136,32 @@ function exclusionForm(p) {
     }
   });
   return form;
+}
+
+/** Erase the participant on their request, after a confirmation: nothing of theirs is left
+ * but the audit row (erasures.csv). */
+function erasureSection(p) {
+  const message = h("p", { class: "form-error", role: "alert", hidden: true });
+  const button = h("button", { class: "btn danger", type: "button", "data-action": "erase" }, "Erase this participant's data");
+  button.addEventListener("click", async () => {
+    const who = p.worker_id ? `worker ${p.worker_id}` : `participant ${p.participant_id}`;
+    if (!window.confirm(`Erase every record of ${who}? Their events, agents, answers and payments records are deleted for good; only an audit row with their pseudonym is kept.`)) return;
+    button.disabled = true;
+    try {
+      await postJSON(`${API}/participants/${p.participant_id}/erasure`, {});
+      selected = null;
+      $("#detail").replaceChildren(h("p", { role: "status" }, `Participant ${p.participant_id} was erased.`));
+      await loadParticipants();
+    } catch (error) {
+      message.hidden = false;
+      message.textContent = error instanceof ApiError ? error.detail : "The server could not be reached.";
+      button.disabled = false;
+    }
+  });
+  return h("section", { class: "erasure", "aria-labelledby": "erasure-heading" },
+    h("h3", { id: "erasure-heading" }, "Withdrawal"),
+    h("p", { class: "muted" }, "On the participant's request: deletes all their data."),
+    button, message);
 }
 
 /** A request token for a bonus (MTurk's UniqueRequestToken), made when its form is drawn: a

@@ -39,7 +39,7 @@ USER bam
 # The learners' compiled kernels, in numba's cache in the image (the bam user's ~/.cache): the
 # update processes load them when they start (about 0.4 s) instead of compiling them (about
 # 14 s each). The cache is made for this machine's CPU; on another, they compile at start.
-RUN python -c "from server.learners.warmup import warm_up; warm_up()"
+RUN python -c "from server.app.updates.warmup import warm_up; warm_up()"
 EXPOSE 8000
 
 # Healthy once every update process has loaded the learners' compiled kernels (503 before).

@@ -127,9 +127,9 @@ def load_database(
     from sqlalchemy.engine import make_url
     from sqlalchemy.exc import ArgumentError, SQLAlchemyError
 
-    from server.app.db import current_revision, head_revision
-    from server.app.export import load_tables as read_database
-    from server.app.export import open_study_database
+    from server.app.export.tables import load_tables as read_database
+    from server.app.export.tables import open_study_database
+    from server.app.storage.db import current_revision, head_revision
 
     try:
         shown = make_url(url).render_as_string(hide_password=True)

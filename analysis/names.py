@@ -5,39 +5,31 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-# Learner name (as in the export) -> display name, in the order the tables list them after
-# the baseline.
-LEARNERS: dict[str, str] = {
-    "bam": "BAM",
-    "model-based": "Model-Based IRL",
-    "global-cost": "Model-Based IRL (global cost)",
-    "cloning": "Behavioral Cloning",
-}
+from server.domains import title as environment_display
+from server.learners import DISPLAY_NAMES
 
-# Environment name -> display name: the four environments of the user study first, in the
-# order of the paper's Table 1, then the other four.
-ENVIRONMENTS: dict[str, str] = {
-    "two-rooms": "Two Rooms",
-    "doorway": "Doorway",
-    "two-fields": "Two Fields",
-    "three-fields": "Three Fields",
-    "wall": "Wall",
-    "three-rooms": "Three Rooms",
-    "flip": "Flip",
-    "choices": "Choices",
-}
+# Learner name (as in the export) -> display name (``server.learners.DISPLAY_NAMES``), in the
+# order the tables list them after the baseline.
+LEARNERS: dict[str, str] = DISPLAY_NAMES
+
+# The four environments of the user study first, in the order of the paper's Table 1, then
+# the other four (display names from ``server.domains.title``).
+ENVIRONMENTS: tuple[str, ...] = (
+    "two-rooms",
+    "doorway",
+    "two-fields",
+    "three-fields",
+    "wall",
+    "three-rooms",
+    "flip",
+    "choices",
+)
+
+__all__ = ["ENVIRONMENTS", "LEARNERS", "environment_display", "learner_display"]
 
 
 def learner_display(name: str) -> str:
     return LEARNERS[name]
-
-
-def environment_display(name: str) -> str:
-    """The paper's name for an environment; an environment the paper does not know is shown
-    with its words capitalised ("my-maze" -> "My Maze")."""
-    if name in ENVIRONMENTS:
-        return ENVIRONMENTS[name]
-    return " ".join(word.capitalize() for word in name.replace("_", "-").split("-") if word)
 
 
 def order_learners(names: Iterable[str], baseline: str) -> list[str]:

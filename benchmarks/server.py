@@ -43,10 +43,10 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__)
 from sqlalchemy import func, select
 
 from server.app.config import DEFAULT_STUDY_CONFIG
-from server.app.db import Database, upgrade
-from server.app.live import LiveServer, free_port
-from server.app.models import Event, LearnerUpdate
-from server.app.simulated import (
+from server.app.storage.db import Database, upgrade
+from server.app.storage.models import Event, LearnerUpdate
+from server.commands.live import LiveServer, free_port
+from server.commands.simulated import (
     StudyRun,
     TeachingPlan,
     latency_row,

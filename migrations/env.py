@@ -7,10 +7,10 @@ from alembic import context
 from sqlalchemy import Connection
 from sqlalchemy.pool import NullPool
 
-import server.app.replica_models  # noqa: F401  (its tables are in Base.metadata too)
-from server.app.db import create_db_engine
-from server.app.models import Base
+import server.app.storage.replica_models  # noqa: F401  (its tables are in Base.metadata too)
 from server.app.settings import Settings
+from server.app.storage.db import create_db_engine
+from server.app.storage.models import Base
 
 config = context.config
 target_metadata = Base.metadata

@@ -10,9 +10,9 @@ table in its place. NAME is one of ``GENERATORS``:
   ``default_settings``;
 - ``deployment-settings``: every ``BAM_*`` variable, from ``server/app/settings.py``;
 - ``export-tables``: every exported file and column, from ``DICTIONARY`` and ``DESCRIPTIONS``
-  in ``server/app/export.py`` (the definitions the export writes ``data_dictionary.csv`` from);
+  in ``server/app/export/tables.py`` (the definitions the export writes ``data_dictionary.csv`` from);
 - ``minari-infos``: the per-step ``infos`` of the Minari export, from ``INFOS`` in
-  ``server/app/minari_export.py``;
+  ``server/app/export/minari.py``;
 - ``analysis-outputs``: the files ``bam-study analyze`` writes, from the README it writes
   beside them (``analysis/report.py``).
 
@@ -235,7 +235,7 @@ def deployment_settings() -> str:
 
 
 def export_tables() -> str:
-    from server.app.export import DESCRIPTIONS, DICTIONARY, INTEGER_COLUMNS
+    from server.app.export.tables import DESCRIPTIONS, DICTIONARY, INTEGER_COLUMNS
 
     lines: list[str] = []
     for name, columns in DICTIONARY.items():
@@ -256,7 +256,7 @@ def export_tables() -> str:
 
 
 def minari_infos() -> str:
-    from server.app.minari_export import INFOS
+    from server.app.export.minari import INFOS
 
     lines = ["| key of `infos` | meaning |", "| --- | --- |"]
     lines += [f"| `{key}` | {cell(meaning)} |" for key, meaning in INFOS.items()]

@@ -52,7 +52,7 @@ def sections(text: str) -> dict[str, str]:
 
 
 def test_every_exported_column_is_described_under_its_file(site: Path) -> None:
-    from server.app.export import DESCRIPTIONS, DICTIONARY
+    from server.app.export.tables import DESCRIPTIONS, DICTIONARY
 
     found = sections(page_text(site, "data"))
     for name, columns in DICTIONARY.items():

@@ -30,6 +30,9 @@ FAILURE_WINDOW = 60.0
 ADDRESSES_KEPT = 10_000
 
 
+ADMIN_COOKIE = "bam_admin"  # the dashboard session's cookie (see ``AdminSessions``)
+
+
 def admin_token(settings: Settings) -> str | None:
     token = settings.admin_token
     if token is None or not token.get_secret_value():

@@ -7,9 +7,9 @@ from typing import Annotated
 
 from fastapi import Depends, Header, Path, Request
 
-from server.app.admin_auth import admin_token, bearer_is_admin
+from server.app.admin_auth import ADMIN_COOKIE, admin_token, bearer_is_admin
 from server.app.errors import ApiError
-from server.app.flow import TOKEN_HEADER
+from server.app.participants.tokens import TOKEN_HEADER
 from server.app.state import ServerState
 
 
@@ -38,12 +38,28 @@ async def participant_token(
 TokenDep = Annotated[str | None, Depends(participant_token)]
 
 
-async def require_admin(request: Request, state: StateDep) -> None:
+def is_admin(request: Request, state: ServerState) -> bool:
+    """The request carries the admin token (bearer header) or a dashboard session's cookie
+    (SameSite=Strict, so another site's page cannot send it)."""
     expected = admin_token(state.settings)
     if expected is None:
+        return False
+    if bearer_is_admin(request, expected, state.sign_ins):
+        return True
+    cookie = request.cookies.get(ADMIN_COOKIE)
+    return cookie is not None and state.admin_sessions.valid(expected, cookie)
+
+
+async def require_admin(request: Request, state: StateDep) -> None:
+    """The admin API, for a script with the token and for the dashboard signed in."""
+    if admin_token(state.settings) is None:
         raise ApiError(503, "the admin API is disabled: set BAM_ADMIN_TOKEN")
-    if not bearer_is_admin(request, expected, state.sign_ins):
-        raise ApiError(401, "admin token missing or wrong", headers={"WWW-Authenticate": "Bearer"})
+    if not is_admin(request, state):
+        raise ApiError(
+            401,
+            "admin token missing or wrong, or the dashboard is not signed in",
+            headers={"WWW-Authenticate": "Bearer"},
+        )
 
 
 AdminDep = Depends(require_admin)

@@ -17,10 +17,9 @@ from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from server.app import flow
 from server.app.config import StudyConfig, load_study_config
-from server.app.db import Database, SchemaError, current_revision, head_revision
 from server.app.errors import ApiError, InvalidInput, TurnedAway
+from server.app.participants import tokens
 from server.app.routers import (
     admin,
     arrivals,
@@ -34,10 +33,11 @@ from server.app.routers import (
 from server.app.schemas import ERROR_RESPONSES
 from server.app.settings import Settings, get_settings
 from server.app.state import ServerState
-from server.app.updates import UpdateManager
+from server.app.storage.db import Database, SchemaError, current_revision, head_revision
+from server.app.updates.manager import UpdateManager
 
 if TYPE_CHECKING:
-    from server.app.cluster import UpdateCluster
+    from server.app.updates.cluster import UpdateCluster
 
 log = logging.getLogger("bam_study")
 STATIC_DIR = Path(__file__).resolve().parents[1] / "static"
@@ -128,7 +128,7 @@ def create_app(
             )
         updates_cluster, own_cluster = cluster, False
         if updates_cluster is None and settings.update_scheduler:
-            from server.app.cluster import UpdateCluster
+            from server.app.updates.cluster import UpdateCluster
 
             updates_cluster = await asyncio.to_thread(
                 UpdateCluster.connect, settings.update_scheduler
@@ -195,7 +195,6 @@ def create_app(
         admin.router,
         pages.router,
         dashboard.pages,
-        dashboard.api,
         mturk.router,
     ):
         app.include_router(router)
@@ -224,7 +223,7 @@ async def _sweep_forever(state: ServerState) -> None:
     """Mark participants idle for too long as abandoned (they continue if they come back)."""
     while True:
         try:
-            marked = await asyncio.to_thread(flow.mark_abandoned, state.db, state.settings)
+            marked = await asyncio.to_thread(tokens.mark_abandoned, state.db, state.settings)
             if marked:
                 log.info("%d participant(s) marked abandoned", marked)
         except Exception:

@@ -226,7 +226,9 @@ class Outcome(BaseModel):
     learning_wait_seconds: float | None = None
 
 
-class ActionResponse(BaseModel):
+class RequestOutcome(BaseModel):
+    """The answer to a request that changes something: its outcome and the state after it."""
+
     seq: int
     kind: str
     outcome: Outcome
@@ -338,6 +340,7 @@ class AdminSession(BaseModel):
     environment: str
     learner: str
     colour: str
+    colour_hex: str = Field(description="The agent's colour as drawn on the page (#rrggbb).")
     status: str
     mode: str
     task: int
@@ -383,3 +386,38 @@ class AdminEvent(BaseModel):
     record: str | None
     stay_state: int | None
     episode_end: str | None
+
+
+class AdminReplay(BaseModel):
+    """What a replay needs: the session, its grid, the first state and every event."""
+
+    session: AdminSession
+    environment: dict[str, Any] = Field(description="The grid as the teaching page draws it.")
+    start_state: int | None
+    events: list[AdminEvent]
+
+
+class ReplicaAssignmentView(BaseModel):
+    row: int
+    hit_id: str
+    assignment_id: str
+    worker_id: str
+    status: str
+    accepted_at: datetime
+    returned_at: datetime | None
+    submitted_at: datetime | None
+
+
+class ReplicaSubmissionView(BaseModel):
+    assignment_id: str
+    worker_id: str
+    hit_id: str
+    fields: dict[str, Any]
+    submitted_at: datetime
+
+
+class ReplicaRecords(BaseModel):
+    """The MTurk replica's assignments and every submission it recorded."""
+
+    assignments: list[ReplicaAssignmentView]
+    submissions: list[ReplicaSubmissionView]

@@ -11,13 +11,13 @@ from starlette.concurrency import run_in_threadpool
 
 from server.app.admin_auth import AdminSessions, SignInGuard
 from server.app.config import StudyConfig
-from server.app.db import Database
-from server.app.policies import PolicyCache
-from server.app.review import ReviewBackend, make_backend
+from server.app.platforms.review import ReviewBackend, make_backend
 from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.app.updates.policies import PolicyCache
 
 if TYPE_CHECKING:
-    from server.app.updates import UpdateManager
+    from server.app.updates.manager import UpdateManager
 
 T = TypeVar("T")
 

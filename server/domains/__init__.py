@@ -35,6 +35,14 @@ TUTORIALS: dict[str, str] = {
     "farming": "farming-tutorial",
 }
 ENVIRONMENTS: tuple[str, ...] = tuple(name for names in DOMAINS.values() for name in names)
+
+
+def title(name: str) -> str:
+    """An environment's display name, in the paper's words: 'two-rooms' -> 'Two Rooms' (every
+    name is its words capitalised, so an environment the paper does not know gets one too)."""
+    return " ".join(word.capitalize() for word in name.replace("_", "-").split("-") if word)
+
+
 NAMES: tuple[str, ...] = (
     *ENVIRONMENTS,
     "navigation-tutorial",

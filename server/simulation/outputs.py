@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from server import learners
+from server import domains, learners
 from server.simulation.config import DESCRIPTIONS, RunConfig
 from server.simulation.progress import format_duration
 from server.simulation.protocols import CURVE_COLUMNS, JobResult
@@ -33,18 +33,6 @@ SUMMARY_COLUMNS: tuple[str, ...] = (
     "optimal_return",
     "mean_update_seconds",
 )
-
-
-def environment_title(name: str) -> str:
-    """'two-rooms' -> 'Two Rooms'."""
-    return " ".join(word.capitalize() for word in name.split("-"))
-
-
-def panel_title(name: str) -> str:
-    """The paper's caption style: 'Navigation - Two Rooms'."""
-    from server import domains
-
-    return f"{domains.domain_of(name).capitalize()} - {environment_title(name)}"
 
 
 def _cell(value: Any) -> str:
@@ -215,7 +203,7 @@ def render_report(
                     else _percent(row.mean_normalized_return, row.se_normalized_return)
                 )
             add(
-                f"| {environment_title(environment)} | {learners.DISPLAY_NAMES.get(learner, learner)} | "
+                f"| {domains.title(environment)} | {learners.DISPLAY_NAMES.get(learner, learner)} | "
                 + " | ".join(cells)
                 + " |"
             )
@@ -267,7 +255,7 @@ def render_report(
                 if row.environment == environment and row.learner == learner and row.round > 0
             ]
             cells.append(f"{math.fsum(values) / len(values):.2f}" if values else "–")
-        add(f"| {environment_title(environment)} | " + " | ".join(cells) + " |")
+        add(f"| {domains.title(environment)} | " + " | ".join(cells) + " |")
     add("")
     return "\n".join(lines)
 

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from server import learners
+from server import domains, learners
 from server.simulation.config import RunConfig
 from server.simulation.runner import atomic_write
 
@@ -32,14 +32,17 @@ TITLES: dict[str, str] = {
 }
 
 
+def panel_title(name: str) -> str:
+    """The paper's caption style: 'Navigation - Two Rooms'."""
+    return f"{domains.domain_of(name).capitalize()} - {domains.title(name)}"
+
+
 def plot_curves(config: RunConfig, summary: Sequence[SummaryRow], stem: Path) -> list[Path]:
     """Draw the figure and write it as ``stem``.png and ``stem``.svg."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from server.simulation.outputs import panel_title
 
     count = len(config.environments)
     columns = min(4, count)

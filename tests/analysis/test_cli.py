@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from analysis.stats import COMPARISON_COLUMNS
-from server.cli import main
+from server.commands.main import main
 
 from .conftest import small_study, write_export
 
@@ -448,7 +448,7 @@ def test_the_console_command_reports_bad_input_on_stderr(export: Path, tmp_path:
         [
             sys.executable,
             "-m",
-            "server.cli",
+            "server.commands.main",
             "analyze",
             "--data",
             str(export),
@@ -468,10 +468,10 @@ def test_the_console_command_reports_bad_input_on_stderr(export: Path, tmp_path:
 
 
 def test_the_subcommand_is_registered_without_loading_the_analysis_libraries() -> None:
-    # What `bam-study --help` does for this subcommand: import analysis.cli and configure.
+    # What `bam-study --help` does for this subcommand: import server.commands.analyze and configure.
     code = (
-        "import argparse, sys; from server.cli import SUBCOMMANDS; import analysis.cli as c; "
-        "assert SUBCOMMANDS['analyze'][0] == 'analysis.cli'; c.configure(argparse.ArgumentParser()); "
+        "import argparse, sys; from server.commands.main import SUBCOMMANDS; import server.commands.analyze as c; "
+        "assert SUBCOMMANDS['analyze'][0] == 'server.commands.analyze'; c.configure(argparse.ArgumentParser()); "
         "print(sorted(m for m in ('pandas', 'scipy', 'statsmodels', 'matplotlib') "
         "if m in sys.modules))"
     )

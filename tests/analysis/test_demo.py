@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 from sqlalchemy import create_engine, text
 
-from server.cli import main
+from server.commands.main import main
 
 LEARNERS = {"bam": "BAM", "model-based": "Model-Based IRL", "cloning": "Behavioral Cloning"}
 ENVIRONMENTS = {
@@ -47,7 +47,7 @@ def test_the_demo_runs_a_whole_study(tmp_path: Path, capsys: pytest.CaptureFixtu
     words = shlex.split(command)
     program = next(word for word in words if "=" not in word)
     assert Path(program).is_absolute() and os.access(program, os.X_OK), command
-    assert words[words.index(program) + 1 :] in (["serve"], ["-m", "server.cli", "serve"])
+    assert words[words.index(program) + 1 :] in (["serve"], ["-m", "server.commands.main", "serve"])
 
     # Table 1 is printed, as written in the analysis folder, with every cell's learner.
     table = (out / "analysis" / "table1.md").read_text()

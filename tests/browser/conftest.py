@@ -25,9 +25,9 @@ from playwright.sync_api import ConsoleMessage, Frame, Page, Request, expect
 from sqlalchemy import create_engine, text
 
 from server import domains
-from server.app.db import create_db_engine, upgrade
 from server.app.main import create_app
 from server.app.settings import Settings
+from server.app.storage.db import create_db_engine, upgrade
 from server.domains.base import ACTIONS
 from tests.server.conftest import live
 
@@ -169,7 +169,7 @@ def run_live_server(
     tmp: Path, config: str, executor: Executor | None = None
 ) -> Iterator[LiveServer]:
     """A study server on a free port: settings from the BAM_* environment variables, a fresh
-    SQLite database migrated by ``server.app.db.upgrade``, learner updates in a process (or in
+    SQLite database migrated by ``server.app.storage.db.upgrade``, learner updates in a process (or in
     ``executor``)."""
     config_path = tmp / "study.toml"
     config_path.write_text(config, encoding="utf-8")

@@ -11,7 +11,7 @@ from urllib.parse import urlencode
 import pytest
 from playwright.sync_api import Page, Route, expect
 
-from server.app.simulated import LightClient, SimulatedParticipant, TeachingPlan
+from server.commands.simulated import LightClient, SimulatedParticipant, TeachingPlan
 from tests.browser.conftest import (
     WAIT_MS,
     LiveServer,

@@ -18,8 +18,8 @@ import json, numba
 import numpy as np
 from server import domains, learners
 from server.learners import _kernels, likelihoods, planning
-from server.learners.warmup import warm_up
-from server.app.updates import run_update
+from server.app.updates.warmup import warm_up
+from server.app.updates.worker import run_update
 from server.teacher import Teacher
 
 def signatures():

@@ -21,13 +21,13 @@ from sqlalchemy import select
 
 from server import domains, learners
 from server.app.config import DEFAULT_STUDY_CONFIG
-from server.app.db import Database
-from server.app.minari_export import INFOS
-from server.app.models import Event, LearnerUpdate, LearningSession
-from server.app.policies import decode
-from server.app.simulated import SimulatedParticipant, TeachingPlan
-from server.app.updates import apply_records, records_of
-from server.cli import main
+from server.app.export.minari import INFOS
+from server.app.storage.db import Database
+from server.app.storage.models import Event, LearnerUpdate, LearningSession
+from server.app.updates.policies import decode
+from server.app.updates.worker import apply_records, records_of
+from server.commands.main import main
+from server.commands.simulated import SimulatedParticipant, TeachingPlan
 from server.domains.base import ACTIONS, STAY
 from server.rl import environment_id
 from server.rl.datasets import Dataset, DatasetEpisode, write_datasets

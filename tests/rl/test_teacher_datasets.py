@@ -57,7 +57,7 @@ def test_simulate_keeps_the_demonstrations_as_minari_datasets(
     """``bam-study simulate ... --minari DIR`` writes the same datasets as
     ``write_teacher_datasets`` for the run's environments, agents, rounds and seed; an existing
     folder is refused before anything runs."""
-    from server.cli import main
+    from server.commands.main import main
     from tests.simulation.conftest import AGENTS, ROUNDS, small_args
 
     out, data = tmp_path / "run", tmp_path / "minari"

@@ -23,12 +23,12 @@ from sqlalchemy import create_engine, func, select, text
 from sqlalchemy.engine import make_url
 
 from server.app.config import DEFAULT_STUDY_CONFIG, StudyConfig, parse_study_config
-from server.app.db import Database, upgrade
-from server.app.flow import TOKEN_HEADER
 from server.app.main import create_app
-from server.app.models import Event, LearnerUpdate
+from server.app.participants.tokens import TOKEN_HEADER
 from server.app.settings import Settings
-from server.app.updates import new_executor
+from server.app.storage.db import Database, upgrade
+from server.app.storage.models import Event, LearnerUpdate
+from server.app.updates.pool import new_executor
 
 POSTGRES_URL = os.environ.get(
     "BAM_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test"

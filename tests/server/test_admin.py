@@ -10,10 +10,10 @@ import pytest
 from fastapi.testclient import TestClient
 
 from server.app.admin_auth import FAILURES_ALLOWED, SESSION_SECONDS
-from server.app.db import Database
 from server.app.main import create_app
 from server.app.settings import Settings
-from server.cli import main
+from server.app.storage.db import Database
+from server.commands.main import main
 from tests.server.conftest import (
     ADMIN_TOKEN,
     demonstrate_each_task,
@@ -109,10 +109,17 @@ def test_participants_sessions_exclusion_and_replay(client: TestClient, db: Data
         == 422
     )
     participant.act(f"/api/sessions/{current}/move", action="UP")
-    included = client.delete("/api/admin/participants/1/exclusion", headers=ADMIN)
+    included = client.post(
+        "/api/admin/participants/1/inclusion", json={"reason": "a real teacher"}, headers=ADMIN
+    )
     assert included.json()["excluded"] is False
     assert [c["status"] for c in included.json()["status_changes"]][-2:] == ["excluded", "included"]
-    assert client.delete("/api/admin/participants/1/exclusion", headers=ADMIN).status_code == 409
+    assert (
+        client.post(
+            "/api/admin/participants/1/inclusion", json={"reason": "a real teacher"}, headers=ADMIN
+        ).status_code
+        == 409
+    )
 
 
 def test_the_evaluations_of_an_unknown_session_are_not_found(
@@ -169,7 +176,6 @@ def test_failed_sign_ins_are_limited_per_address(client: TestClient) -> None:
         client.post("/dashboard/login", data={"token": ADMIN_TOKEN}, follow_redirects=False),
         client.get("/api/admin/participants", headers={"Authorization": "Bearer guess"}),
         client.get("/api/admin/participants", headers=ADMIN),
-        client.get("/dashboard/api/participants", headers=ADMIN),
     ):
         assert response.status_code == 429, response.text
         assert response.headers["Retry-After"] == "60"
@@ -203,13 +209,13 @@ def test_the_dashboard_cookie_is_a_session_that_expires_and_is_revoked(
     assert first != second  # a random id per session, not a fixed value of the token
     copied = TestClient(client.app)
     copied.cookies.set("bam_admin", first)
-    assert copied.get("/dashboard/api/participants").status_code == 200
+    assert copied.get("/api/admin/participants").status_code == 200
     # Signing out revokes the session: the copy stops working, the other session goes on.
     assert client.post("/dashboard/logout", follow_redirects=False).status_code == 303
-    assert copied.get("/dashboard/api/participants").status_code == 401
+    assert copied.get("/api/admin/participants").status_code == 401
     other = TestClient(client.app)
     other.cookies.set("bam_admin", second)
-    assert other.get("/dashboard/api/participants").status_code == 200
+    assert other.get("/api/admin/participants").status_code == 200
     # A changed expiry or signature is refused.
     session_id, expires, signature = second.split(".")
     for forged in (
@@ -220,18 +226,18 @@ def test_the_dashboard_cookie_is_a_session_that_expires_and_is_revoked(
     ):
         forger = TestClient(client.app)
         forger.cookies.set("bam_admin", forged)
-        assert forger.get("/dashboard/api/participants").status_code == 401
+        assert forger.get("/api/admin/participants").status_code == 401
     # The session ends at its expiry.
     now = time.time()
     state.admin_sessions.clock = lambda: now + SESSION_SECONDS + 1
-    assert other.get("/dashboard/api/participants").status_code == 401
+    assert other.get("/api/admin/participants").status_code == 401
 
 
 def test_the_dashboard_excludes_and_includes_again_with_the_reasons(
     client: TestClient, db: Database
 ) -> None:
     teaching_participant(client)
-    base = "/dashboard/api/participants"
+    base = "/api/admin/participants"
     assert client.post(f"{base}/1/exclusion", json={"reason": "x"}).status_code == 401
     excluded = client.post(
         f"{base}/1/exclusion", json={"reason": "pressed keys at random"}, headers=ADMIN

@@ -11,8 +11,8 @@ import pandas as pd
 import pytest
 from fastapi.testclient import TestClient
 
-from server.app.db import Database
-from server.cli import main
+from server.app.storage.db import Database
+from server.commands.main import main
 from tests.server.conftest import ADMIN_TOKEN
 from tests.server.test_export import study_run  # noqa: F401  (the fixture)
 

@@ -9,10 +9,10 @@ from concurrent.futures import ThreadPoolExecutor
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
-from server.app.db import Database
 from server.app.main import create_app
-from server.app.models import Participant as ParticipantRow
-from server.app.models import StatusChange
+from server.app.storage.db import Database
+from server.app.storage.models import Participant as ParticipantRow
+from server.app.storage.models import StatusChange
 from tests.server.conftest import (
     MTURK,
     Participant,

@@ -10,7 +10,7 @@ from pydantic import ValidationError
 
 from server.app.config import DEFAULT_STUDY_CONFIG, StudyConfigError, load_study_config
 from server.app.settings import Settings
-from server.cli import main
+from server.commands.main import main
 
 PAPER = DEFAULT_STUDY_CONFIG.read_text()
 

@@ -21,7 +21,7 @@ import httpx
 import pytest
 import yaml
 
-from server.app.live import free_port
+from server.commands.live import free_port
 from tests.server.conftest import ADMIN_TOKEN
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -31,7 +31,7 @@ import pytest
 from sqlalchemy import create_engine, text
 from sqlalchemy.engine import make_url
 
-from server.app.live import free_port
+from server.commands.live import free_port
 from tests.server.conftest import POSTGRES_URL
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -90,7 +90,9 @@ def teach(url: str, participants: int, first_index: int, seed: int) -> int:
     options = {"--participants": participants, "--concurrency": 2, "--rounds": 1}
     options |= {"--seed": seed, "--first-index": first_index}
     arguments = [str(part) for option in options.items() for part in option]
-    completed = run([sys.executable, "-m", "server.cli", "teach", "--url", url, *arguments])
+    completed = run(
+        [sys.executable, "-m", "server.commands.main", "teach", "--url", url, *arguments]
+    )
     assert completed.returncode == 0, completed.stderr
     assert f"participants completed  {participants} of {participants}" in completed.stdout
     return int(completed.stdout.split("events acknowledged")[1].split()[0])
@@ -148,7 +150,7 @@ def test_the_image_serves_a_study_on_postgresql_across_a_restart(
         url = f"http://127.0.0.1:{port}"
         wait_healthy(url)
         # The update processes start with the server and load the kernels compiled into the
-        # image's numba cache at build time (server.learners.warmup).
+        # image's numba cache at build time (server.app.updates.warmup).
         cached = run([*container, "sh", "-c", "find ~/.cache/numba -name '*.nbc' | wc -l"])
         assert int(cached.stdout.strip() or 0) > 0, cached.stdout + cached.stderr
         deadline = time.monotonic() + 120

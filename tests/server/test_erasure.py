@@ -13,12 +13,12 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 
 from server.app.config import StudyConfig
-from server.app.db import Database
 from server.app.errors import ApiError
-from server.app.export import database_secret, load_tables, pseudonym
-from server.app.minari_export import StudyFile, study_datasets
-from server.app.models import Base, Erasure, LearningSession, Participant
+from server.app.export.minari import StudyFile, study_datasets
+from server.app.export.tables import database_secret, load_tables, pseudonym
 from server.app.rights.erasure import erase_participant
+from server.app.storage.db import Database
+from server.app.storage.models import Base, Erasure, LearningSession, Participant
 from tests.server.conftest import (
     ADMIN_TOKEN,
     demonstrate_each_task,
@@ -45,7 +45,7 @@ def study() -> StudyConfig:
 def replica_worker(client: TestClient, db: Database, worker: str, remark: str) -> int:
     """A worker who accepts the replica's HIT, teaches, answers the questionnaire and submits;
     then opens the study again in a second browser (a token of its own). Their id."""
-    from server.app.replica_models import ReplicaAssignment
+    from server.app.storage.replica_models import ReplicaAssignment
 
     accepted = client.post(
         "/mturk/accept", data={"workerId": worker}, headers=ADMIN, follow_redirects=False

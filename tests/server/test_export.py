@@ -14,11 +14,11 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
-from server.app.db import Database
-from server.app.export import DICTIONARY, load_tables
-from server.app.models import Event, LearnerUpdate, LearningSession
-from server.app.simulated import SimulatedParticipant, TeachingPlan
-from server.cli import main
+from server.app.export.tables import DICTIONARY, load_tables
+from server.app.storage.db import Database
+from server.app.storage.models import Event, LearnerUpdate, LearningSession
+from server.commands.main import main
+from server.commands.simulated import SimulatedParticipant, TeachingPlan
 from tests.server.conftest import ADMIN_TOKEN, wait_for_updates
 
 EVALUATION_COLUMNS = [

@@ -15,13 +15,13 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select, update
 
-from server.app import flow
 from server.app.config import StudyConfig
-from server.app.db import Database
-from server.app.flow import mark_abandoned
-from server.app.models import LearningSession, StatusChange, utcnow
-from server.app.models import Participant as ParticipantRow
+from server.app.participants import assignment, tokens
+from server.app.participants.tokens import mark_abandoned
 from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.app.storage.models import LearningSession, StatusChange, utcnow
+from server.app.storage.models import Participant as ParticipantRow
 from tests.server.conftest import (
     ADMIN_TOKEN,
     Participant,
@@ -106,14 +106,14 @@ def test_simultaneous_consents_are_balanced(
     participants = [
         new_participant(TestClient(client.app), f"W{index}", f"A{index}") for index in range(8)
     ]
-    create_sessions = flow.create_sessions
+    create_sessions = assignment.create_sessions
 
     def slow_create_sessions(*args: Any) -> None:
         time.sleep(0.1)
         create_sessions(*args)
 
-    monkeypatch.setattr(flow, "create_sessions", slow_create_sessions)
-    monkeypatch.setattr(flow._random, "choice", lambda names: names[0])
+    monkeypatch.setattr(assignment, "create_sessions", slow_create_sessions)
+    monkeypatch.setattr(tokens.SYSTEM_RANDOM, "choice", lambda names: names[0])
     ready = threading.Barrier(len(participants))
 
     def consent(participant: Participant) -> str:
@@ -131,13 +131,13 @@ def test_domain_assignment_holds_its_lock_until_the_transaction_ends(db: Databas
     if db.is_sqlite:
         # Only a write transaction (BEGIN IMMEDIATE) keeps other writers out while counting.
         with db.connect() as c, pytest.raises(RuntimeError, match="write transaction"):
-            flow.lock_domain_assignment(c)
+            assignment.lock_domain_assignment(c)
         with db.transaction() as c:
-            flow.lock_domain_assignment(c)
+            assignment.lock_domain_assignment(c)
         return
-    try_lock = select(func.pg_try_advisory_xact_lock(flow.DOMAIN_LOCK_KEY))
+    try_lock = select(func.pg_try_advisory_xact_lock(tokens.DOMAIN_LOCK_KEY))
     with db.transaction() as c:
-        flow.lock_domain_assignment(c)
+        assignment.lock_domain_assignment(c)
         with db.transaction() as other:
             assert other.scalar(try_lock) is False
     with db.transaction() as other:

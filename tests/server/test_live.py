@@ -15,10 +15,10 @@ import pytest
 from sqlalchemy import func, select
 
 from server.app.config import DEFAULT_STUDY_CONFIG
-from server.app.db import Database
-from server.app.live import LiveServer
-from server.app.models import Event, LearnerUpdate, LearningSession
-from server.app.simulated import TeachingPlan, run_participants
+from server.app.storage.db import Database
+from server.app.storage.models import Event, LearnerUpdate, LearningSession
+from server.commands.live import LiveServer
+from server.commands.simulated import TeachingPlan, run_participants
 from tests.server.conftest import ADMIN_TOKEN, FAST_LEARNERS, count_events, wait_for_updates
 
 
@@ -108,7 +108,7 @@ def test_the_teach_command_against_a_live_server(live: LiveServer, db: Database)
         [
             sys.executable,
             "-m",
-            "server.cli",
+            "server.commands.main",
             "teach",
             "--url",
             live.url,
@@ -132,7 +132,16 @@ def test_the_teach_command_against_a_live_server(live: LiveServer, db: Database)
     for kind in ("move", "agent_step", "finish"):
         assert kind in completed.stdout
     bad = subprocess.run(
-        [sys.executable, "-m", "server.cli", "teach", "--url", live.url, "--rounds", "3-1"],
+        [
+            sys.executable,
+            "-m",
+            "server.commands.main",
+            "teach",
+            "--url",
+            live.url,
+            "--rounds",
+            "3-1",
+        ],
         capture_output=True,
         text=True,
         timeout=60,

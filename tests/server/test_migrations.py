@@ -11,7 +11,8 @@ from alembic.runtime.migration import MigrationContext
 from fastapi.testclient import TestClient
 from sqlalchemy import inspect, select
 
-from server.app.db import (
+from server.app.main import create_app
+from server.app.storage.db import (
     Database,
     SchemaError,
     current_revision,
@@ -20,9 +21,8 @@ from server.app.db import (
     prepare_schema,
     upgrade,
 )
-from server.app.main import create_app
-from server.app.models import Base, Installation
-from server.cli import main
+from server.app.storage.models import Base, Installation
+from server.commands.main import main
 from tests.server.conftest import make_settings, study_config
 
 

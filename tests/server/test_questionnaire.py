@@ -19,9 +19,9 @@ from server.app.config import (
     load_study_config,
     parse_study_config,
 )
-from server.app.db import Database
-from server.app.export import dictionary_frame, load_tables
-from server.app.models import QuestionnaireAnswer, StatusChange
+from server.app.export.tables import dictionary_frame, load_tables
+from server.app.storage.db import Database
+from server.app.storage.models import QuestionnaireAnswer, StatusChange
 from tests.server.conftest import FAST_LEARNERS, Participant, demonstrate_each_task
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "server" / "examples" / "questionnaire-study.toml"
@@ -143,7 +143,7 @@ def test_the_questionnaire_comes_before_the_completion_code(
 @pytest.mark.parametrize("database_url", ["sqlite"], indirect=True)
 def test_simulated_participants_answer_the_questionnaire(db: Database, executor: Any) -> None:
     from server.app.main import create_app
-    from server.app.simulated import SimulatedParticipant, TeachingPlan
+    from server.commands.simulated import SimulatedParticipant, TeachingPlan
     from tests.server.conftest import make_settings
 
     mturk = parse_study_config(

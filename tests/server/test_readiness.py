@@ -14,10 +14,10 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import text
 
-from server.app.db import Database
-from server.app.live import LiveServer
 from server.app.main import create_app
 from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.commands.live import LiveServer
 from tests.server.conftest import ADMIN_TOKEN, make_settings, study_config
 from tests.server.test_live import fast_study_file
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from server.app.db import Database
-from server.app.replica_models import ReplicaAssignment
+from server.app.storage.db import Database
+from server.app.storage.replica_models import ReplicaAssignment
 from tests.server.conftest import ADMIN_TOKEN
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}

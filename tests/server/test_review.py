@@ -14,12 +14,9 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
 from server.app.config import StudyConfig
-from server.app.db import Database
 from server.app.errors import ApiError
-from server.app.export import dictionary_frame, load_tables
-from server.app.models import AssignmentReview, Bonus
-from server.app.replica_models import ReplicaAssignment, ReplicaBonus
-from server.app.review import (
+from server.app.export.tables import dictionary_frame, load_tables
+from server.app.platforms.review import (
     MTurkClientBackend,
     ReplicaReviewBackend,
     ReviewRefused,
@@ -27,6 +24,9 @@ from server.app.review import (
     make_backend,
 )
 from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.app.storage.models import AssignmentReview, Bonus
+from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus
 from tests.server.conftest import (
     ADMIN_TOKEN,
     Participant,
@@ -36,7 +36,7 @@ from tests.server.conftest import (
 )
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
-BASE = "/dashboard/api/participants"
+BASE = "/api/admin/participants"
 
 
 @pytest.fixture

@@ -8,8 +8,8 @@ from concurrent.futures import ThreadPoolExecutor
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from server.app.db import Database
-from server.app.models import Event
+from server.app.storage.db import Database
+from server.app.storage.models import Event
 from tests.server.conftest import count_events, teaching_participant
 
 

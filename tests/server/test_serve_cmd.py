@@ -16,8 +16,8 @@ import httpx
 import pytest
 
 from server.app.config import load_study_config
-from server.app.serve_cmd import startup_notes
-from server.cli import main
+from server.commands.main import main
+from server.commands.serve import startup_notes
 from tests.server.conftest import free_port
 
 
@@ -251,7 +251,7 @@ def start_serve(
     log = folder / "serve.log"
     with log.open("wb") as out:
         server = subprocess.Popen(
-            [sys.executable, "-m", "server.cli", "serve", *args],
+            [sys.executable, "-m", "server.commands.main", "serve", *args],
             cwd=folder,
             env=environment,
             stdout=out,

@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from server.app.simulated import LightResponse, SimulatedParticipant, TeachingPlan
+from server.commands.simulated import LightResponse, SimulatedParticipant, TeachingPlan
 
 
 class FlakyClient:

@@ -10,8 +10,8 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 
 from server import learners
-from server.app.db import Database
-from server.app.models import Episode, Event, LearnerUpdate, LearningSession
+from server.app.storage.db import Database
+from server.app.storage.models import Episode, Event, LearnerUpdate, LearningSession
 from server.domains import make
 from server.domains.base import ACTIONS, STAY
 from tests.server.conftest import (
@@ -500,7 +500,7 @@ def test_random_starts_are_never_on_the_task_s_goal(name: str) -> None:
     130 draws): a reset there would be a start with nothing to do."""
     import numpy as np
 
-    from server.app.flow import random_start
+    from server.app.participants.assignment import random_start
 
     env = make(name)
     rng = np.random.default_rng(0)

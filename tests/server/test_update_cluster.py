@@ -24,12 +24,12 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
 from analysis.data import EVALUATION_COLUMNS
-from server.app import flow
-from server.app.db import Database, upgrade
-from server.app.export import load_tables
+from server.app.export.tables import load_tables
 from server.app.main import create_app
-from server.app.models import LearnerUpdate, LearningSession
+from server.app.participants import tokens
 from server.app.settings import Settings
+from server.app.storage.db import Database, upgrade
+from server.app.storage.models import LearnerUpdate, LearningSession
 from server.domains import make
 from server.domains.base import ACTIONS
 from server.teacher import Teacher
@@ -154,7 +154,7 @@ def test_a_cluster_gives_the_local_evaluations_and_survives_a_killed_worker(
     outcomes = {}
     for where in ("local", "cluster"):
         # The same participants: the same domains, learner orders and session seeds.
-        monkeypatch.setattr(flow, "_random", random.Random(22))
+        monkeypatch.setattr(tokens, "SYSTEM_RANDOM", random.Random(22))
         db = fresh_database(tmp_path / f"{where}.db")
         url = db.engine.url.render_as_string(hide_password=False)
         if where == "local":
@@ -215,7 +215,7 @@ def test_the_server_waits_for_a_worker_and_its_warm_up(tmp_path: Path) -> None:
             # The worker loaded the kernels before the server counted it as ready.
             client_ = distributed.Client(local_cluster.scheduler_address)
             try:
-                from server.app.cluster import is_warm
+                from server.app.updates.cluster import is_warm
 
                 assert list(client_.run(is_warm).values()) == [True]
             finally:
@@ -230,7 +230,7 @@ def test_a_bad_scheduler_address_is_one_line_at_start(tmp_path: Path) -> None:
     """An address that is not one, and one where no scheduler answers: a one-line message and
     exit status, before the server starts."""
     database = f"sqlite:///{tmp_path / 'study.db'}"
-    command = [sys.executable, "-m", "server.cli", "serve", "--port", "0"]
+    command = [sys.executable, "-m", "server.commands.main", "serve", "--port", "0"]
     environment = {**os.environ, "BAM_DATABASE_URL": database}
     for address, status, message in (
         ("localhost:8786", 2, "--update-scheduler='localhost:8786': must be a Dask scheduler"),
@@ -286,8 +286,8 @@ def test_an_update_that_kills_every_worker_comes_back_as_worker_deaths(cluster: 
     server hears of every death, to count them as attempts, and stops waiting."""
     import asyncio
 
-    from server.app.cluster import UpdateCluster
-    from server.app.updates import WorkerDied
+    from server.app.updates.cluster import UpdateCluster
+    from server.app.updates.pool import WorkerDied
 
     async def scenario() -> tuple[Any, BaseException | None]:
         updates = UpdateCluster.connect(cluster.scheduler_address)
@@ -341,7 +341,7 @@ def test_worker_deaths_are_counted_without_a_log_line_per_update(
     update, while the server still learns how many workers died running each."""
     import asyncio
 
-    from server.app.cluster import UpdateCluster
+    from server.app.updates.cluster import UpdateCluster
 
     async def scenario() -> list[tuple[Any, int]]:
         updates = UpdateCluster.connect(cluster.scheduler_address)
@@ -544,8 +544,8 @@ def test_no_update_goes_to_a_client_that_is_not_connected(status: str) -> None:
     it: the update is refused as unavailable (it stays pending and is tried again)."""
     import asyncio
 
-    from server.app.cluster import UpdateCluster
-    from server.app.updates import UpdatesUnavailable
+    from server.app.updates.cluster import UpdateCluster
+    from server.app.updates.pool import UpdatesUnavailable
 
     client = StandInClient(status)
     with pytest.raises(UpdatesUnavailable, match=f"the client is {status}"):
@@ -561,9 +561,9 @@ def test_an_update_left_with_a_closed_client_ends_when_the_server_reconnects(
     with UpdatesUnavailable, instead of leaving the session's updates waiting for ever."""
     import asyncio
 
-    from server.app import cluster as cluster_module
-    from server.app.cluster import UpdateCluster
-    from server.app.updates import UpdatesUnavailable
+    from server.app.updates import cluster as cluster_module
+    from server.app.updates.cluster import UpdateCluster
+    from server.app.updates.pool import UpdatesUnavailable
 
     old, new = StandInClient("running"), StandInClient("running")
     monkeypatch.setattr(cluster_module, "connect", lambda *args, **kwargs: new)

@@ -18,11 +18,11 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select, update
 
 from server import learners
-from server.app.db import Database
 from server.app.main import create_app
-from server.app.models import Event, LearnerUpdate, LearningSession
 from server.app.settings import Settings
-from server.app.updates import PARENT_CHECK_SECONDS
+from server.app.storage.db import Database
+from server.app.storage.models import Event, LearnerUpdate, LearningSession
+from server.app.updates.worker import PARENT_CHECK_SECONDS
 from server.domains import make
 from server.domains.base import ACTIONS
 from server.teacher import Teacher
@@ -254,7 +254,7 @@ def test_the_learning_state_can_be_awaited(slow_client: TestClient, db: Database
 # ones on its way out, leave them).
 _DYING_SERVER = """
 import os, time
-from server.app.updates import new_executor
+from server.app.updates.pool import new_executor
 
 if __name__ == "__main__":
     pool = new_executor(2, 0)
@@ -309,7 +309,7 @@ def test_updates_side_by_side_share_the_planner_threads(
 def test_an_update_gives_its_planner_the_threads_its_job_names(tmp_path: Path) -> None:
     """The server names each update's planner threads in its job; the update process's
     planner uses them, and the update's result does not depend on them."""
-    from server.app.updates import run_update
+    from server.app.updates.worker import run_update
     from server.learners import planning
 
     env = make("doorway")
@@ -340,7 +340,7 @@ def test_an_update_gives_its_planner_the_threads_its_job_names(tmp_path: Path) -
 
 _LATE_WORKER = """
 import os, sys, time
-from server.app.updates import worker_init
+from server.app.updates.worker import worker_init
 
 worker_init(0, int(sys.argv[1]))
 print("stayed", flush=True)
@@ -382,7 +382,7 @@ def test_a_waiter_wakes_on_its_own_update_at_once_and_polls_for_other_processes(
     import asyncio
 
     from server.app import updates as updates_module
-    from server.app.policies import PolicyCache
+    from server.app.updates.policies import PolicyCache
 
     class FakeDb:
         processed = -1
@@ -447,9 +447,9 @@ def test_update_processes_start_with_the_server_and_load_their_kernels_first(
     warmup; tests/learners/test_warmup.py checks that it loads all an update uses)."""
     import asyncio
 
-    from server.app.db import upgrade
-    from server.app.policies import PolicyCache
-    from server.app.updates import UpdateManager
+    from server.app.storage.db import upgrade
+    from server.app.updates.manager import UpdateManager
+    from server.app.updates.policies import PolicyCache
 
     database = Database.from_url(f"sqlite:///{tmp_path / 'study.db'}")
     upgrade(database.engine)

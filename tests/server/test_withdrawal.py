@@ -1,6 +1,6 @@
 """Withdrawal and erasure on request, by each way in: the participant's "stop and delete my data"
 (told how to leave MTurk or Prolific; sent back with the study's NO_CONSENT code when it has
-one), the admin API and dashboard, and ``bam-study erase`` by number, worker id or pseudonym.
+one), the admin API (which the dashboard calls), and ``bam-study erase`` by number, worker id or pseudonym.
 Bad requests change nothing."""
 
 from __future__ import annotations
@@ -10,11 +10,11 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
 from server.app.config import StudyConfig
-from server.app.db import Database
-from server.app.export import database_secret, pseudonym
-from server.app.models import Erasure, Participant
+from server.app.export.tables import database_secret, pseudonym
 from server.app.rights.withdrawal import MTURK_RETURN, PROLIFIC_RETURN
-from server.cli import main
+from server.app.storage.db import Database
+from server.app.storage.models import Erasure, Participant
+from server.commands.main import main
 from tests.server.conftest import (
     ADMIN_TOKEN,
     TOKEN_HEADER,
@@ -109,14 +109,13 @@ def test_the_study_file_checks_the_no_consent_code() -> None:
         )
 
 
-def test_the_experimenter_erases_from_the_admin_api_and_the_dashboard(
+def test_the_experimenter_erases_from_the_admin_api(
     client: TestClient, db: Database, study: StudyConfig
 ) -> None:
     for worker in ("W1", "W2", "W3"):
         new_participant(client, worker, f"A{worker}")
     (first, _), (second, _), (third, _) = participants(db)
     assert client.post(f"/api/admin/participants/{first}/erasure").status_code == 401
-    assert client.post(f"/dashboard/api/participants/{first}/erasure").status_code == 401
     assert client.post("/api/admin/participants/99999/erasure", headers=ADMIN).status_code == 404
     assert len(participants(db)) == 3
 
@@ -125,8 +124,8 @@ def test_the_experimenter_erases_from_the_admin_api_and_the_dashboard(
     secret = database_secret(db)
     assert erased.json()["worker_pseudonym"] == pseudonym(secret, "W1", "w")
     assert erased.json()["rows"]["participants"] == 1
-    from_dashboard = client.post(f"/dashboard/api/participants/{second}/erasure", headers=ADMIN)
-    assert from_dashboard.status_code == 200, from_dashboard.text
+    again = client.post(f"/api/admin/participants/{second}/erasure", headers=ADMIN)
+    assert again.status_code == 200, again.text
     assert participants(db) == [(third, "W3")]
     assert erasures(db) == [(first, "experimenter"), (second, "experimenter")]
     listed = client.get("/api/admin/participants", headers=ADMIN).json()

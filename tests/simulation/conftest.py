@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from server.cli import main
+from server.commands.main import main
 
 ENVIRONMENTS = ("wall", "doorway")
 AGENTS = 2

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from server.cli import main
+from server.commands.main import main
 from server.simulation.config import build_config, parse_learner_settings
 from tests.simulation.conftest import small_args
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from server.cli import main
+from server.commands.main import main
 from server.simulation.config import ConfigError
 from server.simulation.runner import DaskBackend
 from tests.simulation.conftest import small_args, without_timing

@@ -8,7 +8,7 @@ import math
 import statistics
 from pathlib import Path
 
-from server.cli import main
+from server.commands.main import main
 from server.simulation.outputs import SUMMARY_COLUMNS
 from server.simulation.protocols import CURVE_COLUMNS
 from tests.simulation.conftest import (

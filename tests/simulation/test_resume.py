@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from server.cli import main
+from server.commands.main import main
 from server.simulation import protocols
 from server.simulation.config import build_config
 from server.simulation.protocols import Job, JobResult
@@ -109,7 +109,12 @@ def test_a_failing_job_stops_the_run_and_keeps_the_finished_ones(
 def test_killed_process_resumes(small_run: Path, tmp_path: Path) -> None:
     """Kill a real run (SIGKILL, no chance to clean up) once its journal has a line."""
     out = tmp_path / "killed"
-    command = [sys.executable, "-m", "server.cli", *small_args(out, "feedback", "--jobs", "1")]
+    command = [
+        sys.executable,
+        "-m",
+        "server.commands.main",
+        *small_args(out, "feedback", "--jobs", "1"),
+    ]
     process = subprocess.Popen(
         command,
         cwd=Path(__file__).resolve().parents[2],

@@ -14,9 +14,9 @@ from typing import Any
 from pydantic import BaseModel, Field
 from sqlalchemy import Connection, and_, delete, select
 
-from server.app.db import Database
 from server.app.errors import ApiError
-from server.app.models import (
+from server.app.storage.db import Database
+from server.app.storage.models import (
     AssignmentReview,
     Bonus,
     Episode,
@@ -31,8 +31,8 @@ from server.app.models import (
     StatusChange,
     utcnow,
 )
-from server.app.records import Record, add, table_of
-from server.app.replica_models import ReplicaAssignment, ReplicaBonus, ReplicaSubmission
+from server.app.storage.records import Record, add, table_of
+from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus, ReplicaSubmission
 
 ERASED_BY = ("participant", "experimenter")
 PARTICIPANTS = table_of(Participant)
@@ -64,7 +64,7 @@ def installation_secret(c: Connection, configured: str | None = None) -> str:
 def pseudonyms(participant: Any, secret: str) -> tuple[str | None, str | None]:
     """The participant's worker and assignment pseudonyms, as the export writes them (a scrubbed
     participant's ids are their pseudonyms already)."""
-    from server.app.export import pseudonym
+    from server.app.export.tables import pseudonym
 
     if participant.identifiers_scrubbed_at is not None:
         return participant.worker_id, participant.assignment_id
@@ -78,7 +78,7 @@ def find_participant(c: Connection, who: str, secret: str) -> Any:
     """The participant named by ``who``: a participant number, a worker id (MTurk workerId or
     Prolific PROLIFIC_PID) or its pseudonym (w_...). Raises ``ApiError`` 404 when none matches
     and 409 when several do (a worker with several participations: name it by number)."""
-    from server.app.export import pseudonym
+    from server.app.export.tables import pseudonym
 
     p = PARTICIPANTS.c
     if who.isdigit() and len(who) <= 10:

@@ -8,9 +8,9 @@ from typing import Literal
 from pydantic import BaseModel, Field
 
 from server.app.config import StudyConfig
-from server.app.db import Database
-from server.app.flow import participant_for
+from server.app.participants.tokens import participant_for
 from server.app.rights.erasure import erase, installation_secret
+from server.app.storage.db import Database
 
 MTURK_RETURN = (
     "Your data has been deleted. To leave this HIT, press \u201cReturn\u201d on Mechanical "

@@ -8,10 +8,31 @@ from fastapi import APIRouter, Query, Response
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from server.app import export, flow, review, teaching
 from server.app.deps import AdminDep, RowId, StateDep
 from server.app.errors import ApiError
-from server.app.models import (
+from server.app.export import tables as export
+from server.app.participants import assignment, teaching, tokens
+from server.app.platforms import review
+from server.app.rights.erasure import Erased, erase_participant
+from server.app.schemas import (
+    AdminEvaluation,
+    AdminEvent,
+    AdminParticipant,
+    AdminParticipantDetail,
+    AdminReplay,
+    AdminSession,
+    BonusRequest,
+    BonusView,
+    ExclusionRequest,
+    ReplicaAssignmentView,
+    ReplicaRecords,
+    ReplicaSubmissionView,
+    ReviewRequest,
+    ReviewView,
+    StatusChangeView,
+)
+from server.app.state import ServerState
+from server.app.storage.models import (
     AssignmentReview,
     Bonus,
     Event,
@@ -21,22 +42,7 @@ from server.app.models import (
     StatusChange,
     utcnow,
 )
-from server.app.rights.erasure import Erased, erase_participant
-from server.app.schemas import (
-    AdminEvaluation,
-    AdminEvent,
-    AdminParticipant,
-    AdminParticipantDetail,
-    AdminSession,
-    BonusRequest,
-    BonusView,
-    ExclusionRequest,
-    ReviewRequest,
-    ReviewView,
-    StatusChangeView,
-    plain_text,
-)
-from server.app.state import ServerState
+from server.app.storage.replica_models import ReplicaAssignment, ReplicaSubmission
 
 router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
 
@@ -72,6 +78,7 @@ def _admin_sessions(s: Session, sessions: list[LearningSession]) -> list[AdminSe
             environment=x.environment,
             learner=x.learner,
             colour=x.colour_name,
+            colour_hex=x.colour_hex,
             status=x.status,
             mode=x.mode,
             task=x.task,
@@ -126,8 +133,8 @@ def list_participants(
     status: Annotated[str | None, Query(description="Only this status.")] = None,
 ) -> list[AdminParticipant]:
     """Every participant with status, domain, progress and time spent."""
-    if status is not None and status not in flow.STATUSES:
-        raise ApiError(400, f"unknown status {status!r}; valid: {', '.join(flow.STATUSES)}")
+    if status is not None and status not in tokens.STATUSES:
+        raise ApiError(400, f"unknown status {status!r}; valid: {', '.join(tokens.STATUSES)}")
     with state.db.read() as s:
         query = select(Participant).order_by(Participant.id)
         if status is not None:
@@ -215,18 +222,12 @@ def exclude(
         return _participant_detail(s, participant_id)
 
 
-@router.delete("/participants/{participant_id}/exclusion", response_model=AdminParticipantDetail)
+@router.post("/participants/{participant_id}/inclusion", response_model=AdminParticipantDetail)
 def include(
-    participant_id: RowId,
-    state: StateDep,
-    reason: Annotated[str | None, Query(min_length=1, max_length=2000)] = None,
+    participant_id: RowId, body: ExclusionRequest, state: StateDep
 ) -> AdminParticipantDetail:
-    """Undo an exclusion (``reason``, optional here, is kept in the status history)."""
-    if reason is not None:
-        try:
-            plain_text(reason)
-        except ValueError as error:
-            raise ApiError(422, f"reason: {error}") from None
+    """Undo an exclusion, with the reason (kept in the status history)."""
+    reason = body.reason
     with state.db.write() as s:
         p = s.get(Participant, participant_id)
         if p is None:
@@ -297,7 +298,7 @@ def list_sessions(
         query = select(LearningSession).order_by(LearningSession.id)
         if live:
             query = query.join(Participant).where(
-                LearningSession.status == "active", Participant.status.in_(flow.IN_PROGRESS)
+                LearningSession.status == "active", Participant.status.in_(tokens.IN_PROGRESS)
             )
         return _admin_sessions(s, list(s.scalars(query)))
 
@@ -331,8 +332,8 @@ def list_evaluations(session_id: RowId, state: StateDep) -> list[AdminEvaluation
     return [AdminEvaluation(**row._asdict()) for row in rows]
 
 
-@router.get("/sessions/{session_id}/replay")
-def replay(session_id: RowId, state: StateDep) -> dict[str, Any]:
+@router.get("/sessions/{session_id}/replay", response_model=AdminReplay)
+def replay(session_id: RowId, state: StateDep) -> AdminReplay:
     """What a replay needs: the grid, the first state and every event of the session."""
     with state.db.read() as s:
         session = _session(s, session_id)
@@ -340,11 +341,11 @@ def replay(session_id: RowId, state: StateDep) -> dict[str, Any]:
             select(Event).where(Event.session_id == session_id).order_by(Event.id)
         ).all()
         summary = _admin_sessions(s, [session])[0]
-    return {
-        "session": summary.model_dump(mode="json"),
-        "environment": teaching.environment_description(session.environment, reveal_gravity=True),
-        "start_state": flow.initial_state(session) if session.started_at else None,
-        "events": [
+    return AdminReplay(
+        session=summary,
+        environment=teaching.environment_description(session.environment, reveal_gravity=True),
+        start_state=assignment.initial_state(session) if session.started_at else None,
+        events=[
             AdminEvent(
                 event_id=e.id,
                 seq=e.seq,
@@ -360,10 +361,10 @@ def replay(session_id: RowId, state: StateDep) -> dict[str, Any]:
                 record=e.record,
                 stay_state=e.stay_state,
                 episode_end=e.episode_end,
-            ).model_dump(mode="json")
+            )
             for e in events
         ],
-    }
+    )
 
 
 @router.get(
@@ -383,4 +384,37 @@ def download_export(
         content=export.export_zip(tables),
         media_type="application/zip",
         headers={"Content-Disposition": f'attachment; filename="bam-study-export-{stamp}.zip"'},
+    )
+
+
+@router.get("/mturk-replica", response_model=ReplicaRecords)
+def mturk_replica(state: StateDep) -> ReplicaRecords:
+    """The MTurk replica's assignments and every submission it recorded."""
+    with state.db.read() as s:
+        assignments = s.scalars(select(ReplicaAssignment).order_by(ReplicaAssignment.id)).all()
+        submissions = s.scalars(select(ReplicaSubmission).order_by(ReplicaSubmission.id)).all()
+    return ReplicaRecords(
+        assignments=[
+            ReplicaAssignmentView(
+                row=a.id,
+                hit_id=a.hit_id,
+                assignment_id=a.assignment_id,
+                worker_id=a.worker_id,
+                status=a.status,
+                accepted_at=a.accepted_at,
+                returned_at=a.returned_at,
+                submitted_at=a.submitted_at,
+            )
+            for a in assignments
+        ],
+        submissions=[
+            ReplicaSubmissionView(
+                assignment_id=x.assignment_id,
+                worker_id=x.worker_id,
+                hit_id=x.hit_id,
+                fields=x.fields,
+                submitted_at=x.submitted_at,
+            )
+            for x in submissions
+        ],
     )

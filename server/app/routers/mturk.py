@@ -23,20 +23,18 @@ from fastapi.responses import HTMLResponse, RedirectResponse
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from server.app.deps import RowId, StateDep
-from server.app.flow import PREVIEW_ASSIGNMENT
-from server.app.models import utcnow
-from server.app.replica_models import (
+from server.app.deps import RowId, StateDep, is_admin
+from server.app.participants.tokens import PREVIEW_ASSIGNMENT
+from server.app.routers.common import login_redirect, notice, own_origin, templates
+from server.app.schemas import ID_PATTERN
+from server.app.state import ServerState
+from server.app.storage.models import utcnow
+from server.app.storage.replica_models import (
     ReplicaAssignment,
     ReplicaBonus,
     ReplicaHit,
     ReplicaSubmission,
 )
-from server.app.routers.arrivals import own_origin
-from server.app.routers.dashboard import is_admin, login_redirect
-from server.app.routers.pages import notice, templates
-from server.app.schemas import ID_PATTERN
-from server.app.state import ServerState
 
 router = APIRouter(prefix="/mturk", tags=["mturk replica"], include_in_schema=False)
 

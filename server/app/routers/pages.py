@@ -8,29 +8,18 @@ keeps no cookie in the platform's iframe).
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from fastapi import APIRouter, Request, Response
 from fastapi.responses import HTMLResponse
-from fastapi.templating import Jinja2Templates
 from pydantic import ValidationError
 
 from server.app.deps import StateDep
 from server.app.errors import ApiError, TurnedAway
-from server.app.routers.arrivals import arrive
+from server.app.routers.common import arrive, notice, templates
 from server.app.schemas import ArrivalRequest
 
-TEMPLATES_DIR = Path(__file__).resolve().parents[2] / "templates"
-templates = Jinja2Templates(directory=str(TEMPLATES_DIR))
 router = APIRouter(tags=["pages"])
 
 ARRIVAL_PARAMETERS = {field.alias or name for name, field in ArrivalRequest.model_fields.items()}
-
-
-def notice(request: Request, title: str, message: str, status_code: int) -> Response:
-    return templates.TemplateResponse(
-        request, "notice.html", {"title": title, "message": message}, status_code=status_code
-    )
 
 
 @router.get("/study", response_class=HTMLResponse)

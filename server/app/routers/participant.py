@@ -6,18 +6,19 @@ from collections.abc import Callable
 
 from fastapi import APIRouter, Response
 
-from server.app import flow
 from server.app.deps import StateDep, TokenDep
 from server.app.errors import ApiError
-from server.app.flow import Action
+from server.app.participants import assignment, completion, tokens, transaction, views
+from server.app.participants.transaction import Transaction
 from server.app.rights.withdrawal import Withdrawal, withdraw
+from server.app.routers.common import answer
 from server.app.schemas import (
-    ActionResponse,
     Completion,
     ConsentRequest,
     Outcome,
     ParticipantState,
     QuestionnaireRequest,
+    RequestOutcome,
     SeqRequest,
     TutorialStepRequest,
 )
@@ -26,34 +27,27 @@ from server.app.state import ServerState
 router = APIRouter(prefix="/api/participant", tags=["participants"])
 
 
-def answer(state: ServerState, performed: flow.Performed) -> Response:
-    """The stored JSON of a performed request; its queued learner updates start now."""
-    if performed.queued and state.updates is not None:
-        state.updates.submit(performed.queued)
-    return Response(content=performed.response, media_type="application/json")
-
-
 async def perform(
     state: ServerState,
     token: str | None,
     kind: str,
     body: SeqRequest,
-    handler: Callable[[Action], ActionResponse],
+    handler: Callable[[Transaction], RequestOutcome],
 ) -> Response:
     return answer(
-        state, await state.run_db(lambda: flow.perform(state, token, kind, body, handler))
+        state, await state.run_db(lambda: transaction.perform(state, token, kind, body, handler))
     )
 
 
-def participant_response(action: Action) -> ActionResponse:
-    action.flush()
-    current = flow.current_session_id(action.c, action.participant)
-    return ActionResponse(
-        seq=action.seq,
-        kind=action.event["kind"],
+def participant_response(transaction: Transaction) -> RequestOutcome:
+    transaction.flush()
+    current = views.current_session_id(transaction.c, transaction.participant)
+    return RequestOutcome(
+        seq=transaction.seq,
+        kind=transaction.event["kind"],
         outcome=Outcome(),
         session=None,
-        participant=flow.brief(action.participant, action.study, current),
+        participant=views.brief(transaction.participant, transaction.study, current),
     )
 
 
@@ -63,54 +57,54 @@ async def read_participant(state: StateDep, token: TokenDep) -> ParticipantState
 
     def read() -> ParticipantState:
         with state.db.connect() as c:
-            participant = flow.participant_for(c, token)
-            return flow.participant_state(c, participant, state.study)
+            participant = tokens.participant_for(c, token)
+            return views.participant_state(c, participant, state.study)
 
     return await state.run_db(read)
 
 
-@router.post("/consent", response_model=ActionResponse)
+@router.post("/consent", response_model=RequestOutcome)
 async def consent(body: ConsentRequest, state: StateDep, token: TokenDep) -> Response:
     """Agree (the domain is assigned, the sessions are created) or decline (the flow ends)."""
 
-    def handle(action: Action) -> ActionResponse:
-        flow.consent(action, body.agree)
-        return participant_response(action)
+    def handle(transaction: Transaction) -> RequestOutcome:
+        assignment.consent(transaction, body.agree)
+        return participant_response(transaction)
 
     return await perform(state, token, "consent", body, handle)
 
 
-@router.post("/start", response_model=ActionResponse)
+@router.post("/start", response_model=RequestOutcome)
 async def start(body: SeqRequest, state: StateDep, token: TokenDep) -> Response:
     """After the instructions: the tutorial (or the first agent) begins."""
 
-    def handle(action: Action) -> ActionResponse:
-        flow.start(action)
-        return participant_response(action)
+    def handle(transaction: Transaction) -> RequestOutcome:
+        assignment.start(transaction)
+        return participant_response(transaction)
 
     return await perform(state, token, "start", body, handle)
 
 
-@router.post("/tutorial", response_model=ActionResponse)
+@router.post("/tutorial", response_model=RequestOutcome)
 async def tutorial_step(body: TutorialStepRequest, state: StateDep, token: TokenDep) -> Response:
     """The tutorial step the participant reached, kept so that it continues in any browser."""
 
-    def handle(action: Action) -> ActionResponse:
-        flow.reach_tutorial_step(action, body.step)
-        return participant_response(action)
+    def handle(transaction: Transaction) -> RequestOutcome:
+        completion.reach_tutorial_step(transaction, body.step)
+        return participant_response(transaction)
 
     return await perform(state, token, "tutorial", body, handle)
 
 
-@router.post("/questionnaire", response_model=ActionResponse)
+@router.post("/questionnaire", response_model=RequestOutcome)
 async def questionnaire(body: QuestionnaireRequest, state: StateDep, token: TokenDep) -> Response:
     """The answers to the post-study questionnaire (the study file's ``[questionnaire]``); the
     completion code is issued with them. 422 (nothing stored) for a required question left
     unanswered, a choice not offered or a Likert point off the scale."""
 
-    def handle(action: Action) -> ActionResponse:
-        flow.answer_questionnaire(action, body.answers)
-        return participant_response(action)
+    def handle(transaction: Transaction) -> RequestOutcome:
+        completion.answer_questionnaire(transaction, body.answers)
+        return participant_response(transaction)
 
     return await perform(state, token, "questionnaire", body, handle)
 
@@ -121,22 +115,22 @@ async def read_completion(state: StateDep, token: TokenDep) -> Completion:
 
     def read() -> Completion:
         with state.db.connect() as c:
-            participant = flow.participant_for(c, token)
-            completion = flow.completion(participant, state.study)
-        if completion is None:
+            participant = tokens.participant_for(c, token)
+            code = completion.completion(participant, state.study)
+        if code is None:
             raise ApiError(409, f"the study is not completed yet (status {participant.status})")
-        return completion
+        return code
 
     return await state.run_db(read)
 
 
-@router.post("/submission", response_model=ActionResponse)
+@router.post("/submission", response_model=RequestOutcome)
 async def record_submission(body: SeqRequest, state: StateDep, token: TokenDep) -> Response:
     """The page is sending the submission to the platform (MTurk's form, Prolific's redirect)."""
 
-    def handle(action: Action) -> ActionResponse:
-        flow.submission(action)
-        return participant_response(action)
+    def handle(transaction: Transaction) -> RequestOutcome:
+        completion.submission(transaction)
+        return participant_response(transaction)
 
     return await perform(state, token, "submission", body, handle)
 

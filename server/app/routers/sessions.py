@@ -12,17 +12,17 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Response
 
-from server.app import flow, teaching
 from server.app.deps import RowId, StateDep, TokenDep
 from server.app.errors import ApiError, LearnerBusy
-from server.app.flow import Action
-from server.app.routers.participant import answer
+from server.app.participants import teaching, tokens, transaction
+from server.app.participants.transaction import Transaction
+from server.app.routers.common import answer
 from server.app.schemas import (
-    ActionResponse,
     FeedbackRequest,
     Learning,
     ModeRequest,
     MoveRequest,
+    RequestOutcome,
     SeqRequest,
     SessionView,
     TaskRequest,
@@ -38,10 +38,10 @@ async def teach(
     kind: str,
     body: SeqRequest,
     session_id: int,
-    handler: Callable[[Action], ActionResponse],
+    handler: Callable[[Transaction], RequestOutcome],
 ) -> Response:
     performed = await state.run_db(
-        lambda: flow.perform(state, token, kind, body, handler, session_id)
+        lambda: transaction.perform(state, token, kind, body, handler, session_id)
     )
     return answer(state, performed)
 
@@ -52,7 +52,7 @@ async def read_session(session_id: RowId, state: StateDep, token: TokenDep) -> S
 
     def read() -> SessionView:
         with state.db.connect() as c:
-            participant = flow.participant_for(c, token)
+            participant = tokens.participant_for(c, token)
             return teaching.session_view(c, participant, state.study, session_id)
 
     return await state.run_db(read)
@@ -77,7 +77,7 @@ async def read_learning(
 
     def read() -> Learning:
         with state.db.connect() as c:
-            participant = flow.participant_for(c, token)
+            participant = tokens.participant_for(c, token)
             return teaching.learning(teaching.own_session(c, participant, session_id))
 
     learning = await state.run_db(read)
@@ -88,46 +88,46 @@ async def read_learning(
     return learning
 
 
-@router.post("/{session_id}/task", response_model=ActionResponse)
+@router.post("/{session_id}/task", response_model=RequestOutcome)
 async def select_task(
     session_id: RowId, body: TaskRequest, state: StateDep, token: TokenDep
 ) -> Response:
     """Select the task that demonstrations and feedback belong to (ends an open episode)."""
     return await teach(
         state, token, "task", body, session_id,
-        lambda action: teaching.set_task(action, session_id, body.task),
+        lambda transaction: teaching.set_task(transaction, session_id, body.task),
     )  # fmt: skip
 
 
-@router.post("/{session_id}/mode", response_model=ActionResponse)
+@router.post("/{session_id}/mode", response_model=RequestOutcome)
 async def select_mode(
     session_id: RowId, body: ModeRequest, state: StateDep, token: TokenDep
 ) -> Response:
     """Demonstrate, let the agent try, or idle (ends an open episode)."""
     return await teach(
         state, token, "mode", body, session_id,
-        lambda action: teaching.set_mode(action, session_id, body.mode),
+        lambda transaction: teaching.set_mode(transaction, session_id, body.mode),
     )  # fmt: skip
 
 
-@router.post("/{session_id}/move", response_model=ActionResponse)
+@router.post("/{session_id}/move", response_model=RequestOutcome)
 async def move(session_id: RowId, body: MoveRequest, state: StateDep, token: TokenDep) -> Response:
-    """An arrow key: a demonstrated action, or in idle mode a move that is not one."""
+    """An arrow key: a demonstrated transaction, or in idle mode a move that is not one."""
     return await teach(
         state, token, "move", body, session_id,
-        lambda action: teaching.move(action, session_id, body.action),
+        lambda transaction: teaching.move(transaction, session_id, body.action),
     )  # fmt: skip
 
 
-@router.post("/{session_id}/agent-step", response_model=ActionResponse)
+@router.post("/{session_id}/agent-step", response_model=RequestOutcome)
 async def agent_step(
     session_id: RowId, body: SeqRequest, state: StateDep, token: TokenDep
 ) -> Response:
     """One action of the agent, from its learner's greedy policy, under the true dynamics."""
     waited: float | None = None
 
-    def handle(action: Action) -> ActionResponse:
-        response = teaching.agent_step(action, session_id)
+    def handle(transaction: Transaction) -> RequestOutcome:
+        response = teaching.agent_step(transaction, session_id)
         response.outcome.learning_wait_seconds = waited
         return response
 
@@ -156,53 +156,53 @@ async def agent_step(
         ) from None
 
 
-@router.post("/{session_id}/feedback", response_model=ActionResponse)
+@router.post("/{session_id}/feedback", response_model=RequestOutcome)
 async def give_feedback(
     session_id: RowId, body: FeedbackRequest, state: StateDep, token: TokenDep
 ) -> Response:
-    """Positive (+1) or negative (-1) feedback on the agent's latest action."""
+    """Positive (+1) or negative (-1) feedback on the agent's latest transaction."""
     return await teach(
         state, token, "feedback", body, session_id,
-        lambda action: teaching.feedback(action, session_id, body.feedback),
+        lambda transaction: teaching.feedback(transaction, session_id, body.feedback),
     )  # fmt: skip
 
 
-@router.post("/{session_id}/reset", response_model=ActionResponse)
+@router.post("/{session_id}/reset", response_model=RequestOutcome)
 async def reset(session_id: RowId, body: SeqRequest, state: StateDep, token: TokenDep) -> Response:
     """Put the agent at a random start of the selected task (ends an open episode)."""
     return await teach(
         state, token, "reset", body, session_id,
-        lambda action: teaching.reset(action, session_id),
+        lambda transaction: teaching.reset(transaction, session_id),
     )  # fmt: skip
 
 
-@router.post("/{session_id}/end-episode", response_model=ActionResponse)
+@router.post("/{session_id}/end-episode", response_model=RequestOutcome)
 async def end_episode(
     session_id: RowId, body: SeqRequest, state: StateDep, token: TokenDep
 ) -> Response:
     """Stop: end the episode (a demonstration gets its synthetic STAY); the learner updates."""
     return await teach(
         state, token, "end_episode", body, session_id,
-        lambda action: teaching.finish_episode(action, session_id),
+        lambda transaction: teaching.end_episode(transaction, session_id),
     )  # fmt: skip
 
 
-@router.post("/{session_id}/open", response_model=ActionResponse)
+@router.post("/{session_id}/open", response_model=RequestOutcome)
 async def open_session(
     session_id: RowId, body: SeqRequest, state: StateDep, token: TokenDep
 ) -> Response:
     """The participant leaves the agent's introduction page and begins teaching it."""
     return await teach(
         state, token, "open", body, session_id,
-        lambda action: teaching.open_session(action, session_id),
+        lambda transaction: teaching.open_session(transaction, session_id),
     )  # fmt: skip
 
 
-@router.post("/{session_id}/finish", response_model=ActionResponse)
+@router.post("/{session_id}/finish", response_model=RequestOutcome)
 async def finish(session_id: RowId, body: SeqRequest, state: StateDep, token: TokenDep) -> Response:
     """Finish this agent and go on to the next (refused until every task has a demonstrated
-    action); after the last agent the completion is committed and its code returned."""
+    transaction); after the last agent the completion is committed and its code returned."""
     return await teach(
         state, token, "finish", body, session_id,
-        lambda action: teaching.finish_session(action, session_id),
+        lambda transaction: teaching.finish_session(transaction, session_id),
     )  # fmt: skip

@@ -6,7 +6,7 @@ import { ApiError, getJSON, postJSON } from "./api.js";
 import { environmentTitle, h } from "./dom.js";
 import { GridView, decodeState, svg } from "./grid.js";
 
-const API = "/dashboard/api";
+const API = "/api/admin";
 const REFRESH_MS = 10000;
 const ACTIONS = ["STAY", "UP", "DOWN", "LEFT", "RIGHT"];
 const $ = (selector) => document.querySelector(selector);
@@ -57,7 +57,7 @@ async function loadParticipants() {
 }
 
 async function loadSubmissions() {
-  const { submissions } = await getJSON(`${API}/mturk`);
+  const { submissions } = await getJSON(`${API}/mturk-replica`);
   $("#mturk-submissions tbody").replaceChildren(...(submissions.length
     ? submissions.map((x) => h("tr", { "data-assignment": x.assignment_id },
         h("td", {}, time(x.submitted_at)),
@@ -360,7 +360,7 @@ async function showReplay(sessionId) {
     index = Math.max(0, Math.min(frames.length - 1, i));
     const f = frames[index];
     view.setTask(f.task);
-    view.setAgent(decodeState(env, f.state), data.colour_hex ?? "#888888");
+    view.setAgent(decodeState(env, f.state), data.session.colour_hex ?? "#888888");
     board.dataset.frame = index;
     board.dataset.state = f.state;
     slider.value = index;

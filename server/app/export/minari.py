@@ -25,9 +25,9 @@ from typing import Any
 
 from sqlalchemy import select
 
-from server.app.db import Database
-from server.app.export import database_secret, pseudonym
-from server.app.models import Episode, Event, LearnerUpdate, LearningSession, Participant
+from server.app.export.tables import database_secret, pseudonym
+from server.app.storage.db import Database
+from server.app.storage.models import Episode, Event, LearnerUpdate, LearningSession, Participant
 from server.domains.base import STAY
 from server.rl.datasets import Dataset, DatasetEpisode, DatasetError
 

@@ -40,7 +40,7 @@ def parse_rounds(text: str) -> tuple[int, int]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from server.app.simulated import TeachingPlan, run_participants, summary_table
+    from server.commands.simulated import TeachingPlan, run_participants, summary_table
 
     try:
         low, high = parse_rounds(args.rounds)

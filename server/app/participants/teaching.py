@@ -1,6 +1,6 @@
 """Teaching one learning session: task, mode, moves, agent steps, feedback, resets, episodes.
 
-Each function is the handler of one request (run by ``flow.perform`` in the request's
+Each function is the handler of one request (run by ``transaction.perform`` in the request's
 transaction). What the learner observes is written on the request's event (``record``); the
 update worker replays those events in order, so the database is the learner's only input.
 
@@ -26,19 +26,20 @@ from typing import Any
 
 from sqlalchemy import Connection, bindparam, update
 
-from server.app import flow
 from server.app.errors import ApiError, LearnerBusy
-from server.app.flow import SESSIONS, Action
-from server.app.models import Episode
-from server.app.records import Record, add, get, table_of
+from server.app.participants import assignment, views
+from server.app.participants.tokens import SESSIONS
+from server.app.participants.transaction import Transaction
 from server.app.schemas import (
-    ActionResponse,
     EpisodeState,
     Learning,
     Outcome,
+    RequestOutcome,
     SessionView,
     TeachingState,
 )
+from server.app.storage.models import Episode
+from server.app.storage.records import Record, add, get, table_of
 from server.domains import make as make_environment
 from server.domains.base import ACTIONS, STAY, Environment
 
@@ -79,14 +80,14 @@ def own_session(c: Connection, participant: Any, session_id: int) -> Record:
     return session
 
 
-def session_for(action: Action, session_id: int) -> Record:
+def session_for(transaction: Transaction, session_id: int) -> Record:
     """The participant's session ``session_id`` being taught, tracked for writing back."""
-    session = own_session(action.c, action.participant, session_id)
+    session = own_session(transaction.c, transaction.participant, session_id)
     if session.status == "pending":
         raise ApiError(409, "this agent's turn has not come yet")
     if session.status == "finished":
         raise ApiError(409, "this agent is finished: go on with the next one")
-    return action.track(session)
+    return transaction.track(session)
 
 
 def teaching_state(session: Any, env: Environment) -> TeachingState:
@@ -129,77 +130,77 @@ def learning(session: Any) -> Learning:
 
 
 def respond(
-    action: Action, session: Record, outcome: Outcome, current: int | None = None
-) -> ActionResponse:
+    transaction: Transaction, session: Record, outcome: Outcome, current: int | None = None
+) -> RequestOutcome:
     env = make_environment(session.environment)
     if current is None:
         current = session.id if session.status == "active" else None
-    return ActionResponse(
-        seq=action.seq,
-        kind=action.event["kind"],
+    return RequestOutcome(
+        seq=transaction.seq,
+        kind=transaction.event["kind"],
         outcome=outcome,
         session=teaching_state(session, env),
-        participant=flow.brief(action.participant, action.study, current),
+        participant=views.brief(transaction.participant, transaction.study, current),
     )
 
 
 def session_view(c: Connection, participant: Any, study: Any, session_id: int) -> SessionView:
     session = own_session(c, participant, session_id)
     env = make_environment(session.environment)
-    current = session.id if session.status == "active" else flow.current_session_id(c, participant)
+    current = session.id if session.status == "active" else views.current_session_id(c, participant)
     return SessionView(
-        summary=flow.summary(session),
+        summary=views.summary(session),
         environment=environment_description(session.environment, study.reveal_gravity),
         teaching=teaching_state(session, env),
-        participant=flow.brief(participant, study, current),
+        participant=views.brief(participant, study, current),
     )
 
 
 # -- episodes -------------------------------------------------------------------------------
-def _observe(action: Action, session: Record, record: str, **columns: Any) -> None:
+def _observe(transaction: Transaction, session: Record, record: str, **columns: Any) -> None:
     """What the learner observes from this request (see ``updates.records_of``)."""
-    action.event.update(record=record, task=session.task, **columns)
+    transaction.event.update(record=record, task=session.task, **columns)
 
 
-def _open_episode(action: Action, session: Record, kind: str) -> None:
+def _open_episode(transaction: Transaction, session: Record, kind: str) -> None:
     if session.open_episode is not None:
         return
     session.open_episode = session.episodes
     session.episode_actions = 0
     add(
-        action.c,
+        transaction.c,
         EPISODES,
         session_id=session.id,
         index=session.open_episode,
         kind=kind,
         task=session.task,
         start_state=session.state,
-        started_at=action.now,
+        started_at=transaction.now,
     )
 
 
-def end_episode(
-    action: Action, session: Record, env: Environment, reason: str, stay: bool
+def close_episode(
+    transaction: Transaction, session: Record, env: Environment, reason: str, stay: bool
 ) -> int | None:
     """End the open episode (if any) and queue the learner's update; returns its index."""
     if session.open_episode is None:
         return None
-    event = action.event
+    event = transaction.event
     if stay and session.mode == "demonstrate":
         # The synthetic STAY: people cannot demonstrate staying at the goal.
-        event["stay_state"] = env.step(session.state, STAY, action.rng(session.seed))
+        event["stay_state"] = env.step(session.state, STAY, transaction.rng(session.seed))
         event["task"] = session.task
         session.state = event["stay_state"]
     event["episode_end"] = reason
     event["episode_index"] = session.open_episode
     session.episodes += 1
     session.updates_requested += 1
-    action.c.execute(
+    transaction.c.execute(
         _END_EPISODE,
         {
             "of_session": session.id,
             "of_episode": session.open_episode,
-            "new_ended_at": action.now,
+            "new_ended_at": transaction.now,
             "new_end_state": session.state,
             "new_end_reason": reason,
             "new_actions": session.episode_actions,
@@ -208,32 +209,34 @@ def end_episode(
     )
     session.open_episode = None
     session.episode_actions = 0
-    return action.queue_update(session)
+    return transaction.queue_update(session)
 
 
-def _leave_goal(action: Action, session: Record, env: Environment) -> bool:
+def _leave_goal(transaction: Transaction, session: Record, env: Environment) -> bool:
     """With a mode on and no episode open, an agent on the selected task's goal goes to a
     random start of the task first (module docstring); returns whether it did."""
     if session.mode == "idle" or session.open_episode is not None:
         return False
     if not env.is_goal(session.task, int(session.state)):
         return False
-    session.state = flow.random_start(env.name, session.task, action.rng(session.seed))
+    session.state = assignment.random_start(env.name, session.task, transaction.rng(session.seed))
     session.last_action = None
     return True
 
 
 def _switched(
-    action: Action, session: Record, env: Environment, state: int, queued: int | None
-) -> ActionResponse:
+    transaction: Transaction, session: Record, env: Environment, state: int, queued: int | None
+) -> RequestOutcome:
     """The answer to a task or mode change (from ``state``), once the agent is off the goal."""
-    moved = _leave_goal(action, session, env)
-    action.event.update(task=session.task, mode=session.mode, state=state, next_state=session.state)
+    moved = _leave_goal(transaction, session, env)
+    transaction.event.update(
+        task=session.task, mode=session.mode, state=state, next_state=session.state
+    )
     return respond(
-        action,
+        transaction,
         session,
         Outcome(
-            episode_ended=action.event.get("episode_end"),
+            episode_ended=transaction.event.get("episode_end"),
             update_queued=queued,
             new_start=moved,
             state=state if moved else None,
@@ -243,51 +246,51 @@ def _switched(
 
 
 # -- handlers -------------------------------------------------------------------------------
-def set_task(action: Action, session_id: int, task: int) -> ActionResponse:
-    session = session_for(action, session_id)
+def set_task(transaction: Transaction, session_id: int, task: int) -> RequestOutcome:
+    session = session_for(transaction, session_id)
     env = make_environment(session.environment)
     if task >= len(env.tasks):
         raise ApiError(400, f"task {task} does not exist here: tasks are 0..{len(env.tasks) - 1}")
     state = int(session.state)
     queued = None
     if task != session.task:
-        queued = end_episode(action, session, env, "task", stay=False)
+        queued = close_episode(transaction, session, env, "task", stay=False)
         session.task = task
         session.last_action = None  # feedback belongs to the task selected when it is given
-    return _switched(action, session, env, state, queued)
+    return _switched(transaction, session, env, state, queued)
 
 
-def set_mode(action: Action, session_id: int, mode: str) -> ActionResponse:
-    session = session_for(action, session_id)
+def set_mode(transaction: Transaction, session_id: int, mode: str) -> RequestOutcome:
+    session = session_for(transaction, session_id)
     env = make_environment(session.environment)
     state = int(session.state)
     queued = None
     if mode != session.mode:
-        queued = end_episode(action, session, env, "mode", stay=False)
+        queued = close_episode(transaction, session, env, "mode", stay=False)
         session.mode = mode
-    return _switched(action, session, env, state, queued)
+    return _switched(transaction, session, env, state, queued)
 
 
-def move(action: Action, session_id: int, name: str) -> ActionResponse:
+def move(transaction: Transaction, session_id: int, name: str) -> RequestOutcome:
     """An arrow key: a demonstrated action (demonstrate mode) or a move alone (idle mode)."""
-    session = session_for(action, session_id)
+    session = session_for(transaction, session_id)
     if session.mode == "agent":
         raise ApiError(409, "the agent is acting on its own: stop it before moving it")
     env = make_environment(session.environment)
     act = ACTION_INDEX[name]
     state = int(session.state)
-    next_state = env.step(state, act, action.rng(session.seed))
-    action.event.update(mode=session.mode, state=state, action=act, next_state=next_state)
+    next_state = env.step(state, act, transaction.rng(session.seed))
+    transaction.event.update(mode=session.mode, state=state, action=act, next_state=next_state)
     outcome = Outcome(state=state, action=name, next_state=next_state)
     if session.mode == "idle":
         session.state = next_state
-        _observe(action, session, "transition")
+        _observe(transaction, session, "transition")
         session.idle_moves += 1
         session.last_action = "idle"
-        return respond(action, session, outcome)
-    _open_episode(action, session, "demonstration")  # starts where the first move starts
+        return respond(transaction, session, outcome)
+    _open_episode(transaction, session, "demonstration")  # starts where the first move starts
     session.state = next_state
-    _observe(action, session, "demonstration", episode_index=session.open_episode)
+    _observe(transaction, session, "demonstration", episode_index=session.open_episode)
     session.episode_actions += 1
     session.actions += 1
     demonstrated = list(session.demonstrated)
@@ -296,15 +299,15 @@ def move(action: Action, session_id: int, name: str) -> ActionResponse:
     session.last_action = "demonstration"
     if env.is_goal(session.task, next_state):
         outcome.goal_reached = True
-        outcome.update_queued = end_episode(action, session, env, "goal", stay=True)
+        outcome.update_queued = close_episode(transaction, session, env, "goal", stay=True)
         outcome.episode_ended = "goal"
         session.mode = "idle"
-    return respond(action, session, outcome)
+    return respond(transaction, session, outcome)
 
 
-def agent_step(action: Action, session_id: int) -> ActionResponse:
+def agent_step(transaction: Transaction, session_id: int) -> RequestOutcome:
     """One step of the agent on its learner's greedy policy (waits for its pending update)."""
-    session = session_for(action, session_id)
+    session = session_for(transaction, session_id)
     if session.mode != "agent":
         raise ApiError(409, "let the agent try first (mode agent)")
     if session.updates_processed < session.updates_requested:
@@ -312,13 +315,13 @@ def agent_step(action: Action, session_id: int) -> ActionResponse:
     if session.policy_update is None:
         raise ApiError(503, "this agent's learner failed to start; please tell the researchers")
     env = make_environment(session.environment)
-    policy = action.server.policies.get(action.c, session, env)
+    policy = transaction.server.policies.get(transaction.c, session, env)
     state = int(session.state)
     act = int(policy[session.task, state])
-    next_state = env.step(state, act, action.rng(session.seed))
-    _open_episode(action, session, "agent")
-    action.event.update(mode=session.mode, state=state, action=act, next_state=next_state)
-    _observe(action, session, "agent_step", feedback=0, episode_index=session.open_episode)
+    next_state = env.step(state, act, transaction.rng(session.seed))
+    _open_episode(transaction, session, "agent")
+    transaction.event.update(mode=session.mode, state=state, action=act, next_state=next_state)
+    _observe(transaction, session, "agent_step", feedback=0, episode_index=session.open_episode)
     session.state = next_state
     session.episode_actions += 1
     session.actions += 1
@@ -331,85 +334,88 @@ def agent_step(action: Action, session_id: int) -> ActionResponse:
     elif session.episode_actions >= env.horizon:
         reason = "horizon"
     if reason is not None:
-        outcome.update_queued = end_episode(action, session, env, reason, stay=False)
+        outcome.update_queued = close_episode(transaction, session, env, reason, stay=False)
         outcome.episode_ended = reason
         session.mode = "idle"
-    return respond(action, session, outcome)
+    return respond(transaction, session, outcome)
 
 
-def feedback(action: Action, session_id: int, value: int) -> ActionResponse:
-    session = session_for(action, session_id)
+def feedback(transaction: Transaction, session_id: int, value: int) -> RequestOutcome:
+    session = session_for(transaction, session_id)
     if session.last_action != "agent":
         raise ApiError(409, "there is no agent action to give feedback on")
-    _observe(action, session, "feedback", feedback=value)
-    action.event.update(mode=session.mode, state=session.state, next_state=session.state)
-    return respond(action, session, Outcome(feedback=value))
+    _observe(transaction, session, "feedback", feedback=value)
+    transaction.event.update(mode=session.mode, state=session.state, next_state=session.state)
+    return respond(transaction, session, Outcome(feedback=value))
 
 
-def reset(action: Action, session_id: int) -> ActionResponse:
+def reset(transaction: Transaction, session_id: int) -> RequestOutcome:
     """A random start of the selected task (the study's start distribution, never its goal)."""
-    session = session_for(action, session_id)
+    session = session_for(transaction, session_id)
     env = make_environment(session.environment)
-    queued = end_episode(action, session, env, "reset", stay=False)
+    queued = close_episode(transaction, session, env, "reset", stay=False)
     state = int(session.state)
-    session.state = flow.random_start(env.name, session.task, action.rng(session.seed))
+    session.state = assignment.random_start(env.name, session.task, transaction.rng(session.seed))
     session.last_action = None
-    action.event.update(task=session.task, mode=session.mode, state=state, next_state=session.state)
+    transaction.event.update(
+        task=session.task, mode=session.mode, state=state, next_state=session.state
+    )
     return respond(
-        action,
+        transaction,
         session,
         Outcome(
             state=state,
             next_state=session.state,
-            episode_ended=action.event.get("episode_end"),
+            episode_ended=transaction.event.get("episode_end"),
             update_queued=queued,
         ),
     )
 
 
-def finish_episode(action: Action, session_id: int) -> ActionResponse:
+def end_episode(transaction: Transaction, session_id: int) -> RequestOutcome:
     """The participant ends the episode (Stop); a demonstration gets its synthetic STAY."""
-    session = session_for(action, session_id)
+    session = session_for(transaction, session_id)
     if session.open_episode is None:
         raise ApiError(409, "no episode in progress")
     env = make_environment(session.environment)
-    action.event.update(
+    transaction.event.update(
         state=session.state, next_state=session.state, task=session.task, mode="idle"
     )
-    queued = end_episode(action, session, env, "end", stay=True)
+    queued = close_episode(transaction, session, env, "end", stay=True)
     session.mode = "idle"
-    return respond(action, session, Outcome(episode_ended="end", update_queued=queued))
+    return respond(transaction, session, Outcome(episode_ended="end", update_queued=queued))
 
 
-def open_session(action: Action, session_id: int) -> ActionResponse:
+def open_session(transaction: Transaction, session_id: int) -> RequestOutcome:
     """Past the agent's introduction page (a reload before this shows that page again)."""
-    session = session_for(action, session_id)
-    flow.open_session(action, session)
-    action.event.update(
+    session = session_for(transaction, session_id)
+    if session.opened_at is None:
+        session.opened_at = transaction.now
+    transaction.event.update(
         state=session.state, next_state=session.state, task=session.task, mode=session.mode
     )
-    return respond(action, session, Outcome())
+    return respond(transaction, session, Outcome())
 
 
-def finish_session(action: Action, session_id: int) -> ActionResponse:
+def finish_session(transaction: Transaction, session_id: int) -> RequestOutcome:
     """Finish this agent (only once every task has a demonstrated action) and go on."""
-    session = session_for(action, session_id)
+    session = session_for(transaction, session_id)
     env = make_environment(session.environment)
     state = teaching_state(session, env)
     if not state.can_finish:
         raise ApiError(409, f"cannot finish this agent yet: {state.finish_blocked}")
-    action.event.update(
+    transaction.event.update(
         state=session.state, next_state=session.state, task=session.task, mode=session.mode
     )
-    queued = end_episode(action, session, env, "finish", stay=False)
+    queued = close_episode(transaction, session, env, "finish", stay=False)
     session.status = "finished"
-    session.finished_at = action.now
+    session.finished_at = transaction.now
     session.completed = True
     session.mode = "idle"
-    following = flow.advance(action, session)
+    following = assignment.advance(transaction, session)
     return respond(
-        action,
+        transaction,
         session,
-        Outcome(episode_ended=action.event.get("episode_end"), update_queued=queued),
+        Outcome(episode_ended=transaction.event.get("episode_end"), update_queued=queued),
         current=following.id if following is not None else None,
     )

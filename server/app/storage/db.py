@@ -27,7 +27,7 @@ from sqlalchemy.pool import NullPool
 
 # The source tree: alembic.ini and migrations/ sit at its root (editable installs and the
 # Docker image both run from the tree).
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 ALEMBIC_INI = ROOT / "alembic.ini"
 MIGRATIONS = ROOT / "migrations"
 

@@ -25,7 +25,7 @@ from urllib.parse import urlsplit
 import httpx
 import numpy as np
 
-from server.app.flow import TOKEN_HEADER
+from server.app.participants.tokens import TOKEN_HEADER
 from server.domains import make as make_environment
 from server.domains.base import ACTIONS
 from server.teacher import Teacher

@@ -11,36 +11,34 @@ commits the new learner state with the evaluation, and an agent step waiting for
 session's update goes on. Sessions with an agent step waiting go first; the others take turns.
 Pending updates are found again in the database when the server starts, so none is lost by a
 restart. With ``BAM_UPDATE_SCHEDULER`` the same function runs on the workers of a Dask cluster
-instead of the local processes (``server.app.cluster``), in the same order.
+instead of the local processes (``server.app.updates.cluster``), in the same order.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-import multiprocessing
-import os
-import sys
-import threading
 import time
 import traceback
-from concurrent.futures import Executor, ProcessPoolExecutor
+from concurrent.futures import Executor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
 from sqlalchemy import func, select
 
-from server.app.db import Database
-from server.app.models import Event, LearnerUpdate, LearningSession, utcnow
-from server.app.policies import PolicyCache, decode, encode
+from server.app.storage.db import Database
+from server.app.storage.models import Event, LearnerUpdate, LearningSession, utcnow
+from server.app.updates.policies import PolicyCache, decode
 from server.cores import share_threads
 from server.domains import make as make_environment
-from server.domains.base import STAY
 
 if TYPE_CHECKING:
-    from server.app.cluster import UpdateCluster
+    from server.app.updates.cluster import UpdateCluster
+
+
+from server.app.updates.pool import UpdatesUnavailable, WorkerDied, new_executor
+from server.app.updates.worker import records_of, run_update, worker_ready
 
 log = logging.getLogger("bam_study.updates")
 
@@ -54,105 +52,6 @@ RETRY_SECONDS = 5.0  # a session whose update could not be run (database, schedu
 CLUSTER_WATCH_SECONDS = 10.0  # how often a ready server asks its Dask cluster about the workers
 
 
-# -- in the worker process ------------------------------------------------------------------
-PARENT_CHECK_SECONDS = 1.0
-
-
-def worker_init(niceness: int, server_pid: int) -> None:
-    """Lower the worker's priority, leave with the server, import the learners once."""
-    # A server that dies without shutting its pool down (killed, or stopped while it was
-    # replacing workers that a SIGTERM to its process group had killed) leaves its workers
-    # waiting on a queue no one writes to: they must notice and go. A worker whose server died
-    # before it started (its parent is already init) goes at once: comparing with its parent
-    # at start would have kept it forever (seen after every benchmarks/server.py run).
-    if os.getppid() != server_pid:
-        os._exit(0)
-    if niceness and hasattr(os, "nice"):
-        os.nice(niceness)
-
-    def leave_with_parent() -> None:
-        while os.getppid() == server_pid:
-            time.sleep(PARENT_CHECK_SECONDS)
-        os._exit(0)
-
-    threading.Thread(target=leave_with_parent, name="leave-with-server", daemon=True).start()
-    from server.learners.warmup import warm_up
-
-    # The kernels loaded (or compiled, about 30 s, where numba's cache lacks them) now, not on
-    # a participant's first update.
-    try:
-        seconds = warm_up()
-    except Exception:  # an update would meet the same error, and report it for its session
-        traceback.print_exc()
-    else:
-        print(f"update process {os.getpid()} ready in {seconds:.1f} s", file=sys.stderr)
-
-
-def worker_ready(hold_seconds: float = 0.0) -> int:
-    """A job that only starts an update process (its ``worker_init``, which warms it up before
-    it takes any job) and names it; held a moment, so that the next goes to another process."""
-    time.sleep(hold_seconds)
-    return os.getpid()
-
-
-def apply_records(learner: Any, records: list[tuple[Any, ...]]) -> None:
-    """Replay what the learner observed, in order."""
-    for record in records:
-        kind, *values = record
-        if kind == "demonstration":
-            learner.record_demonstration(*values)
-        elif kind == "agent_step":
-            learner.record_agent_step(*values)
-        elif kind == "transition":
-            learner.record_transition(*values)
-        elif kind == "feedback":
-            learner.record_feedback(*values)
-        else:
-            raise ValueError(f"unknown record {kind!r}")
-
-
-def run_update(job: dict[str, Any]) -> dict[str, Any]:
-    """Restore or build the learner, replay ``records``, update it (unless it is update 0),
-    and return its new state, greedy policies and evaluation."""
-    from server import domains, learners
-    from server.learners.evaluation import normalized_return
-    from server.learners.planning import set_planner_threads
-
-    set_planner_threads(job.get("threads", 1))
-    env = domains.make(job["environment"])
-    if job["base_state"] is not None:
-        learner = learners.restore(env, learners.loads(job["base_state"]))
-    else:
-        learner = learners.make(job["learner"], env, seed=job["seed"], **job["settings"])
-    apply_records(learner, job["records"])
-    result = learner.update() if job["fit"] else None
-    policy = np.stack([learner.greedy_policy(k) for k in range(len(env.tasks))])
-    started = time.perf_counter()
-    score = normalized_return(env, learner)
-    return {
-        "learner_state": learners.dumps(learner.state_dict()),
-        "greedy_policy": encode(policy),
-        "seconds": result.seconds if result else 0.0,
-        "objective": result.objective if result else None,
-        "steps": result.steps if result else 0,
-        "normalized_return": float(score),
-        "evaluation_seconds": time.perf_counter() - started,
-    }
-
-
-# -- in the server process ------------------------------------------------------------------
-class WorkerDied(RuntimeError):
-    """The processes running an update died ``deaths`` times."""
-
-    def __init__(self, deaths: int = 1) -> None:
-        super().__init__("the update process died")
-        self.deaths = deaths
-
-
-class UpdatesUnavailable(ConnectionError):
-    """The updates' cluster cannot be reached: the update stays pending and is tried again."""
-
-
 @dataclass
 class Job:
     update_id: int
@@ -160,34 +59,6 @@ class Job:
     update_index: int
     environment: str
     payload: dict[str, Any]
-
-
-def records_of(rows: Any) -> list[tuple[Any, ...]]:
-    """Learner observations from event rows (record, task, state, action, next_state,
-    feedback, stay_state)."""
-    records: list[tuple[Any, ...]] = []
-    for row in rows:
-        if row.record == "demonstration":
-            records.append(("demonstration", row.task, row.state, row.action, row.next_state))
-        elif row.record == "agent_step":
-            records.append(("agent_step", row.task, row.state, row.action, row.next_state, 0))
-        elif row.record == "transition":
-            records.append(("transition", row.state, row.action, row.next_state))
-        elif row.record == "feedback":
-            records.append(("feedback", row.feedback))
-        if row.stay_state is not None:
-            records.append(("demonstration", row.task, row.next_state, STAY, row.stay_state))
-    return records
-
-
-def new_executor(workers: int, niceness: int) -> ProcessPoolExecutor:
-    # Spawned, not forked: the server process has threads.
-    return ProcessPoolExecutor(
-        max_workers=workers,
-        mp_context=multiprocessing.get_context("spawn"),
-        initializer=worker_init,
-        initargs=(niceness, os.getpid()),
-    )
 
 
 class UpdateManager:
@@ -212,7 +83,7 @@ class UpdateManager:
         self.threads = threads
         self._executor = executor
         self._own_executor = executor is None
-        self.cluster = cluster  # updates on a Dask cluster (server.app.cluster), not a pool
+        self.cluster = cluster  # updates on a Dask cluster (server.app.updates.cluster), not a pool
         self._capacity = workers  # updates run at once: the slots
         self._loop: asyncio.AbstractEventLoop | None = None
         self._ready: dict[int, int] = {}  # session -> turn

@@ -21,8 +21,8 @@ import pandas as pd
 from sqlalchemy import create_engine, select
 from sqlalchemy.engine import make_url
 
-from server.app.db import Database
-from server.app.models import (
+from server.app.storage.db import Database
+from server.app.storage.models import (
     AssignmentReview,
     Bonus,
     Episode,

@@ -40,7 +40,7 @@ class LiveServer:
         self.starts += 1
         with open(self.log_path, "wb") as log:
             self.process = subprocess.Popen(
-                [sys.executable, "-m", "server.cli", "serve", "--port", str(self.port)],
+                [sys.executable, "-m", "server.commands.main", "serve", "--port", str(self.port)],
                 env=self.environment,
                 cwd=self.folder,
                 stdout=log,

@@ -18,8 +18,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from server.app import db as database
     from server.app.settings import SettingsError, load_settings
+    from server.app.storage import db as database
 
     try:
         settings = load_settings({"database_url": ("--database-url", args.database_url)})

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 from distributed import KilledWorker, SchedulerPlugin, WorkerPlugin
 
-from server.app.updates import UpdatesUnavailable, WorkerDied
+from server.app.updates.pool import UpdatesUnavailable, WorkerDied
 from server.dask_client import connect
 
 if TYPE_CHECKING:
@@ -47,7 +47,7 @@ _warm = False  # in a worker process: it has been through its warm-up
 
 class WarmUp(WorkerPlugin):
     """Loads (or compiles) the learners' kernels in every worker when it joins, as a local
-    update process does when it starts (``server.learners.warmup``)."""
+    update process does when it starts (``server.app.updates.warmup``)."""
 
     name = PLUGIN_NAME
 
@@ -63,7 +63,7 @@ def warm_this_process() -> None:
     global _warm
     if _warm:
         return
-    from server.learners.warmup import warm_up
+    from server.app.updates.warmup import warm_up
 
     try:
         seconds = warm_up()
@@ -108,7 +108,10 @@ class UpdateCluster:
 
     def __init__(self, client: Client) -> None:
         self.client = client
-        self.address = str(client.scheduler.address)
+        scheduler = client.scheduler
+        if scheduler is None:
+            raise UpdatesUnavailable("the Dask client has no scheduler")
+        self.address = str(scheduler.address)
         self.timeout = 10.0
         self._lock = threading.Lock()
         # The tasks the server waits for: the future, the server's loop, and what it awaits.

@@ -14,25 +14,25 @@ from collections.abc import Sequence
 # name -> (module, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "demo": (
-        "server.app.demo",
+        "server.commands.demo",
         "Run a whole study end to end: server, simulated participants, export, Table 1.",
     ),
     "analyze": (
-        "analysis.cli",
+        "server.commands.analyze",
         "Turn a study's data (export or database) into the paper's tables and plots.",
     ),
     "simulate": (
-        "server.simulation.cli",
+        "server.commands.simulate",
         "Run the paper's simulated-teacher experiments and write curves, figures and a report.",
     ),
-    "serve": ("server.app.serve_cmd", "Run the study server (settings from BAM_* variables)."),
-    "db": ("server.app.db_cmd", "Create or upgrade the study database's schema (migrations)."),
-    "export": ("server.app.export_cmd", "Export the study's data as CSV files with a dictionary."),
+    "serve": ("server.commands.serve", "Run the study server (settings from BAM_* variables)."),
+    "db": ("server.commands.db", "Create or upgrade the study database's schema (migrations)."),
+    "export": ("server.commands.export", "Export the study's data as CSV files with a dictionary."),
     "erase": (
-        "server.app.erase_cmd",
+        "server.commands.erase",
         "Erase one participant's data on their request (by number, worker id or pseudonym).",
     ),
-    "teach": ("server.app.teach_cli", "Run simulated participants against a study server."),
+    "teach": ("server.commands.teach", "Run simulated participants against a study server."),
 }
 
 

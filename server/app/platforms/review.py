@@ -21,11 +21,11 @@ from typing import Any, Literal, Protocol
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 
-from server.app.db import Database
 from server.app.errors import ApiError, InvalidInput
-from server.app.models import AssignmentReview, Bonus, Participant, utcnow
-from server.app.replica_models import ReplicaAssignment, ReplicaBonus
 from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.app.storage.models import AssignmentReview, Bonus, Participant, utcnow
+from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus
 
 Decision = Literal["approved", "rejected"]
 

@@ -46,10 +46,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from server.app import db as database
     from server.app.config import DEFAULT_STUDY_CONFIG
-    from server.app.export import load_tables, open_study_database, write_export
+    from server.app.export.tables import load_tables, open_study_database, write_export
     from server.app.settings import SettingsError, load_settings
+    from server.app.storage import db as database
     from server.rl.datasets import DatasetError, check_out_folder
 
     try:
@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
             return 1
         secret = settings.secret.get_secret_value() if settings.secret else None
         if minari:
-            from server.app.minari_export import StudyFile, study_datasets
+            from server.app.export.minari import StudyFile, study_datasets
             from server.rl.datasets import write_datasets
 
             study = StudyFile.read(args.study or settings.study_config or DEFAULT_STUDY_CONFIG)

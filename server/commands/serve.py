@@ -95,8 +95,8 @@ def run(args: argparse.Namespace) -> int:
 
     import uvicorn
 
-    from server.app.db import Database, SchemaError, prepare_schema
     from server.app.main import create_app
+    from server.app.storage.db import Database, SchemaError, prepare_schema
 
     db = Database.from_url(
         settings.database_url,
@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
         return 1
     cluster = None
     if settings.update_scheduler:
-        from server.app.cluster import UpdateCluster
+        from server.app.updates.cluster import UpdateCluster
         from server.dask_client import SchedulerError
 
         try:

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, TextIO
 from server.cores import available_cores
 
 if TYPE_CHECKING:
-    from server.app.db import Database
+    from server.app.storage.db import Database
 
 PROG = "bam-study demo"
 DEFAULT_SEED = 0
@@ -47,7 +47,7 @@ class DemoOptions:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    from server.app.teach_cli import parse_rounds
+    from server.commands.teach import parse_rounds
 
     parser.add_argument(
         "--out",
@@ -136,14 +136,14 @@ def run(args: argparse.Namespace) -> int:
 
 def bam_study_command() -> str:
     """The absolute path of this ``bam-study`` (in a virtual environment that need not be
-    active where the printed command runs), or ``python -m server.cli`` with this Python."""
+    active where the printed command runs), or ``python -m server.commands.main`` with this Python."""
     program = Path(sys.argv[0])
     if program.name == "bam-study" and program.exists():
         return str(program.resolve())
     found = shutil.which("bam-study", path=str(Path(sys.executable).parent))
     if found:
         return str(Path(found).resolve())
-    return f"{sys.executable} -m server.cli"
+    return f"{sys.executable} -m server.commands.main"
 
 
 def check(options: DemoOptions) -> None:
@@ -176,10 +176,10 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
     from analysis.results import analyze
     from analysis.tables import table1_markdown
     from server.app.config import DEFAULT_STUDY_CONFIG
-    from server.app.db import Database, upgrade
-    from server.app.export import load_tables, write_export
-    from server.app.live import LiveServer
-    from server.app.simulated import TeachingPlan, run_participants
+    from server.app.export.tables import load_tables, write_export
+    from server.app.storage.db import Database, upgrade
+    from server.commands.live import LiveServer
+    from server.commands.simulated import TeachingPlan, run_participants
     from server.simulation.progress import Progress
 
     err = stream if stream is not None else sys.stderr
@@ -255,7 +255,7 @@ def wait_for_learners(db: Database, err: TextIO, log_path: Path) -> None:
     """Wait until no learner update is pending, with a progress bar over the updates."""
     from sqlalchemy import func, select
 
-    from server.app.models import LearnerUpdate
+    from server.app.storage.models import LearnerUpdate
     from server.simulation.progress import Progress
 
     def counts() -> tuple[int, int, int]:

@@ -11,7 +11,7 @@ import numpy as np
 from sqlalchemy import Connection, select
 from sqlalchemy.orm import Session
 
-from server.app.models import LearnerUpdate
+from server.app.storage.models import LearnerUpdate
 from server.domains.base import Environment
 
 

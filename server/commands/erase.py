@@ -19,9 +19,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from server.app import db as database
     from server.app.errors import ApiError
-    from server.app.records import Record
     from server.app.rights.erasure import (
         PARTICIPANTS,
         erase,
@@ -30,6 +28,8 @@ def run(args: argparse.Namespace) -> int:
         pseudonyms,
     )
     from server.app.settings import SettingsError, load_settings
+    from server.app.storage import db as database
+    from server.app.storage.records import Record
 
     def fail(message: str, code: int = 1) -> int:
         print(f"bam-study erase: {message}", file=sys.stderr)

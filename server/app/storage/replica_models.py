@@ -14,7 +14,7 @@ from typing import Any
 from sqlalchemy import JSON, ForeignKey, Index, Integer, String, Text
 from sqlalchemy.orm import Mapped, mapped_column
 
-from server.app.models import Base, UTCDateTime, utcnow
+from server.app.storage.models import Base, UTCDateTime, utcnow
 
 ASSIGNMENT_STATUSES = ("accepted", "returned", "submitted", "approved", "rejected")
 

@@ -1,0 +1,73 @@
+"""What the routers share: the participant's cookie and arrival, the page templates and notices,
+the dashboard's sign-in check, and the answer to a performed request. Routers import from here,
+never from one another."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from urllib.parse import quote
+
+from fastapi import Request, Response
+from fastapi.responses import RedirectResponse
+from fastapi.templating import Jinja2Templates
+
+from server.app.participants import arrival, transaction, views
+from server.app.schemas import ArrivalRequest, ArrivalResponse
+from server.app.state import ServerState
+
+
+def answer(state: ServerState, performed: transaction.Performed) -> Response:
+    """The stored JSON of a performed request; its queued learner updates start now."""
+    if performed.queued and state.updates is not None:
+        state.updates.submit(performed.queued)
+    return Response(content=performed.response, media_type="application/json")
+
+
+def login_redirect(path: str) -> RedirectResponse:
+    return RedirectResponse(f"/dashboard/login?next={quote(path)}", status_code=303)
+
+
+TEMPLATES_DIR = Path(__file__).resolve().parents[2] / "templates"
+
+
+templates = Jinja2Templates(directory=str(TEMPLATES_DIR))
+
+
+def notice(request: Request, title: str, message: str, status_code: int) -> Response:
+    return templates.TemplateResponse(
+        request, "notice.html", {"title": title, "message": message}, status_code=status_code
+    )
+
+
+def set_participant_cookie(response: Response, state: ServerState, token: str) -> None:
+    settings = state.settings
+    response.set_cookie(
+        settings.cookie_name,
+        token,
+        max_age=7 * 24 * 3600,
+        httponly=True,
+        samesite=settings.cookie_samesite,
+        secure=settings.cookie_secure,
+        partitioned=settings.cookie_samesite == "none",
+    )
+
+
+def own_origin(request: Request) -> str:
+    """This server's origin as the browser addressed it (the replica's ``turkSubmitTo``)."""
+    return f"{request.url.scheme}://{request.url.netloc}"
+
+
+def arrive(
+    state: ServerState, body: ArrivalRequest, request: Request, response: Response
+) -> ArrivalResponse:
+    """Shared by the API and the page: returns the preview answer or the participant."""
+    platform = arrival.classify_arrival(body, state.study, state.settings, own_origin(request))
+    if platform is None:
+        return ArrivalResponse(preview=True)
+    cookie = request.cookies.get(state.settings.cookie_name)
+    arrived = arrival.arrive(state.db, platform, cookie, state.study)
+    if arrived.token is not None:
+        set_participant_cookie(response, state, arrived.token)
+    with state.db.connect() as c:
+        view = views.participant_state(c, arrived.participant, state.study)
+    return ArrivalResponse(token=arrived.token, resumed=arrived.resumed, participant=view)

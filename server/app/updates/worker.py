@@ -1,0 +1,124 @@
+"""What runs inside an update process (a local one or a Dask worker): the process's set-up,
+and ``run_update``, which restores a learner, replays the events since its last saved state,
+updates it and scores its greedy policies."""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+import time
+import traceback
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from server.app.updates.policies import encode
+from server.domains.base import STAY
+
+if TYPE_CHECKING:
+    pass
+
+
+# -- in the worker process ------------------------------------------------------------------
+PARENT_CHECK_SECONDS = 1.0
+
+
+def worker_init(niceness: int, server_pid: int) -> None:
+    """Lower the worker's priority, leave with the server, import the learners once."""
+    # A server that dies without shutting its pool down (killed, or stopped while it was
+    # replacing workers that a SIGTERM to its process group had killed) leaves its workers
+    # waiting on a queue no one writes to: they must notice and go. A worker whose server died
+    # before it started (its parent is already init) goes at once: comparing with its parent
+    # at start would have kept it forever (seen after every benchmarks/server.py run).
+    if os.getppid() != server_pid:
+        os._exit(0)
+    if niceness and hasattr(os, "nice"):
+        os.nice(niceness)
+
+    def leave_with_parent() -> None:
+        while os.getppid() == server_pid:
+            time.sleep(PARENT_CHECK_SECONDS)
+        os._exit(0)
+
+    threading.Thread(target=leave_with_parent, name="leave-with-server", daemon=True).start()
+    from server.app.updates.warmup import warm_up
+
+    # The kernels loaded (or compiled, about 30 s, where numba's cache lacks them) now, not on
+    # a participant's first update.
+    try:
+        seconds = warm_up()
+    except Exception:  # an update would meet the same error, and report it for its session
+        traceback.print_exc()
+    else:
+        print(f"update process {os.getpid()} ready in {seconds:.1f} s", file=sys.stderr)
+
+
+def worker_ready(hold_seconds: float = 0.0) -> int:
+    """A job that only starts an update process (its ``worker_init``, which warms it up before
+    it takes any job) and names it; held a moment, so that the next goes to another process."""
+    time.sleep(hold_seconds)
+    return os.getpid()
+
+
+def apply_records(learner: Any, records: list[tuple[Any, ...]]) -> None:
+    """Replay what the learner observed, in order."""
+    for record in records:
+        kind, *values = record
+        if kind == "demonstration":
+            learner.record_demonstration(*values)
+        elif kind == "agent_step":
+            learner.record_agent_step(*values)
+        elif kind == "transition":
+            learner.record_transition(*values)
+        elif kind == "feedback":
+            learner.record_feedback(*values)
+        else:
+            raise ValueError(f"unknown record {kind!r}")
+
+
+def run_update(job: dict[str, Any]) -> dict[str, Any]:
+    """Restore or build the learner, replay ``records``, update it (unless it is update 0),
+    and return its new state, greedy policies and evaluation."""
+    from server import domains, learners
+    from server.learners.evaluation import normalized_return
+    from server.learners.planning import set_planner_threads
+
+    set_planner_threads(job.get("threads", 1))
+    env = domains.make(job["environment"])
+    if job["base_state"] is not None:
+        learner = learners.restore(env, learners.loads(job["base_state"]))
+    else:
+        learner = learners.make(job["learner"], env, seed=job["seed"], **job["settings"])
+    apply_records(learner, job["records"])
+    result = learner.update() if job["fit"] else None
+    policy = np.stack([learner.greedy_policy(k) for k in range(len(env.tasks))])
+    started = time.perf_counter()
+    score = normalized_return(env, learner)
+    return {
+        "learner_state": learners.dumps(learner.state_dict()),
+        "greedy_policy": encode(policy),
+        "seconds": result.seconds if result else 0.0,
+        "objective": result.objective if result else None,
+        "steps": result.steps if result else 0,
+        "normalized_return": float(score),
+        "evaluation_seconds": time.perf_counter() - started,
+    }
+
+
+def records_of(rows: Any) -> list[tuple[Any, ...]]:
+    """Learner observations from event rows (record, task, state, action, next_state,
+    feedback, stay_state)."""
+    records: list[tuple[Any, ...]] = []
+    for row in rows:
+        if row.record == "demonstration":
+            records.append(("demonstration", row.task, row.state, row.action, row.next_state))
+        elif row.record == "agent_step":
+            records.append(("agent_step", row.task, row.state, row.action, row.next_state, 0))
+        elif row.record == "transition":
+            records.append(("transition", row.state, row.action, row.next_state))
+        elif row.record == "feedback":
+            records.append(("feedback", row.feedback))
+        if row.stay_state is not None:
+            records.append(("demonstration", row.task, row.next_state, STAY, row.stay_state))
+    return records

@@ -271,6 +271,15 @@ class StudyConfig(_Strict):
         False, description="Accept arrivals without platform ids (a lab participant)."
     )
     reveal_gravity: bool = Field(False, description="Show gravity directions to participants.")
+    scrub_identifiers_after_days: float = Field(
+        30,
+        ge=0,
+        description="Days after a participant's last request after which their worker, "
+        "assignment and Prolific ids and completion code are replaced by their pseudonyms in "
+        "the database (as `bam-study db scrub` does): by default after the longest review "
+        "window of the platforms (MTurk approves an assignment by itself after at most 30 "
+        "days), so that reviews and bonuses can still name the worker until then.",
+    )
     questionnaire: Questionnaire = Field(
         Questionnaire(),
         description="A post-study questionnaire, shown after the last agent and before the "

@@ -112,13 +112,13 @@ def test_an_erasure_removes_every_row_of_the_participant_and_no_other(
     third = replica_worker(client, db, "WORKERTHREE", "third remark")
     for who in (first, second):
         paid = client.post(
-            f"/dashboard/api/participants/{who}/bonuses",
+            f"/api/admin/participants/{who}/bonuses",
             json={"amount": "0.50", "reason": "Thank you", "unique_token": f"bonus-token-{who}"},
             headers=ADMIN,
         )
         assert paid.status_code == 200, paid.text
     approved = client.post(
-        f"/dashboard/api/participants/{second}/approval", json={"feedback": "ok"}, headers=ADMIN
+        f"/api/admin/participants/{second}/approval", json={"feedback": "ok"}, headers=ADMIN
     )
     assert approved.status_code == 200, approved.text
     wait_for_updates(db)

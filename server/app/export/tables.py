@@ -21,6 +21,8 @@ import pandas as pd
 from sqlalchemy import create_engine, select
 from sqlalchemy.engine import make_url
 
+from server.app.export.quality import COLUMNS as QUALITY_COLUMNS
+from server.app.export.quality import quality_table
 from server.app.storage.db import Database
 from server.app.storage.models import (
     AssignmentReview,
@@ -229,6 +231,7 @@ DICTIONARY: dict[str, dict[str, str]] = {
             )
         },
     },
+    "quality": QUALITY_COLUMNS,
 }
 # Integer columns, some of them with empty cells (written without a decimal point).
 INTEGER_COLUMNS = frozenset(
@@ -281,6 +284,10 @@ DESCRIPTIONS = {
     "(an optional question left unanswered has none; a study without a questionnaire, none).",
     "reviews": "One row per submitted MTurk assignment the experimenter approved or rejected.",
     "bonuses": "One row per bonus paid to a participant's worker.",
+    "quality": "One row per participant who completed: quality checks built for teaching "
+    "(completion time against the others', idle stretches, optimal demonstrations, consistent "
+    "feedback) and the rejection ground, if any, that Prolific accepts for them. None rejects "
+    "anybody by itself.",
     "erasures": "One row per participant whose data was erased (withdrawal or request): the "
     "other files hold nothing of theirs; remove their rows (by participant_id or pseudonym) "
     "from copies exported before.",
@@ -648,6 +655,7 @@ def load_tables(
         for column in frame.columns:
             if column in INTEGER_COLUMNS:
                 frame[column] = frame[column].astype("Int64")
+    tables["quality"] = quality_table(tables)
     return tables
 
 

@@ -367,6 +367,18 @@ def replay(session_id: RowId, state: StateDep) -> AdminReplay:
     )
 
 
+@router.get("/participants/{participant_id}/quality")
+def read_quality(participant_id: RowId, state: StateDep) -> dict[str, Any]:
+    """The participant's row of ``quality.csv``: the quality checks, their flags and the
+    Prolific ground they support, if any (404 until the participant has completed)."""
+    quality = export.load_tables(state.db)["quality"]
+    rows = quality[quality["participant_id"] == participant_id]
+    if rows.empty:
+        raise ApiError(404, f"no quality checks for participant {participant_id} (not completed)")
+    row = rows.iloc[0].astype(object).where(rows.iloc[0].notna(), None)
+    return {name: value.item() if hasattr(value, "item") else value for name, value in row.items()}
+
+
 @router.get(
     "/export.zip",
     response_class=Response,

@@ -61,7 +61,9 @@ def experiment_tables(folder: Path) -> str:
                 mean, se = mean_se(100 * rows.loc[rows["round"] == r, "normalized_return"])
                 cells.append(f"{mean:.1f} ± {se:.1f}")
             lines.append(
-                f"| {environment_display(environment)} | {LEARNERS[learner]} | " + " | ".join(cells) + " |"
+                f"| {environment_display(environment)} | {LEARNERS[learner]} | "
+                + " | ".join(cells)
+                + " |"
             )
     pairs = [("bam", name) for name in learners if name != "bam" and "bam" in learners]
     if "global-cost" in learners and "model-based" in learners:

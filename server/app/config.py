@@ -229,8 +229,9 @@ class Completion(_Strict):
     prolific_no_consent_code: str | None = Field(
         None,
         pattern=r"^[A-Za-z0-9_\-]{1,64}$",
-        description="The study's NO_CONSENT code on Prolific (asking for a return): a Prolific "
-        "participant who declines consent is sent back with it.",
+        description="The study's Prolific NO_CONSENT completion code: a participant who declines "
+        "consent or withdraws is sent to prolific_url with it, so that Prolific asks them to "
+        "return the submission (without it, the page asks them to return it themselves).",
     )
     prolific_url: str = Field(
         "https://app.prolific.com/submissions/complete?cc={code}",
@@ -396,6 +397,15 @@ class StudyConfig(_Strict):
         "last BAM_ACTIVE_MINUTES); an arrival beyond it waits on a page that lets them in as "
         "soon as a place frees. Default: the capacity the server measures at start (none "
         "before it has).",
+    )
+    scrub_identifiers_after_days: float = Field(
+        30,
+        ge=0,
+        description="Days after a participant's last request after which their worker, "
+        "assignment and Prolific ids and completion code are replaced by their pseudonyms in "
+        "the database (as `bam-study db scrub` does): by default after the longest review "
+        "window of the platforms (MTurk approves an assignment by itself after at most 30 "
+        "days), so that reviews and bonuses can still name the worker until then.",
     )
     questionnaire: Questionnaire = Field(
         Questionnaire(),

@@ -21,6 +21,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from server.app.config import StudyConfig, load_study_config
 from server.app.errors import ApiError, InvalidInput, TurnedAway
 from server.app.participants import tokens
+from server.app.rights.scrub import scrub
 from server.app.routers import (
     admin,
     arrivals,
@@ -258,7 +259,8 @@ def _writable(value: Any) -> Any:
 
 
 async def _sweep_forever(state: ServerState) -> None:
-    """Mark participants idle for too long as abandoned (they continue if they come back)."""
+    """Mark participants idle for too long as abandoned (they continue if they come back), and
+    replace platform ids past ``scrub_identifiers_after_days`` by their pseudonyms."""
     while True:
         try:
             marked = await asyncio.to_thread(tokens.mark_abandoned, state.db, state.settings)
@@ -266,4 +268,12 @@ async def _sweep_forever(state: ServerState) -> None:
                 log.info("%d participant(s) marked abandoned", marked)
         except Exception:
             log.exception("could not mark abandoned participants")
+        try:
+            secret = state.settings.secret.get_secret_value() if state.settings.secret else None
+            days = state.study.scrub_identifiers_after_days
+            scrubbed = await asyncio.to_thread(scrub, state.db, secret, days)
+            if scrubbed:
+                log.info("%d participant(s)' platform ids replaced by pseudonyms", scrubbed)
+        except Exception:
+            log.exception("could not replace expired platform ids")
         await asyncio.sleep(SWEEP_SECONDS)

@@ -28,6 +28,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("server.commands.serve", "Run the study server (settings from BAM_* variables)."),
     "db": ("server.commands.db", "Create or upgrade the study database's schema (migrations)."),
     "export": ("server.commands.export", "Export the study's data as CSV files with a dictionary."),
+    "erase": (
+        "server.commands.erase",
+        "Erase one participant's data on their request (by number, worker id or pseudonym).",
+    ),
     "teach": ("server.commands.teach", "Run simulated participants against a study server."),
     "check": (
         "server.commands.check",

@@ -39,6 +39,9 @@ class Stopped(Exception):
     """The run was asked to stop; the participant sends nothing more."""
 
 
+PARTICIPANT_KINDS = ("careful", "key-masher", "idle")
+
+
 @dataclass(frozen=True)
 class TeachingPlan:
     min_rounds: int = 1  # rounds of demonstrations per agent (one per task each)
@@ -52,6 +55,16 @@ class TeachingPlan:
     agent_step_seconds: float = 0.0  # pause before each agent step (the page's animation)
     episode_pause_seconds: float = 0.0  # pause before each episode (look, choose, reset)
     retry_seconds: float = 120.0  # keep retrying a request this long (server restarts)
+    # careful: the teacher above; key-masher: random moves and random + or - on every agent
+    # move; idle: careful, but away for idle_seconds before each agent
+    kind: str = "careful"
+    idle_seconds: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in PARTICIPANT_KINDS:
+            raise ValueError(
+                f"kind must be one of {', '.join(PARTICIPANT_KINDS)}, got {self.kind!r}"
+            )
 
 
 @dataclass
@@ -312,11 +325,14 @@ class SimulatedParticipant:
         view = self.request("GET", f"/api/sessions/{session_id}", "read_session")
         self.seq = view["participant"]["next_seq"]
         env = make_environment(view["summary"]["environment"])
+        masher = self.plan.kind == "key-masher"
         teacher = Teacher(
             env,
             seed=int(self.rng.integers(2**31)),
-            mistake_probability=self.plan.mistake_probability,
+            mistake_probability=1.0 if masher else self.plan.mistake_probability,
         )
+        if self.plan.kind == "idle":
+            time.sleep(self.plan.idle_seconds)
         base = f"/api/sessions/{session_id}"
         tutorial = view["summary"]["kind"] == "tutorial"
         rounds = (
@@ -378,7 +394,10 @@ class SimulatedParticipant:
             self._pause(self.plan.agent_step_seconds)
             data = self.act(f"{base}/agent-step", "agent_step")
             outcome = data["outcome"]
-            signal = teacher.feedback(task, outcome["state"], ACTIONS.index(outcome["action"]))
+            if self.plan.kind == "key-masher":
+                signal = int(self.rng.choice((-1, 1)))
+            else:
+                signal = teacher.feedback(task, outcome["state"], ACTIONS.index(outcome["action"]))
             if signal:
                 self.act(f"{base}/feedback", "feedback", feedback=signal)
             state = data["session"]["agent"]["state"]

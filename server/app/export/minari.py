@@ -123,7 +123,7 @@ def study_datasets(
             continue
         participant = participants[session.participant_id]
         worker = participant.worker_id
-        if pseudonymize and worker is not None:
+        if pseudonymize and worker is not None and participant.identifiers_scrubbed_at is None:
             assert secret is not None
             worker = pseudonym(secret, worker, "w")
         acting = -1

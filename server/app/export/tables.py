@@ -21,12 +21,15 @@ import pandas as pd
 from sqlalchemy import create_engine, select
 from sqlalchemy.engine import make_url
 
+from server.app.export.quality import COLUMNS as QUALITY_COLUMNS
+from server.app.export.quality import quality_table
 from server.app.storage.db import Database
 from server.app.storage.figures import participant_figures, study_sessions_by_participant
 from server.app.storage.models import (
     AssignmentReview,
     Bonus,
     Episode,
+    Erasure,
     Event,
     Installation,
     LearnerUpdate,
@@ -220,6 +223,37 @@ DICTIONARY: dict[str, dict[str, str]] = {
         "requested_at": "When the experimenter asked for the bonus (UTC).",
         "paid_at": "When the platform took the bonus (UTC; empty until paid).",
     },
+    "erasures": {
+        "erasure_id": "Erasure number (database id).",
+        "erased_at": "When the participant's data was erased (UTC).",
+        "erased_by": "participant (they withdrew from the study page) or experimenter (the "
+        "dashboard or bam-study erase, on the participant's request).",
+        "participant_id": "The participant erased (participant_id of earlier exports; no row "
+        "of any other file refers to it any more).",
+        "platform": "mturk, prolific or lab.",
+        "worker_id": "The participant's worker pseudonym, as in earlier exports (w_ + salted "
+        "hash; empty for lab participants).",
+        "assignment_id": "The participant's assignment pseudonym (a_ + salted hash).",
+        **{
+            f"{table}_rows": f"Rows of the {table} table erased."
+            for table in (
+                "participants",
+                "learning_sessions",
+                "episodes",
+                "events",
+                "learner_updates",
+                "status_changes",
+                "questionnaire_answers",
+                "participant_tokens",
+                "assignment_reviews",
+                "bonuses",
+                "mturk_replica_assignments",
+                "mturk_replica_submissions",
+                "mturk_replica_bonuses",
+            )
+        },
+    },
+    "quality": QUALITY_COLUMNS,
 }
 # Integer columns, some of them with empty cells (written without a decimal point).
 INTEGER_COLUMNS = frozenset(
@@ -253,6 +287,8 @@ INTEGER_COLUMNS = frozenset(
         "idle_moves",
         "feedback_given",
         "updates",
+        "erasure_id",
+        *(name for name in DICTIONARY["erasures"] if name.endswith("_rows")),
     }
 )
 DICTIONARY["tutorial_sessions"] = {
@@ -271,6 +307,13 @@ DESCRIPTIONS = {
     "reviews": "One row per submitted MTurk assignment or Prolific submission the "
     "experimenter approved or rejected.",
     "bonuses": "One row per bonus the experimenter paid (or asked the platform to pay).",
+    "quality": "One row per participant who completed: quality checks built for teaching "
+    "(completion time against the others', idle stretches, optimal demonstrations, consistent "
+    "feedback) and the rejection ground, if any, that Prolific accepts for them. None rejects "
+    "anybody by itself.",
+    "erasures": "One row per participant whose data was erased (withdrawal or request): the "
+    "other files hold nothing of theirs; remove their rows (by participant_id or pseudonym) "
+    "from copies exported before.",
     "data_dictionary": "Every file's columns. In every file, each line of a text cell that "
     "begins with =, +, -, @, a tab or a carriage return is written with an apostrophe (') "
     "before it, so that a spreadsheet shows it as text instead of running it as a formula; "
@@ -352,6 +395,7 @@ def export_tables(
         answers = s.scalars(select(QuestionnaireAnswer).order_by(QuestionnaireAnswer.id)).all()
         reviews = s.scalars(select(AssignmentReview).order_by(AssignmentReview.id)).all()
         bonuses = s.scalars(select(Bonus).order_by(Bonus.id)).all()
+        erasures = s.scalars(select(Erasure).order_by(Erasure.id)).all()
         sessions = s.scalars(select(LearningSession).order_by(LearningSession.id)).all()
         episodes = s.scalars(select(Episode).order_by(Episode.id)).all()
         updates = s.execute(
@@ -395,6 +439,11 @@ def export_tables(
     for change in changes:
         first_at.setdefault(change.participant_id, {}).setdefault(change.status, change.at)
     session_by_id = {x.id: x for x in sessions}
+    scrubbed_ids = {p.id for p in participants if p.identifiers_scrubbed_at is not None}
+
+    def scrubbed(participant_id: int) -> bool:
+        return participant_id in scrubbed_ids
+
     counts: dict[int, dict[str, int]] = {}
     for event in events:
         if event.session_id is None:
@@ -418,8 +467,10 @@ def export_tables(
         if update.update_index > 0:
             processed[update.session_id] = processed.get(update.session_id, 0) + 1
 
-    def platform_ids(worker_id: str | None, assignment_id: str | None) -> dict[str, str | None]:
-        if not pseudonymize:
+    def platform_ids(
+        worker_id: str | None, assignment_id: str | None, scrubbed: bool = False
+    ) -> dict[str, str | None]:
+        if not pseudonymize or scrubbed:  # a scrubbed participant's ids are pseudonyms already
             return {"worker_id": worker_id, "assignment_id": assignment_id}
         assert secret is not None
         return {
@@ -453,14 +504,30 @@ def export_tables(
             "completion_code": p.completion_code,
         }
         if pseudonymize:
-            row.update(platform_ids(p.worker_id, p.assignment_id))
+            row.update(platform_ids(p.worker_id, p.assignment_id, scrubbed(p.id)))
             row["completion_code"] = None
         return row
+
+    def erasure_row(e: Erasure) -> dict[str, Any]:
+        return {
+            "erasure_id": e.id,
+            "erased_at": _iso(e.erased_at),
+            "erased_by": e.erased_by,
+            "participant_id": e.participant_id,
+            "platform": e.platform,
+            "worker_id": e.worker_pseudonym,
+            "assignment_id": e.assignment_pseudonym,
+            **{
+                name: e.rows.get(name.removesuffix("_rows"), 0)
+                for name in DICTIONARY["erasures"]
+                if name.endswith("_rows")
+            },
+        }
 
     def review_row(r: AssignmentReview) -> dict[str, Any]:
         return {
             "participant_id": r.participant_id,
-            **platform_ids(r.worker_id, r.assignment_id),
+            **platform_ids(r.worker_id, r.assignment_id, scrubbed(r.participant_id)),
             "decision": r.decision,
             "requester_feedback": r.feedback,
             "rejection_category": r.rejection_category,
@@ -473,7 +540,7 @@ def export_tables(
     def bonus_row(b: Bonus) -> dict[str, Any]:
         return {
             "participant_id": b.participant_id,
-            **platform_ids(b.worker_id, b.assignment_id),
+            **platform_ids(b.worker_id, b.assignment_id, scrubbed(b.participant_id)),
             "amount": f"{b.amount_cents // 100}.{b.amount_cents % 100:02d}",
             "currency": b.currency,
             "reason": b.reason,
@@ -618,11 +685,13 @@ def export_tables(
         "questionnaire_answers": _frame("questionnaire_answers", map(answer_row, answers)),
         "reviews": _frame("reviews", map(review_row, reviews)),
         "bonuses": _frame("bonuses", map(bonus_row, bonuses)),
+        "erasures": _frame("erasures", map(erasure_row, erasures)),
     }
     for frame in tables.values():
         for column in frame.columns:
             if column in INTEGER_COLUMNS:
                 frame[column] = frame[column].astype("Int64")
+    tables["quality"] = quality_table(tables)
     return tables
 
 

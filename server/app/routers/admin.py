@@ -13,6 +13,7 @@ from server.app.errors import ApiError
 from server.app.export import tables as export
 from server.app.participants import assignment, places, teaching, tokens
 from server.app.platforms import prolific_sync, review
+from server.app.rights.erasure import Erased, erase_participant
 from server.app.schemas import (
     AdminEvaluation,
     AdminEvent,
@@ -247,6 +248,14 @@ def include(
         return _participant_detail(s, participant_id)
 
 
+@router.post("/participants/{participant_id}/erasure", response_model=Erased)
+def erase(participant_id: RowId, state: StateDep) -> Erased:
+    """Erase the participant on their request: every row of theirs, in every table, in one
+    transaction; one audit row (``erasures.csv``) keeps when, the pseudonyms and the counts."""
+    secret = state.settings.secret.get_secret_value() if state.settings.secret else None
+    return erase_participant(state.db, participant_id, "experimenter", secret)
+
+
 @router.post("/participants/{participant_id}/approval", response_model=AdminParticipantDetail)
 def approve(participant_id: RowId, body: ReviewRequest, state: StateDep) -> AdminParticipantDetail:
     """Approve the participant's submitted work on their platform (``BAM_REVIEW_BACKEND``),
@@ -424,6 +433,18 @@ def replay(session_id: RowId, state: StateDep) -> AdminReplay:
             for e in events
         ],
     )
+
+
+@router.get("/participants/{participant_id}/quality")
+def read_quality(participant_id: RowId, state: StateDep) -> dict[str, Any]:
+    """The participant's row of ``quality.csv``: the quality checks, their flags and the
+    Prolific ground they support, if any (404 until the participant has completed)."""
+    quality = export.export_tables(state.db)["quality"]
+    rows = quality[quality["participant_id"] == participant_id]
+    if rows.empty:
+        raise ApiError(404, f"no quality checks for participant {participant_id} (not completed)")
+    row = rows.iloc[0].astype(object).where(rows.iloc[0].notna(), None)
+    return {name: value.item() if hasattr(value, "item") else value for name, value in row.items()}
 
 
 @router.get(

@@ -18,6 +18,7 @@ from server.app.participants import (
     views,
 )
 from server.app.participants.transaction import Transaction
+from server.app.rights.withdrawal import Withdrawal, withdraw
 from server.app.routers.common import answer
 from server.app.schemas import (
     Completion,
@@ -157,3 +158,13 @@ async def record_submission(body: SeqRequest, state: StateDep, token: TokenDep) 
         return participant_response(transaction)
 
     return await perform(state, token, "submission", body, handle)
+
+
+@router.post("/withdrawal", response_model=Withdrawal)
+async def withdrawal(state: StateDep, token: TokenDep, response: Response) -> Withdrawal:
+    """Stop and delete my data: every row of the participant is erased (one audit row without
+    personal data is kept); the answer says how to leave the platform. The cookie is cleared."""
+    secret = state.settings.secret.get_secret_value() if state.settings.secret else None
+    done = await state.run_db(lambda: withdraw(state.db, token, state.study, secret))
+    response.delete_cookie(state.settings.cookie_name)
+    return done

@@ -9,6 +9,7 @@ participants ─< status_changes
              ─< questionnaire_answers
              ─< assignment_reviews (the experimenter's approval or rejection of the submission)
              ─< bonuses
+erasures (one per participant erased: no link to any other row, no personal data)
 """
 
 from __future__ import annotations
@@ -109,6 +110,9 @@ class Participant(Base):
     # Exclusion is the experimenter's judgement, beside the flow status, which it leaves as is.
     excluded_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     exclusion_reason: Mapped[str | None] = mapped_column(Text)
+    # When worker, assignment and Prolific ids and the completion code were replaced by their
+    # pseudonyms (``rights.scrub``); None while they are as the platform gave them.
+    identifiers_scrubbed_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     last_seen_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     # Prolific's status of the participant's submission (webhook or poll), e.g. RETURNED.
@@ -337,3 +341,20 @@ class ProlificEvent(Base):
     event_id: Mapped[str] = mapped_column(String(128), primary_key=True)
     event_type: Mapped[str] = mapped_column(String(64))
     received_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class Erasure(Base):
+    """The audit row of one participant's erasure (``rights.erasure``): when, by whom, the
+    participant's pseudonyms and how many rows each table lost; nothing else of theirs is
+    left. ``participant_id`` refers to no row any more (the participant's row is erased too)."""
+
+    __tablename__ = "erasures"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    erased_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    erased_by: Mapped[str] = mapped_column(String(16))  # participant or experimenter
+    participant_id: Mapped[int] = mapped_column(Integer)
+    platform: Mapped[str] = mapped_column(String(16))
+    worker_pseudonym: Mapped[str | None] = mapped_column(String(32))  # w_ + salted hash
+    assignment_pseudonym: Mapped[str | None] = mapped_column(String(32))  # a_ + salted hash
+    rows: Mapped[dict[str, int]] = mapped_column(JSON)  # table -> rows removed

@@ -630,7 +630,8 @@ class UpdateManager:
             if update is None:
                 return None
             session = s.get(LearningSession, session_id)
-            assert session is not None
+            if session is None:
+                return None  # erased since the update was read
             base = s.execute(
                 select(LearnerUpdate.through_event_id, LearnerUpdate.learner_state)
                 .where(
@@ -677,7 +678,8 @@ class UpdateManager:
         with self.db.write() as s:
             update = s.get(LearnerUpdate, job.update_id)
             session = s.get(LearningSession, job.session_id)
-            assert update is not None and session is not None
+            if update is None or session is None:
+                return False  # the participant was erased while the update ran
             update.status = "done"
             update.finished_at = utcnow()
             update.attempts += 1 + deaths
@@ -701,7 +703,8 @@ class UpdateManager:
         with self.db.write() as s:
             update = s.get(LearnerUpdate, job.update_id)
             session = s.get(LearningSession, job.session_id)
-            assert update is not None and session is not None
+            if update is None or session is None:
+                return False  # the participant was erased while the update ran
             update.attempts += attempts
             update.error = error
             if retry and update.attempts < MAX_ATTEMPTS:

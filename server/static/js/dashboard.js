@@ -92,6 +92,8 @@ async function showParticipant(id) {
         h("p", {}, h("strong", {}, "Domain "), p.domain ?? "(not yet)", h("strong", {}, "  Time "), `${p.minutes.toFixed(1)} min`),
         exclusionForm(p),
         reviewSection(p),
+        qualitySection(p),
+        erasureSection(p),
         h("h3", {}, "Status history"),
         h("ol", { class: "history" }, p.status_changes.map((c) => h("li", {}, badge(c.status), " ", time(c.at), c.note ? ` (${c.note})` : "")))),
       sessions));
@@ -143,6 +145,50 @@ function exclusionForm(p) {
     }
   });
   return form;
+}
+
+/** The quality checks of a participant who completed (quality.csv), loaded after the rest. */
+function qualitySection(p) {
+  const body = h("div", {}, h("p", { class: "muted" }, "Loading the quality checks…"));
+  getJSON(`${API}/participants/${p.participant_id}/quality`).then((q) => {
+    const share = (x) => (x === null ? "not judged" : `${Math.round(100 * x)}%`);
+    body.replaceChildren(
+      h("ul", { class: "quality" },
+        h("li", {}, `Time: ${q.minutes.toFixed(1)} min`, q.minutes_z === null ? "" : ` (${q.minutes_z} s.d. from the others)`),
+        h("li", {}, `Longest idle stretch: ${q.longest_idle_minutes.toFixed(1)} min`),
+        h("li", {}, `Optimal demonstrated moves: ${share(q.optimal_demonstration_share)}`),
+        h("li", {}, `Consistent feedback: ${share(q.consistent_feedback_share)}`)),
+      h("p", {}, h("strong", {}, "Flags: "), q.flags || "none",
+        h("strong", {}, "  Prolific ground: "), q.prolific_ground === "none" ? "none applies" : q.prolific_ground));
+  }).catch(() => body.replaceChildren(h("p", { class: "muted" }, "No quality checks until the participant completes.")));
+  return h("section", { class: "quality-checks", "aria-labelledby": "quality-heading" },
+    h("h3", { id: "quality-heading" }, "Quality checks"), body);
+}
+
+/** Erase the participant on their request, after a confirmation: nothing of theirs is left
+ * but the audit row (erasures.csv). */
+function erasureSection(p) {
+  const message = h("p", { class: "form-error", role: "alert", hidden: true });
+  const button = h("button", { class: "btn danger", type: "button", "data-action": "erase" }, "Erase this participant's data");
+  button.addEventListener("click", async () => {
+    const who = p.worker_id ? `worker ${p.worker_id}` : `participant ${p.participant_id}`;
+    if (!window.confirm(`Erase every record of ${who}? Their events, agents, answers and payments records are deleted for good; only an audit row with their pseudonym is kept.`)) return;
+    button.disabled = true;
+    try {
+      await postJSON(`${API}/participants/${p.participant_id}/erasure`, {});
+      selected = null;
+      $("#detail").replaceChildren(h("p", { role: "status" }, `Participant ${p.participant_id} was erased.`));
+      await loadParticipants();
+    } catch (error) {
+      message.hidden = false;
+      message.textContent = error instanceof ApiError ? error.detail : "The server could not be reached.";
+      button.disabled = false;
+    }
+  });
+  return h("section", { class: "erasure", "aria-labelledby": "erasure-heading" },
+    h("h3", { id: "erasure-heading" }, "Withdrawal"),
+    h("p", { class: "muted" }, "On the participant's request: deletes all their data."),
+    button, message);
 }
 
 /** A request token for a bonus (MTurk's UniqueRequestToken), made when its form is drawn: a

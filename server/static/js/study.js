@@ -2,7 +2,7 @@
 // (consent, instructions, the tutorial, an agent, the questionnaire if the study has one,
 // completion), so that a reload continues there.
 
-import { ApiError, Sequencer, getJSON, useParticipantToken } from "./api.js";
+import { ApiError, Sequencer, getJSON, postJSON, useParticipantToken } from "./api.js";
 import { environmentTitle, h, paragraphs } from "./dom.js";
 import { robotIcon, svg } from "./grid.js";
 import { Teacher } from "./teach.js";
@@ -28,6 +28,47 @@ const connection = {
   up: () => { offline.hidden = true; },
 };
 
+// "Stop and delete my data", below every page of the study once the participant is known: one
+// confirmation, then every record of theirs is erased and the page says how to leave the
+// platform (Prolific: back with the study's NO_CONSENT code, if it has one).
+const withdrawButton = h("button", { class: "btn quiet withdraw-open", type: "button", "data-action": "withdraw", "aria-haspopup": "dialog" },
+  "Stop and delete my data");
+const withdrawConfirm = h("button", { class: "btn danger", type: "button", "data-action": "withdraw-confirm" }, "Delete my data and stop");
+const withdrawKeep = h("button", { class: "btn", type: "button", "data-action": "withdraw-keep", autofocus: true }, "Keep going");
+const withdrawError = h("p", { class: "form-error", role: "alert", hidden: true });
+const withdrawDialog = h("dialog", { class: "withdraw-dialog", "aria-labelledby": "withdraw-title", "aria-describedby": "withdraw-text" },
+  h("h2", { id: "withdraw-title" }, "Stop and delete your data?"),
+  h("p", { id: "withdraw-text" }, "The study stops here, and everything you did in it is deleted from our records: your answers, your moves and the agents you taught. This cannot be undone. You will not receive a completion code."),
+  withdrawError,
+  h("div", { class: "actions" }, withdrawKeep, withdrawConfirm));
+const withdrawBar = h("footer", { class: "withdraw-bar", hidden: true },
+  h("p", {}, "You may leave the study at any time. ", withdrawButton), withdrawDialog);
+document.body.appendChild(withdrawBar);
+withdrawButton.addEventListener("click", () => {
+  withdrawError.hidden = true;
+  withdrawConfirm.disabled = false;
+  withdrawDialog.showModal();
+  withdrawKeep.focus();
+});
+withdrawKeep.addEventListener("click", () => withdrawDialog.close());
+withdrawDialog.addEventListener("close", () => { if (!withdrawBar.hidden) withdrawButton.focus(); });
+withdrawConfirm.addEventListener("click", async () => {
+  withdrawConfirm.disabled = true;
+  let done;
+  try {
+    done = await postJSON("/api/participant/withdrawal", {});
+  } catch (error) {
+    withdrawError.hidden = false;
+    withdrawError.textContent = error instanceof ApiError ? error.detail : "The study server could not be reached: please try again.";
+    withdrawConfirm.disabled = false;
+    return;
+  }
+  withdrawBar.hidden = true;
+  withdrawDialog.close();
+  show(sheet(h("h1", {}, "Your data has been deleted"), h("p", { "data-withdrawn": done.platform }, done.message)));
+  if (done.redirect_url) window.location.assign(done.redirect_url);
+});
+
 function show(...children) {
   teacher?.close();
   teacher = null;
@@ -51,6 +92,7 @@ function plainSheet(...children) {
 
 function failure(error) {
   if (error instanceof ApiError && error.status === 401) {
+    withdrawBar.hidden = true;
     show(sheet(
       h("h1", {}, "Your place in the study could not be found"),
       h("p", {}, "Your browser did not keep the study's cookie. Please open the study again from its link; you will continue where you were."),
@@ -68,6 +110,7 @@ function failure(error) {
 async function refresh() {
   participant = await getJSON("/api/participant", { onRetry: connection.down });
   connection.up();
+  withdrawBar.hidden = false;
   if (seq) seq.nextSeq = participant.next_seq;
   else seq = new Sequencer(participant.next_seq, connection);
   return participant;

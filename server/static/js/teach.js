@@ -639,7 +639,7 @@ export class Teacher {
   // -- keys --------------------------------------------------------------------------------
   key(event) {
     if (this.closed || event.ctrlKey || event.metaKey || event.altKey) return;
-    if (this.dialog.open) return;
+    if (this.dialog.open || document.querySelector("dialog[open]")) return; // the withdrawal too
     const target = event.target;
     if (target instanceof HTMLElement && target.closest("input, textarea, select, [contenteditable]")) return;
     if (KEYS[event.key]) {

@@ -1,0 +1,213 @@
+"""Erasing one participant: every row of theirs, in every table, in one transaction, and one
+audit row (``erasures``) that says when, by whom, under which pseudonyms and how many rows each
+table lost. The audit row holds no personal data: the pseudonyms are those of the export, so
+that copies exported before can be cleaned.
+
+Erasure is the one exception to the append-only event log (docs/guarantees.md).
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from pydantic import BaseModel, Field
+from sqlalchemy import Connection, and_, delete, select
+
+from server.app.errors import ApiError
+from server.app.storage.db import Database
+from server.app.storage.models import (
+    AssignmentReview,
+    Bonus,
+    Episode,
+    Erasure,
+    Event,
+    Installation,
+    LearnerUpdate,
+    LearningSession,
+    Participant,
+    ParticipantToken,
+    QuestionnaireAnswer,
+    StatusChange,
+    utcnow,
+)
+from server.app.storage.records import Record, add, table_of
+from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus, ReplicaSubmission
+
+ERASED_BY = ("participant", "experimenter")
+PARTICIPANTS = table_of(Participant)
+SESSIONS = table_of(LearningSession)
+ERASURES = table_of(Erasure)
+
+
+class Erased(BaseModel):
+    """What an erasure removed (the audit row's content)."""
+
+    erasure_id: int
+    participant_id: int
+    platform: str
+    worker_pseudonym: str | None
+    assignment_pseudonym: str | None
+    rows: dict[str, int] = Field(description="Rows removed, per table.")
+
+
+def installation_secret(c: Connection, configured: str | None = None) -> str:
+    """The pseudonyms' key: ``BAM_SECRET`` when set, else the database's own secret."""
+    if configured:
+        return configured
+    secret = c.scalar(select(Installation.secret).where(Installation.id == 1))
+    if not secret:
+        raise RuntimeError("the database has no installation secret: run `bam-study db upgrade`")
+    return str(secret)
+
+
+def pseudonyms(participant: Any, secret: str) -> tuple[str | None, str | None]:
+    """The participant's worker and assignment pseudonyms, as the export writes them (a scrubbed
+    participant's ids are their pseudonyms already)."""
+    from server.app.export.tables import pseudonym
+
+    if participant.identifiers_scrubbed_at is not None:
+        return participant.worker_id, participant.assignment_id
+    return (
+        pseudonym(secret, participant.worker_id, "w"),
+        pseudonym(secret, participant.assignment_id, "a"),
+    )
+
+
+def find_participant(c: Connection, who: str, secret: str) -> Any:
+    """The participant named by ``who``: a participant number, a worker id (MTurk workerId or
+    Prolific PROLIFIC_PID) or its pseudonym (w_...). Raises ``ApiError`` 404 when none matches
+    and 409 when several do (a worker with several participations: name it by number)."""
+    from server.app.export.tables import pseudonym
+
+    p = PARTICIPANTS.c
+    if who.isdigit() and len(who) <= 10:
+        rows = c.execute(select(PARTICIPANTS).where(p.id == int(who))).mappings().all()
+    else:
+        # A raw id (scrubbed participants keep its pseudonym), or a scrubbed one's pseudonym.
+        named = (who, pseudonym(secret, who, "w"))
+        rows = c.execute(select(PARTICIPANTS).where(p.worker_id.in_(named))).mappings().all()
+        if not rows and who.startswith("w_"):  # the pseudonym of a participant not scrubbed
+            rows = [
+                row
+                for row in c.execute(
+                    select(PARTICIPANTS).where(
+                        p.worker_id.is_not(None), p.identifiers_scrubbed_at.is_(None)
+                    )
+                ).mappings()
+                if pseudonym(secret, row["worker_id"], "w") == who
+            ]
+    if not rows:
+        raise ApiError(
+            404, f"no participant {who!r} (a participant number, worker id or w_ pseudonym)"
+        )
+    if len(rows) > 1:
+        numbers = ", ".join(str(row["id"]) for row in rows)
+        raise ApiError(
+            409, f"{who!r} took part {len(rows)} times (participants {numbers}): name one by number"
+        )
+    return rows[0]
+
+
+def erase(
+    c: Connection, participant_id: int, by: str, secret: str, now: datetime | None = None
+) -> Erased:
+    """Erase the participant ``participant_id`` in the transaction ``c`` (see the module
+    docstring); ``by`` is ``participant`` or ``experimenter``. Raises ``ApiError`` 404 for an
+    unknown participant (one erased already is unknown)."""
+    if by not in ERASED_BY:
+        raise ValueError(f"erased by {by!r}: one of {', '.join(ERASED_BY)}")
+    now = now or utcnow()
+    query = select(PARTICIPANTS).where(PARTICIPANTS.c.id == participant_id)
+    if c.dialect.name == "postgresql":
+        query = query.with_for_update()  # the participant's own requests wait, then find none
+    participant = c.execute(query).mappings().first()
+    if participant is None:
+        raise ApiError(404, f"no participant {participant_id}")
+    worker, assignment = pseudonyms(Record(PARTICIPANTS, participant), secret)
+    sessions = select(SESSIONS.c.id).where(SESSIONS.c.participant_id == participant_id)
+    mine = Event.participant_id == participant_id
+    # Children before parents (foreign keys); each statement's count is the table's figure.
+    statements: list[tuple[str, Any]] = [
+        ("episodes", delete(Episode).where(Episode.session_id.in_(sessions))),
+        ("learner_updates", delete(LearnerUpdate).where(LearnerUpdate.session_id.in_(sessions))),
+        ("events", delete(Event).where(mine)),
+        (
+            "questionnaire_answers",
+            delete(QuestionnaireAnswer).where(QuestionnaireAnswer.participant_id == participant_id),
+        ),
+        (
+            "assignment_reviews",
+            delete(AssignmentReview).where(AssignmentReview.participant_id == participant_id),
+        ),
+        ("bonuses", delete(Bonus).where(Bonus.participant_id == participant_id)),
+        (
+            "status_changes",
+            delete(StatusChange).where(StatusChange.participant_id == participant_id),
+        ),
+        (
+            "participant_tokens",
+            delete(ParticipantToken).where(ParticipantToken.participant_id == participant_id),
+        ),
+        (
+            "learning_sessions",
+            delete(LearningSession).where(LearningSession.participant_id == participant_id),
+        ),
+    ]
+    if participant["platform"] == "mturk" and participant["worker_id"] is not None:
+        # The local MTurk replica's rows of this worker's turn at this assignment.
+        turn = and_(
+            ReplicaAssignment.worker_id == participant["worker_id"],
+            ReplicaAssignment.assignment_id == participant["assignment_id"],
+        )
+        statements += [
+            (
+                "mturk_replica_submissions",
+                delete(ReplicaSubmission).where(
+                    ReplicaSubmission.assignment_row_id.in_(
+                        select(ReplicaAssignment.id).where(turn)
+                    )
+                ),
+            ),
+            (
+                "mturk_replica_bonuses",
+                delete(ReplicaBonus).where(
+                    ReplicaBonus.worker_id == participant["worker_id"],
+                    ReplicaBonus.assignment_id == participant["assignment_id"],
+                ),
+            ),
+            ("mturk_replica_assignments", delete(ReplicaAssignment).where(turn)),
+        ]
+    statements.append(("participants", delete(Participant).where(Participant.id == participant_id)))
+    rows = {}
+    for table, statement in statements:
+        rows[table] = int(
+            c.execute(statement.execution_options(synchronize_session=False)).rowcount
+        )
+    erasure_id = add(
+        c,
+        ERASURES,
+        erased_at=now,
+        erased_by=by,
+        participant_id=participant_id,
+        platform=participant["platform"],
+        worker_pseudonym=worker,
+        assignment_pseudonym=assignment,
+        rows=rows,
+    )
+    return Erased(
+        erasure_id=erasure_id,
+        participant_id=participant_id,
+        platform=participant["platform"],
+        worker_pseudonym=worker,
+        assignment_pseudonym=assignment,
+        rows=rows,
+    )
+
+
+def erase_participant(
+    db: Database, participant_id: int, by: str, configured_secret: str | None = None
+) -> Erased:
+    """``erase`` in a write transaction of its own."""
+    with db.transaction() as c:
+        return erase(c, participant_id, by, installation_secret(c, configured_secret))

@@ -296,7 +296,7 @@ class ReviewRequest(Body):
     """Approve or reject the participant's submitted work (an MTurk assignment or a Prolific
     submission)."""
 
-    feedback: str | None = Field(
+    message: str | None = Field(
         None,
         max_length=1024,
         description="Shown to the participant (needed for a rejection: MTurk's "
@@ -306,10 +306,10 @@ class ReviewRequest(Body):
         None, description="Prolific's rejection category (needed to reject on Prolific)."
     )
 
-    @field_validator("feedback", mode="after")
+    @field_validator("message", mode="after")
     @classmethod
     def _shown_text(cls, value: str | None) -> str | None:
-        return None if value is None else message_text(value, "feedback")
+        return None if value is None else message_text(value, "message")
 
 
 class BonusRequest(Body):
@@ -335,7 +335,7 @@ class BonusRequest(Body):
 
 class ReviewView(BaseModel):
     decision: Literal["approved", "rejected"]
-    feedback: str | None
+    message: str | None
     rejection_category: str | None
     backend: str
     state: Literal["pending", "done"] = Field(

@@ -84,7 +84,7 @@ def test_approve_and_pay_a_bonus_from_the_dashboard(page: Page, server: LiveServ
     detail.locator('[data-action="bonus"]').click()
     expect(detail.locator('.bonuses li[data-amount="1.25"]')).to_contain_text("Taught every task")
 
-    (review,) = server.query("SELECT decision, feedback, backend FROM assignment_reviews")
+    (review,) = server.query("SELECT decision, message, backend FROM assignment_reviews")
     assert tuple(review) == ("approved", "Thank you!", "mturk-replica")
     assert [m.split("?")[0] for m in asked] == [
         "Approve this submission",

@@ -118,7 +118,7 @@ def test_an_erasure_removes_every_row_of_the_participant_and_no_other(
         )
         assert paid.status_code == 200, paid.text
     approved = client.post(
-        f"/api/admin/participants/{second}/approval", json={"feedback": "ok"}, headers=ADMIN
+        f"/api/admin/participants/{second}/approval", json={"message": "ok"}, headers=ADMIN
     )
     assert approved.status_code == 200, approved.text
     wait_for_updates(db)

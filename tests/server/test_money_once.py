@@ -194,7 +194,7 @@ def test_an_mturk_decision_taken_then_lost_is_recorded_once(
     )
     assert stand_in.assignments == {"ASSIGN1": "Approved"}
     # Another decision is refused: a decision is final.
-    late = client.post(f"{BASE}/{participant}/rejection", json={"feedback": "no"}, headers=ADMIN)
+    late = client.post(f"{BASE}/{participant}/rejection", json={"message": "no"}, headers=ADMIN)
     assert late.status_code == 409 and "already approved" in late.text
     with db.read() as s:
         assert list(s.execute(select(AssignmentReview.decision, AssignmentReview.state))) == [
@@ -359,9 +359,9 @@ def test_bad_amounts_and_texts_are_refused_by_the_dashboard_and_store_nothing(
         assert next(iter(change)) in answer.text
     for feedback in ("  ", "tab\tis fine but not \x00", "nul\x1f"):
         answer = client.post(
-            f"{BASE}/{participant}/rejection", json={"feedback": feedback}, headers=ADMIN
+            f"{BASE}/{participant}/rejection", json={"message": feedback}, headers=ADMIN
         )
-        assert answer.status_code == 422 and "feedback" in answer.text, answer.text
+        assert answer.status_code == 422 and "message" in answer.text, answer.text
     assert our_bonuses(db) == []
     with db.read() as s:
         assert s.scalar(select(AssignmentReview)) is None

@@ -301,12 +301,12 @@ def test_the_dashboard_reviews_prolific_participants_on_the_replica(
     # Prolific's rules are checked here first, with a clear 422.
     short = client.post(
         f"{BASE}/{participant}/rejection",
-        json={"feedback": "Too short", "rejection_category": "NO_DATA"},
+        json={"message": "Too short", "rejection_category": "NO_DATA"},
         headers=ADMIN,
     )
     assert short.status_code == 422 and "at least 100" in short.text
     nameless = client.post(
-        f"{BASE}/{participant}/rejection", json={"feedback": REASON}, headers=ADMIN
+        f"{BASE}/{participant}/rejection", json={"message": REASON}, headers=ADMIN
     )
     assert nameless.status_code == 422 and "rejection_category" in nameless.text
     approved = client.post(f"{BASE}/{participant}/approval", json={}, headers=ADMIN)

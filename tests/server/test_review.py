@@ -101,20 +101,18 @@ def test_approve_reject_and_bonus_show_on_the_replica_and_in_the_export(
     second = submitted_worker(client, db, "WORKER2")
     assert counts(db) == (0, 0, 0, ["submitted", "submitted"])
 
-    approved = client.post(
-        f"{BASE}/{first}/approval", json={"feedback": "Thank you"}, headers=ADMIN
-    )
+    approved = client.post(f"{BASE}/{first}/approval", json={"message": "Thank you"}, headers=ADMIN)
     assert approved.status_code == 200, approved.text
     assert approved.json()["review"]["decision"] == "approved"
     assert approved.json()["review"]["backend"] == "mturk-replica"
     rejected = client.post(
-        f"{BASE}/{second}/rejection", json={"feedback": "No agent was taught"}, headers=ADMIN
+        f"{BASE}/{second}/rejection", json={"message": "No agent was taught"}, headers=ADMIN
     )
     assert rejected.status_code == 200, rejected.text
     assert rejected.json()["review"] == {
         **rejected.json()["review"],
         "decision": "rejected",
-        "feedback": "No agent was taught",
+        "message": "No agent was taught",
     }
     bonus = {"amount": "1.50", "reason": "Taught every task", "unique_token": "bonus-token-1"}
     paid = client.post(f"{BASE}/{first}/bonuses", json=bonus, headers=ADMIN)
@@ -185,9 +183,9 @@ def test_bad_review_requests_are_refused_and_store_nothing(
         refused(f"{BASE}/{done}/bonuses", {**bonus, "amount": amount}, 422, "amount")
     refused(f"{BASE}/{done}/bonuses", {**bonus, "reason": ""}, 422, "reason")
     refused(f"{BASE}/{done}/bonuses", {**bonus, "unique_token": "no"}, 422, "unique_token")
-    refused(f"{BASE}/{done}/approval", {"feedback": "x", "extra": 1}, 422, "extra")
-    # A rejection needs its feedback.
-    refused(f"{BASE}/{done}/rejection", {}, 422, "needs feedback")
+    refused(f"{BASE}/{done}/approval", {"message": "x", "extra": 1}, 422, "extra")
+    # A rejection needs its message.
+    refused(f"{BASE}/{done}/rejection", {}, 422, "needs a message")
     # Without the admin token nothing happens.
     assert client.post(f"{BASE}/{done}/approval", json={}).status_code == 401
     assert client.post(f"/api/admin/participants/{done}/approval", json={}).status_code == 401
@@ -199,7 +197,7 @@ def test_bad_review_requests_are_refused_and_store_nothing(
     assert first.status_code == 200
     again = client.post(f"{BASE}/{done}/approval", json={}, headers=ADMIN)
     assert again.status_code == 200 and again.json()["review"] == first.json()["review"]
-    refused(f"{BASE}/{done}/rejection", {"feedback": "late"}, 409, "already approved")
+    refused(f"{BASE}/{done}/rejection", {"message": "late"}, 409, "already approved")
     # A token used once is not reused for another bonus.
     assert client.post(f"{BASE}/{done}/bonuses", json=bonus, headers=ADMIN).status_code == 200
     refused(f"{BASE}/{done}/bonuses", {**bonus, "amount": "3.00"}, 409, "another bonus")
@@ -214,7 +212,7 @@ def test_a_platform_refusal_stores_nothing(client: TestClient, db: Database) -> 
         assignment = s.scalars(select(ReplicaAssignment.assignment_id)).one()
     who = Reviewed(done, "mturk", "WORKER1", assignment, None)
     MTurkReplicaBackend(db).approve(who, "decided on the platform")
-    response = client.post(f"{BASE}/{done}/rejection", json={"feedback": "no"}, headers=ADMIN)
+    response = client.post(f"{BASE}/{done}/rejection", json={"message": "no"}, headers=ADMIN)
     assert response.status_code == 409 and "is approved" in response.text
     assert counts(db)[:3] == (0, 0, 0)
     with pytest.raises(ReviewRefused, match="no assignment"):

@@ -57,7 +57,7 @@ def test_a_scrub_leaves_no_raw_identifier_and_the_export_unchanged(
         )
         assert paid.status_code == 200, paid.text
     reviewed = client.post(
-        f"/api/admin/participants/{first}/approval", json={"feedback": "Good"}, headers=ADMIN
+        f"/api/admin/participants/{first}/approval", json={"message": "Good"}, headers=ADMIN
     )
     assert reviewed.status_code == 200, reviewed.text
     wait_for_updates(db)

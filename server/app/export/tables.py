@@ -193,8 +193,9 @@ DICTIONARY: dict[str, dict[str, str]] = {
         "worker_id": "The MTurk worker or Prolific participant (pseudonymised as in "
         "participants.csv).",
         "decision": "approved or rejected (final; sent to the review backend).",
-        "requester_feedback": "The feedback sent to the participant with the decision (MTurk's "
-        "RequesterFeedback, Prolific's rejection message).",
+        "requester_feedback": "The review's message, sent to the participant with the decision "
+        "(MTurk's RequesterFeedback, Prolific's rejection message; the column keeps its "
+        "published name, the API and the database call it message).",
         "rejection_category": "Prolific's rejection category (empty otherwise).",
         "backend": "Where the decision was sent: mturk, prolific, mturk-replica or "
         "prolific-replica.",
@@ -529,7 +530,7 @@ def export_tables(
             "participant_id": r.participant_id,
             **platform_ids(r.worker_id, r.assignment_id, scrubbed(r.participant_id)),
             "decision": r.decision,
-            "requester_feedback": r.feedback,
+            "requester_feedback": r.message,
             "rejection_category": r.rejection_category,
             "backend": r.backend,
             "decision_state": r.state,

@@ -53,7 +53,7 @@ class MTurkReplicaBackend:
         assert isinstance(row, ReplicaAssignment)
         return row
 
-    def _decide(self, assignment_id: str, status: Decision, feedback: str | None) -> None:
+    def _decide(self, assignment_id: str, status: Decision, message: str | None) -> None:
         with self.db.write() as s:
             row = self._latest(s, assignment_id)
             if row.status != "submitted":
@@ -63,13 +63,13 @@ class MTurkReplicaBackend:
                 )
             row.status = status
             row.reviewed_at = utcnow()
-            row.requester_feedback = feedback
+            row.requester_feedback = message
 
-    def approve(self, who: Reviewed, feedback: str | None) -> None:
-        self._decide(who.assignment_id, "approved", feedback)
+    def approve(self, who: Reviewed, message: str | None) -> None:
+        self._decide(who.assignment_id, "approved", message)
 
-    def reject(self, who: Reviewed, feedback: str, category: str | None) -> None:
-        self._decide(who.assignment_id, "rejected", feedback)
+    def reject(self, who: Reviewed, message: str, category: str | None) -> None:
+        self._decide(who.assignment_id, "rejected", message)
 
     def decision_of(self, who: Reviewed) -> Decision | None:
         with self.db.read() as s:
@@ -138,14 +138,14 @@ class MTurkClientBackend:
                 raise ReviewRefused(f"MTurk refused {method}: {message}") from None
             raise ReviewUnavailable(f"MTurk's {method} failed: {message}") from None
 
-    def approve(self, who: Reviewed, feedback: str | None) -> None:
+    def approve(self, who: Reviewed, message: str | None) -> None:
         arguments: dict[str, Any] = {"AssignmentId": who.assignment_id}
-        if feedback:
-            arguments["RequesterFeedback"] = feedback
+        if message:
+            arguments["RequesterFeedback"] = message
         self._call("approve_assignment", **arguments)
 
-    def reject(self, who: Reviewed, feedback: str, category: str | None) -> None:
-        self._call("reject_assignment", AssignmentId=who.assignment_id, RequesterFeedback=feedback)
+    def reject(self, who: Reviewed, message: str, category: str | None) -> None:
+        self._call("reject_assignment", AssignmentId=who.assignment_id, RequesterFeedback=message)
 
     def decision_of(self, who: Reviewed) -> Decision | None:
         answer = self._call("get_assignment", AssignmentId=who.assignment_id) or {}

@@ -228,15 +228,15 @@ class ProlificBackend:
             raise ReviewRefused(f"participant {who.participant_id} has no Prolific STUDY_ID")
         return who.study_id
 
-    def approve(self, who: Reviewed, feedback: str | None) -> None:
+    def approve(self, who: Reviewed, message: str | None) -> None:
         self.client.transition_submission(self._study(who), who.assignment_id, "APPROVE")
 
-    def reject(self, who: Reviewed, feedback: str, category: str | None) -> None:
+    def reject(self, who: Reviewed, message: str, category: str | None) -> None:
         self.client.transition_submission(
             self._study(who),
             who.assignment_id,
             "REJECT",
-            message=feedback,
+            message=message,
             rejection_category=category,
         )
 

@@ -6,7 +6,7 @@ The platform's side is one interface, ``ReviewBackend``. The study's side is her
 the same for every platform:
 
 1. the request is checked (the participant submitted work on the backend's platform; the amount
-   is a plain decimal with at most two places; feedback is plain text);
+   is a plain decimal with at most two places; message is plain text);
 2. the intent is recorded in the database *before* the platform is called: a decision as a
    ``pending`` row of ``assignment_reviews``, a bonus as a ``pending`` row of ``bonuses`` with
    its request token (sent as MTurk's UniqueRequestToken). On Prolific, whose ``pay`` call is
@@ -101,9 +101,9 @@ class ReviewBackend(Protocol):
     # False when paying a bonus twice pays twice (Prolific's ``pay``): then it is called once.
     repeat_pay_is_safe: bool
 
-    def approve(self, who: Reviewed, feedback: str | None) -> None: ...
+    def approve(self, who: Reviewed, message: str | None) -> None: ...
 
-    def reject(self, who: Reviewed, feedback: str, category: str | None) -> None: ...
+    def reject(self, who: Reviewed, message: str, category: str | None) -> None: ...
 
     def decision_of(self, who: Reviewed) -> Decision | None:
         """The platform's decision on the submission now (None: not decided)."""
@@ -191,21 +191,22 @@ def review_submission(
     backend: ReviewBackend,
     participant_id: int,
     decision: Decision,
-    feedback: str | None,
+    message: str | None,
     category: str | None = None,
 ) -> None:
     """Approve or reject the participant's submitted work, once: a repeat of the same decision
     answers as the first did; another decision is refused (409, a decision is final)."""
     who = reviewable(db, participant_id, backend.platform)
-    if decision == "rejected" and not feedback:
+    if decision == "rejected" and not message:
         raise InvalidInput(
-            ("body", "feedback"), "a rejection needs feedback: the platform shows the reason"
+            ("body", "message"),
+            "a rejection needs a message: the platform shows the participant why",
         )
     if decision == "rejected" and backend.platform == "prolific":
         # Prolific's own rules, checked here first (Prolific answers 400).
-        if len((feedback or "").strip()) < PROLIFIC_MIN_MESSAGE:
+        if len((message or "").strip()) < PROLIFIC_MIN_MESSAGE:
             raise InvalidInput(
-                ("body", "feedback"),
+                ("body", "message"),
                 f"a rejection on Prolific needs a message of at least {PROLIFIC_MIN_MESSAGE} "
                 "characters that tells the participant why",
             )
@@ -230,7 +231,7 @@ def review_submission(
                         assignment_id=who.assignment_id,
                         worker_id=who.worker_id,
                         decision=decision,
-                        feedback=feedback,
+                        message=message,
                         rejection_category=category,
                         backend=backend.name,
                         state="pending",
@@ -259,9 +260,9 @@ def review_submission(
             return
     try:
         if decision == "approved":
-            backend.approve(who, feedback)
+            backend.approve(who, message)
         else:
-            backend.reject(who, feedback or "", category)
+            backend.reject(who, message or "", category)
     except ReviewRefused as refused:
         # Refused: perhaps because an earlier attempt of this very decision went through.
         try:

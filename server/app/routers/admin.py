@@ -181,7 +181,7 @@ def _participant_detail(s: Session, participant_id: int) -> AdminParticipantDeta
         if decision is None
         else ReviewView(
             decision=decision.decision,  # type: ignore[arg-type]
-            feedback=decision.feedback,
+            message=decision.message,
             rejection_category=decision.rejection_category,
             backend=decision.backend,
             state=decision.state,  # type: ignore[arg-type]
@@ -265,7 +265,7 @@ def approve(participant_id: RowId, body: ReviewRequest, state: StateDep) -> Admi
 
 @router.post("/participants/{participant_id}/rejection", response_model=AdminParticipantDetail)
 def reject(participant_id: RowId, body: ReviewRequest, state: StateDep) -> AdminParticipantDetail:
-    """Reject the participant's submitted work, with feedback (on Prolific: a category and a
+    """Reject the participant's submitted work, with a message (on Prolific: a category and a
     message of at least 100 characters), once."""
     return _decide(participant_id, "rejected", body, state)
 
@@ -284,7 +284,7 @@ def _decide(
 ) -> AdminParticipantDetail:
     backend = _backend_for(state, participant_id)
     review.review_submission(
-        state.db, backend, participant_id, decision, body.feedback, body.rejection_category
+        state.db, backend, participant_id, decision, body.message, body.rejection_category
     )
     with state.db.read() as s:
         return _participant_detail(s, participant_id)

@@ -301,7 +301,7 @@ class AssignmentReview(Base):
     assignment_id: Mapped[str] = mapped_column(String(128), unique=True)
     worker_id: Mapped[str] = mapped_column(String(128))  # workerId or PROLIFIC_PID
     decision: Mapped[str] = mapped_column(String(16))  # approved or rejected
-    feedback: Mapped[str | None] = mapped_column(Text)  # shown to the participant
+    message: Mapped[str | None] = mapped_column(Text)  # shown to the participant
     rejection_category: Mapped[str | None] = mapped_column(String(32))  # Prolific's category
     backend: Mapped[str] = mapped_column(String(24))  # mturk, mturk-replica, prolific, ...
     state: Mapped[str] = mapped_column(String(16), default="done")  # pending or done

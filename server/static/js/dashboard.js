@@ -236,7 +236,7 @@ function reviewSection(p) {
     decision = h("p", { "data-review": p.review.decision }, badge(p.review.decision), " ",
       p.review.state === "done" ? time(p.review.decided_at) : "not yet confirmed by the platform: send it again",
       p.review.rejection_category ? ` ${p.review.rejection_category}` : "",
-      p.review.feedback ? ` (${p.review.feedback})` : "");
+      p.review.message ? ` (${p.review.message})` : "");
   } else {
     const message = errorLine("review-error");
     const feedback = h("textarea", { id: "review-feedback", name: "feedback", rows: 2, maxlength: 1024, "aria-describedby": message.id });
@@ -250,7 +250,7 @@ function reviewSection(p) {
     });
     approve.addEventListener("click", () => {
       if (!window.confirm("Approve this submission? A decision is final.")) return;
-      send("approval", { feedback: prolific ? null : feedback.value.trim() || null }, [approve, reject], message);
+      send("approval", { message: prolific ? null : feedback.value.trim() || null }, [approve, reject], message);
     });
     reject.addEventListener("click", () => {
       const text = feedback.value.trim();
@@ -263,7 +263,7 @@ function reviewSection(p) {
         feedback.focus();
         return;
       }
-      send("rejection", { feedback: text, rejection_category: prolific ? category.value : null }, [approve, reject], message);
+      send("rejection", { message: text, rejection_category: prolific ? category.value : null }, [approve, reject], message);
     });
     decision = h("div", { class: "review-decision" },
       h("p", { class: "muted" }, "Not reviewed yet."),

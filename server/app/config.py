@@ -6,6 +6,10 @@ study. ``load_study_config`` validates it against the environment and learner re
 reports every problem with its place in the file. A study may define environments of its own
 (``[environments.NAME]``, each map checked for every problem, with its line and column);
 ``StudyConfig.register_environments`` makes them known to ``server.domains`` by name.
+
+Over 500 lines: the whole schema of the study file with its checks and messages, in one module,
+because the docs' tables of keys are generated from it and a key is described where it is
+checked.
 """
 
 from __future__ import annotations

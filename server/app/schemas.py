@@ -3,6 +3,9 @@
 Every request that changes something carries ``seq``, the participant's next sequence number
 (``next_seq`` in every response): a retried request with the same ``seq`` and body is answered
 with the stored response, a request out of order gets 409.
+
+Over 500 lines: every body of the API is here and nowhere else, so that a name in the OpenAPI
+schema is defined once (the routers import their bodies from here).
 """
 
 from __future__ import annotations

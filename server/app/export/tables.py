@@ -5,6 +5,9 @@
 and ``data_dictionary.csv``. Worker and assignment ids are pseudonymised with a salted hash
 (HMAC-SHA256 with ``BAM_SECRET``, or the random secret created with the database) and
 completion codes left out, unless ``pseudonymize=False``.
+
+Over 500 lines: each exported column's description (``DESCRIPTIONS``, the data dictionary) sits
+in the same module as the code that fills it, so that a column is never written undescribed.
 """
 
 from __future__ import annotations

@@ -39,7 +39,9 @@ def test_exclude_and_include_again_with_the_reasons(page: Page, server: LiveServ
     detail = page.locator("#detail")
     # No reason, no exclusion.
     page.click('#detail [data-action="exclude"]')
-    expect(detail.locator(".form-error")).to_have_text("Give a reason: it is kept with the data.")
+    expect(detail.locator("form.exclusion .form-error")).to_have_text(
+        "Give a reason: it is kept with the data."
+    )
     page.fill("#exclusion-reason", "pressed keys at random")
     page.click('#detail [data-action="exclude"]')
     expect(row.locator(".badge.excluded")).to_have_count(1)

@@ -149,8 +149,10 @@ function exclusionForm(p) {
 
 /** The quality checks of a participant who completed (quality.csv), loaded after the rest. */
 function qualitySection(p) {
-  const body = h("div", {}, h("p", { class: "muted" }, "Loading the quality checks…"));
-  getJSON(`${API}/participants/${p.participant_id}/quality`).then((q) => {
+  const none = () => h("p", { class: "muted" }, "No quality checks until the participant completes.");
+  const completed = p.status === "completed" || p.status === "submitted";
+  const body = h("div", {}, completed ? h("p", { class: "muted" }, "Loading the quality checks…") : none());
+  if (completed) getJSON(`${API}/participants/${p.participant_id}/quality`).then((q) => {
     const share = (x) => (x === null ? "not judged" : `${Math.round(100 * x)}%`);
     body.replaceChildren(
       h("ul", { class: "quality" },
@@ -160,7 +162,7 @@ function qualitySection(p) {
         h("li", {}, `Consistent feedback: ${share(q.consistent_feedback_share)}`)),
       h("p", {}, h("strong", {}, "Flags: "), q.flags || "none",
         h("strong", {}, "  Prolific ground: "), q.prolific_ground === "none" ? "none applies" : q.prolific_ground));
-  }).catch(() => body.replaceChildren(h("p", { class: "muted" }, "No quality checks until the participant completes.")));
+  }).catch(() => body.replaceChildren(none()));
   return h("section", { class: "quality-checks", "aria-labelledby": "quality-heading" },
     h("h3", { id: "quality-heading" }, "Quality checks"), body);
 }

@@ -34,7 +34,7 @@ const connection = {
 const withdrawButton = h("button", { class: "btn quiet withdraw-open", type: "button", "data-action": "withdraw", "aria-haspopup": "dialog" },
   "Stop and delete my data");
 const withdrawConfirm = h("button", { class: "btn danger", type: "button", "data-action": "withdraw-confirm" }, "Delete my data and stop");
-const withdrawKeep = h("button", { class: "btn", type: "button", "data-action": "withdraw-keep", autofocus: true }, "Keep going");
+const withdrawKeep = h("button", { class: "btn", type: "button", "data-action": "withdraw-keep" }, "Keep going");
 const withdrawError = h("p", { class: "form-error", role: "alert", hidden: true });
 const withdrawDialog = h("dialog", { class: "withdraw-dialog", "aria-labelledby": "withdraw-title", "aria-describedby": "withdraw-text" },
   h("h2", { id: "withdraw-title" }, "Stop and delete your data?"),

@@ -111,7 +111,7 @@ def idle_transitions(
     for _ in range(count):
         action = int(rng.integers(1, env.num_actions))
         next_state = env.step(state, action, rng)
-        learner.record_transition(state, action, next_state)
+        learner.record_idle_move(state, action, next_state)
         state = next_state
 
 

@@ -97,7 +97,7 @@ def test_the_build_context_keeps_data_out_and_the_server_in() -> None:
         "pyproject.toml",
         "alembic.ini",
         "migrations/env.py",
-        "server/cli.py",
+        "server/commands/main.py",
         "server/config/study.toml",
         "server/domains/maps/doorway.txt",
         "server/templates/dashboard.html",

@@ -16,7 +16,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 
-from server.app.platforms.review import MAX_BONUS, message_text, parse_amount
+from server.app.platforms.review import MAX_BONUS, RejectionCategory, message_text, parse_amount
 
 MAX_SEQ = 1_000_000_000
 ID_PATTERN = r"^[A-Za-z0-9_\-]{1,128}$"
@@ -277,22 +277,6 @@ class PublicStudy(BaseModel):
 # -- admin ----------------------------------------------------------------------------------
 class ExclusionRequest(Body):
     reason: str = Field(min_length=1, max_length=2000)
-
-
-RejectionCategory = Literal[
-    "TOO_QUICKLY",
-    "TOO_SLOWLY",
-    "FAILED_INSTRUCTIONS",
-    "INCOMP_LONGITUDINAL",
-    "FAILED_CHECK",
-    "LOW_EFFORT",
-    "MALINGERING",
-    "NO_CODE",
-    "BAD_CODE",
-    "NO_DATA",
-    "UNSUPP_DEVICE",
-    "OTHER",
-]
 
 
 class ReviewRequest(Body):

@@ -28,7 +28,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from decimal import Decimal
-from typing import Any, Literal, Protocol
+from typing import Any, Literal, Protocol, get_args
 
 from sqlalchemy import delete, select, update
 from sqlalchemy.exc import IntegrityError
@@ -45,7 +45,7 @@ AMOUNT = re.compile(r"[0-9]{1,6}(\.[0-9]{1,2})?")
 CONTROL = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f]")
 
 # Prolific's rejection categories (POST /submissions/{id}/transition/ with action REJECT).
-REJECTION_CATEGORIES = (
+RejectionCategory = Literal[
     "TOO_QUICKLY",
     "TOO_SLOWLY",
     "FAILED_INSTRUCTIONS",
@@ -58,7 +58,8 @@ REJECTION_CATEGORIES = (
     "NO_DATA",
     "UNSUPP_DEVICE",
     "OTHER",
-)
+]
+REJECTION_CATEGORIES: tuple[str, ...] = get_args(RejectionCategory)
 # Prolific refuses a rejection message shorter than this.
 PROLIFIC_MIN_MESSAGE = 100
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import select
+from sqlalchemy import func, select
 
 from server.app.config import StudyConfig
 from server.app.export.minari import StudyFile, study_datasets
@@ -117,3 +117,51 @@ def test_bad_scrub_arguments_are_refused(db: Database, capsys: pytest.CaptureFix
     url = db.engine.url.render_as_string(hide_password=False)
     assert main(["db", "scrub", "--database-url", url, "--older-than-days", "-1"]) == 2
     assert "--older-than-days must be 0 or more" in capsys.readouterr().err
+
+
+def test_the_prolific_replica_s_rows_are_scrubbed_and_erased(
+    client: TestClient, db: Database
+) -> None:
+    """The replica's rows hold a PROLIFIC_PID as text (``participant_id``) and in a bonus
+    set-up's CSV: erasure removes the participant's submission and payments and leaves their
+    pseudonym in the set-up; scrubbing leaves no raw PID or SESSION_ID anywhere."""
+    from server.app.storage.replica_models import (
+        ProlificReplicaBonusSetup,
+        ProlificReplicaPayment,
+        ProlificReplicaSubmission,
+    )
+    from tests.server.test_prolific import prolific_participant
+
+    people = [prolific_participant(client, db) for _ in range(2)]
+    for who, _, _ in people:
+        paid = client.post(
+            f"/api/admin/participants/{who}/bonuses",
+            json={"amount": "0.40", "reason": "Thanks", "unique_token": f"bonus-token-{who}"},
+            headers=ADMIN,
+        )
+        assert paid.status_code == 200, paid.text
+    with db.read() as s:
+        pids = {p.id: p.worker_id for p in s.scalars(select(Participant))}
+    (kept, kept_session, _), (erased, erased_session, erased_study) = people
+    url = db.engine.url.render_as_string(hide_password=False)
+
+    assert main(["erase", "--database-url", url, str(erased), "--yes"]) == 0
+    with db.read() as s:
+        assert list(s.scalars(select(ProlificReplicaSubmission.id))) == [kept_session]
+        assert list(s.scalars(select(ProlificReplicaPayment.participant_id))) == [pids[kept]]
+        setup = s.scalars(
+            select(ProlificReplicaBonusSetup).where(
+                ProlificReplicaBonusSetup.study_id == erased_study["id"]
+            )
+        ).one()
+    assert pids[erased] not in setup.csv_bonuses and "w_" in setup.csv_bonuses
+    assert pids[erased] not in text_in_database(db) and erased_session not in text_in_database(db)
+
+    assert pids[kept] in text_in_database(db)
+    assert main(["db", "scrub", "--database-url", url]) == 0
+    text = text_in_database(db)
+    assert pids[kept] not in text and kept_session not in text
+    with db.read() as s:
+        # The rows stay, under pseudonyms: the replica still knows one submission and payment.
+        assert s.scalar(select(func.count()).select_from(ProlificReplicaSubmission)) == 1
+        assert list(s.scalars(select(ProlificReplicaPayment.amount))) == [40]

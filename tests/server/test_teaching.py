@@ -319,7 +319,7 @@ def test_bad_requests_get_clear_4xx_and_change_nothing(client: TestClient, db: D
     )
     huge = client.post(
         f"{base}/move",
-        content=b"{" + b" " * 10_000 + b"}",
+        content=b'{"seq": 1, "action": "UP", "note": "' + b"x" * 10_000 + b'"}',
         headers={**participant.headers, "content-type": "application/json"},
     )
     assert huge.status_code == 413 and "too large" in huge.text

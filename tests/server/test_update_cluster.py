@@ -230,7 +230,7 @@ def test_a_bad_scheduler_address_is_one_line_at_start(tmp_path: Path) -> None:
     """An address that is not one, and one where no scheduler answers: a one-line message and
     exit status, before the server starts."""
     database = f"sqlite:///{tmp_path / 'study.db'}"
-    command = [sys.executable, "-m", "server.commands.main", "serve", "--port", "0"]
+    command = [sys.executable, "-m", "server.commands.main", "serve", "--port", str(free_port())]
     environment = {**os.environ, "BAM_DATABASE_URL": database}
     for address, status, message in (
         ("localhost:8786", 2, "--update-scheduler='localhost:8786': must be a Dask scheduler"),
@@ -355,6 +355,8 @@ def test_worker_deaths_are_counted_without_a_log_line_per_update(
         finally:
             await asyncio.to_thread(updates.close)
 
+    # Workers killed by the test before come back first: a death then is not this test's.
+    cluster.wait_for_workers(2, timeout=120)
     records = Records()
     logger = logging.getLogger("distributed")
     logger.addHandler(records)
@@ -455,7 +457,7 @@ def test_an_update_lost_with_the_scheduler_runs_on_the_next_one(
     the Dask client waits for them; a new scheduler at the same address and a new worker: the
     update was kept pending and runs there, every update of the participant is done, once
     each, with nothing lost, and the new worker was warmed up."""
-    from server.app.updates.manager import manager as updates
+    from server.app.updates import manager as updates
 
     monkeypatch.setattr(updates, "CLUSTER_WATCH_SECONDS", 1.0)
     port = free_port()
@@ -561,8 +563,8 @@ def test_an_update_left_with_a_closed_client_ends_when_the_server_reconnects(
     with UpdatesUnavailable, instead of leaving the session's updates waiting for ever."""
     import asyncio
 
+    from server.app.updates import cluster as cluster_module
     from server.app.updates.cluster import UpdateCluster
-    from server.app.updates.manager import cluster as cluster_module
     from server.app.updates.pool import UpdatesUnavailable
 
     old, new = StandInClient("running"), StandInClient("running")

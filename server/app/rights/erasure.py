@@ -12,9 +12,10 @@ from datetime import datetime
 from typing import Any
 
 from pydantic import BaseModel, Field
-from sqlalchemy import Connection, and_, delete, select
+from sqlalchemy import Connection, delete, select
 
 from server.app.errors import ApiError
+from server.app.rights.identifiers import own_replica_rows, rewrite_ids, shared_replica_rows
 from server.app.storage.db import Database
 from server.app.storage.models import (
     AssignmentReview,
@@ -32,7 +33,6 @@ from server.app.storage.models import (
     utcnow,
 )
 from server.app.storage.records import Record, add, table_of
-from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus, ReplicaSubmission
 
 ERASED_BY = ("participant", "experimenter")
 PARTICIPANTS = table_of(Participant)
@@ -124,7 +124,8 @@ def erase(
     participant = c.execute(query).mappings().first()
     if participant is None:
         raise ApiError(404, f"no participant {participant_id}")
-    worker, assignment = pseudonyms(Record(PARTICIPANTS, participant), secret)
+    record = Record(PARTICIPANTS, participant)
+    worker, assignment = pseudonyms(record, secret)
     sessions = select(SESSIONS.c.id).where(SESSIONS.c.participant_id == participant_id)
     mine = Event.participant_id == participant_id
     # Children before parents (foreign keys); each statement's count is the table's figure.
@@ -154,36 +155,22 @@ def erase(
             delete(LearningSession).where(LearningSession.participant_id == participant_id),
         ),
     ]
-    if participant["platform"] == "mturk" and participant["worker_id"] is not None:
-        # The local MTurk replica's rows of this worker's turn at this assignment.
-        turn = and_(
-            ReplicaAssignment.worker_id == participant["worker_id"],
-            ReplicaAssignment.assignment_id == participant["assignment_id"],
-        )
-        statements += [
-            (
-                "mturk_replica_submissions",
-                delete(ReplicaSubmission).where(
-                    ReplicaSubmission.assignment_row_id.in_(
-                        select(ReplicaAssignment.id).where(turn)
-                    )
-                ),
-            ),
-            (
-                "mturk_replica_bonuses",
-                delete(ReplicaBonus).where(
-                    ReplicaBonus.worker_id == participant["worker_id"],
-                    ReplicaBonus.assignment_id == participant["assignment_id"],
-                ),
-            ),
-            ("mturk_replica_assignments", delete(ReplicaAssignment).where(turn)),
-        ]
+    # The local platform replica's rows of this participant's turn.
+    statements += [
+        (table.name, delete(table).where(where)) for table, where in own_replica_rows(record)
+    ]
     statements.append(("participants", delete(Participant).where(Participant.id == participant_id)))
     rows = {}
     for table, statement in statements:
         rows[table] = int(
             c.execute(statement.execution_options(synchronize_session=False)).rowcount
         )
+    if participant["identifiers_scrubbed_at"] is None:
+        # Rows that name them among others keep the others' ids, theirs under a pseudonym.
+        named = {participant["worker_id"]: worker, participant["assignment_id"]: assignment}
+        raw_ids = {raw: str(alias) for raw, alias in named.items() if raw and alias}
+        for table, where in shared_replica_rows(record):
+            rewrite_ids(c, table, where, raw_ids)
     erasure_id = add(
         c,
         ERASURES,

@@ -1,7 +1,7 @@
 """Platform ids that expire: a participant's worker id (MTurk workerId, Prolific PROLIFIC_PID),
 assignment id (MTurk assignmentId, Prolific SESSION_ID) and completion code are replaced by their
 pseudonyms in the database itself, in every row of theirs that holds them (their participant
-row, reviews, bonuses, stored responses, the MTurk replica's rows), once they are no longer
+row, reviews, bonuses, stored responses, the platform replicas' rows), once they are no longer
 needed to pay them: ``scrub_identifiers_after_days`` (study file) after their last request, or
 on demand (``bam-study db scrub``).
 
@@ -12,27 +12,29 @@ participants whose ids are pseudonyms already.
 
 from __future__ import annotations
 
-import re
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import JSON, Connection, String, Table, Text, and_, select, update
+from sqlalchemy import Connection, Table, select, update
 
 from server.app.export.tables import pseudonym
 from server.app.rights.erasure import installation_secret
+from server.app.rights.identifiers import own_replica_rows, rewrite_ids, shared_replica_rows
 from server.app.storage.db import Database
 from server.app.storage.models import Base, Participant, utcnow
 from server.app.storage.records import table_of
-from server.app.storage.replica_models import (
-    ReplicaAssignment,
-    ReplicaBonus,
-    ReplicaSubmission,
-)
 
 PARTICIPANTS = table_of(Participant)
 PLATFORMS = ("mturk", "prolific")
-# The replica's rows of one worker's turn at one assignment.
-REPLICA_TABLES = tuple(table_of(m) for m in (ReplicaAssignment, ReplicaSubmission, ReplicaBonus))
+
+
+def refers_to_participants(table: Table) -> bool:
+    """Whether ``table`` has a ``participant_id`` that is a participants row's id (the
+    Prolific replica's ``participant_id`` is a PROLIFIC_PID instead)."""
+    column = table.c.get("participant_id")
+    return column is not None and any(
+        key.column.table is PARTICIPANTS for key in column.foreign_keys
+    )
 
 
 def replacements(participant: Any, secret: str) -> dict[str, str]:
@@ -45,67 +47,17 @@ def replacements(participant: Any, secret: str) -> dict[str, str]:
     return {raw: str(pseudonym(secret, raw, prefix)) for raw, prefix in pairs if raw}
 
 
-def _pattern(raw_ids: dict[str, str]) -> re.Pattern[str]:
-    """The raw ids as whole tokens (ids are letters, digits, _ and -: a longer id that contains
-    one is another id, left alone)."""
-    alternatives = "|".join(re.escape(raw) for raw in sorted(raw_ids, key=len, reverse=True))
-    return re.compile(rf"(?<![A-Za-z0-9_\-])(?:{alternatives})(?![A-Za-z0-9_\-])")
-
-
-def _replaced(value: Any, pattern: re.Pattern[str], raw_ids: dict[str, str]) -> Any:
-    if isinstance(value, str):
-        return pattern.sub(lambda m: raw_ids[m.group(0)], value)
-    if isinstance(value, dict):
-        return {k: _replaced(v, pattern, raw_ids) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_replaced(v, pattern, raw_ids) for v in value]
-    return value
-
-
-def _text_columns(table: Table) -> list[Any]:
-    return [c for c in table.columns if isinstance(c.type, String | Text | JSON)]
-
-
-def _rewrite(
-    c: Connection, table: Table, where: Any, pattern: re.Pattern[str], raw_ids: dict[str, str]
-) -> int:
-    """Replace the raw ids in every text cell of ``table``'s rows matching ``where``."""
-    columns = _text_columns(table)
-    if not columns:
-        return 0
-    keys = list(table.primary_key.columns)
-    changed = 0
-    for row in c.execute(select(*keys, *columns).where(where)).mappings().all():
-        values = {
-            column.name: new
-            for column in columns
-            if (new := _replaced(row[column.name], pattern, raw_ids)) != row[column.name]
-        }
-        if values:
-            c.execute(update(table).where(*(key == row[key.name] for key in keys)).values(values))
-            changed += 1
-    return changed
-
-
 def scrub_participant(c: Connection, participant: Any, secret: str, now: datetime) -> None:
     """Replace the participant's raw ids by their pseudonyms everywhere (see the module
     docstring), in the transaction ``c``."""
     raw_ids = replacements(participant, secret)
     if raw_ids:
-        pattern = _pattern(raw_ids)
         for table in Base.metadata.sorted_tables:
-            if table is PARTICIPANTS:
-                continue
-            if "participant_id" in table.c:
-                _rewrite(c, table, table.c.participant_id == participant.id, pattern, raw_ids)
-        if participant.platform == "mturk" and participant.worker_id and participant.assignment_id:
-            for table in REPLICA_TABLES:
-                turn = and_(
-                    table.c.worker_id == participant.worker_id,
-                    table.c.assignment_id == participant.assignment_id,
-                )
-                _rewrite(c, table, turn, pattern, raw_ids)
-        _rewrite(c, PARTICIPANTS, PARTICIPANTS.c.id == participant.id, pattern, raw_ids)
+            if table is not PARTICIPANTS and refers_to_participants(table):
+                rewrite_ids(c, table, table.c.participant_id == participant.id, raw_ids)
+        for table, where in own_replica_rows(participant) + shared_replica_rows(participant):
+            rewrite_ids(c, table, where, raw_ids)
+        rewrite_ids(c, PARTICIPANTS, PARTICIPANTS.c.id == participant.id, raw_ids)
     c.execute(
         update(PARTICIPANTS)
         .where(PARTICIPANTS.c.id == participant.id)

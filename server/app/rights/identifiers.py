@@ -1,0 +1,131 @@
+"""The rows of the local platform replicas (MTurk's and Prolific's) that hold one participant's
+turn, and the rewriting of raw ids in text cells that erasure and scrubbing share.
+
+The replicas stand in for the platforms, which keep their own copies; on a server that uses a
+replica, its rows are this server's data, so erasure removes them and scrubbing replaces their
+ids, as for the study's own rows.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+from sqlalchemy import JSON, Connection, String, Table, Text, and_, select, update
+
+from server.app.storage.records import table_of
+from server.app.storage.replica_models import (
+    ProlificReplicaBonusSetup,
+    ProlificReplicaPayment,
+    ProlificReplicaSubmission,
+    ReplicaAssignment,
+    ReplicaBonus,
+    ReplicaSubmission,
+)
+
+MTURK_ASSIGNMENTS = table_of(ReplicaAssignment)
+MTURK_SUBMISSIONS = table_of(ReplicaSubmission)
+MTURK_BONUSES = table_of(ReplicaBonus)
+PROLIFIC_SUBMISSIONS = table_of(ProlificReplicaSubmission)
+PROLIFIC_PAYMENTS = table_of(ProlificReplicaPayment)
+PROLIFIC_BONUS_SETUPS = table_of(ProlificReplicaBonusSetup)
+
+
+def own_replica_rows(participant: Any) -> list[tuple[Table, Any]]:
+    """(table, condition) for the replica rows of the participant's turn alone, children before
+    parents: erasure deletes them. ``participant`` is a participants row."""
+    worker, assignment = participant.worker_id, participant.assignment_id
+    if not worker or not assignment:
+        return []
+    if participant.platform == "mturk":
+        turn = and_(
+            MTURK_ASSIGNMENTS.c.worker_id == worker,
+            MTURK_ASSIGNMENTS.c.assignment_id == assignment,
+        )
+        return [
+            (
+                MTURK_SUBMISSIONS,
+                MTURK_SUBMISSIONS.c.assignment_row_id.in_(
+                    select(MTURK_ASSIGNMENTS.c.id).where(turn)
+                ),
+            ),
+            (
+                MTURK_BONUSES,
+                and_(
+                    MTURK_BONUSES.c.worker_id == worker,
+                    MTURK_BONUSES.c.assignment_id == assignment,
+                ),
+            ),
+            (MTURK_ASSIGNMENTS, turn),
+        ]
+    if participant.platform == "prolific":
+        return [
+            (
+                PROLIFIC_PAYMENTS,
+                and_(
+                    PROLIFIC_PAYMENTS.c.participant_id == worker,
+                    PROLIFIC_PAYMENTS.c.setup_id.in_(_setups_of(participant)),
+                ),
+            ),
+            (
+                PROLIFIC_SUBMISSIONS,
+                and_(
+                    PROLIFIC_SUBMISSIONS.c.id == assignment,
+                    PROLIFIC_SUBMISSIONS.c.participant_id == worker,
+                ),
+            ),
+        ]
+    return []
+
+
+def shared_replica_rows(participant: Any) -> list[tuple[Table, Any]]:
+    """(table, condition) for replica rows that name the participant among others (a Prolific
+    bonus set-up's CSV, one line per participant): erasure and scrubbing replace the
+    participant's ids in them, and keep the others'."""
+    if participant.platform == "prolific" and participant.worker_id and participant.hit_id:
+        return [(PROLIFIC_BONUS_SETUPS, PROLIFIC_BONUS_SETUPS.c.study_id == participant.hit_id)]
+    return []
+
+
+def _setups_of(participant: Any) -> Any:
+    return select(PROLIFIC_BONUS_SETUPS.c.id).where(
+        PROLIFIC_BONUS_SETUPS.c.study_id == participant.hit_id
+    )
+
+
+def id_pattern(raw_ids: dict[str, str]) -> re.Pattern[str]:
+    """The raw ids as whole tokens (ids are letters, digits, _ and -: a longer id that contains
+    one is another id, left alone)."""
+    alternatives = "|".join(re.escape(raw) for raw in sorted(raw_ids, key=len, reverse=True))
+    return re.compile(rf"(?<![A-Za-z0-9_\-])(?:{alternatives})(?![A-Za-z0-9_\-])")
+
+
+def _replaced(value: Any, pattern: re.Pattern[str], raw_ids: dict[str, str]) -> Any:
+    if isinstance(value, str):
+        return pattern.sub(lambda m: raw_ids[m.group(0)], value)
+    if isinstance(value, dict):
+        return {k: _replaced(v, pattern, raw_ids) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_replaced(v, pattern, raw_ids) for v in value]
+    return value
+
+
+def rewrite_ids(c: Connection, table: Table, where: Any, raw_ids: dict[str, str]) -> int:
+    """Replace each raw id (a key of ``raw_ids``) by its value in every text cell of
+    ``table``'s rows matching ``where``; returns how many rows changed."""
+    columns = [c for c in table.columns if isinstance(c.type, String | Text | JSON)]
+    if not columns or not raw_ids:
+        return 0
+    pattern = id_pattern(raw_ids)
+    keys = list(table.primary_key.columns)
+    changed = 0
+    for row in c.execute(select(*keys, *columns).where(where)).mappings().all():
+        values = {
+            column.name: new
+            for column in columns
+            if (new := _replaced(row[column.name], pattern, raw_ids)) != row[column.name]
+        }
+        if values:
+            c.execute(update(table).where(*(key == row[key.name] for key in keys)).values(values))
+            changed += 1
+    return changed

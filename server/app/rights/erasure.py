@@ -161,16 +161,14 @@ def erase(
     ]
     statements.append(("participants", delete(Participant).where(Participant.id == participant_id)))
     rows = {}
-    for table, statement in statements:
-        rows[table] = int(
-            c.execute(statement.execution_options(synchronize_session=False)).rowcount
-        )
+    for name, statement in statements:
+        rows[name] = int(c.execute(statement.execution_options(synchronize_session=False)).rowcount)
     if participant["identifiers_scrubbed_at"] is None:
         # Rows that name them among others keep the others' ids, theirs under a pseudonym.
         named = {participant["worker_id"]: worker, participant["assignment_id"]: assignment}
         raw_ids = {raw: str(alias) for raw, alias in named.items() if raw and alias}
-        for table, where in shared_replica_rows(record):
-            rewrite_ids(c, table, where, raw_ids)
+        for shared, where in shared_replica_rows(record):
+            rewrite_ids(c, shared, where, raw_ids)
     erasure_id = add(
         c,
         ERASURES,

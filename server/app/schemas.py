@@ -299,6 +299,30 @@ class ReviewRequest(Body):
         return None if value is None else message_text(value, "message")
 
 
+class BulkApprovalRequest(Body):
+    """Approve several participants' submitted work at once (each once, as one approval)."""
+
+    participant_ids: list[Annotated[int, Field(ge=1, le=2**31 - 1)]] = Field(
+        min_length=1,
+        max_length=1000,
+        description="The participants to approve (at most 1,000, as Prolific recommends).",
+    )
+    message: str | None = Field(None, max_length=1024, description="Shown to each participant.")
+
+    @field_validator("message", mode="after")
+    @classmethod
+    def _shown_text(cls, value: str | None) -> str | None:
+        return None if value is None else message_text(value, "message")
+
+
+class BulkApprovalView(BaseModel):
+    """What a bulk approval did: each participant approved (or approved before), or refused
+    with the reason; one refusal stops none of the others."""
+
+    approved: list[int]
+    refused: dict[int, str] = Field(description="Participant -> why their approval failed.")
+
+
 class BonusRequest(Body):
     """Pay the participant a bonus for the submitted work."""
 

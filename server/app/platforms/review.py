@@ -296,6 +296,13 @@ def review_submission(
             )
             .values(state="done", decided_at=utcnow())
         )
+        if backend.platform == "prolific":
+            # Prolific's status of the submission is now ours (its webhook says it again).
+            s.execute(
+                update(Participant)
+                .where(Participant.id == participant_id)
+                .values(prolific_status="APPROVED" if decision == "approved" else "REJECTED")
+            )
 
 
 def pay_bonus(

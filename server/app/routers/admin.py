@@ -23,6 +23,8 @@ from server.app.schemas import (
     AdminSession,
     BonusRequest,
     BonusView,
+    BulkApprovalRequest,
+    BulkApprovalView,
     ExclusionRequest,
     QueueView,
     ReplicaAssignmentView,
@@ -261,6 +263,23 @@ def approve(participant_id: RowId, body: ReviewRequest, state: StateDep) -> Admi
     """Approve the participant's submitted work on their platform (``BAM_REVIEW_BACKEND``),
     once; a repeat answers the same."""
     return _decide(participant_id, "approved", body, state)
+
+
+@router.post("/approvals", response_model=BulkApprovalView)
+def approve_many(body: BulkApprovalRequest, state: StateDep) -> BulkApprovalView:
+    """Approve several participants' submitted work: each as its own approval (recorded before
+    the platform's call, once; a repeat answers the same), so that one refusal (a participant
+    rejected before, or not submitted) stops none of the others."""
+    approved: list[int] = []
+    refused: dict[int, str] = {}
+    for participant_id in dict.fromkeys(body.participant_ids):
+        try:
+            _decide(participant_id, "approved", ReviewRequest(message=body.message), state)
+        except ApiError as error:
+            refused[participant_id] = error.message
+        else:
+            approved.append(participant_id)
+    return BulkApprovalView(approved=approved, refused=refused)
 
 
 @router.post("/participants/{participant_id}/rejection", response_model=AdminParticipantDetail)

@@ -176,7 +176,7 @@ def test_the_queue_shows_updates_pending_and_the_oldest_wait(
     session = participant.act("/api/participant/start")["participant"]["current_session_id"]
     wait_for_updates(db)  # its first update done: nothing of the server's changes the mark
     # As if the participant had been waiting 12.5 s for the agent after their fifth episode.
-    manager._awaited[session] = (manager._loop.time() - 12.5, 5)
+    manager.order._awaited[session] = (manager.order.loop.time() - 12.5, 5)
     queue = full_client.get("/api/admin/queue", headers=ADMIN).json()
     assert queue["sessions_awaited"] == 1 and queue["oldest_wait_seconds"] >= 12.5
     assert queue["participants_active"] == 1 and queue["limit"] == 2

@@ -457,7 +457,7 @@ def test_an_update_lost_with_the_scheduler_runs_on_the_next_one(
     the Dask client waits for them; a new scheduler at the same address and a new worker: the
     update was kept pending and runs there, every update of the participant is done, once
     each, with nothing lost, and the new worker was warmed up."""
-    from server.app.updates import manager as updates
+    from server.app.updates import runners as updates
 
     monkeypatch.setattr(updates, "CLUSTER_WATCH_SECONDS", 1.0)
     port = free_port()

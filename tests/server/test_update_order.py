@@ -17,8 +17,7 @@ from server.app.main import create_app
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import LearnerUpdate, LearningSession
-from server.app.updates.manager import UpdateManager
-from server.app.updates.policies import PolicyCache
+from server.app.updates.queue import UpdateQueue
 from server.app.updates.worker import run_update
 from server.domains import make
 from server.domains.base import ACTIONS
@@ -29,38 +28,34 @@ BOUND = 60.0  # seconds: a generous bound on anything that should happen at once
 
 
 class Scripted:
-    """An ``UpdateManager`` whose updates are held until released, on one slot, recording the
+    """The update queue with one slot whose updates are held until released, recording the
     order in which sessions were dispatched. Session ``s`` has ``pending[s]`` updates."""
 
-    def __init__(self, loop: asyncio.AbstractEventLoop, pending: dict[int, int]) -> None:
-        db: Any = None
-        self.manager = manager = UpdateManager(db, PolicyCache(), lambda n: {})
-        manager._capacity = 1
+    def __init__(self, pending: dict[int, int]) -> None:
+        self.queue = UpdateQueue(lambda session_id: self.processed[session_id])
+        self.queue.start()
         self.pending = pending
         self.processed = dict.fromkeys(pending, 0)
         self.order: list[int] = []
         self.release = asyncio.Event()
         self.started = asyncio.Event()
-        manager._loop = loop
-        manager._wake = asyncio.Event()
-        manager._slots = asyncio.Semaphore(1)
-        manager._process = self._process  # type: ignore[method-assign]
-        manager._processed_in_db = lambda session_id: self.processed[session_id]  # type: ignore
 
-    async def _process(self, session_id: int) -> None:
-        manager = self.manager
-        more = False
-        try:
-            if self.processed[session_id] < self.pending[session_id]:
-                self.order.append(session_id)
-                self.started.set()
-                await self.release.wait()
-                self.release.clear()
-                self.processed[session_id] += 1
-                more = self.processed[session_id] < self.pending[session_id]
-            manager._notify(session_id, self.processed[session_id])
-        finally:
-            manager._finish(session_id, more)
+    async def dispatch(self) -> None:
+        """One slot: the next session's update runs once the one before ended."""
+        while True:
+            session_id = await self.queue.take()
+            more = False
+            try:
+                if self.processed[session_id] < self.pending[session_id]:
+                    self.order.append(session_id)
+                    self.started.set()
+                    await self.release.wait()
+                    self.release.clear()
+                    self.processed[session_id] += 1
+                    more = self.processed[session_id] < self.pending[session_id]
+                self.queue.notify(session_id, self.processed[session_id])
+            finally:
+                self.queue.finish(session_id, more)
 
     async def next_started(self) -> None:
         await asyncio.wait_for(self.started.wait(), BOUND)
@@ -80,25 +75,24 @@ def run_apart(scenario: Callable[[], Any]) -> Any:
 
 def test_an_update_someone_waits_for_goes_before_one_nobody_waits_for() -> None:
     async def scenario() -> tuple[list[int], dict[int, tuple[float, int]], list[bool]]:
-        loop = asyncio.get_running_loop()
-        script = Scripted(loop, {1: 1, 2: 2, 3: 1, 4: 1, 5: 1})
-        manager = script.manager
-        dispatcher = asyncio.ensure_future(manager._dispatch())
-        manager._enqueue_many([1])  # runs at once: the one slot is free
+        script = Scripted({1: 1, 2: 2, 3: 1, 4: 1, 5: 1})
+        queue = script.queue
+        dispatcher = asyncio.ensure_future(script.dispatch())
+        queue.enqueue_many([1])  # runs at once: the one slot is free
         await script.next_started()
-        manager._enqueue_many([2, 3])  # queued in this order, nobody waiting
+        queue.enqueue_many([2, 3])  # queued in this order, nobody waiting
         # Session 4's agent step waits, gives up (503) and its participant retries later:
         # the wait was for nothing meanwhile, but the session stays awaited.
-        gave_up = await manager.wait(4, 1, timeout=0.05)
-        manager._expect(3, 1)  # session 3's participant lets its agent try, after 4's wait
-        manager._enqueue_many([5])
+        gave_up = await queue.wait(4, 1, timeout=0.05)
+        queue.mark_awaited(3, 1)  # session 3's participant lets its agent try, after 4's wait
+        queue.enqueue_many([5])
         await script.step()  # 1 done: 4 (awaited first), not 2 (queued first)
         await script.step()  # 4 done: 3 (awaited second)
-        marks = dict(manager._awaited)
+        marks = queue.awaited()
         await script.step()  # 3 done: nobody waits; 2 then 5 in the order they were queued
         await script.step()  # 2's first update done: 5 was queued before 2 came back
         await script.step()
-        waited = [await manager.wait(s, 1, timeout=BOUND) for s in (1, 3, 4, 5)]
+        waited = [await queue.wait(s, 1, timeout=BOUND) for s in (1, 3, 4, 5)]
         script.release.set()
         await asyncio.sleep(0)
         dispatcher.cancel()
@@ -114,14 +108,13 @@ def test_an_update_someone_waits_for_goes_before_one_nobody_waits_for() -> None:
 
 def test_a_session_awaited_for_a_later_update_stays_first_until_that_one_is_done() -> None:
     async def scenario() -> list[int]:
-        loop = asyncio.get_running_loop()
-        script = Scripted(loop, {1: 1, 2: 3, 3: 1})
-        manager = script.manager
-        dispatcher = asyncio.ensure_future(manager._dispatch())
-        manager._enqueue_many([1])
+        script = Scripted({1: 1, 2: 3, 3: 1})
+        queue = script.queue
+        dispatcher = asyncio.ensure_future(script.dispatch())
+        queue.enqueue_many([1])
         await script.next_started()
-        manager._enqueue_many([3])
-        manager._expect(2, 3)  # the agent after episode 3 is awaited: three updates
+        queue.enqueue_many([3])
+        queue.mark_awaited(2, 3)  # the agent after episode 3 is awaited: three updates
         for _ in range(4):
             await script.step()
         script.release.set()

@@ -382,37 +382,29 @@ def test_a_waiter_wakes_on_its_own_update_at_once_and_polls_for_other_processes(
     poll; and a wait with neither ends False at its timeout."""
     import asyncio
 
-    from server.app.updates import manager as updates_module
-    from server.app.updates.policies import PolicyCache
+    from server.app.updates import queue as queue_module
 
     class FakeDb:
         processed = -1
 
-    def manager_on(loop: asyncio.AbstractEventLoop) -> updates_module.UpdateManager:
-        db: Any = FakeDb()
-        manager = updates_module.UpdateManager(db, PolicyCache(), lambda name: {})
-        manager._loop = loop
-        manager._wake = asyncio.Event()
-        manager._processed_in_db = lambda session_id: FakeDb.processed  # type: ignore
-        return manager
-
     async def scenario() -> tuple[bool, float, bool, float, bool, float]:
         loop = asyncio.get_running_loop()
-        manager = manager_on(loop)
-        monkeypatch.setattr(updates_module, "DB_POLL_SECONDS", 60.0)
+        queue = queue_module.UpdateQueue(lambda session_id: FakeDb.processed)
+        queue.start()
+        monkeypatch.setattr(queue_module, "DB_POLL_SECONDS", 60.0)
         started = loop.time()
-        loop.call_later(0.2, manager._notify, 7, 1)
-        woken = await manager.wait(7, 1, timeout=10.0)
+        loop.call_later(0.2, queue.notify, 7, 1)
+        woken = await queue.wait(7, 1, timeout=10.0)
         notified_after = loop.time() - started
 
-        monkeypatch.setattr(updates_module, "DB_POLL_SECONDS", 0.2)
+        monkeypatch.setattr(queue_module, "DB_POLL_SECONDS", 0.2)
         started = loop.time()
         loop.call_later(0.3, setattr, FakeDb, "processed", 2)
-        found = await manager.wait(8, 2, timeout=10.0)
+        found = await queue.wait(8, 2, timeout=10.0)
         polled_after = loop.time() - started
 
         started = loop.time()
-        timed_out = await manager.wait(9, 5, timeout=0.5)
+        timed_out = await queue.wait(9, 5, timeout=0.5)
         waited = loop.time() - started
         return woken, notified_after, found, polled_after, timed_out, waited
 
@@ -459,12 +451,10 @@ def test_update_processes_start_with_the_server_and_load_their_kernels_first(
         manager = UpdateManager(database, PolicyCache(), lambda name: {}, workers=2, niceness=0)
         await manager.start()
         try:
-            assert manager._executor is not None
-            started = len(manager._executor._processes)  # type: ignore[attr-defined]
-            probes = [
-                await asyncio.wrap_future(manager._executor.submit(loaded_kernels))
-                for _ in range(3)
-            ]
+            executor = getattr(manager.runner, "executor", None)
+            assert executor is not None
+            started = len(executor._processes)
+            probes = [await asyncio.wrap_future(executor.submit(loaded_kernels)) for _ in range(3)]
         finally:
             await manager.stop()
         return started, probes

@@ -32,7 +32,7 @@ from server.app.state import ServerState
 from server.app.storage.db import Database
 from server.app.storage.models import utcnow
 from server.app.storage.records import load
-from server.app.updates.manager import QueueState
+from server.app.updates.queue import QueueState
 
 WAITING = "waiting"
 LINE_SECONDS = 60.0  # a waiting page asks every few seconds: silent this long, it was closed

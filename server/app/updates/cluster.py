@@ -11,7 +11,7 @@ A worker that dies during an update: the scheduler gives the update to another w
 the server records the death as one failed attempt, as it does for a local process that
 dies. An update whose workers die more often than the scheduler allows
 (``distributed.scheduler.allowed-failures``, 3 by default) comes back as ``KilledWorker``: the
-server records those attempts and runs it again until ``MAX_ATTEMPTS``.
+server records those attempts and runs it again until ``store.MAX_ATTEMPTS``.
 """
 
 from __future__ import annotations

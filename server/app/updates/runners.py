@@ -1,0 +1,235 @@
+"""Where the learner updates run: a pool of local processes (``LocalUpdates``) or the workers of
+a Dask cluster (``ClusterUpdates``, ``BAM_UPDATE_SCHEDULER``). Both run ``run_update`` on a job's
+payload, say when they are warm (the server is ready once they are) and how many updates they
+run side by side; the manager (``server.app.updates.manager``) keeps the order."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable, Coroutine
+from concurrent.futures import Executor
+from concurrent.futures.process import BrokenProcessPool
+from typing import TYPE_CHECKING, Any, Protocol
+
+from server.app.updates.capacity import measure_update_cost
+from server.app.updates.pool import WorkerDied, new_executor
+from server.app.updates.worker import run_update, worker_ready
+from server.cores import available_cores, share_threads
+
+if TYPE_CHECKING:
+    from server.app.updates.cluster import UpdateCluster
+
+log = logging.getLogger("bam_study.updates")
+
+CLUSTER_WATCH_SECONDS = 10.0  # how often a ready server asks its Dask cluster about the workers
+
+Spawn = Callable[[Coroutine[Any, Any, Any]], "asyncio.Task[Any]"]
+
+
+class Runner(Protocol):
+    workers: int  # update processes, or the cluster's worker threads
+    warm_processes: int  # of those, known to have loaded the learners' kernels
+    ready: bool  # every one is warm
+
+    @property
+    def slots(self) -> int: ...
+
+    def start(self, spawn: Spawn) -> None: ...
+
+    async def run(self, payload: dict[str, Any], name: str) -> tuple[dict[str, Any], int]: ...
+
+    async def measure(self, request: dict[str, Any]) -> float: ...
+
+    async def stop(self) -> None: ...
+
+
+class LocalUpdates:
+    """Updates in a pool of processes on this machine (``BAM_UPDATE_WORKERS``), at a lower CPU
+    priority than the server; an update running alone splits its planner's tasks over
+    ``BAM_UPDATE_THREADS`` threads, updates side by side share them."""
+
+    def __init__(
+        self, workers: int, niceness: int, threads: int, executor: Executor | None = None
+    ) -> None:
+        self.workers = workers
+        self.niceness = niceness
+        self.threads = threads
+        self.executor = executor
+        self._own_executor = executor is None
+        self._in_flight = 0  # updates submitted to the processes and not yet returned
+        self._stopping = False
+        self.warm_processes = 0
+        self.ready = False
+
+    @property
+    def slots(self) -> int:
+        """Update processes up to this machine's cores."""
+        return max(1, min(self.workers, available_cores()))
+
+    def start(self, spawn: Spawn) -> None:
+        self._stopping = False
+        if self.executor is None:
+            self.executor = new_executor(self.workers, self.niceness)
+            self._start_workers()
+        spawn(self._await_warm())
+
+    async def stop(self) -> None:
+        self._stopping = True
+        if self._own_executor and self.executor is not None:
+            executor, self.executor = self.executor, None
+            # Updates not started stay pending in the database and run after the next start.
+            # The processes are waited for (one in an update finishes it), and the pool's
+            # queues released: a server stopped by a signal ends right after this, without
+            # Python's exit handlers, and their semaphores would be reported leaked.
+            await asyncio.to_thread(executor.shutdown, wait=True, cancel_futures=True)
+
+    async def run(self, payload: dict[str, Any], name: str) -> tuple[dict[str, Any], int]:
+        """``run_update`` in an update process, its planner given this server's threads shared
+        among the updates running with it: its outcome, and no death. Raises ``WorkerDied``
+        when the process running it died (the pool is replaced)."""
+        executor = self.executor
+        assert executor is not None
+        self._in_flight += 1
+        try:
+            # The updates in flight, this one included, share the threads.
+            threads = share_threads(self.threads, self._in_flight)
+            outcome = await asyncio.wrap_future(
+                executor.submit(run_update, {**payload, "threads": threads})
+            )
+        except BrokenProcessPool:
+            self._replace_executor(executor)
+            raise WorkerDied() from None
+        finally:
+            self._in_flight -= 1
+        return outcome, 0
+
+    async def measure(self, request: dict[str, Any]) -> float:
+        assert self.executor is not None
+        return float(await asyncio.wrap_future(self.executor.submit(measure_update_cost, request)))
+
+    def _replace_executor(self, broken: Executor) -> None:
+        if self._stopping:  # no new workers while shutting down: they would outlive the server
+            return
+        if self.executor is broken:
+            self._own_executor = True
+            self.executor = new_executor(self.workers, self.niceness)
+            self._start_workers()
+            broken.shutdown(wait=False, cancel_futures=True)
+
+    def _start_workers(self) -> None:
+        """Start every update process now (a process pool starts one when a job finds none
+        idle), so that they are warmed up before the first participant's update."""
+        assert self.executor is not None
+        for _ in range(self.workers):
+            self.executor.submit(worker_ready)
+
+    async def _await_warm(self) -> None:
+        """Until every update process answers a job, which it takes only once it has loaded
+        (or compiled) the learners' kernels: then the server is ready (``/api/health``)."""
+        began = time.monotonic()
+        log.info(
+            "waiting for %d update process(es) to load the learners' compiled kernels (where "
+            "numba's cache lacks them, as on a first start, they are compiled: about half a "
+            "minute on two free cores); "
+            "/api/health answers 503 until then",
+            self.workers,
+        )
+        seen: set[int] = set()
+        pool = self.executor
+        while len(seen) < self.workers:
+            executor = self.executor
+            assert executor is not None
+            if executor is not pool:  # replaced: its processes are new
+                seen.clear()
+                pool = executor
+            try:
+                jobs = [executor.submit(worker_ready, 0.2) for _ in range(self.workers)]
+                for done in asyncio.as_completed([asyncio.wrap_future(job) for job in jobs]):
+                    seen.add(await done)
+                    self.warm_processes = min(len(seen), self.workers)
+            except asyncio.CancelledError:
+                raise
+            except Exception:  # a broken pool is replaced when an update finds it broken
+                await asyncio.sleep(0.5)
+        self.ready = True
+        log.info(
+            "update processes ready after %.1f s: the server is ready",
+            time.monotonic() - began,
+        )
+
+
+class ClusterUpdates:
+    """Updates on the workers of a Dask cluster (``server.app.updates.cluster``): as many side
+    by side as the workers have threads, followed as workers come and go (``resize``)."""
+
+    def __init__(self, cluster: UpdateCluster, workers: int, resize: Callable[[int], None]) -> None:
+        self.cluster = cluster
+        self.workers = workers
+        self.resize = resize
+        self.warm_processes = 0
+        self.ready = False
+
+    @property
+    def slots(self) -> int:
+        return max(1, self.workers)
+
+    def start(self, spawn: Spawn) -> None:
+        spawn(self._watch(spawn))
+
+    async def stop(self) -> None:
+        return None
+
+    async def run(self, payload: dict[str, Any], name: str) -> tuple[dict[str, Any], int]:
+        """The outcome, and how many workers died running it before it came back."""
+        outcome, deaths = await self.cluster.run(run_update, payload, name)
+        return outcome, deaths
+
+    async def measure(self, request: dict[str, Any]) -> float:
+        seconds, _ = await self.cluster.run(
+            measure_update_cost, request, "learner-update-reference"
+        )
+        return float(seconds)
+
+    async def _watch(self, spawn: Spawn) -> None:
+        """Follow the cluster's workers: as many updates at once as they have threads, and
+        the server ready (``/api/health``) once there are workers and every one is warm."""
+        began = time.monotonic()
+        log.info(
+            "waiting for the workers of the Dask cluster at %s to load the learners' compiled "
+            "kernels; /api/health answers 503 until then",
+            self.cluster.address,
+        )
+        warming: asyncio.Task[None] | None = None
+        while True:
+            try:
+                workers = await asyncio.to_thread(self.cluster.workers)
+            except asyncio.CancelledError:
+                raise
+            except Exception as error:
+                log.warning("could not ask the Dask cluster for its workers: %s", error)
+                await asyncio.sleep(CLUSTER_WATCH_SECONDS)
+                continue
+            # At the start, and after the scheduler was replaced: its workers are to warm up.
+            if not workers.warm_up_registered and (warming is None or warming.done()):
+                warming = spawn(self._warm_up())
+            self.workers = workers.threads
+            self.warm_processes = workers.warm_threads
+            self.resize(workers.threads)
+            if not self.ready and workers.threads and workers.warm_threads == workers.threads:
+                self.ready = True
+                log.info(
+                    "%d Dask worker thread(s) ready after %.1f s: the server is ready",
+                    workers.threads,
+                    time.monotonic() - began,
+                )
+            await asyncio.sleep(CLUSTER_WATCH_SECONDS if self.ready else 0.5)
+
+    async def _warm_up(self) -> None:
+        try:
+            await asyncio.to_thread(self.cluster.warm_up_workers)
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            log.exception("could not ask the Dask cluster's workers to warm up")

@@ -32,11 +32,12 @@ from tests.server.conftest import (
     Participant,
     demonstrate_each_task,
     live,
-    make_settings,
     study_config,
 )
 from tests.server.test_prolific import REASON, Crash, CrashesAroundPay, draft
-from tests.server.test_prolific_sync import SECRET
+
+# The replica's webhooks are signed with the server's secret, as Prolific's are.
+from tests.server.test_prolific_sync import settings as settings
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
 DOMAINS = ("navigation", "farming", "gravity")
@@ -60,14 +61,6 @@ def study() -> StudyConfig:
             "prolific_code": "C1A2B3C4",
             "prolific_no_consent_code": "NOCONSNT",
         },
-    )
-
-
-@pytest.fixture
-def settings(db: Database) -> Settings:
-    """The replica's webhooks are signed with the server's secret, as Prolific's are."""
-    return make_settings(
-        db.engine.url.render_as_string(hide_password=False), prolific_webhook_secret=SECRET
     )
 
 

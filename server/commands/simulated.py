@@ -55,12 +55,18 @@ class TeachingPlan:
     agent_step_seconds: float = 0.0  # pause before each agent step (the page's animation)
     episode_pause_seconds: float = 0.0  # pause before each episode (look, choose, reset)
     retry_seconds: float = 120.0  # keep retrying a request this long (server restarts)
+    # How decisive the + and - are: A-SABL's alpha on the move's advantage (1.0: the paper's
+    # simulated teacher, whose + and - agree with the move's worth only a little more often
+    # than chance; 10: a person who judges each move and seldom errs)
+    feedback_alpha: float = 1.0
     # careful: the teacher above; key-masher: random moves and random + or - on every agent
     # move; idle: careful, but away for idle_seconds before each agent
     kind: str = "careful"
     idle_seconds: float = 0.0
 
     def __post_init__(self) -> None:
+        if not self.feedback_alpha > 0:
+            raise ValueError(f"feedback_alpha must be above 0, got {self.feedback_alpha!r}")
         if self.kind not in PARTICIPANT_KINDS:
             raise ValueError(
                 f"kind must be one of {', '.join(PARTICIPANT_KINDS)}, got {self.kind!r}"
@@ -330,6 +336,7 @@ class SimulatedParticipant:
             env,
             seed=int(self.rng.integers(2**31)),
             mistake_probability=1.0 if masher else self.plan.mistake_probability,
+            alpha=self.plan.feedback_alpha,
         )
         if self.plan.kind == "idle":
             time.sleep(self.plan.idle_seconds)

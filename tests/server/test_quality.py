@@ -29,6 +29,7 @@ CAREFUL = TeachingPlan(
     max_agent_steps=12,
     think_seconds=0.15,
     agent_step_seconds=0.15,
+    feedback_alpha=10.0,  # a person who judges each of the agent's moves
 )
 MASHER = TeachingPlan(
     kind="key-masher",
@@ -99,9 +100,16 @@ def test_each_check_separates_careful_teachers_from_key_mashers_and_idle_partici
         "masher": [True],
         "idle": [False],
     }
-    # Feedback consistency is reported but not asserted here: the simulated careful teacher's
-    # feedback (A-SABL on its Q) agrees with the sign of the move's advantage too seldom
-    # (0.47 to 0.78 in one run) to be told apart from random + and - at these sample sizes.
+    # Feedback: a careful teacher's + and - agree with the worth of the agent's move; random
+    # + and - agree about half the time.
+    consistent = by_kind(quality, ids, "consistent_feedback_share")
+    assert min(consistent["careful"] + consistent["idle"]) >= 0.8, consistent
+    assert consistent["masher"][0] is None or consistent["masher"][0] < 0.6, consistent
+    assert by_kind(quality, ids, "inconsistent_feedback") == {
+        "careful": [False] * 4,
+        "masher": [consistent["masher"][0] is not None],
+        "idle": [False],
+    }, quality.to_string()
     # No flag but the completion time makes a Prolific ground; poor teaching is none.
     grounds = quality.set_index("participant_id")["prolific_ground"]
     assert set(grounds.drop(5)) == {"none"}

@@ -3,7 +3,8 @@ terrain, vines, and a machine, the trellis, with colours of its own. The partici
 the dashboard's replay draw them in the study's colours with their names (a pattern and an
 initial on every vines cell, a machine picture with its initial and name for the trellis), the
 legend names them, the robot picks the trellis up by keyboard and enters the vines with it, and
-axe finds nothing wrong with the page."""
+axe finds nothing wrong with the page. A gravity study's own colour gets its colour, a pattern
+and its letter as the built-in colours do."""
 
 from __future__ import annotations
 
@@ -25,7 +26,9 @@ from tests.browser.conftest import (
     Watch,
     admin_login,
     axe_violations,
+    domain_toml,
     run_live_server,
+    study_toml,
 )
 
 pytestmark = pytest.mark.browser
@@ -231,4 +234,64 @@ def test_the_dashboard_replays_a_vineyard_session_in_the_study_s_drawing(
     expect(agent).to_have_attribute("data-feature", "trellis")
     expect(agent).to_have_attribute("data-state", str(trellis_state()))
     assert agent.locator(".agent-badge rect.machine-body").evaluate(GROUND) == TRELLIS
+    watch.check()
+
+
+# -- a gravity study with a colour of its own ---------------------------------------------------
+GRAVITY_STUDY = """
+[environments.sunset]
+family = "gravity"
+gravity_colours = { r = "sky blue" }
+colours = { "sky blue" = "#56B4E9" }
+map = '''
+task: Corner = A
+start: rows 3
+gravity of orange: north
+gravity of sky blue: west
+    012345
+  0 A.....
+  1 .o..r.
+  2 ......
+  3 ......
+'''
+"""
+
+
+@pytest.fixture(scope="module")
+def gravity_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+    config = study_toml(
+        mode="lab",
+        domains_toml=GRAVITY_STUDY + domain_toml("gravity", "sunset"),
+        learners='["cloning"]',
+        agents=1,
+        allow_anonymous=True,
+        tutorial=False,
+    )
+    yield from run_live_server(tmp_path_factory.mktemp("sunset-study"), config)
+
+
+def test_a_study_s_own_gravity_colour_has_its_colour_pattern_and_letter(
+    page: Page, gravity_server: LiveServer
+) -> None:
+    watch = Watch(gravity_server.url).attach(page)
+    page.goto(f"{gravity_server.url}/study")
+    page.click('[data-action="agree"]')
+    page.click('[data-action="start"]')
+    expect(Study(page).teach).to_have_attribute("data-environment", "sunset", timeout=WAIT_MS)
+    grid = page.locator("svg.grid")
+    own = grid.locator("g.gravity-cell.gravity-sky-blue")
+    expect(own).to_have_count(1)
+    expect(own).to_have_attribute("data-colour", "#56B4E9")
+    assert own.locator(":scope > rect").evaluate(GROUND) == "#56B4E9"
+    expect(own.locator("text")).to_have_text("S")
+    expect(own.locator("title")).to_have_text("sky blue cell")  # the gravity stays hidden
+    orange = grid.locator("g.gravity-cell.gravity-orange")
+    expect(orange.locator("text")).to_have_text("O")
+    assert orange.locator(":scope > rect").get_attribute("fill") != own.locator(
+        ":scope > rect"
+    ).get_attribute("fill")
+    legend = page.locator(".legend li > span")
+    expect(legend.filter(has_text="Sky blue")).to_have_text("Sky blue cell (S): sets the gravity")
+    expect(page.get_by_test_id("grid-text")).to_contain_text("A sky blue cell (S) at row 2")
+    assert axe_violations(page) == []
     watch.check()

@@ -66,6 +66,11 @@ export function decodeState(env, state) {
   return described;
 }
 
+/** A name as one CSS class word ("sky blue" -> "sky-blue"). */
+function slug(name) {
+  return String(name).replace(/\s+/g, "-");
+}
+
 /** A study's own kind's initial: its first letter, or its first two when that letter is taken
  * (by a built-in gravity colour's letter or an earlier kind). */
 function initialOf(name, used) {
@@ -356,7 +361,7 @@ export class GridView {
         const cell = svg("rect", {
           x: c * C, y: r * C, width: C, height: C,
           fill: terrain === "wall" ? `url(#${prefix}-wall)` : fillOf(prefix, terrain, env),
-          class: `cell cell-${terrain}`,
+          class: `cell cell-${slug(terrain)}`,
         }, layer);
         const own = ownKind(env, "terrain", terrain);
         if (own) {
@@ -381,7 +386,7 @@ export class GridView {
       const direction = this.reveal ? env.gravity_of_colour[colour] : null;
       const g = svg("g", {
         transform: `translate(${column * C} ${row * C})`,
-        class: `gravity-cell gravity-${colour}`,
+        class: `gravity-cell gravity-${slug(colour)}`,
         "data-direction": direction,
       }, layer);
       const own = ownKind(env, "colour", colour);

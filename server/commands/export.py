@@ -40,8 +40,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--study",
         type=Path,
-        help="minari: the study file named in the datasets' metadata (default: "
-        "BAM_STUDY_CONFIG, else the paper's study)",
+        help="the study file (default: BAM_STUDY_CONFIG, else the paper's study): the export "
+        "knows its own environments from it, and minari names it in the datasets' metadata",
     )
 
 
@@ -50,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
     from server.app.export.tables import export_tables, open_study_database, write_export
     from server.app.settings import SettingsError, load_settings
     from server.app.storage import db as database
+    from server.commands.studies import StudyEnvironmentsError, register_study
     from server.rl.datasets import DatasetError, check_out_folder
 
     try:
@@ -58,13 +59,22 @@ def run(args: argparse.Namespace) -> int:
         print(f"bam-study export: {error}", file=sys.stderr)
         return 2
     minari = args.format == "minari"
-    if not minari and (args.include_excluded or args.study is not None):
+    if not minari and args.include_excluded:
         print(
-            "bam-study export: --include-excluded and --study apply to --format minari only "
+            "bam-study export: --include-excluded applies to --format minari only "
             "(the CSVs mark exclusions in participants.csv)",
             file=sys.stderr,
         )
         return 2
+    study_file = args.study or settings.study_config
+    if study_file is not None:
+        try:
+            # The study's own environments: the episodes' tasks and the quality of the
+            # actions are read from them.
+            register_study(study_file)
+        except StudyEnvironmentsError as error:
+            print(f"bam-study export: {error}", file=sys.stderr)
+            return 1
     if minari:
         try:
             check_out_folder(args.out)  # before any work: an older export stays as it is
@@ -90,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
             from server.app.export.minari import StudyFile, study_datasets
             from server.rl.datasets import write_datasets
 
-            study = StudyFile.read(args.study or settings.study_config or DEFAULT_STUDY_CONFIG)
+            study = StudyFile.read(study_file or DEFAULT_STUDY_CONFIG)
             datasets = study_datasets(
                 db,
                 study,
@@ -105,7 +115,10 @@ def run(args: argparse.Namespace) -> int:
         tables = export_tables(db, pseudonymize=args.pseudonymize, secret=secret)
         written = write_export(tables, args.out)
     except Exception as error:
-        print(f"bam-study export: {error}", file=sys.stderr)
+        hint = ""
+        if study_file is None and str(error).startswith("unknown environment"):
+            hint = " (the study's own environments: give its file with --study or BAM_STUDY_CONFIG)"
+        print(f"bam-study export: {error}{hint}", file=sys.stderr)
         return 1
     finally:
         db.dispose()

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from server.domains.base import NUM_ACTIONS, Environment, SoftmaxRowsModel, Task
+from server.domains.drawing import drawing
 from server.domains.grid import (
     GridMap,
     Successor,
@@ -193,6 +194,11 @@ def build(
         {"row": row, "column": column, "machine": machine}
         for (row, column), machine in sorted(machine_of_cell.items())
     ]
+    layout["drawing"] = drawing(
+        terrains,
+        {machine: rules.terrain_of_machine[machine] for machine in machines},
+        palette=rules.palette,
+    )
     return make_environment(
         name=name,
         domain=DOMAIN,

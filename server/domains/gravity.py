@@ -30,6 +30,7 @@ from server.domains.base import (
     SoftmaxRowsModel,
     Task,
 )
+from server.domains.drawing import drawing
 from server.domains.grid import (
     GridMap,
     Successor,
@@ -169,6 +170,7 @@ def build(
         for (row, column), colour in sorted(colour_of_cell.items())
     ]
     layout["gravity_of_colour"] = {colour: mapping[colour] for colour in groups}
+    layout["drawing"] = drawing(["floor"], colours=groups, palette=palette)
     return make_environment(
         name=name,
         domain=DOMAIN,

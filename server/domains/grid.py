@@ -34,7 +34,10 @@ for the browser page; plain lists, ints and strings only) has these keys in ever
   ``"green"``, ``"purple"`` (gravity only);
 - ``gravity_of_colour``: ``{colour: direction}``, the true hidden mapping of each colour
   present to ``"north"``, ``"south"``, ``"east"`` or ``"west"`` (gravity only; the server
-  decides whether to show it).
+  decides whether to show it);
+- ``drawing``: ``{"terrains", "machines", "colours"}``, each kind of the environment (its
+  terrains, its machines, its gravity colours) with its name for people and its colour
+  (``drawing.py``): the page draws a study's own kinds from it.
 """
 
 from __future__ import annotations

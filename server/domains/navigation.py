@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from server.domains.base import NUM_ACTIONS, Environment, SigmoidModel, Task
+from server.domains.drawing import drawing
 from server.domains.grid import (
     GridMap,
     Region,
@@ -94,6 +95,7 @@ def build(name: str, grid_map: GridMap, horizon_steps: int | None = None) -> Env
 
     layout = empty_layout(height, width, "floor")
     layout["walls"] = [[r, c] for r, c in walls]
+    layout["drawing"] = drawing(["floor", "wall"])
     return make_environment(
         name=name,
         domain=DOMAIN,

@@ -22,7 +22,7 @@ import numpy as np
 from gymnasium import spaces
 
 from server import domains
-from server.domains import farming, gravity, navigation
+from server.domains import drawing, farming, gravity, navigation
 from server.domains.base import Environment
 
 NAMESPACE = "BAMStudy"
@@ -63,28 +63,19 @@ def step_reward(env: Environment, task: int, state: int, next_state: int) -> flo
 
 
 def _palette() -> dict[str, tuple[int, int, int]]:
-    """The page's colours (server/static/js/grid.js; tests/rl checks they agree)."""
+    """The page's colours (``server.domains.drawing``, those of server/static/js/grid.js;
+    tests/rl checks they agree)."""
     hex_colours = {
-        "floor": "#f7f5f0",
-        "dirt": "#ecdcbc",
-        "soil": "#9a6a3f",
-        "grass": "#a8d88f",
-        "crops": "#e6bb45",
-        "wall": "#2f3542",
-        "orange": "#E69F00",
-        "green": "#009E73",
-        "purple": "#CC79A7",
-        "plow": "#6b7785",
-        "sprinkler": "#56B4E9",
-        "harvester": "#F0E442",
+        **drawing.COLOURS,
         "goal": "#ffffff",
         "outline": "#1f2328",
         "agent": "#0072B2",
     }
-    return {
-        key: (int(value[1:3], 16), int(value[3:5], 16), int(value[5:7], 16))
-        for key, value in hex_colours.items()
-    }
+    return {key: _rgb(value) for key, value in hex_colours.items()}
+
+
+def _rgb(hex_colour: str) -> tuple[int, int, int]:
+    return (int(hex_colour[1:3], 16), int(hex_colour[3:5], 16), int(hex_colour[5:7], 16))
 
 
 PALETTE = _palette()
@@ -260,10 +251,12 @@ class BAMStudyEnv(gym.Env[Any, np.int64]):
 
 
 def _own_colours(env: Environment) -> dict[str, tuple[int, int, int]]:
-    """The colours a study's environment gives its own terrains, machines and colours."""
+    """The colours of the environment's terrains, machines and colours as the page draws them
+    (``layout["drawing"]``: a study's own in its study's colours, else a spare one)."""
     return {
-        name: (int(value[1:3], 16), int(value[3:5], 16), int(value[5:7], 16))
-        for name, value in env.legend.get("palette", {}).items()
+        kind["name"]: _rgb(kind["colour"])
+        for kinds in env.layout.get("drawing", {}).values()
+        for kind in kinds
     }
 
 

@@ -122,30 +122,90 @@ def test_a_study_s_environment_is_a_gymnasium_id(forget: None) -> None:
 
 
 @pytest.mark.slow
-def test_demo_runs_the_office_study_end_to_end(tmp_path: Path, forget: None) -> None:
+@pytest.mark.parametrize("study", sorted(STUDIES))
+def test_demo_runs_the_example_study_end_to_end(
+    study: str,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    forget: None,
+) -> None:
     """``bam-study demo --study``: a server on SQLite, a simulated participant teaching the
-    office floor, the export and the analysis, with small learner settings."""
+    study's own environment (the office floor; the vineyard, with its vines and trellis), the
+    export and the analysis, with small learner settings; then ``bam-study export`` of its
+    database."""
     from server.commands.demo import DemoOptions, check, run_demo
 
+    name = STUDIES[study]
     options = DemoOptions(
         out=tmp_path / "demo",
         participants=1,
         concurrency=1,
         rounds=(1, 1),
         workers=1,
-        study=EXAMPLES / "office-study.toml",
+        study=EXAMPLES / f"{study}.toml",
         learner_settings="\n[learner_settings.bam]\nalternations = 1\ncost_steps = 5\n"
         "dynamics_steps = 5\n",
     )
     check(options)
     table = run_demo(options)
     assert "| BAM " in table and "| Behavioral Cloning " in table
-    with (options.out / "export" / "sessions.csv").open() as file:
-        sessions = [row for row in csv.DictReader(file) if row["environment"] == "office-floor"]
+    env = domains.make(name)
+    export = options.out / "export"
+    with (export / "sessions.csv").open() as file:
+        sessions = [row for row in csv.DictReader(file) if row["environment"] == name]
     assert sorted(row["learner"] for row in sessions) == ["bam", "cloning"]
-    with (options.out / "export" / "evaluations.csv").open() as file:
-        evaluations = [row for row in csv.DictReader(file) if row["environment"] == "office-floor"]
-    assert evaluations  # each agent's policy evaluated on the office floor
+    assert {row["domain"] for row in sessions} == {env.domain}
+    assert all(int(row["demonstrated_actions"]) > 0 for row in sessions)
+    with (export / "evaluations.csv").open() as file:
+        evaluations = [row for row in csv.DictReader(file) if row["environment"] == name]
+    # Each agent's policy evaluated on the study's environment: before teaching, then after.
+    by_session = {row["session_id"] for row in sessions}
+    assert {row["session_id"] for row in evaluations} == by_session
+    for session in by_session:
+        indices = sorted(int(r["update_index"]) for r in evaluations if r["session_id"] == session)
+        assert indices[0] == 0 and len(indices) >= 2
+    done = [row for row in evaluations if row["status"] == "done"]
+    assert done and all(0.0 <= float(row["normalized_return"]) <= 1.0 for row in done)
+    # The episodes name the study's tasks, and their states are states of its environment.
+    with (export / "episodes.csv").open() as file:
+        episodes = [row for row in csv.DictReader(file) if row["session_id"] in by_session]
+    assert episodes
+    assert {row["task_name"] for row in episodes} <= set(env.task_names)
+    assert all(0 <= int(row["end_state"]) < env.num_states for row in episodes)
+    if name == "vineyard":
+        # The teacher drove the trellis into the vines: the events' states say so.
+        with (export / "events.csv").open() as file:
+            states = [
+                int(row["next_state"])
+                for row in csv.DictReader(file)
+                if row["session_id"] in by_session and row["next_state"]
+            ]
+        on_vines = [
+            env.feature_names[env.feature_of(s)]
+            for s in states
+            if env.layout["terrain"][env.cell_of(s)[0]][env.cell_of(s)[1]] == "vines"
+        ]
+        assert on_vines and set(on_vines) == {"trellis"}
+
+    # ``bam-study export`` in a process that has not registered the study's environment (as a
+    # fresh one): refused with a hint without the study file; with it (--study or
+    # BAM_STUDY_CONFIG), the same tables as the demo's own export.
+    url = f"sqlite:///{options.out / 'study.sqlite'}"
+    monkeypatch.delenv("BAM_STUDY_CONFIG", raising=False)
+    domains.unregister(name)
+    assert main(["export", "--database-url", url, "--out", str(tmp_path / "without")]) == 1
+    error = capsys.readouterr().err
+    assert f"unknown environment {name!r}" in error and "--study or BAM_STUDY_CONFIG" in error
+    for how in ("option", "setting"):
+        argv = ["--study", str(options.study)] if how == "option" else []
+        if how == "setting":
+            domains.unregister(name)
+            monkeypatch.setenv("BAM_STUDY_CONFIG", str(options.study))
+        out = tmp_path / how
+        assert main(["export", "--database-url", url, "--out", str(out), *argv]) == 0
+        for table in ("sessions", "episodes", "events", "evaluations", "quality"):
+            assert (out / f"{table}.csv").read_text() == (export / f"{table}.csv").read_text()
 
 
 def test_a_study_s_teacher_datasets_are_minari_datasets(

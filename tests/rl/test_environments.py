@@ -320,6 +320,44 @@ def test_the_picture_uses_the_pages_colours() -> None:
     assert tuple(picture[soil_row * 16 + 1, soil_column * 16 + 1]) == PALETTE["soil"]
 
 
+def test_the_picture_draws_a_study_s_own_kinds_in_the_page_s_colours() -> None:
+    """The study's colour where it gives one, the page's spare colour where it does not (the
+    picture has a colour for every kind, as the page does)."""
+    from server.domains.drawing import SPARE_COLOURS
+    from server.domains.spec import EnvironmentSpec
+
+    text = """task: Vines = rows 1-2, columns 1-2
+task: Moss = rows 1-2, columns 4-5
+start: rows 3-4
+    0123456
+  0 .......
+  1 .vv.mm.
+  2 .vv.mm.
+  3 .......
+  4 T.Q....
+"""
+    env = EnvironmentSpec(
+        name="own-kinds",
+        family="farming",
+        map=text,
+        terrains={"v": "vines", "m": "moss"},
+        machines={"T": "trellis", "Q": "quad"},
+        works_on={"trellis": "vines", "quad": "moss"},
+        colours={"vines": "#6b8e23"},
+    ).build()
+    picture = BAMStudyEnv(env, render_mode="rgb_array").picture(show_agent=False)
+
+    def rgb(hex_colour: str) -> tuple[int, ...]:
+        return tuple(int(hex_colour[i : i + 2], 16) for i in (1, 3, 5))
+
+    drawn = {k["name"]: k["colour"] for kinds in env.layout["drawing"].values() for k in kinds}
+    assert drawn["vines"] == "#6b8e23" and drawn["moss"] in SPARE_COLOURS
+    # Outside the goal's outline (task 0 is the vines): the terrain's colour.
+    assert tuple(picture[1 * 16 + 1, 4 * 16 + 1]) == rgb(drawn["moss"])
+    assert tuple(picture[4 * 16 + 8, 0 * 16 + 8]) == rgb(drawn["trellis"])
+    assert tuple(picture[4 * 16 + 8, 2 * 16 + 8]) == rgb(drawn["quad"])
+
+
 def test_the_reward_is_counted_as_the_evaluation_counts_it() -> None:
     """A start on the goal and a first move off it, then staying: the two ways of counting
     (the states before each action, or after) differ by one here. The sampled return is the

@@ -1,6 +1,11 @@
 // Drawing of a grid world (SVG, scaled to its box): terrain, walls, machines, gravity colours,
 // the tasks' goals or fields, and the agent. Shared by the participant's page and the
 // dashboard's replay. Every colour has a pattern, a letter or a label beside it.
+//
+// The built-in terrains, machines and gravity colours have their own patterns and pictures
+// below. A study's own (the environment's ``drawing``, from the server) are drawn in their
+// colour: a terrain or gravity colour with one of OWN_PATTERNS and its initial on every cell, a
+// machine as a generic machine with its initial and its name.
 
 const NS = "http://www.w3.org/2000/svg";
 const C = 100; // one cell in SVG units
@@ -41,6 +46,11 @@ export const MACHINES = {
 const ARROW_ANGLE = { north: 0, east: 90, south: 180, west: 270 };
 const CANNOT = { north: "down", south: "up", east: "left", west: "right" };
 
+/** A gravity colour's letter: the built-in one, or a study's own colour's initial. */
+export function colourLetter(env, colour) {
+  return GRAVITY_COLOURS[colour]?.letter ?? ownKind(env, "colour", colour)?.initial ?? "?";
+}
+
 export function gravityRule(direction) {
   return `gravity ${direction}: cannot move ${CANNOT[direction] ?? "?"}`;
 }
@@ -56,7 +66,118 @@ export function decodeState(env, state) {
   return described;
 }
 
-function patterns(defs, prefix) {
+/** A name as one CSS class word ("sky blue" -> "sky-blue"). */
+function slug(name) {
+  return String(name).replace(/\s+/g, "-");
+}
+
+/** A study's own kind's initial: its first letter, or its first two when that letter is taken
+ * (by a built-in gravity colour's letter or an earlier kind). */
+function initialOf(name, used) {
+  const letters = name.replace(/[^a-z]/gi, "");
+  const one = letters.slice(0, 1).toUpperCase();
+  const two = one + letters.slice(1, 2).toLowerCase();
+  for (const candidate of [one, two]) {
+    if (candidate && !used.has(candidate)) {
+      used.add(candidate);
+      return candidate;
+    }
+  }
+  for (let n = 2; ; n++) {
+    if (!used.has(`${one}${n}`)) {
+      used.add(`${one}${n}`);
+      return `${one}${n}`;
+    }
+  }
+}
+
+const KINDS = new WeakMap();
+
+/** The environment's kinds (its ``drawing``: terrains, machines and gravity colours), by
+ * ``terrain:NAME``, ``machine:NAME`` and ``colour:NAME``: {name, label, colour, built_in}, and
+ * for a study's own kind its initial and (terrains and colours) the number of its pattern. */
+export function kindsOf(env) {
+  if (!env || typeof env !== "object") return new Map();
+  let kinds = KINDS.get(env);
+  if (kinds) return kinds;
+  kinds = new Map();
+  const used = new Set(Object.values(GRAVITY_COLOURS).map((c) => c.letter));
+  let own = 0;
+  const drawing = env.drawing ?? {};
+  for (const [category, list] of [["terrain", drawing.terrains], ["colour", drawing.colours], ["machine", drawing.machines]]) {
+    for (const kind of list ?? []) {
+      const entry = { ...kind, category };
+      if (!kind.built_in) {
+        entry.initial = initialOf(kind.name, used);
+        if (category !== "machine") entry.pattern = own++;
+      }
+      kinds.set(`${category}:${kind.name}`, entry);
+    }
+  }
+  KINDS.set(env, kinds);
+  return kinds;
+}
+
+/** A study's own kind (null for a built-in one or one the environment does not describe). */
+export function ownKind(env, category, name) {
+  const kind = kindsOf(env).get(`${category}:${name}`);
+  return kind && !kind.built_in ? kind : null;
+}
+
+/** A terrain's, machine's or gravity colour's name for people ("Vines", "Plow"). */
+export function kindLabel(env, category, name) {
+  const kind = kindsOf(env).get(`${category}:${name}`);
+  if (kind) return kind.label;
+  if (category === "machine" && MACHINES[name]) return MACHINES[name];
+  return name.charAt(0).toUpperCase() + name.slice(1);
+}
+
+/** ``hex`` darkened (factor < 1) or lightened towards white (factor > 1). */
+function shade(hex, factor) {
+  const channels = [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16));
+  const mixed = channels.map((v) => Math.round(factor < 1 ? v * factor : v + (255 - v) * (factor - 1)));
+  return `#${mixed.map((v) => Math.max(0, Math.min(255, v)).toString(16).padStart(2, "0")).join("")}`;
+}
+
+function luminance(hex) {
+  const [r, g, b] = [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16) / 255);
+  return 0.2126 * r + 0.7152 * g + 0.0722 * b;
+}
+
+/** The marks over a study's own colour, one per pattern number (then again from the first),
+ * none like the built-in ones: a cross-hatch, stripes, a checker, a zigzag, rings. */
+const OWN_PATTERNS = [
+  (p, ink) => svg("path", { d: "M0 0 L20 20 M20 0 L0 20", stroke: ink, "stroke-width": 2.5 }, p),
+  (p, ink) => svg("path", { d: "M5 0 V20 M15 0 V20", stroke: ink, "stroke-width": 3 }, p),
+  (p, ink) => {
+    svg("rect", { width: 10, height: 10, fill: ink }, p);
+    svg("rect", { x: 10, y: 10, width: 10, height: 10, fill: ink }, p);
+  },
+  (p, ink) => svg("path", { d: "M0 15 L5 5 L10 15 L15 5 L20 15", stroke: ink, "stroke-width": 2.5, fill: "none" }, p),
+  (p, ink) => svg("circle", { cx: 10, cy: 10, r: 5, stroke: ink, "stroke-width": 2.5, fill: "none" }, p),
+];
+
+function ownPatterns(defs, prefix, env) {
+  for (const kind of kindsOf(env).values()) {
+    if (kind.pattern === undefined) continue;
+    const p = svg("pattern", { id: `${prefix}-own-${kind.pattern}`, width: 20, height: 20, patternUnits: "userSpaceOnUse", "data-kind": kind.name }, defs);
+    svg("rect", { width: 20, height: 20, fill: kind.colour }, p);
+    const ink = luminance(kind.colour) < 0.25 ? shade(kind.colour, 1.45) : shade(kind.colour, 0.7);
+    const mark = svg("g", { opacity: 0.75 }, p);
+    OWN_PATTERNS[kind.pattern % OWN_PATTERNS.length](mark, ink);
+  }
+}
+
+/** A study's own kind's initial in a white disc at (cx, cy). */
+function initialBadge(parent, kind, cx, cy, r) {
+  const g = svg("g", { class: "kind-initial" }, parent);
+  svg("circle", { cx, cy, r, fill: "#fff", stroke: "#1f2328", "stroke-width": r / 6 }, g);
+  const size = kind.initial.length > 1 ? r * 1.05 : r * 1.3;
+  text(g, kind.initial, { x: cx, y: cy + 1, "text-anchor": "middle", "dominant-baseline": "central", "font-size": size, "font-weight": 700, fill: "#1f2328" });
+  return g;
+}
+
+function patterns(defs, prefix, env = null) {
   const make = (id, build) => {
     const p = svg("pattern", { id: `${prefix}-${id}`, width: 20, height: 20, patternUnits: "userSpaceOnUse" }, defs);
     build(p);
@@ -95,16 +216,33 @@ function patterns(defs, prefix) {
     svg("rect", { width: 20, height: 20, fill: GRAVITY_COLOURS.purple.fill }, p);
     svg("path", { d: "M0 10 H20 M10 0 V20", stroke: "#a6568a", "stroke-width": 2.5 }, p);
   });
+  ownPatterns(defs, prefix, env);
 }
 
-export function fillOf(prefix, terrain) {
+/** The fill of a terrain's cell, or (``category`` "colour") of a gravity colour's. */
+export function fillOf(prefix, terrain, env = null, category = "terrain") {
+  const own = ownKind(env, category, terrain);
+  if (own) return `url(#${prefix}-own-${own.pattern})`;
   if (terrain === "floor") return TERRAIN.floor.fill;
   return `url(#${prefix}-${terrain})`;
 }
 
-/** A machine's picture in a 100x100 box. */
-export function machineIcon(parent, machine) {
-  const g = svg("g", { class: `machine-icon machine-${machine}` }, parent);
+/** A machine's picture in a 100x100 box (a study's own machine: a generic machine in its
+ * colour with its initial). */
+export function machineIcon(parent, machine, env = null) {
+  const own = ownKind(env, "machine", machine);
+  const g = svg("g", { class: `machine-icon machine-${own ? "own" : machine}`, "data-machine": machine }, parent);
+  if (own) {
+    // A tractor-like body with an arm and a tool, two wheels, and the initial on the body.
+    const ink = "#1f2328";
+    svg("path", { d: "M12 30 L30 22 L34 30", stroke: ink, "stroke-width": 5, fill: "none", "stroke-linecap": "round", "stroke-linejoin": "round" }, g);
+    svg("rect", { x: 26, y: 30, width: 62, height: 38, rx: 6, fill: own.colour, stroke: ink, "stroke-width": 4, class: "machine-body" }, g);
+    svg("rect", { x: 6, y: 50, width: 20, height: 14, rx: 3, fill: own.colour, stroke: ink, "stroke-width": 4 }, g);
+    svg("circle", { cx: 40, cy: 76, r: 11, fill: "#3d434c", stroke: ink, "stroke-width": 4 }, g);
+    svg("circle", { cx: 76, cy: 76, r: 11, fill: "#3d434c", stroke: ink, "stroke-width": 4 }, g);
+    initialBadge(g, own, 57, 48, 15);
+    return g;
+  }
   if (machine === "plow") {
     svg("path", { d: "M30 18 L56 58", stroke: "#7a4a22", "stroke-width": 8, "stroke-linecap": "round" }, g);
     svg("path", { d: "M22 18 H40", stroke: "#7a4a22", "stroke-width": 8, "stroke-linecap": "round" }, g);
@@ -177,7 +315,7 @@ export class GridView {
     });
     container.appendChild(this.root);
     const defs = svg("defs", {}, this.root);
-    patterns(defs, this.prefix);
+    patterns(defs, this.prefix, env);
     this.drawTerrain();
     this.goalLayer = svg("g", { class: "goals" }, this.root);
     this.drawGoals();
@@ -216,14 +354,23 @@ export class GridView {
     const { env, prefix } = this;
     const layer = svg("g", { class: "terrain" }, this.root);
     const walls = new Set((env.walls ?? []).map(([r, c]) => `${r},${c}`));
+    const initials = [];
     for (let r = 0; r < env.height; r++) {
       for (let c = 0; c < env.width; c++) {
         const terrain = walls.has(`${r},${c}`) ? "wall" : env.terrain?.[r]?.[c] ?? "floor";
-        svg("rect", {
+        const cell = svg("rect", {
           x: c * C, y: r * C, width: C, height: C,
-          fill: terrain === "wall" ? `url(#${prefix}-wall)` : fillOf(prefix, terrain),
-          class: `cell cell-${terrain}`,
+          fill: terrain === "wall" ? `url(#${prefix}-wall)` : fillOf(prefix, terrain, env),
+          class: `cell cell-${slug(terrain)}`,
         }, layer);
+        const own = ownKind(env, "terrain", terrain);
+        if (own) {
+          cell.classList.add("cell-own");
+          cell.dataset.terrain = terrain;
+          cell.dataset.colour = own.colour;
+          svg("title", {}, cell).textContent = own.label;
+          initials.push([r, c, own]);
+        }
       }
     }
     // Cell borders: a light grid over everything but walls.
@@ -231,20 +378,26 @@ export class GridView {
     for (let r = 1; r < env.height; r++) lines.push(`M0 ${r * C} H${env.width * C}`);
     for (let c = 1; c < env.width; c++) lines.push(`M${c * C} 0 V${env.height * C}`);
     svg("path", { d: lines.join(" "), stroke: "rgba(31,35,40,0.14)", "stroke-width": 2, fill: "none" }, layer);
+    // A study's own terrain: its initial on each of its cells.
+    for (const [r, c, own] of initials) {
+      initialBadge(svg("g", { transform: `translate(${c * C} ${r * C})`, class: "cell-initial", "data-terrain": own.name }, layer), own, 22, 22, 15);
+    }
     for (const { row, column, colour } of env.colours ?? []) {
       const direction = this.reveal ? env.gravity_of_colour[colour] : null;
       const g = svg("g", {
         transform: `translate(${column * C} ${row * C})`,
-        class: `gravity-cell gravity-${colour}`,
+        class: `gravity-cell gravity-${slug(colour)}`,
         "data-direction": direction,
       }, layer);
+      const own = ownKind(env, "colour", colour);
+      if (own) g.dataset.colour = own.colour;
       svg("title", {}, g).textContent = `${colour} cell${direction ? `: sets the gravity ${direction}` : ""}`;
-      svg("rect", { x: 4, y: 4, width: C - 8, height: C - 8, rx: 10, fill: `url(#${prefix}-${colour})`, stroke: "#1f2328", "stroke-width": 4 }, g);
+      svg("rect", { x: 4, y: 4, width: C - 8, height: C - 8, rx: 10, fill: fillOf(prefix, colour, env, "colour"), stroke: "#1f2328", "stroke-width": 4 }, g);
       if (direction) {
         arrow(g, direction, { transform: `translate(20 20) scale(0.6) rotate(${ARROW_ANGLE[direction]} 50 50)` });
       } else {
         svg("circle", { cx: 50, cy: 50, r: 22, fill: "#fff", stroke: "#1f2328", "stroke-width": 4 }, g);
-        text(g, GRAVITY_COLOURS[colour]?.letter ?? "?", { x: 50, y: 51, "text-anchor": "middle", "dominant-baseline": "central", "font-size": 30, "font-weight": 700, fill: "#1f2328" });
+        text(g, colourLetter(env, colour), { x: 50, y: 51, "text-anchor": "middle", "dominant-baseline": "central", "font-size": 30, "font-weight": 700, fill: "#1f2328" });
       }
     }
     // Outline the grid.
@@ -295,9 +448,14 @@ export class GridView {
     const layer = svg("g", { class: "machines" }, this.root);
     for (const { row, column, machine } of this.env.machines ?? []) {
       const g = svg("g", { transform: `translate(${column * C} ${row * C})`, class: "machine", "data-machine": machine }, layer);
+      const own = ownKind(this.env, "machine", machine);
+      if (own) {
+        g.dataset.colour = own.colour;
+        svg("title", {}, g).textContent = own.label;
+      }
       svg("rect", { x: 5, y: 5, width: C - 10, height: C - 10, rx: 12, fill: "#ffffff", stroke: "#1f2328", "stroke-width": 3 }, g);
-      machineIcon(svg("g", { transform: "translate(18 6) scale(0.64)" }, g), machine);
-      const name = MACHINES[machine] ?? machine;
+      machineIcon(svg("g", { transform: "translate(18 6) scale(0.64)" }, g), machine, this.env);
+      const name = own ? own.label : MACHINES[machine] ?? machine;
       text(g, name, { x: 50, y: 86, "text-anchor": "middle", "font-size": 17, "font-weight": 700, fill: "#1f2328", ...(name.length > 6 ? { textLength: 80, lengthAdjust: "spacingAndGlyphs" } : {}) });
     }
   }
@@ -327,7 +485,7 @@ export class GridView {
       this.badge.replaceChildren();
       if (agent.carrying && agent.carrying !== "none") {
         svg("circle", { cx: 80, cy: 80, r: 22, fill: "#fff", stroke: "#1f2328", "stroke-width": 4 }, this.badge);
-        machineIcon(svg("g", { transform: "translate(61 61) scale(0.38)" }, this.badge), agent.carrying);
+        machineIcon(svg("g", { transform: "translate(61 61) scale(0.38)" }, this.badge), agent.carrying, this.env);
       } else if (agent.gravity) {
         const g = svg("g", { transform: "translate(56 56) scale(0.46)" }, this.badge);
         svg("circle", { cx: 50, cy: 50, r: 48, fill: "#1f2328" }, g);
@@ -347,20 +505,22 @@ function starPath(cx, cy, outer, inner) {
   return `M${points.join(" L")} Z`;
 }
 
-/** A small legend swatch (an inline SVG of one cell). */
-export function swatch(kind, value) {
+/** A small legend swatch (an inline SVG of one cell); ``env`` describes a study's own kinds. */
+export function swatch(kind, value, env = null) {
   const prefix = `s${++uid}`;
-  const root = svg("svg", { viewBox: "0 0 100 100", class: "swatch", "aria-hidden": "true" });
-  patterns(svg("defs", {}, root), prefix);
+  const root = svg("svg", { viewBox: "0 0 100 100", class: "swatch", "aria-hidden": "true", "data-kind": value });
+  patterns(svg("defs", {}, root), prefix, env);
   if (kind === "terrain") {
-    svg("rect", { width: 100, height: 100, fill: value === "wall" ? `url(#${prefix}-wall)` : fillOf(prefix, value), stroke: "#1f2328", "stroke-width": 6 }, root);
+    svg("rect", { width: 100, height: 100, fill: value === "wall" ? `url(#${prefix}-wall)` : fillOf(prefix, value, env), stroke: "#1f2328", "stroke-width": 6 }, root);
+    const own = ownKind(env, "terrain", value);
+    if (own) initialBadge(root, own, 50, 50, 26);
   } else if (kind === "machine") {
     svg("rect", { width: 100, height: 100, rx: 14, fill: "#fff", stroke: "#1f2328", "stroke-width": 6 }, root);
-    machineIcon(svg("g", { transform: "translate(8 8) scale(0.84)" }, root), value);
+    machineIcon(svg("g", { transform: "translate(8 8) scale(0.84)" }, root), value, env);
   } else if (kind === "colour") {
-    svg("rect", { width: 100, height: 100, rx: 14, fill: `url(#${prefix}-${value})`, stroke: "#1f2328", "stroke-width": 6 }, root);
+    svg("rect", { width: 100, height: 100, rx: 14, fill: fillOf(prefix, value, env, "colour"), stroke: "#1f2328", "stroke-width": 6 }, root);
     svg("circle", { cx: 50, cy: 50, r: 24, fill: "#fff", stroke: "#1f2328", "stroke-width": 4 }, root);
-    text(root, GRAVITY_COLOURS[value]?.letter ?? "?", { x: 50, y: 52, "text-anchor": "middle", "dominant-baseline": "central", "font-size": 32, "font-weight": 700 });
+    text(root, colourLetter(env, value), { x: 50, y: 52, "text-anchor": "middle", "dominant-baseline": "central", "font-size": 32, "font-weight": 700 });
   } else if (kind === "goal") {
     svg("rect", { width: 100, height: 100, fill: TERRAIN.floor.fill }, root);
     svg("rect", { x: 8, y: 8, width: 84, height: 84, rx: 12, class: "goal-outline legend-goal" }, root);

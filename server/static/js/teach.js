@@ -4,7 +4,7 @@
 
 import { ApiError, getJSON } from "./api.js";
 import { capitalise, environmentTitle, h, sleep } from "./dom.js";
-import { GRAVITY_COLOURS, GridView, MACHINES, TERRAIN, gravityRule, robotIcon, svg, swatch } from "./grid.js";
+import { GridView, TERRAIN, colourLetter, gravityRule, kindLabel, kindsOf, robotIcon, svg, swatch } from "./grid.js";
 
 const STEP_MS = 500; // the agent's pace when it acts on its own
 const MAX_QUEUED_MOVES = 2; // arrow presses waiting for the server (key repeat is dropped)
@@ -16,6 +16,11 @@ const KEYS = {
   ArrowLeft: "LEFT",
   ArrowRight: "RIGHT",
 };
+
+/** The machines that enter a terrain, in words: "trellis", "plow or the quad bike". */
+function machinesOf(env, terrain) {
+  return terrain.machines.map((m) => kindLabel(env, "machine", m).toLowerCase()).join(" or the ");
+}
 
 export class Teacher {
   /**
@@ -195,10 +200,21 @@ export class Teacher {
       for (const terrain of ["dirt", "soil", "grass", "crops"]) {
         if (present.has(terrain)) item(swatch("terrain", terrain), TERRAIN[terrain].label);
       }
+      // A study's own terrains and machines, after the built-in ones.
+      for (const kind of kindsOf(env).values()) {
+        if (kind.built_in) continue;
+        if (kind.category === "terrain" && present.has(kind.name)) {
+          const machine = kind.machines?.length ? `: needs the ${machinesOf(env, kind)}` : "";
+          item(swatch("terrain", kind.name, env), `${kind.label} (${kind.initial})${machine}`);
+        } else if (kind.category === "machine" && (env.machines ?? []).some((m) => m.machine === kind.name)) {
+          const terrain = kind.terrain ? `: the machine for ${kindLabel(env, "terrain", kind.terrain).toLowerCase()}` : "";
+          item(swatch("machine", kind.name, env), `${kind.label} (${kind.initial})${terrain}`);
+        }
+      }
     } else if (env.domain === "gravity") {
       for (const colour of new Set((env.colours ?? []).map((c) => c.colour))) {
         const direction = this.study.reveal_gravity ? env.gravity_of_colour?.[colour] : null;
-        item(swatch("colour", colour), `${capitalise(colour)} cell (${GRAVITY_COLOURS[colour]?.letter}): sets the gravity${direction ? ` ${direction}` : ""}`);
+        item(swatch("colour", colour, env), `${capitalise(colour)} cell (${colourLetter(env, colour)}): sets the gravity${direction ? ` ${direction}` : ""}`);
       }
       item(swatch("gravity", "north"), "The agent's gravity");
     }
@@ -214,6 +230,11 @@ export class Teacher {
     } else if (env.domain === "farming") {
       lines.push("Drive over a machine to pick it up; the agent carries one machine at a time and leaves the one it had.");
       lines.push("Soil can only be entered carrying the plow, grass (young crops) with the sprinkler, grown crops with the harvester. Bare dirt is free.");
+      for (const kind of kindsOf(env).values()) {
+        if (kind.category === "terrain" && !kind.built_in && kind.machines?.length) {
+          lines.push(`${kind.label} can only be entered carrying the ${machinesOf(env, kind)}.`);
+        }
+      }
       lines.push("Each task is to reach its field; the selected one has a ★.");
     } else if (env.domain === "gravity") {
       lines.push("The agent has a gravity, shown by the arrow on it: it cannot move against it (gravity north: it cannot move down).");
@@ -259,7 +280,7 @@ export class Teacher {
     this.nextReason.textContent = reason ?? (this.isTutorial ? "" : "Every task has at least one demonstrated move: go on when the agent does them well.");
     this.nextReason.classList.toggle("ok", reason === null);
     this.featureLine.textContent = t.agent?.carrying !== undefined
-      ? `Carrying: ${t.agent.carrying === "none" ? "nothing" : MACHINES[t.agent.carrying]}`
+      ? `Carrying: ${t.agent.carrying === "none" ? "nothing" : kindLabel(env, "machine", t.agent.carrying)}`
       : t.agent?.gravity !== undefined
         ? capitalise(gravityRule(t.agent.gravity))
         : "";
@@ -287,7 +308,7 @@ export class Teacher {
     if (t.agent) {
       parts.push(`The agent is at ${place([t.agent.row, t.agent.column])}${this.atGoal() ? ", on the goal" : ""}.`);
       if (t.agent.carrying !== undefined) {
-        parts.push(t.agent.carrying === "none" ? "It carries no machine." : `It carries the ${MACHINES[t.agent.carrying]?.toLowerCase() ?? t.agent.carrying}.`);
+        parts.push(t.agent.carrying === "none" ? "It carries no machine." : `It carries the ${kindLabel(env, "machine", t.agent.carrying).toLowerCase()}.`);
       }
       if (t.agent.gravity !== undefined) parts.push(`Its ${gravityRule(t.agent.gravity)}.`);
     }
@@ -295,10 +316,10 @@ export class Teacher {
     parts.push(goal.length === 1
       ? `The goal of the selected task, “${this.taskName()}”, is at ${place(goal[0])}.`
       : `The goal of the selected task, “${this.taskName()}”, is the field from ${place(goal[0])} to ${place(goal[goal.length - 1])}.`);
-    for (const { row, column, machine } of env.machines ?? []) parts.push(`The ${MACHINES[machine]?.toLowerCase() ?? machine} is at ${place([row, column])}.`);
+    for (const { row, column, machine } of env.machines ?? []) parts.push(`The ${kindLabel(env, "machine", machine).toLowerCase()} is at ${place([row, column])}.`);
     for (const { row, column, colour } of env.colours ?? []) {
       const direction = this.study.reveal_gravity ? env.gravity_of_colour?.[colour] : null;
-      parts.push(`A ${colour} cell (${GRAVITY_COLOURS[colour]?.letter}) at ${place([row, column])}${direction ? ` sets the gravity ${direction}` : ""}.`);
+      parts.push(`A ${colour} cell (${colourLetter(env, colour)}) at ${place([row, column])}${direction ? ` sets the gravity ${direction}` : ""}.`);
     }
     return parts.join(" ");
   }

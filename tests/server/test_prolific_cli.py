@@ -13,13 +13,17 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-import httpx
 import pytest
 from sqlalchemy import select
 
 from server.app.config import DEFAULT_STUDY_CONFIG, StudyConfigError, load_study_config
 from server.app.main import create_app
-from server.app.platforms.prolific import ProlificClient, ProlificRefused, draft_study
+from server.app.platforms.prolific import (
+    NO_CONSENT_REASON,
+    ProlificClient,
+    ProlificRefused,
+    draft_study,
+)
 from server.app.platforms.prolific_replica import ReplicaTransport
 from server.app.settings import Settings
 from server.app.storage.db import Database
@@ -40,6 +44,7 @@ PROLIFIC = {
     "previous_studies_blocklist": [PILOT],
     "public_url": "https://study.example.org/",
 }
+TEACH_PROLIFIC = ["--platform", "prolific", "--prolific-study"]
 COMPLETION = {
     "mode": "prolific",
     "prolific_code": "C1A2B3C4",
@@ -96,15 +101,10 @@ def test_the_draft_has_prolifics_placeholders_cents_codes_blocklist_and_concurre
             "code": "NOCONSNT",
             "code_type": "NO_CONSENT",
             "actor": "participant",
-            "actions": [
-                {
-                    "action": "REQUEST_RETURN",
-                    "return_reason": fields["completion_codes"][1]["actions"][0]["return_reason"],
-                }
-            ],
+            "actions": [{"action": "REQUEST_RETURN", "return_reason": NO_CONSENT_REASON}],
         },
     ]
-    assert fields["completion_codes"][1]["actions"][0]["return_reason"].strip()
+    assert NO_CONSENT_REASON.strip()
     assert fields["filters"] == [
         {"filter_id": "previous_studies_blocklist", "selected_values": [PILOT]}
     ]
@@ -293,6 +293,17 @@ def test_a_study_file_that_cannot_run_on_prolific_is_refused_before_anything_is_
     assert status == 2 and "set BAM_PROLIFIC_TOKEN" in err
     assert sent == []
 
+    # teach: Prolific participants need the study and the admin token; the study, Prolific.
+    url = ["teach", "--url", "http://127.0.0.1:9"]
+    monkeypatch.delenv("BAM_ADMIN_TOKEN", raising=False)
+    status, _, err = run_command([*url, *TEACH_PROLIFIC, "a" * 24], capsys)
+    assert status == 2 and "BAM_ADMIN_TOKEN" in err
+    monkeypatch.setenv("BAM_ADMIN_TOKEN", ADMIN_TOKEN)
+    status, _, err = run_command([*url, "--platform", "prolific"], capsys)
+    assert status == 2 and "needs --prolific-study" in err
+    status, _, err = run_command([*url, "--prolific-study", "a" * 24], capsys)
+    assert status == 2 and "goes with --platform prolific" in err
+
 
 # -- the whole run on a live server's replica ---------------------------------------------------
 @pytest.fixture
@@ -348,9 +359,7 @@ def test_a_study_runs_on_the_replica_from_the_command_line(
             "2",
             "--rounds",
             "1",
-            "--platform",
-            "prolific",
-            "--prolific-study",
+            *TEACH_PROLIFIC,
             study_id,
         ],
         capsys,
@@ -384,12 +393,12 @@ def test_a_study_runs_on_the_replica_from_the_command_line(
 
     status, out, err = run_command(["prolific", "pause", study_id, *replica], capsys)
     assert (status, out.strip()) == (0, f"study {study_id}: PAUSED"), err
-    # Paused: the replica gives no one a place.
-    taken = httpx.post(
-        f"{server}/prolific/studies/{study_id}/take-part",
-        headers={"Authorization": f"Bearer {ADMIN_TOKEN}"},
+    # Paused: the replica gives no one a place, and the simulated participant says so.
+    status, out, err = run_command(
+        ["teach", "--url", server, "--participants", "1", *TEACH_PROLIFIC, study_id], capsys
     )
-    assert taken.status_code == 409
+    assert status == 1
+    assert f"gave no place in study {study_id} (409)" in err and "is PAUSED" in err
     client.close()
 
 

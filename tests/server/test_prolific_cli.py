@@ -13,6 +13,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
 from sqlalchemy import select
 
@@ -417,3 +418,25 @@ def test_a_refusal_of_prolifics_api_reaches_the_user_in_one_line_without_the_tok
     monkeypatch.setenv("BAM_PROLIFIC_TOKEN", ADMIN_TOKEN)
     status, out, err = run_command(["prolific", "publish", "a" * 24], capsys)
     assert status == 1 and "(404)" in err and f"Study {'a' * 24} not found" in err
+
+
+def test_the_replica_lets_in_no_more_than_max_concurrent_submissions_at_once(server: str) -> None:
+    client = ProlificClient(f"{server}/prolific/api/v1", ADMIN_TOKEN)
+    study = study_config(completion=COMPLETION, prolific=PROLIFIC)
+    made = client.create_study(draft_study(study, max_concurrent=1, base_url=server))
+    client.transition_study(made["id"], "PUBLISH")
+    admin = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    with (
+        httpx.Client(base_url=server, headers=admin) as first,
+        httpx.Client(base_url=server, headers=admin) as second,
+    ):
+        path = f"/prolific/studies/{made['id']}/take-part"
+        assert first.post(path).status_code == 303
+        busy = second.post(path)
+        assert busy.status_code == 409 and "max_concurrent_submissions" in busy.text
+        # The first finishes (the completion redirect): the second may take part.
+        assert first.get("/prolific/submissions/complete?cc=C1A2B3C4").status_code == 200
+        assert second.post(path).status_code == 303
+    statuses = sorted(s["status"] for s in client.submissions(made["id"]))
+    assert statuses == ["ACTIVE", "AWAITING REVIEW"]
+    client.close()

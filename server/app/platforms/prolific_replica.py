@@ -6,8 +6,10 @@ and refusals, keeping its state in the database (``replica_models``).
 ``/prolific/api/v1/...``, and ``ReplicaTransport`` hands the client's requests to it inside the
 server (the dashboard's reviews on a rehearsal). As on Prolific:
 
-- a study is made as a draft (UNPUBLISHED) and published, paused and started with transitions;
-  after publishing its places can only go up;
+- a study is made as a draft (UNPUBLISHED), refused for the fields Prolific refuses (completion
+  codes and their actions, devices, filters, submissions_config, times), and published, paused
+  and started with transitions; after publishing its places can only go up, and at most its
+  max_concurrent_submissions take part at once;
 - submissions are listed for one study (``?study=`` is required), page by page;
 - a submission is approved or rejected once it is AWAITING REVIEW; a rejection needs one of
   Prolific's categories and a message of at least 100 characters (400 otherwise); the same
@@ -93,6 +95,28 @@ def places_taken(s: Session, study_id: str) -> int:
         )
         or 0
     )
+
+
+def taking_part(s: Session, study_id: str) -> int:
+    """Submissions under way (what max_concurrent_submissions caps)."""
+    return int(
+        s.scalar(
+            select(func.count())
+            .select_from(ProlificReplicaSubmission)
+            .where(
+                ProlificReplicaSubmission.study_id == study_id,
+                ProlificReplicaSubmission.status.in_(("RESERVED", "ACTIVE")),
+            )
+        )
+        or 0
+    )
+
+
+def concurrency_limit(study: ProlificReplicaStudy) -> int | None:
+    """The study's max_concurrent_submissions; None: no limit (-1 or not given)."""
+    config = study.fields.get("submissions_config") or {}
+    limit = config.get("max_concurrent_submissions", -1) if isinstance(config, dict) else -1
+    return limit if isinstance(limit, int) and limit >= 1 else None
 
 
 def study_view(s: Session, study: ProlificReplicaStudy) -> dict[str, Any]:

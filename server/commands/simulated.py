@@ -343,10 +343,20 @@ class SimulatedParticipant:
 
     def _arrive_from_prolific(self, prolific: ProlificArrival) -> None:
         self.browser = httpx.Client(base_url=self.base_url, timeout=60.0)
-        taken = self.browser.post(
-            f"/prolific/studies/{prolific.study_id}/take-part",
-            headers={"Authorization": f"Bearer {prolific.admin_token}"},
-        )
+        deadline = time.monotonic() + self.plan.retry_seconds
+        while True:
+            taken = self.browser.post(
+                f"/prolific/studies/{prolific.study_id}/take-part",
+                headers={"Authorization": f"Bearer {prolific.admin_token}"},
+            )
+            # The study has its max_concurrent_submissions under way: as a participant who
+            # finds it again on Prolific's list a little later.
+            busy = taken.status_code == 409 and "max_concurrent_submissions" in taken.text
+            if not busy or time.monotonic() > deadline:
+                break
+            if self.stop is not None and self.stop.is_set():
+                raise Stopped
+            time.sleep(1.0)
         if taken.status_code != 303:
             raise StudyClientError(
                 f"the Prolific replica gave no place in study {prolific.study_id} "

@@ -32,7 +32,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
         choices=("mturk", "prolific"),
         default="mturk",
         help="arrive as MTurk workers (the default; the study's completion mode mturk) or as "
-        "Prolific participants through the server's Prolific replica (--prolific-study)",
+        "Prolific participants through the server's Prolific replica (--prolific-study; "
+        "one who finds the study busy with its max_concurrent_submissions tries again)",
     )
     parser.add_argument(
         "--prolific-study",

@@ -440,3 +440,36 @@ def test_the_replica_lets_in_no_more_than_max_concurrent_submissions_at_once(ser
     statuses = sorted(s["status"] for s in client.submissions(made["id"]))
     assert statuses == ["ACTIVE", "AWAITING REVIEW"]
     client.close()
+
+
+def test_simulated_participants_beyond_the_studys_concurrency_wait_their_turn(
+    server: str, db: Database, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("BAM_ADMIN_TOKEN", ADMIN_TOKEN)
+    client = ProlificClient(f"{server}/prolific/api/v1", ADMIN_TOKEN)
+    study = study_config(completion=COMPLETION, prolific=PROLIFIC)
+    made = client.create_study(draft_study(study, max_concurrent=1, base_url=server))
+    client.transition_study(made["id"], "PUBLISH")
+    status, out, err = run_command(
+        [
+            "teach",
+            "--url",
+            server,
+            "--participants",
+            "2",
+            "--concurrency",
+            "2",
+            "--rounds",
+            "1",
+            *TEACH_PROLIFIC,
+            made["id"],
+        ],
+        capsys,
+    )
+    assert status == 0, out + err
+    listed = list(client.submissions(made["id"]))
+    assert [s["status"] for s in listed] == ["AWAITING REVIEW"] * 2
+    # One at a time: the second began after the first had completed.
+    first, second = sorted(listed, key=lambda s: s["started_at"])
+    assert second["started_at"] >= first["completed_at"]
+    client.close()

@@ -363,6 +363,11 @@ class SimulatedParticipant:
                 f"({taken.status_code}): {_page_text(taken.text)}"
             )
         link = httpx.URL(taken.headers["location"])
+        if not str(link).startswith(f"{self.base_url}/"):
+            raise StudyClientError(
+                f"study {prolific.study_id}'s link {link} is not on {self.base_url}: make the "
+                f"rehearsal's study with bam-study prolific create --replica {self.base_url}"
+            )
         self.run.worker_id = link.params.get("PROLIFIC_PID", "")
         self.run.assignment_id = link.params.get("SESSION_ID", "")
         page = self.browser.get(link)

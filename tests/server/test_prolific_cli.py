@@ -473,3 +473,20 @@ def test_simulated_participants_beyond_the_studys_concurrency_wait_their_turn(
     first, second = sorted(listed, key=lambda s: s["started_at"])
     assert second["started_at"] >= first["completed_at"]
     client.close()
+
+
+def test_a_simulated_participant_does_not_follow_a_link_to_another_server(
+    server: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("BAM_ADMIN_TOKEN", ADMIN_TOKEN)
+    client = ProlificClient(f"{server}/prolific/api/v1", ADMIN_TOKEN)
+    study = study_config(completion=COMPLETION, prolific=PROLIFIC)
+    made = client.create_study(draft_study(study, max_concurrent=1))  # the public address
+    client.transition_study(made["id"], "PUBLISH")
+    status, _, err = run_command(
+        ["teach", "--url", server, "--participants", "1", *TEACH_PROLIFIC, made["id"]], capsys
+    )
+    assert status == 1
+    assert "https://study.example.org/study?PROLIFIC_PID=" in err
+    assert f"is not on {server}: make the rehearsal's study with" in err
+    client.close()

@@ -15,7 +15,9 @@ checked.
 from __future__ import annotations
 
 import difflib
+import re
 import tomllib
+from decimal import Decimal
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal, get_args
 from urllib.parse import urlsplit
@@ -256,6 +258,102 @@ class Completion(_Strict):
         return self.prolific_url.replace("{code}", code or self.prolific_code or "")
 
 
+# Prolific's study link: PROLIFIC_PID, STUDY_ID and SESSION_ID, as the arrival reads them
+# (``/study``), each filled in by Prolific from its placeholder.
+PROLIFIC_LINK_QUERY = (
+    "PROLIFIC_PID={{%PROLIFIC_PID%}}&STUDY_ID={{%STUDY_ID%}}&SESSION_ID={{%SESSION_ID%}}"
+)
+PROLIFIC_ID = r"^[0-9a-f]{24}$"
+
+
+class ProlificStudy(_Strict):
+    """The study as ``bam-study prolific create`` makes it on Prolific (with completion mode
+    prolific): what participants see there, the places and the pay, the times, who may not
+    take part, and the server's address that participants open."""
+
+    name: str = Field(
+        min_length=1, max_length=255, description="The study's name, shown to participants."
+    )
+    description: str = Field(
+        min_length=1,
+        description="The study's description on Prolific, shown before a participant takes part.",
+    )
+    places: int = Field(
+        ge=1,
+        description="Participants wanted (total_available_places); `bam-study prolific "
+        "add-places` raises it later (places only go up once published).",
+    )
+    reward: Decimal = Field(
+        gt=0,
+        max_digits=8,
+        decimal_places=2,
+        description="The pay of one participant, in the workspace's currency "
+        "(BAM_PROLIFIC_CURRENCY), at most two decimals: 6.50; sent to Prolific in cents.",
+    )
+    estimated_minutes: int = Field(
+        ge=1, description="How long the study takes, in minutes (estimated_completion_time)."
+    )
+    maximum_minutes: int = Field(
+        ge=1,
+        description="The longest a participant may take, in minutes (maximum_allowed_time): "
+        "at least estimated_minutes, under 24 hours.",
+    )
+    previous_studies_blocklist: tuple[str, ...] = Field(
+        (),
+        description="Prolific study ids whose participants may not take part (a pilot, an "
+        "earlier run of this study).",
+    )
+    public_url: str = Field(
+        description="The server's public https address, e.g. https://study.example.org: "
+        "participants open {public_url}/study with Prolific's PROLIFIC_PID, STUDY_ID and "
+        "SESSION_ID."
+    )
+
+    @field_validator("previous_studies_blocklist")
+    @classmethod
+    def _study_ids(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        bad = [v for v in value if not re.fullmatch(PROLIFIC_ID, v)]
+        if bad:
+            raise ValueError(
+                f"{', '.join(repr(v) for v in bad)}: a Prolific study id is 24 hexadecimal digits"
+            )
+        return tuple(dict.fromkeys(value))
+
+    @field_validator("public_url")
+    @classmethod
+    def _public_https(cls, value: str) -> str:
+        parts = urlsplit(value)
+        if parts.scheme != "https" or not parts.hostname:
+            raise ValueError(f"{value!r}: the server's public address starts with https://")
+        if parts.query or parts.fragment or "{" in value:
+            raise ValueError(
+                f"{value!r}: the server's address only (the study link's parameters are added)"
+            )
+        return value.rstrip("/")
+
+    @model_validator(mode="after")
+    def _times(self) -> ProlificStudy:
+        if self.maximum_minutes >= 24 * 60:
+            raise ValueError(
+                f"maximum_minutes ({self.maximum_minutes}) must be under 24 hours (1440 minutes)"
+            )
+        if self.maximum_minutes < self.estimated_minutes:
+            raise ValueError(
+                f"maximum_minutes ({self.maximum_minutes}) is less than estimated_minutes "
+                f"({self.estimated_minutes})"
+            )
+        return self
+
+    @property
+    def reward_cents(self) -> int:
+        return int(self.reward * 100)
+
+    def study_link(self, base_url: str | None = None) -> str:
+        """Prolific's external_study_url: the study page of ``base_url`` (default: the public
+        address) with Prolific's placeholders."""
+        return f"{(base_url or self.public_url).rstrip('/')}/study?{PROLIFIC_LINK_QUERY}"
+
+
 QUESTION_ID = r"^[a-z][a-z0-9_]{0,63}$"
 
 
@@ -420,6 +518,10 @@ class StudyConfig(_Strict):
         default_factory=dict,
         description="The study's own environments, one [environments.NAME] table each (NAME: "
         "lower-case letters, digits and '-'), listed in a domain of their family.",
+    )
+    prolific: ProlificStudy | None = Field(
+        None,
+        description="The study on Prolific, for `bam-study prolific create` (the table below).",
     )
     max_environment_states: int = Field(
         DEFAULT_MAX_STATES,

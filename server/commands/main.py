@@ -33,6 +33,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "Erase one participant's data on their request (by number, worker id or pseudonym).",
     ),
     "teach": ("server.commands.teach", "Run simulated participants against a study server."),
+    "prolific": (
+        "server.commands.prolific",
+        "Make the study on Prolific from the study file, publish, pause, add places, status.",
+    ),
     "check": (
         "server.commands.check",
         "Check a study file before running it: problems, drawings, optimal returns, update times.",

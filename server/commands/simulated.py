@@ -1,6 +1,7 @@
 """Simulated participants that take the study over HTTP, through the same API as the browser.
 
-Each one arrives with MTurk-style parameters, consents, goes through the tutorial and teaches
+Each one arrives with MTurk-style parameters (or, on the Prolific replica, as a Prolific
+participant: ``ProlificArrival``), consents, goes through the tutorial and teaches
 every agent: in rounds, each task gets a demonstration by the simulated teacher (with a chance
 of suboptimal moves) from a random start, sometimes after moving the agent in idle mode, and
 sometimes an agent try with A-SABL feedback; the number of rounds varies per agent. It then
@@ -14,13 +15,14 @@ from __future__ import annotations
 
 import http.client
 import json
+import re
 import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
-from urllib.parse import urlsplit
+from urllib.parse import urlsplit, urlunsplit
 
 import httpx
 import numpy as np
@@ -40,6 +42,24 @@ class Stopped(Exception):
 
 
 PARTICIPANT_KINDS = ("careful", "key-masher", "idle")
+# The participant's token as the study page gives it to its script (templates/study.html).
+PAGE_TOKEN = re.compile(
+    r'<script type="application/json" id="participant-token">("[^"<]*")</script>'
+)
+
+
+@dataclass(frozen=True)
+class ProlificArrival:
+    """Arrive as a Prolific participant of ``study_id`` on the server's Prolific replica, as a
+    browser does: take a place (``/prolific/studies/{id}/take-part``, the researcher's button,
+    signed in with the admin token), open the study link it redirects to (PROLIFIC_PID,
+    STUDY_ID and SESSION_ID filled in) and read the token the page gives its script; at the
+    end, follow the completion redirect to the replica, which stands in for Prolific's site
+    (``https://app.prolific.com/submissions/complete?cc=CODE`` is the replica's
+    ``/prolific/submissions/complete?cc=CODE``), so that the submission awaits review."""
+
+    study_id: str
+    admin_token: str
 
 
 @dataclass(frozen=True)
@@ -85,6 +105,7 @@ class ParticipantRun:
     retries: int = 0  # attempts sent again, over all requests
     # Latencies (from the first attempt) of the requests that needed at least one retry.
     retried_latencies: list[float] = field(default_factory=list)
+    status: str | None = None  # the participant's status on arrival
     completed: bool = False
     stopped: bool = False
     completion_code: str | None = None
@@ -181,8 +202,12 @@ class SimulatedParticipant:
         client: httpx.Client | LightClient | None = None,
         stop: threading.Event | None = None,
         turn: tuple[threading.Event, threading.Event] | None = None,
+        prolific: ProlificArrival | None = None,
     ) -> None:
         self.base_url = base_url.rstrip("/")
+        self.prolific = prolific
+        # The browser's own requests (pages, redirects, cookies) on the Prolific replica.
+        self.browser: httpx.Client | None = None
         # (the previous participant has consented, this one has): consents in order.
         self.turn = turn
         self.plan = plan
@@ -257,6 +282,9 @@ class SimulatedParticipant:
             self.run.stopped = True
         except Exception as error:
             self.run.error = f"{type(error).__name__}: {error}"
+        finally:
+            if self.browser is not None:
+                self.browser.close()
         return self.run
 
     def _take_part(self) -> None:
@@ -283,10 +311,26 @@ class SimulatedParticipant:
         if shown["code"] != code:
             raise StudyClientError("the completion code changed on refresh")
         self.act("/api/participant/submission", "submission")
+        if self.prolific is not None:
+            self._back_to_prolific(shown)
         self.run.completed = True
         self.run.completion_code = code
 
     def _arrive_and_consent(self) -> None:
+        if self.prolific is not None:
+            self._arrive_from_prolific(self.prolific)
+        else:
+            self._arrive_from_mturk()
+        if self.run.status == "waiting":  # the study is full: as the page does
+            while not (place := self.request("POST", "/api/participant/place", "place"))[
+                "admitted"
+            ]:
+                if self.stop is not None and self.stop.is_set():
+                    raise Stopped
+                time.sleep(place["ask_seconds"])
+        self.act("/api/participant/consent", "consent", agree=True)
+
+    def _arrive_from_mturk(self) -> None:
         arrival = self.request(
             "POST",
             "/api/arrivals",
@@ -300,15 +344,60 @@ class SimulatedParticipant:
         )
         self.token = arrival["token"]
         self.run.participant_id = arrival["participant"]["participant_id"]
+        self.run.status = arrival["participant"]["status"]
         self.seq = arrival["participant"]["next_seq"]
-        if arrival["participant"]["status"] == "waiting":  # the study is full: as the page does
-            while not (place := self.request("POST", "/api/participant/place", "place"))[
-                "admitted"
-            ]:
-                if self.stop is not None and self.stop.is_set():
-                    raise Stopped
-                time.sleep(place["ask_seconds"])
-        self.act("/api/participant/consent", "consent", agree=True)
+
+    def _arrive_from_prolific(self, prolific: ProlificArrival) -> None:
+        self.browser = httpx.Client(base_url=self.base_url, timeout=60.0)
+        deadline = time.monotonic() + self.plan.retry_seconds
+        while True:
+            taken = self.browser.post(
+                f"/prolific/studies/{prolific.study_id}/take-part",
+                headers={"Authorization": f"Bearer {prolific.admin_token}"},
+            )
+            # The study has its max_concurrent_submissions under way: as a participant who
+            # finds it again on Prolific's list a little later.
+            busy = taken.status_code == 409 and "max_concurrent_submissions" in taken.text
+            if not busy or time.monotonic() > deadline:
+                break
+            if self.stop is not None and self.stop.is_set():
+                raise Stopped
+            time.sleep(1.0)
+        if taken.status_code != 303:
+            raise StudyClientError(
+                f"the Prolific replica gave no place in study {prolific.study_id} "
+                f"({taken.status_code}): {_page_text(taken.text)}"
+            )
+        link = httpx.URL(taken.headers["location"])
+        if not str(link).startswith(f"{self.base_url}/"):
+            raise StudyClientError(
+                f"study {prolific.study_id}'s link {link} is not on {self.base_url}: make the "
+                f"rehearsal's study with bam-study prolific create --replica {self.base_url}"
+            )
+        self.run.worker_id = link.params.get("PROLIFIC_PID", "")
+        self.run.assignment_id = link.params.get("SESSION_ID", "")
+        page = self.browser.get(link)
+        found = PAGE_TOKEN.search(page.text)
+        if page.status_code != 200 or found is None:
+            raise StudyClientError(f"GET {link} -> {page.status_code}: {_page_text(page.text)}")
+        self.token = json.loads(found.group(1))
+        me = self.request("GET", "/api/participant", "read_participant")
+        self.run.participant_id = me["participant_id"]
+        self.run.status = me["status"]
+        self.seq = me["next_seq"]
+
+    def _back_to_prolific(self, completion: dict[str, Any]) -> None:
+        """The completion redirect, to the replica's copy of Prolific's page."""
+        assert self.browser is not None
+        target = urlsplit(completion.get("redirect_url") or "")
+        if completion.get("mode") != "prolific" or not target.path:
+            raise StudyClientError(f"the study sent no Prolific completion redirect: {completion}")
+        landed = self.browser.get(urlunsplit(("", "", "/prolific" + target.path, target.query, "")))
+        if landed.status_code != 200:
+            raise StudyClientError(
+                f"Prolific's completion page (the replica's) -> {landed.status_code}: "
+                f"{_page_text(landed.text)}"
+            )
 
     def questionnaire_answers(self) -> dict[str, int | str]:
         """An answer to each question of the study's questionnaire, drawn at random (a text
@@ -428,6 +517,11 @@ class SimulatedParticipant:
             time.sleep(seconds * float(self.rng.uniform(0.5, 1.5)))
 
 
+def _page_text(html: str) -> str:
+    """A page's text, for a message."""
+    return " ".join(re.sub(r"<[^>]+>", " ", html).split())[:300]
+
+
 @dataclass
 class StudyRun:
     participants: list[ParticipantRun]
@@ -464,12 +558,14 @@ def run_participants(
     stop: threading.Event | None = None,
     ramp_seconds: float = 0.0,
     in_order: bool = False,
+    prolific: ProlificArrival | None = None,
 ) -> StudyRun:
     """Run simulated participants, ``concurrency`` at a time; each gets its own connection.
     The first ``concurrency`` arrive spread over ``ramp_seconds``; ``stop`` ends the run.
     ``in_order``: each arrives and consents once the one before has, so that the participants'
     numbers and domains do not depend on the threads' timing (a seeded server's study is then
-    the same on every run)."""
+    the same on every run). ``prolific``: each arrives as a Prolific participant on the
+    server's Prolific replica."""
     started = time.perf_counter()
     consented = [threading.Event() for _ in range(participants + 1)]
     consented[0].set()
@@ -481,7 +577,7 @@ def run_participants(
         with LightClient(base_url) as client:
             turn = (consented[slot], consented[slot + 1]) if in_order else None
             run = SimulatedParticipant(
-                base_url, index, seed, plan, client=client, stop=stop, turn=turn
+                base_url, index, seed, plan, client=client, stop=stop, turn=turn, prolific=prolific
             ).take_part()
         if progress is not None:
             progress(run)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 
@@ -25,6 +26,20 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--first-index", type=int, default=0, help="number of the first participant (new ids)"
+    )
+    parser.add_argument(
+        "--platform",
+        choices=("mturk", "prolific"),
+        default="mturk",
+        help="arrive as MTurk workers (the default; the study's completion mode mturk) or as "
+        "Prolific participants through the server's Prolific replica (--prolific-study; "
+        "one who finds the study busy with its max_concurrent_submissions tries again)",
+    )
+    parser.add_argument(
+        "--prolific-study",
+        metavar="STUDY_ID",
+        help="with --platform prolific: the replica's published study to take part in "
+        "(signed in to the replica with BAM_ADMIN_TOKEN)",
     )
 
 
@@ -55,6 +70,22 @@ def run(args: argparse.Namespace) -> int:
     if not 0.0 <= args.mistake_probability <= 1.0 or not 0.0 <= args.agent_try_probability <= 1.0:
         print("bam-study teach: probabilities must be in [0, 1]", file=sys.stderr)
         return 2
+    prolific = None
+    if args.platform == "prolific":
+        from server.commands.simulated import ProlificArrival
+
+        token = os.environ.get("BAM_ADMIN_TOKEN", "")
+        if not args.prolific_study or not token:
+            print(
+                "bam-study teach: --platform prolific needs --prolific-study STUDY_ID and "
+                "BAM_ADMIN_TOKEN (the server's admin token, to take part on its replica)",
+                file=sys.stderr,
+            )
+            return 2
+        prolific = ProlificArrival(args.prolific_study, token)
+    elif args.prolific_study:
+        print("bam-study teach: --prolific-study goes with --platform prolific", file=sys.stderr)
+        return 2
     plan = TeachingPlan(
         min_rounds=low,
         max_rounds=high,
@@ -72,7 +103,14 @@ def run(args: argparse.Namespace) -> int:
         )
 
     study = run_participants(
-        args.url, args.participants, args.concurrency, args.seed, plan, args.first_index, progress
+        args.url,
+        args.participants,
+        args.concurrency,
+        args.seed,
+        plan,
+        args.first_index,
+        progress,
+        prolific=prolific,
     )
     failed = [p for p in study.participants if not p.completed]
     print()

@@ -16,6 +16,7 @@ from typing import Any
 
 import httpx
 
+from server.app.config import StudyConfig
 from server.app.platforms.review import (
     Decision,
     Reviewed,
@@ -36,6 +37,7 @@ SUBMISSION_STATUSES = (
     "PARTIALLY APPROVED",
 )
 RETRIED = frozenset({429, 500, 502, 503, 504})
+NO_CONSENT_REASON = "You did not consent to take part: please return the study."
 
 
 class ProlificRefused(ReviewRefused):
@@ -254,3 +256,63 @@ class ProlificBackend:
         if setup_id is None:
             raise ReviewRefused(f"bonus {token} has no set-up on Prolific to pay")
         self.client.pay_bonuses(setup_id)
+
+
+def draft_study(
+    study: StudyConfig, max_concurrent: int, base_url: str | None = None
+) -> dict[str, Any]:
+    """The body of ``POST /studies/`` for the study file's ``[prolific]`` table: the study link
+    of ``base_url`` (default: the public address) with Prolific's placeholders, the study's
+    completion codes (COMPLETED for manual review; NO_CONSENT asking for a return), the
+    reward in cents, desktop only (the teaching page needs arrow keys), and at most
+    ``max_concurrent`` participants at once (what the server can serve)."""
+    prolific = study.prolific
+    completion = study.completion
+    if prolific is None:
+        raise ValueError("the study file has no [prolific] table")
+    if completion.mode != "prolific" or completion.prolific_code is None:
+        raise ValueError(
+            f'the study\'s completion mode is "{completion.mode}": a Prolific study needs '
+            '[completion] mode = "prolific" with prolific_code'
+        )
+    if max_concurrent < 1:
+        raise ValueError("max_concurrent_submissions must be at least 1")
+    codes: list[dict[str, Any]] = [
+        {
+            "code": completion.prolific_code,
+            "code_type": "COMPLETED",
+            "actor": "participant",
+            "actions": [{"action": "MANUALLY_REVIEW"}],
+        }
+    ]
+    if completion.prolific_no_consent_code is not None:
+        codes.append(
+            {
+                "code": completion.prolific_no_consent_code,
+                "code_type": "NO_CONSENT",
+                "actor": "participant",
+                "actions": [{"action": "REQUEST_RETURN", "return_reason": NO_CONSENT_REASON}],
+            }
+        )
+    fields: dict[str, Any] = {
+        "name": prolific.name,
+        "internal_name": study.title,
+        "description": prolific.description,
+        "external_study_url": prolific.study_link(base_url),
+        "prolific_id_option": "url_parameters",
+        "completion_codes": codes,
+        "total_available_places": prolific.places,
+        "reward": prolific.reward_cents,
+        "estimated_completion_time": prolific.estimated_minutes,
+        "maximum_allowed_time": prolific.maximum_minutes,
+        "device_compatibility": ["desktop"],
+        "submissions_config": {"max_concurrent_submissions": max_concurrent},
+    }
+    if prolific.previous_studies_blocklist:
+        fields["filters"] = [
+            {
+                "filter_id": "previous_studies_blocklist",
+                "selected_values": list(prolific.previous_studies_blocklist),
+            }
+        ]
+    return fields

@@ -6,8 +6,10 @@ and refusals, keeping its state in the database (``replica_models``).
 ``/prolific/api/v1/...``, and ``ReplicaTransport`` hands the client's requests to it inside the
 server (the dashboard's reviews on a rehearsal). As on Prolific:
 
-- a study is made as a draft (UNPUBLISHED) and published, paused and started with transitions;
-  after publishing its places can only go up;
+- a study is made as a draft (UNPUBLISHED), refused for the fields Prolific refuses (completion
+  codes and their actions, devices, filters, submissions_config, times), and published, paused
+  and started with transitions; after publishing its places can only go up, and at most its
+  max_concurrent_submissions take part at once;
 - submissions are listed for one study (``?study=`` is required), page by page;
 - a submission is approved or rejected once it is AWAITING REVIEW; a rejection needs one of
   Prolific's categories and a message of at least 100 characters (400 otherwise); the same
@@ -50,6 +52,16 @@ SUBMISSION_ACTIONS = {"APPROVE": "APPROVED", "REJECT": "REJECTED"}
 # A place is held by these; RETURNED, TIMED-OUT and REJECTED give it back.
 HOLDING = ("RESERVED", "ACTIVE", "AWAITING REVIEW", "APPROVED")
 MIN_REJECTION_MESSAGE = 100
+CODE_ACTIONS = (
+    "AUTOMATICALLY_APPROVE",
+    "MANUALLY_REVIEW",
+    "REQUEST_RETURN",
+    "ADD_TO_PARTICIPANT_GROUP",
+    "REMOVE_FROM_PARTICIPANT_GROUP",
+    "DYNAMIC_PAYMENT",
+    "FIXED_SCREEN_OUT_PAYMENT",
+)
+DEVICES = ("desktop", "tablet", "mobile")
 PLACEHOLDERS = ("{{%PROLIFIC_PID%}}", "{{%STUDY_ID%}}", "{{%SESSION_ID%}}")
 
 
@@ -83,6 +95,28 @@ def places_taken(s: Session, study_id: str) -> int:
         )
         or 0
     )
+
+
+def taking_part(s: Session, study_id: str) -> int:
+    """Submissions under way (what max_concurrent_submissions caps)."""
+    return int(
+        s.scalar(
+            select(func.count())
+            .select_from(ProlificReplicaSubmission)
+            .where(
+                ProlificReplicaSubmission.study_id == study_id,
+                ProlificReplicaSubmission.status.in_(("RESERVED", "ACTIVE")),
+            )
+        )
+        or 0
+    )
+
+
+def concurrency_limit(study: ProlificReplicaStudy) -> int | None:
+    """The study's max_concurrent_submissions; None: no limit (-1 or not given)."""
+    config = study.fields.get("submissions_config") or {}
+    limit = config.get("max_concurrent_submissions", -1) if isinstance(config, dict) else -1
+    return limit if isinstance(limit, int) and limit >= 1 else None
 
 
 def study_view(s: Session, study: ProlificReplicaStudy) -> dict[str, Any]:
@@ -135,6 +169,68 @@ def _positive_int(body: dict[str, Any], name: str) -> int:
     return value
 
 
+def _check_completion_codes(codes: Any) -> None:
+    if not isinstance(codes, list) or not codes:
+        raise Refusal(400, "completion_codes: at least one completion code is required.")
+    seen: set[str] = set()
+    for code in codes:
+        if not isinstance(code, dict) or not code.get("code") or not code.get("code_type"):
+            raise Refusal(400, "completion_codes: each needs a code and a code_type.")
+        if not isinstance(code["code"], str) or code["code"] in seen:
+            raise Refusal(400, f"completion_codes: {code['code']!r} is given twice.")
+        seen.add(code["code"])
+        if code.get("actor", "participant") not in ("participant", "researcher"):
+            raise Refusal(400, "completion_codes: actor is participant or researcher.")
+        actions = code.get("actions", [])
+        if not isinstance(actions, list) or not all(isinstance(a, dict) for a in actions):
+            raise Refusal(400, "completion_codes: actions is a list of objects.")
+        names = [a.get("action") for a in actions]
+        for action in actions:
+            if action.get("action") not in CODE_ACTIONS:
+                raise Refusal(400, f"completion_codes: action is one of {', '.join(CODE_ACTIONS)}.")
+            reason = action.get("return_reason")
+            if action["action"] == "REQUEST_RETURN" and not (
+                isinstance(reason, str) and reason.strip()
+            ):
+                raise Refusal(400, "completion_codes: REQUEST_RETURN needs a return_reason.")
+        if "MANUALLY_REVIEW" in names and "AUTOMATICALLY_APPROVE" in names:
+            raise Refusal(
+                400, "completion_codes: MANUALLY_REVIEW cannot go with AUTOMATICALLY_APPROVE."
+            )
+
+
+def _check_devices(devices: Any) -> None:
+    if not isinstance(devices, list) or not set(devices) <= set(DEVICES):
+        raise Refusal(400, f"device_compatibility: a list of {', '.join(DEVICES)}.")
+
+
+def _check_filters(filters: Any) -> None:
+    if not isinstance(filters, list):
+        raise Refusal(400, "filters: a list of filters.")
+    for item in filters:
+        if not isinstance(item, dict) or not isinstance(item.get("filter_id"), str):
+            raise Refusal(400, "filters: each filter needs a filter_id.")
+        values = item.get("selected_values")
+        if values is not None and (
+            not isinstance(values, list) or not all(isinstance(v, str) for v in values)
+        ):
+            raise Refusal(400, f"filters: {item['filter_id']}: selected_values is a list.")
+        if item["filter_id"] == "previous_studies_blocklist":
+            if not values or not all(re.fullmatch(r"[0-9a-f]{24}", v) for v in values):
+                raise Refusal(
+                    400, "filters: previous_studies_blocklist: selected_values are study ids."
+                )
+
+
+def _check_submissions_config(config: Any) -> None:
+    if not isinstance(config, dict):
+        raise Refusal(400, "submissions_config: an object.")
+    for name in ("max_concurrent_submissions", "max_submissions_per_participant"):
+        value = config.get(name, -1)
+        if isinstance(value, bool) or not isinstance(value, int) or not (value == -1 or value >= 1):
+            raise Refusal(400, f"submissions_config: {name} is -1 (no limit) or at least 1.")
+
+
 def create_study(s: Session, body: dict[str, Any]) -> tuple[int, Any]:
     name = body.get("name")
     if not isinstance(name, str) or not name.strip():
@@ -144,12 +240,13 @@ def create_study(s: Session, body: dict[str, Any]) -> tuple[int, Any]:
         raise Refusal(400, "external_study_url: Enter a valid URL.")
     if body.get("prolific_id_option") not in ("url_parameters", "question", "not_required"):
         raise Refusal(400, "prolific_id_option: url_parameters, question or not_required.")
-    codes = body.get("completion_codes")
-    if not isinstance(codes, list) or not codes:
-        raise Refusal(400, "completion_codes: at least one completion code is required.")
-    for code in codes:
-        if not isinstance(code, dict) or not code.get("code") or not code.get("code_type"):
-            raise Refusal(400, "completion_codes: each needs a code and a code_type.")
+    description = body.get("description")
+    if not isinstance(description, str) or not description.strip():
+        raise Refusal(400, "description: This field is required.")
+    _check_completion_codes(body.get("completion_codes"))
+    _check_devices(body.get("device_compatibility", []))
+    _check_filters(body.get("filters", []))
+    _check_submissions_config(body.get("submissions_config", {}))
     places = _positive_int(body, "total_available_places")
     reward = _positive_int(body, "reward")
     estimated = _positive_int(body, "estimated_completion_time")

@@ -28,12 +28,14 @@ from server.app.admin_auth import admin_token
 from server.app.deps import StateDep, is_admin
 from server.app.platforms.prolific_replica import (
     PLACEHOLDERS,
+    concurrency_limit,
     error_body,
     handle,
     new_id,
     places_taken,
     status_event,
     submission_view,
+    taking_part,
 )
 from server.app.platforms.prolific_sync import WebhookRefused, apply_webhook, verify
 from server.app.routers.common import login_redirect, notice, own_origin, templates
@@ -172,6 +174,16 @@ def take_part(study_id: str, request: Request, state: StateDep) -> Response:
         if places_taken(s, study.id) >= study.total_available_places:
             study.status = "AWAITING REVIEW"
             return notice(request, "Full", "Every place of this study is taken.", 409)
+        limit = concurrency_limit(study)
+        if limit is not None and taking_part(s, study.id) >= limit:
+            # As Prolific: no one new while max_concurrent_submissions are under way.
+            return notice(
+                request,
+                "Busy",
+                f"Study {study_id} has {limit} participant(s) taking part at once, its "
+                "max_concurrent_submissions: a place opens when one finishes.",
+                409,
+            )
         submission = ProlificReplicaSubmission(
             id=new_id(),
             study_id=study.id,

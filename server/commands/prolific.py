@@ -1,0 +1,245 @@
+"""``bam-study prolific``: make the study on Prolific from the study file and run it there
+(publish, pause, add places, see its submissions), through Prolific's API
+(``BAM_PROLIFIC_API_URL``, ``BAM_PROLIFIC_TOKEN``) or, with ``--replica URL``, through the
+Prolific replica of a running study server (its ``/prolific/api/v1``, ``BAM_ADMIN_TOKEN``).
+
+A refusal (Prolific's 4xx) is printed as one line with Prolific's message and exit status 1;
+bad arguments or a study file that cannot run on Prolific get exit status 2. No token is ever
+printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from collections import Counter
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import httpx
+
+if TYPE_CHECKING:
+    from server.app.config import StudyConfig
+    from server.app.platforms.prolific import ProlificClient
+    from server.app.settings import Settings
+
+STUDY_ID = re.compile(r"[0-9a-f]{24}")
+
+
+class Refused(Exception):
+    """What the command cannot do, said in one line (with its exit status)."""
+
+    def __init__(self, message: str, status: int = 1) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+def study_id(text: str) -> str:
+    if not STUDY_ID.fullmatch(text):
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a Prolific study id (24 hexadecimal digits)"
+        )
+    return text
+
+
+def positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: at least 1")
+    return value
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    actions = parser.add_subparsers(dest="action", metavar="ACTION")
+    actions.required = True
+
+    def action(name: str, help_text: str) -> argparse.ArgumentParser:
+        sub = actions.add_parser(name, help=help_text, description=help_text)
+        sub.add_argument(
+            "--replica",
+            metavar="URL",
+            help="a running bam-study server: use its Prolific replica (URL/prolific/api/v1, "
+            "BAM_ADMIN_TOKEN) instead of Prolific's API (BAM_PROLIFIC_TOKEN)",
+        )
+        return sub
+
+    create = action(
+        "create", "Make a draft study from the study file's [prolific] table; print its id."
+    )
+    create.add_argument("study_file", metavar="STUDY.toml", type=Path)
+    create.add_argument(
+        "--max-concurrent",
+        type=positive,
+        metavar="N",
+        help="participants taking part at once (default: what the server can serve: the "
+        "study file's max_active_participants, else the capacity the server measured, else "
+        "the capacity measured here)",
+    )
+    for name, help_text in (
+        ("publish", "Publish the study: participants can take part."),
+        ("pause", "Pause the published study: no one new takes part."),
+        ("status", "The study's status, places and submissions per status."),
+    ):
+        action(name, help_text).add_argument("study_id", metavar="STUDY_ID", type=study_id)
+    places = action("add-places", "Raise the study's places to N (places only go up).")
+    places.add_argument("study_id", metavar="STUDY_ID", type=study_id)
+    places.add_argument("places", metavar="N", type=positive, help="the new number of places")
+
+
+def client_for(args: argparse.Namespace, settings: Settings) -> ProlificClient:
+    from server.app.platforms.prolific import ProlificClient
+
+    if args.replica:
+        token = settings.admin_token
+        if token is None:
+            raise Refused("--replica needs BAM_ADMIN_TOKEN, the server's admin token", 2)
+        return ProlificClient(
+            f"{args.replica.rstrip('/')}/prolific/api/v1", token.get_secret_value()
+        )
+    if settings.prolific_token is None:
+        raise Refused("set BAM_PROLIFIC_TOKEN (Prolific's API token), or use --replica URL", 2)
+    return ProlificClient(settings.prolific_api_url, settings.prolific_token.get_secret_value())
+
+
+def server_limit(server: str, settings: Settings) -> int | None:
+    """The participants the running server serves at once (its dashboard's queue: the study
+    file's limit or its measured capacity); None when it cannot say."""
+    if settings.admin_token is None:
+        return None
+    try:
+        answer = httpx.get(
+            f"{server.rstrip('/')}/api/admin/queue",
+            headers={"Authorization": f"Bearer {settings.admin_token.get_secret_value()}"},
+            timeout=10,
+        )
+        answer.raise_for_status()
+        limit = answer.json().get("limit")
+    except (httpx.HTTPError, ValueError, AttributeError):
+        return None
+    return limit if isinstance(limit, int) and limit >= 1 else None
+
+
+def measured_capacity(study: StudyConfig, settings: Settings) -> int:
+    """The capacity of a server with these settings, its update cost measured here on the
+    study's own learners and environments (``server.app.updates.capacity``)."""
+    from server.app.updates.capacity import (
+        measure_update_cost,
+        participants_at_once,
+        reference_jobs,
+    )
+    from server.cores import available_cores
+
+    study.register_environments()
+    seconds = measure_update_cost({"jobs": reference_jobs(study.pairs(), study.settings_of)})
+    slots = min(settings.update_workers, available_cores())
+    return participants_at_once(seconds, slots, settings.update_interval_seconds)
+
+
+def max_concurrent(args: argparse.Namespace, study: StudyConfig, settings: Settings) -> int:
+    if args.max_concurrent is not None:
+        return int(args.max_concurrent)
+    if study.max_active_participants is not None:
+        return study.max_active_participants
+    assert study.prolific is not None
+    limit = server_limit(args.replica or study.prolific.public_url, settings)
+    if limit is not None:
+        return limit
+    print(
+        "measuring the server's capacity on the study's learners "
+        "(give --max-concurrent N to skip)...",
+        file=sys.stderr,
+        flush=True,
+    )
+    return measured_capacity(study, settings)
+
+
+def create(args: argparse.Namespace, settings: Settings) -> None:
+    from server.app.config import StudyConfigError, load_study_config
+    from server.app.platforms.prolific import draft_study
+
+    try:
+        study = load_study_config(args.study_file)
+    except StudyConfigError as error:
+        raise Refused(str(error), 2) from None
+    if study.completion.mode != "prolific":
+        raise Refused(
+            f'{args.study_file}: the completion mode is "{study.completion.mode}"; a study '
+            'on Prolific needs [completion] mode = "prolific" with prolific_code',
+            2,
+        )
+    if study.prolific is None:
+        raise Refused(f"{args.study_file} has no [prolific] table (docs/study-file.md)", 2)
+    client = client_for(args, settings)
+    try:
+        made = client.create_study(
+            draft_study(study, max_concurrent(args, study, settings), args.replica)
+        )
+    finally:
+        client.close()
+    print(made["id"])
+
+
+def status(client: ProlificClient, study_id: str) -> None:
+    from server.app.platforms.prolific import SUBMISSION_STATUSES
+
+    study = client.get_study(study_id)
+    counts = Counter(str(s.get("status")) for s in client.submissions(study_id))
+    print(f"study       {study_id} ({study.get('name', '')})")
+    print(f"status      {study.get('status')}")
+    print(
+        f"places      {study.get('places_taken', '?')} taken of {study['total_available_places']}"
+    )
+    print(f"submissions {sum(counts.values())}")
+    for name in (*SUBMISSION_STATUSES, *sorted(set(counts) - set(SUBMISSION_STATUSES))):
+        if counts[name]:
+            print(f"  {name:<18} {counts[name]}")
+
+
+def add_places(client: ProlificClient, study_id: str, places: int) -> None:
+    study: dict[str, Any] = client.get_study(study_id)
+    current = int(study["total_available_places"])
+    if places <= current:
+        raise Refused(
+            f"places only go up: study {study_id} has {current} places, and {places} is not "
+            f"more; give the new total, above {current}"
+        )
+    done = client.set_places(study_id, places)
+    print(f"study {study_id}: {done['total_available_places']} places")
+
+
+def run(args: argparse.Namespace) -> int:
+    from server.app.platforms.review import ReviewRefused, ReviewUnavailable
+    from server.app.settings import SettingsError, load_settings
+
+    try:
+        settings = load_settings()
+    except SettingsError as error:
+        print(f"bam-study prolific: {error}", file=sys.stderr)
+        return 2
+    try:
+        if args.action == "create":
+            create(args, settings)
+            return 0
+        client = client_for(args, settings)
+        try:
+            if args.action == "status":
+                status(client, args.study_id)
+            elif args.action == "add-places":
+                add_places(client, args.study_id, args.places)
+            else:
+                action = {"publish": "PUBLISH", "pause": "PAUSE"}[args.action]
+                done = client.transition_study(args.study_id, action)
+                print(f"study {args.study_id}: {done['status']}")
+        finally:
+            client.close()
+    except Refused as refused:
+        print(f"bam-study prolific {args.action}: {refused}", file=sys.stderr)
+        return refused.status
+    except (ReviewRefused, ReviewUnavailable) as error:
+        print(f"bam-study prolific {args.action}: {error}", file=sys.stderr)
+        return 1
+    return 0

@@ -123,6 +123,13 @@ def registered() -> tuple[EnvironmentSpec, ...]:
     return tuple(spec for spec, _ in _DEFINED.values())
 
 
+def definition(name: str) -> EnvironmentSpec | None:
+    """The definition of a registered study environment (for a process that has not registered
+    it: a Dask worker); None for a built-in one."""
+    known = _DEFINED.get(name)
+    return None if known is None else known[0]
+
+
 def unregister(name: str) -> None:
     """Forget a registered environment (a study's environments, when it stops)."""
     if name not in _DEFINED:

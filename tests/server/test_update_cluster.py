@@ -587,3 +587,56 @@ def test_an_update_left_with_a_closed_client_ends_when_the_server_reconnects(
     assert isinstance(error, UpdatesUnavailable), error
     assert "lost with the scheduler (pending)" in str(error)
     assert updates.client is new
+
+
+@pytest.mark.slow
+def test_a_study_s_own_environment_is_learned_on_workers_that_never_saw_its_file(
+    cluster: Any,
+) -> None:
+    """The cluster's workers start without the study file: each update's job carries the
+    definition of a study's own environment, so the workers learn and score it as the
+    server's own processes do, and time the reference updates on it."""
+    import asyncio
+
+    from server import domains
+    from server.app.config import load_study_config
+    from server.app.updates.capacity import measure_update_cost, reference_jobs
+    from server.app.updates.cluster import UpdateCluster
+    from server.app.updates.worker import run_update
+
+    examples = Path(__file__).resolve().parents[2] / "server" / "examples"
+    study = load_study_config(examples / "office-study.toml")
+    before = set(domains.names())
+    study.register_environments()
+    try:
+        (session,) = reference_jobs([("office-floor", "cloning")], lambda name: {}, rounds=1)
+        assert session["environment_spec"] == domains.definition("office-floor")
+        job = {
+            **{key: session[key] for key in ("environment", "environment_spec", "learner")},
+            "settings": {},
+            "seed": 0,
+            "base_state": None,
+            "records": [step for episode in session["episodes"] for step in episode],
+            "fit": True,
+        }
+        here = run_update(job)
+
+        async def scenario() -> tuple[dict[str, Any], float]:
+            updates = UpdateCluster.connect(cluster.scheduler_address)
+            try:
+                there, _ = await updates.run(run_update, job, "learner-update-office-1")
+                seconds, _ = await updates.run(
+                    measure_update_cost, {"jobs": [session]}, "learner-update-office-reference"
+                )
+                return there, seconds
+            finally:
+                await asyncio.to_thread(updates.close)
+
+        with ThreadPoolExecutor(1) as pool:
+            there, seconds = pool.submit(asyncio.run, scenario()).result()
+    finally:
+        for name in set(domains.names()) - before:
+            domains.unregister(name)
+    assert there["greedy_policy"] == here["greedy_policy"]
+    assert there["normalized_return"] == here["normalized_return"]
+    assert seconds > 0

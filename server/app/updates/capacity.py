@@ -57,7 +57,7 @@ def reference_jobs(
     """A learning session for each (environment, learner), as ``measure_update_cost`` replays
     it: the untrained learner, then ``rounds`` rounds of the simulated teacher's
     demonstrations (every task once a round), one episode at a time."""
-    from server.domains import make
+    from server.domains import definition, make
     from server.domains.base import STAY
     from server.learners.records import DemonstrationStep
     from server.teacher import Teacher
@@ -83,6 +83,7 @@ def reference_jobs(
         sessions.append(
             {
                 "environment": environment,
+                "environment_spec": definition(environment),
                 "learner": learner,
                 "settings": settings_of(learner),
                 "seed": 0,
@@ -108,7 +109,10 @@ def measure_update_cost(request: dict[str, Any]) -> float:
         state = None
         for index, records in enumerate([[], *session["episodes"]]):
             job = {
-                **{key: session[key] for key in ("environment", "learner", "settings", "seed")},
+                **{
+                    key: session.get(key)
+                    for key in ("environment", "environment_spec", "learner", "settings", "seed")
+                },
                 "base_state": state,
                 "records": records,
                 "fit": index > 0,

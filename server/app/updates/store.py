@@ -13,6 +13,7 @@ from sqlalchemy import func, select
 from server.app.storage.db import Database
 from server.app.storage.models import Event, LearnerUpdate, LearningSession, utcnow
 from server.app.updates.worker import records_of
+from server.domains import definition
 
 MAX_ATTEMPTS = 3  # a worker process dying this often on one update marks it failed
 
@@ -95,6 +96,7 @@ class UpdateStore:
             ).all()
             payload = {
                 "environment": session.environment,
+                "environment_spec": definition(session.environment),
                 "learner": session.learner,
                 "settings": self.learner_settings(session.learner),
                 "seed": int(session.seed),

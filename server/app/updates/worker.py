@@ -82,12 +82,20 @@ def apply_records(learner: Any, records: list[Observation]) -> None:
 
 def run_update(job: dict[str, Any]) -> dict[str, Any]:
     """Restore or build the learner, replay ``records``, update it (unless it is update 0),
-    and return its new state, greedy policies and evaluation."""
+    and return its new state, greedy policies and evaluation. ``environment_spec``, when
+    given, defines a study's own environment first."""
     from server import domains, learners
     from server.learners.evaluation import normalized_return
     from server.learners.planning import set_planner_threads
 
     set_planner_threads(job.get("threads", 1))
+    spec = job.get("environment_spec")
+    if spec is not None and domains.definition(spec.name) != spec:
+        # A study's own environment, on a worker that has not registered it (a Dask worker),
+        # or that knows another study's environment under the same name.
+        if domains.definition(spec.name) is not None:
+            domains.unregister(spec.name)
+        domains.register_all((spec,))
     env = domains.make(job["environment"])
     if job["base_state"] is not None:
         learner = learners.restore(env, learners.loads(job["base_state"]))

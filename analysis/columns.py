@@ -7,6 +7,7 @@ SESSIONS_FILE = "sessions.csv"
 EVALUATIONS_FILE = "evaluations.csv"
 PARTICIPANTS_FILE = "participants.csv"
 EPISODES_FILE = "episodes.csv"
+QUALITY_FILE = "quality.csv"
 EPISODE_COLUMNS = (
     "session_id",
     "kind",

@@ -32,6 +32,7 @@ from analysis.columns import (
     EVALUATION_COLUMNS,
     EVALUATIONS_FILE,
     PARTICIPANTS_FILE,
+    QUALITY_FILE,
     SESSION_COLUMNS,
     SESSIONS_FILE,
     SHARED_COLUMNS,
@@ -42,7 +43,9 @@ from analysis.selection import (
     COMPLETED_STATUSES,
     count_phrase,
     discount_empty_episodes,
+    drop_flagged,
     excluded_participants,
+    flagged_participants,
     keep_finished,
 )
 
@@ -55,6 +58,7 @@ def load_tables(
     *,
     exclude_excluded: bool = False,
     include_unfinished: bool = False,
+    exclude_flagged: tuple[str, ...] = (),
     notes: list[str] | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Read and validate an export folder: ``(sessions, evaluations)``.
@@ -62,8 +66,9 @@ def load_tables(
     Only the learning sessions of participants who completed the study are kept (their
     ``status`` in ``participants.csv``); with ``include_unfinished``, also the taught sessions
     of those who did not. With ``exclude_excluded``, the learning sessions of participants the
-    experimenter excluded are dropped. Remarks for the reader of the results (how many
-    sessions were left out and why, for example) are appended to ``notes``.
+    experimenter excluded are dropped; with ``exclude_flagged``, those of the participants
+    ``quality.csv`` flags with any of those checks. Remarks for the reader of the results (how
+    many sessions were left out and why, for example) are appended to ``notes``.
     """
     folder = Path(data_dir)
     if not folder.exists():
@@ -86,7 +91,13 @@ def load_tables(
         raise InputError(f"--exclude-excluded needs {PARTICIPANTS_FILE}, which is not in {folder}")
     episodes_path = folder / EPISODES_FILE
     episodes = read_csv(episodes_path) if episodes_path.exists() else None
-    return validate_tables(
+    quality = None
+    if exclude_flagged:
+        if not (folder / QUALITY_FILE).exists():
+            raise InputError(f"--exclude-flagged needs {QUALITY_FILE}, which is not in {folder}")
+        quality = read_csv(folder / QUALITY_FILE)
+    notes = notes if notes is not None else []
+    sessions, evaluations = validate_tables(
         sessions,
         evaluations,
         participants=participants,
@@ -96,6 +107,10 @@ def load_tables(
         notes=notes,
         participants_unreadable=unreadable,
     )
+    if quality is None:
+        return sessions, evaluations
+    flagged = flagged_participants(quality, exclude_flagged, QUALITY_FILE)
+    return drop_flagged(sessions, evaluations, flagged, exclude_flagged, QUALITY_FILE, notes)
 
 
 def load_database(
@@ -103,6 +118,7 @@ def load_database(
     *,
     exclude_excluded: bool = False,
     include_unfinished: bool = False,
+    exclude_flagged: tuple[str, ...] = (),
     notes: list[str] | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Read and validate a study database directly: the tables ``bam-study export`` would
@@ -137,7 +153,8 @@ def load_database(
         raise InputError(f"--database-url {shown}: cannot read the database: {message}") from None
     finally:
         db.dispose()
-    return validate_tables(
+    notes = notes if notes is not None else []
+    sessions, evaluations = validate_tables(
         tables["sessions"],
         tables["evaluations"],
         participants=tables["participants"],
@@ -152,6 +169,11 @@ def load_database(
             "the episodes table",
         ),
     )
+    if not exclude_flagged:
+        return sessions, evaluations
+    source = "the quality checks"
+    flagged = flagged_participants(tables["quality"], exclude_flagged, source)
+    return drop_flagged(sessions, evaluations, flagged, exclude_flagged, source, notes)
 
 
 def read_csv(path: Path) -> pd.DataFrame:

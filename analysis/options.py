@@ -60,3 +60,17 @@ def parse_fdr(text: str) -> float:
     except ValueError:
         raise InputError(f"--fdr: {text!r} is not a number; for example 0.2") from None
     return check_fdr(value)
+
+
+def parse_flags(text: str) -> tuple[str, ...]:
+    """Quality checks (``quality.csv``'s flags), separated by commas, each once."""
+    from server.app.export.quality import FLAGS
+
+    names = tuple(dict.fromkeys(part.strip() for part in text.split(",")))
+    unknown = [name for name in names if name not in FLAGS]
+    if not names or unknown:
+        raise InputError(
+            f"--exclude-flagged: {', '.join(map(repr, unknown or [text]))} is not a quality "
+            f"check; choose from {', '.join(FLAGS)}"
+        )
+    return names

@@ -52,7 +52,9 @@ def describe_files(baseline: str, thresholds: Sequence[float], fdr: float) -> st
 Learning sessions counted: those of the participants who completed the study (`status`
 completed or submitted in `participants.csv`), as in the paper. `--include-unfinished` adds
 the taught sessions (at least one evaluation) of the participants who did not finish;
-`--exclude-excluded` drops those of the participants the experimenter excluded. A note says
+`--exclude-excluded` drops those of the participants the experimenter excluded, and
+`--exclude-flagged` those of the participants a chosen quality check flags (`quality.csv`). A
+note says
 how many sessions were left out and why (returned the task, timed out, still in the study).
 
 - `table1.md`, `table1.tex`: the paper's Table 1. Per environment and learner, the total

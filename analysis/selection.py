@@ -5,6 +5,8 @@ note of what was left out and why; and the empty episodes taken out of the count
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import pandas as pd
 
@@ -210,3 +212,43 @@ def excluded_participants(
     if "status" in participants.columns:
         marked |= participants["status"].astype(str).str.strip().str.lower() == "excluded"
     return set(participants.loc[marked, "participant_id"].astype(str).str.strip())
+
+
+def flagged_participants(quality: pd.DataFrame, flags: Sequence[str], source: str) -> set[str]:
+    """Ids of the participants ``quality`` (``quality.csv``) flags with any of ``flags``."""
+    missing = [c for c in ("participant_id", "flags") if c not in quality.columns]
+    if missing:
+        raise InputError(
+            f"{source}: --exclude-flagged needs the columns 'participant_id' and 'flags', which "
+            f"the file does not have (found: {', '.join(repr(str(c)) for c in quality.columns)})"
+        )
+    wanted = set(flags)
+    words = quality["flags"].fillna("").astype(str).str.split()
+    marked = words.map(lambda found: bool(wanted & set(found)))
+    return set(quality.loc[marked, "participant_id"].astype(str).str.strip())
+
+
+def drop_flagged(
+    sessions: pd.DataFrame,
+    evaluations: pd.DataFrame,
+    flagged: set[str],
+    flags: Sequence[str],
+    source: str,
+    notes: list[str],
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The learning sessions and evaluations without those of the ``flagged`` participants,
+    with a note that says how many were left out and why."""
+    dropped = sessions["participant_id"].astype(str).str.strip().isin(flagged)
+    people = int(sessions.loc[dropped, "participant_id"].nunique())
+    notes.append(
+        f"excluded {count_phrase(int(dropped.sum()), 'learning session')} of "
+        f"{count_phrase(people, 'participant')} flagged {' or '.join(flags)} in {source}"
+    )
+    kept = sessions.loc[~dropped].reset_index(drop=True)
+    if kept.empty:
+        raise InputError(
+            f"no learning sessions are left after excluding the participants flagged "
+            f"{' or '.join(flags)} in {source}"
+        )
+    evaluations = evaluations.loc[evaluations["session_id"].isin(kept["session_id"])]
+    return kept, evaluations.reset_index(drop=True)

@@ -16,6 +16,7 @@ from analysis.options import (
     DEFAULT_THRESHOLDS,
     InputError,
     parse_fdr,
+    parse_flags,
     parse_thresholds,
 )
 
@@ -80,6 +81,15 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="drop the sessions of participants the experimenter marked excluded",
     )
     parser.add_argument(
+        "--exclude-flagged",
+        type=_argument(parse_flags),
+        default=(),
+        metavar="CHECK[,CHECK]",
+        help="drop the sessions of participants any of these quality checks flags "
+        "(quality.csv): exceptionally_fast, long_idle, poor_demonstrations, "
+        "inconsistent_feedback",
+    )
+    parser.add_argument(
         "--include-unfinished",
         action="store_true",
         help="also count the taught learning sessions (at least one evaluation) of participants "
@@ -100,6 +110,7 @@ def run(args: argparse.Namespace) -> int:
                 args.database_url,
                 exclude_excluded=args.exclude_excluded,
                 include_unfinished=args.include_unfinished,
+                exclude_flagged=args.exclude_flagged,
                 notes=notes,
             )
         else:
@@ -107,6 +118,7 @@ def run(args: argparse.Namespace) -> int:
                 args.data,
                 exclude_excluded=args.exclude_excluded,
                 include_unfinished=args.include_unfinished,
+                exclude_flagged=args.exclude_flagged,
                 notes=notes,
             )
         analysis = analyze(

@@ -206,6 +206,72 @@ def test_exclude_excluded(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
     assert len(read_rows(tmp_path / "out" / "sessions_summary.csv")) == 18
 
 
+def test_exclude_flagged(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Participants a chosen quality check flags are left out, and only those."""
+    export = write_export(tmp_path / "export", small_study())
+    (export / "quality.csv").write_text(
+        "participant_id,flags\np1,poor_demonstrations inconsistent_feedback\np2,long_idle\np3,\n",
+        encoding="utf-8",
+    )
+    code, stdout, _ = analyze(
+        capsys,
+        "--data",
+        export,
+        "--out",
+        tmp_path / "out",
+        "--exclude-flagged",
+        "poor_demonstrations,exceptionally_fast",
+    )
+    assert code == 0
+    assert (
+        "excluded 6 learning sessions of 1 participant flagged poor_demonstrations or "
+        "exceptionally_fast in quality.csv"
+    ) in stdout
+    kept = {row["participant_id"] for row in read_rows(tmp_path / "out" / "sessions_summary.csv")}
+    assert "p1" not in kept and {"p2", "p3"} <= kept
+
+
+@pytest.mark.parametrize(
+    ("flags", "quality", "message"),
+    [
+        ("careless", "participant_id,flags\n", "'careless' is not a quality check; choose from"),
+        ("long_idle", None, "--exclude-flagged needs quality.csv, which is not in"),
+        (
+            "long_idle",
+            "participant,flag\np1,long_idle\n",
+            "quality.csv: --exclude-flagged needs the columns 'participant_id' and 'flags'",
+        ),
+    ],
+)
+def test_exclude_flagged_refuses_what_it_cannot_do(
+    flags: str,
+    quality: str | None,
+    message: str,
+    export: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    if quality is not None:
+        (export / "quality.csv").write_text(quality, encoding="utf-8")
+    out = tmp_path / "out"
+    code, _, stderr = analyze(capsys, "--data", export, "--out", out, "--exclude-flagged", flags)
+    assert code == 2
+    assert message in stderr
+    assert not out.exists()
+
+
+def test_exclude_flagged_names_every_check_of_the_quality_table(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from server.app.export.quality import FLAGS
+    from server.commands.main import main
+
+    with pytest.raises(SystemExit):
+        main(["analyze", "--help"])
+    shown = " ".join(capsys.readouterr().out.split())
+    assert all(flag in shown.split("--exclude-flagged", 2)[2] for flag in FLAGS), shown
+
+
 def notes_under(text: str, heading: str) -> list[str]:
     """The ``- `` items after ``heading`` (a line of the text), up to the next heading."""
     lines = text.split(heading, 1)[1].splitlines()

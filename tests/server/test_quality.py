@@ -124,6 +124,15 @@ def test_each_check_separates_careful_teachers_from_key_mashers_and_idle_partici
     )
     assert "long_idle" in flags.loc[6] and "poor_demonstrations" in flags.loc[5]
 
+    # The analysis leaves out whom a chosen check flags, reading the database itself.
+    from analysis.data import load_database
+
+    url = db.engine.url.render_as_string(hide_password=False)
+    notes: list[str] = []
+    sessions, _ = load_database(url, exclude_flagged=("poor_demonstrations",), notes=notes)
+    assert set(sessions["participant_id"].astype(int)) == {1, 2, 3, 4, 6}
+    assert any("flagged poor_demonstrations in the quality checks" in note for note in notes)
+
 
 def test_quality_csv_is_in_the_export_the_dictionary_and_the_admin_api(
     client: TestClient, db: Database

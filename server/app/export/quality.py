@@ -33,6 +33,9 @@ class Thresholds:
     least_moves: int = 10  # fewer demonstrated moves (feedback signals): not judged
 
 
+# The checks that flag a participant (each a column of its own, and a word of ``flags``).
+FLAGS = ("exceptionally_fast", "long_idle", "poor_demonstrations", "inconsistent_feedback")
+
 COLUMNS: dict[str, str] = {
     "participant_id": "The participant (participants.csv).",
     "minutes": "Minutes from arrival to completion.",
@@ -137,16 +140,7 @@ def quality_table(
             "inconsistent_feedback": feedback_share is not None
             and feedback_share < thresholds.feedback_share,
         }
-        flags = [
-            name
-            for name in (
-                "exceptionally_fast",
-                "long_idle",
-                "poor_demonstrations",
-                "inconsistent_feedback",
-            )
-            if row[name]
-        ]
+        flags = [name for name in FLAGS if row[name]]
         row["flags"] = " ".join(flags)
         row["prolific_ground"] = "TOO_QUICKLY" if row["exceptionally_fast"] else "none"
         rows.append(row)

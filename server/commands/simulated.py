@@ -54,9 +54,9 @@ class ProlificArrival:
     browser does: take a place (``/prolific/studies/{id}/take-part``, the researcher's button,
     signed in with the admin token), open the study link it redirects to (PROLIFIC_PID,
     STUDY_ID and SESSION_ID filled in) and read the token the page gives its script; at the
-    end, follow the completion redirect to the replica, which stands in for Prolific's site
-    (``https://app.prolific.com/submissions/complete?cc=CODE`` is the replica's
-    ``/prolific/submissions/complete?cc=CODE``), so that the submission awaits review."""
+    end, follow the completion redirect, which for a study of the replica is the replica's
+    ``/prolific/submissions/complete?cc=CODE`` (standing in for Prolific's), so that the
+    submission awaits review."""
 
     study_id: str
     admin_token: str
@@ -392,7 +392,12 @@ class SimulatedParticipant:
         target = urlsplit(completion.get("redirect_url") or "")
         if completion.get("mode") != "prolific" or not target.path:
             raise StudyClientError(f"the study sent no Prolific completion redirect: {completion}")
-        landed = self.browser.get(urlunsplit(("", "", "/prolific" + target.path, target.query, "")))
+        if target.scheme or target.netloc:
+            raise StudyClientError(
+                f"the study sent the participant to {completion['redirect_url']}, not to this "
+                "server's Prolific replica"
+            )
+        landed = self.browser.get(urlunsplit(("", "", target.path, target.query, "")))
         if landed.status_code != 200:
             raise StudyClientError(
                 f"Prolific's completion page (the replica's) -> {landed.status_code}: "

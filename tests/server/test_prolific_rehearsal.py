@@ -102,12 +102,15 @@ class Person:
         done = self.api.act(f"/api/sessions/{session}/finish")["participant"]
         assert done["status"] == "completed", done
         self.api.act("/api/participant/submission")
-        self.leave(done["completion"]["code"])
+        self.leave(done["completion"])
 
-    def leave(self, code: str) -> None:
-        """Prolific's completion URL, on the replica (the study's prolific_url on Prolific)."""
-        landed = self.browser.get("/prolific/submissions/complete", params={"cc": code})
-        assert landed.status_code == 200, landed.text
+    def leave(self, completion: dict[str, Any]) -> None:
+        """Where the page sends them at the end: for a study of the replica, the replica's
+        completion URL (on Prolific, the study's prolific_url)."""
+        code = completion["code"]
+        assert completion["redirect_url"] == f"/prolific/submissions/complete?cc={code}"
+        landed = self.browser.get(completion["redirect_url"])
+        assert landed.status_code == 200 and f"Completion code {code} accepted" in landed.text
 
     def end(self, how: str) -> None:
         """``return`` or ``time-out``, as the participant or Prolific ends the submission."""
@@ -151,7 +154,7 @@ def test_a_paid_study_rehearsed_on_the_replica(server: tuple[str, Any], db: Data
     decliner = Person(base, study["id"])
     declined = decliner.consent(agree=False)
     assert declined["status"] == "declined" and declined["completion"]["code"] == "NOCONSNT"
-    decliner.leave(declined["completion"]["code"])
+    decliner.leave(declined["completion"])
     assert replica_statuses(db)[decliner.submission] == "RETURNED"
 
     def domain(person: Person) -> str | None:

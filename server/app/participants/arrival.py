@@ -25,6 +25,7 @@ from server.app.participants.tokens import (
     restore_status,
     set_status,
 )
+from server.app.platforms.prolific_replica import REPLICA_PATH, is_replica_study
 from server.app.schemas import (
     ArrivalRequest,
 )
@@ -292,6 +293,10 @@ def _create(
     c: Connection, platform: Platform, now: datetime, room: Room | None
 ) -> tuple[Record, str]:
     status = "arrived" if room is None or room(c, now) else "waiting"
+    submit_to = platform.submit_to
+    if platform.name == "prolific" and platform.hit_id is not None:
+        # A study of this server's Prolific replica: the participant goes back to it.
+        submit_to = REPLICA_PATH if is_replica_study(c, platform.hit_id) else None
     token, token_hash = new_token()
     participant_id = add(
         c,
@@ -301,7 +306,7 @@ def _create(
         worker_id=platform.worker_id,
         assignment_id=platform.assignment_id,
         hit_id=platform.hit_id,
-        submit_to=platform.submit_to,
+        submit_to=submit_to,
         status=status,
         next_seq=1,
         created_at=now,

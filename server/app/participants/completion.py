@@ -11,6 +11,7 @@ from server.app.errors import ApiError, InvalidInput
 from server.app.participants import tokens
 from server.app.participants.tokens import ANSWERS, CODE_ALPHABET, set_status
 from server.app.participants.transaction import Transaction
+from server.app.platforms.prolific_replica import REPLICA_PATH, completion_url
 from server.app.schemas import (
     Completion,
 )
@@ -109,6 +110,14 @@ def submission(transaction: Transaction) -> None:
     set_status(transaction.c, transaction.participant, "submitted", transaction.now)
 
 
+def prolific_exit(participant: Any, study: StudyConfig, code: str) -> str:
+    """Where a Prolific participant is sent with ``code``: the study's ``prolific_url``, or,
+    for a participant of this server's Prolific replica, the replica's completion URL."""
+    if participant.submit_to == REPLICA_PATH:
+        return completion_url(code)
+    return study.completion.prolific_redirect(code)
+
+
 def completion(participant: Any, study: StudyConfig) -> Completion | None:
     """The completion code and how to hand it in; None until the completion is committed. A
     Prolific participant who declined consent goes back with the NO_CONSENT code."""
@@ -117,7 +126,7 @@ def completion(participant: Any, study: StudyConfig) -> Completion | None:
         return Completion(
             code=no_consent,
             mode="prolific",
-            redirect_url=study.completion.prolific_redirect(no_consent),
+            redirect_url=prolific_exit(participant, study, no_consent),
         )
     if participant.status not in ("completed", "submitted") or participant.completion_code is None:
         return None
@@ -131,7 +140,7 @@ def completion(participant: Any, study: StudyConfig) -> Completion | None:
         )
     if participant.platform == "prolific":
         return Completion(
-            code=code, mode="prolific", redirect_url=study.completion.prolific_redirect()
+            code=code, mode="prolific", redirect_url=prolific_exit(participant, study, code)
         )
     return Completion(code=code, mode="lab")
 

@@ -42,6 +42,9 @@ from server.app.storage.replica_models import (
     ProlificReplicaSubmission,
 )
 
+# Where this server serves the replica (its pages, its API under /api/v1, and the completion
+# URL that stands in for app.prolific.com's: /submissions/complete?cc=CODE).
+REPLICA_PATH = "/prolific"
 STUDY_ACTIONS = {
     "PUBLISH": ({"UNPUBLISHED"}, "ACTIVE"),
     "PAUSE": ({"ACTIVE"}, "PAUSED"),
@@ -70,6 +73,18 @@ class Refusal(Exception):
         super().__init__(detail)
         self.status = status
         self.detail = detail
+
+
+def is_replica_study(s: Session | Any, study_id: str) -> bool:
+    """Whether ``study_id`` is a study of this server's replica (``s``: a session or a
+    connection)."""
+    found = s.execute(select(ProlificReplicaStudy.id).where(ProlificReplicaStudy.id == study_id))
+    return found.first() is not None
+
+
+def completion_url(code: str) -> str:
+    """The replica's completion URL, which stands in for Prolific's."""
+    return f"{REPLICA_PATH}/submissions/complete?cc={code}"
 
 
 def new_id() -> str:

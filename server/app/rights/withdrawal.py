@@ -8,6 +8,7 @@ from typing import Literal
 from pydantic import BaseModel, Field
 
 from server.app.config import StudyConfig
+from server.app.participants.completion import prolific_exit
 from server.app.participants.tokens import participant_for
 from server.app.rights.erasure import erase, installation_secret
 from server.app.storage.db import Database
@@ -49,6 +50,6 @@ def withdraw(db: Database, token: str | None, study: StudyConfig, secret: str | 
         return Withdrawal(
             platform="prolific",
             message="Your data has been deleted. Taking you back to Prolific\u2026",
-            redirect_url=study.completion.prolific_redirect(code),
+            redirect_url=prolific_exit(participant, study, code),
         )
     return Withdrawal(platform="lab", message=LAB_DONE)

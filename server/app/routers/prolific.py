@@ -28,6 +28,7 @@ from server.app.admin_auth import admin_token
 from server.app.deps import StateDep, is_admin
 from server.app.platforms.prolific_replica import (
     PLACEHOLDERS,
+    REPLICA_PATH,
     concurrency_limit,
     error_body,
     handle,
@@ -48,7 +49,7 @@ from server.app.storage.replica_models import (
     ProlificReplicaSubmission,
 )
 
-router = APIRouter(prefix="/prolific", tags=["prolific replica"], include_in_schema=False)
+router = APIRouter(prefix=REPLICA_PATH, tags=["prolific replica"], include_in_schema=False)
 
 PID_COOKIE = "prolific_replica_pid"
 log = logging.getLogger(__name__)
@@ -164,7 +165,9 @@ def take_part(study_id: str, request: Request, state: StateDep) -> Response:
         return login_redirect("/prolific")
     time_out_overdue(state)
     with state.db.write() as s:
-        study = s.get(ProlificReplicaStudy, study_id)
+        # The study's row locked (PostgreSQL) until the place is taken: two participants at
+        # once cannot both take the last place or the last concurrent one.
+        study = s.get(ProlificReplicaStudy, study_id, with_for_update=True)
         if study is None:
             return notice(request, "No such study", f"The replica has no study {study_id}.", 404)
         if study.status != "ACTIVE":

@@ -248,6 +248,7 @@ DICTIONARY: dict[str, dict[str, str]] = {
                 "learner_updates",
                 "status_changes",
                 "questionnaire_answers",
+                "attention_checks",
                 "participant_tokens",
                 "assignment_reviews",
                 "bonuses",

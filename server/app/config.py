@@ -228,9 +228,13 @@ class AttentionChecks(_Strict):
     reaching it within the moves allowed (Prolific accepts failed instructional attention checks
     as a ground for rejection)."""
 
-    enabled: bool = Field(False, description="Show attention checks between agents.")
+    enabled: bool = Field(False, strict=True, description="Show attention checks between agents.")
     size: int = Field(
-        5, ge=3, le=9, description="The grid's width and height, in cells (an open square grid)."
+        5,
+        ge=3,
+        le=9,
+        strict=True,
+        description="The grid's width and height, in cells (an open square grid).",
     )
     start: Cell | Literal["random"] = Field(
         (4, 0),
@@ -246,6 +250,7 @@ class AttentionChecks(_Strict):
         12,
         ge=1,
         le=100,
+        strict=True,
         description="The moves allowed to reach the star (a move into the edge counts): at "
         "least the shortest way, and with a random start or star at least 2 x (size - 1).",
     )
@@ -253,9 +258,20 @@ class AttentionChecks(_Strict):
         1,
         ge=1,
         le=100,
+        strict=True,
         description="A check after every k-th agent (1: after each agent), never after the "
         "last agent.",
     )
+
+    @field_validator("start", "star", mode="before")
+    @classmethod
+    def _cell(cls, value: Any) -> Any:
+        if value == "random":
+            return value
+        whole = [x for x in value if type(x) is int] if isinstance(value, list | tuple) else []
+        if len(whole) != 2 or len(value) != 2:
+            raise ValueError('a cell is [row, column], two whole numbers, or "random"')
+        return value
 
     @model_validator(mode="after")
     def _reachable(self) -> AttentionChecks:

@@ -245,6 +245,11 @@ def test_random_cells_are_drawn_from_the_seed_far_enough_apart() -> None:
         ({"size": 2}, "greater than or equal to 3"),
         ({"every": 0}, "greater than or equal to 1"),
         ({"start": "centre"}, "attention_checks.start"),
+        ({"start": [True, 0]}, "two whole numbers"),
+        ({"star": [0.0, 4]}, "two whole numbers"),
+        ({"star": [0, 4, 1]}, "two whole numbers"),
+        ({"moves": "12"}, "attention_checks.moves"),
+        ({"enabled": 1}, "attention_checks.enabled"),
         ({"colour": "red"}, "colour"),
     ],
 )

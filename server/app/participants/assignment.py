@@ -189,16 +189,16 @@ def draw_check_cells(checks: AttentionChecks, draws: random.Random) -> tuple[int
     def far_from(cell: tuple[int, int]) -> list[tuple[int, int]]:
         return [x for x in cells if abs(x[0] - cell[0]) + abs(x[1] - cell[1]) >= n - 1]
 
-    start = None if checks.start == "random" else tuple(checks.start)
-    star = None if checks.star == "random" else tuple(checks.star)
-    if start is None and star is None:
-        start = draws.choice(cells)
+    start, star = _fixed(checks.start), _fixed(checks.star)
     if start is None:
-        assert star is not None
-        start = draws.choice(far_from(star))  # type: ignore[arg-type]
+        start = draws.choice(cells if star is None else far_from(star))
     if star is None:
-        star = draws.choice(far_from(start))  # type: ignore[arg-type]
+        star = draws.choice(far_from(start))
     return start[0] * n + start[1], star[0] * n + star[1]
+
+
+def _fixed(cell: tuple[int, int] | str) -> tuple[int, int] | None:
+    return None if isinstance(cell, str) else (cell[0], cell[1])
 
 
 def start(transaction: Transaction) -> Record:

@@ -2,7 +2,7 @@
 the robot to the star with the arrow keys, sees the moves left, may reload mid-check and find
 it as it was, and goes on to the next agent with Enter; the server records the moves and the
 outcome. A check whose moves run out says only that it is recorded, and the participant goes on
-all the same."""
+all the same; the arrow buttons by the grid move the robot too."""
 
 from __future__ import annotations
 
@@ -126,7 +126,10 @@ def test_a_check_whose_moves_run_out_is_recorded_and_the_participant_goes_on(
     page: Page, server: LiveServer
 ) -> None:
     reach_the_check(page, server)
-    for left in range(9, 0, -1):
+    # The arrow buttons by the grid move the robot as the keys do.
+    page.get_by_role("button", name="Left").click()
+    expect(page.locator(".check-status")).to_have_text("9 moves left.", timeout=WAIT_MS)
+    for left in range(8, 0, -1):
         press_and_wait(page, "ArrowLeft", left)  # into the edge: the robot stays
     robot_at(page, 5, 1)
     page.keyboard.press("ArrowDown")

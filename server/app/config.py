@@ -648,6 +648,11 @@ class StudyConfig(_Strict):
             raise ValueError(
                 f"{len(self.colours)} colours for up to {most} agents: each agent needs its own"
             )
+        if self.attention_checks.enabled and not self.attention_checks.after_agents(most):
+            raise ValueError(
+                f"attention_checks: every = {self.attention_checks.every} leaves no check "
+                f"between agents (a participant teaches at most {most}; none after the last)"
+            )
         return self
 
     @field_validator("environments")

@@ -258,6 +258,13 @@ def test_a_bad_attention_checks_table_is_refused(table: dict[str, Any], problem:
         study_config(attention_checks={"enabled": True, **table})
 
 
+def test_checks_that_would_never_come_are_refused() -> None:
+    # Two agents: a check every second agent would come after the last one only.
+    with pytest.raises(StudyConfigError, match="every = 2 leaves no check"):
+        study_config(**TWO_AGENTS, attention_checks={**CHECKS, "every": 2})
+    assert study_config(**TWO_AGENTS, attention_checks={**CHECKS, "every": 1})
+
+
 def test_an_erasure_removes_the_participants_checks_and_no_other(
     client: TestClient, db: Database
 ) -> None:

@@ -347,7 +347,7 @@ DESCRIPTIONS = {
     "study file's [attention_checks]; none without it): move the robot to the star.",
     "quality": "One row per participant who completed: quality checks built for teaching "
     "(completion time against the others', idle stretches, optimal demonstrations, consistent "
-    "feedback) and the rejection ground, if any, that Prolific accepts for them. None rejects "
+    "feedback, attention checks failed) and the rejection ground, if any, that Prolific accepts for them. None rejects "
     "anybody by itself.",
     "erasures": "One row per participant whose data was erased (withdrawal or request): the "
     "other files hold nothing of theirs; remove their rows (by participant_id or pseudonym) "

@@ -116,6 +116,8 @@ def toml_value(value: object) -> str:
         return f'"{value}"'
     if isinstance(value, dict):
         return "{ " + ", ".join(f"{k} = {toml_value(v)}" for k, v in value.items()) + " }"
+    if isinstance(value, tuple | list):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
     return str(value)
 
 

@@ -219,6 +219,87 @@ class Tutorial(_Strict):
         return _check_learner(value)
 
 
+Cell = tuple[int, int]
+
+
+class AttentionChecks(_Strict):
+    """Instructional attention checks between agents: a small open grid, a robot and a star;
+    the participant is asked to move the robot to the star with the arrow keys, and passes on
+    reaching it within the moves allowed (Prolific accepts failed instructional attention checks
+    as a ground for rejection)."""
+
+    enabled: bool = Field(False, strict=True, description="Show attention checks between agents.")
+    size: int = Field(
+        5,
+        ge=3,
+        le=9,
+        strict=True,
+        description="The grid's width and height, in cells (an open square grid).",
+    )
+    start: Cell | Literal["random"] = Field(
+        (4, 0),
+        description="Where the robot starts, as [row, column] from the top-left cell [0, 0], "
+        'or "random": drawn for each check from the participant\'s seed.',
+    )
+    star: Cell | Literal["random"] = Field(
+        (0, 4),
+        description='Where the star is, as [row, column], or "random": drawn for each check '
+        "from the participant's seed, at least size - 1 moves from the robot.",
+    )
+    moves: int = Field(
+        12,
+        ge=1,
+        le=100,
+        strict=True,
+        description="The moves allowed to reach the star (a move into the edge counts): at "
+        "least the shortest way, and with a random start or star at least 2 x (size - 1).",
+    )
+    every: int = Field(
+        1,
+        ge=1,
+        le=100,
+        strict=True,
+        description="A check after every k-th agent (1: after each agent), never after the "
+        "last agent.",
+    )
+
+    @field_validator("start", "star", mode="before")
+    @classmethod
+    def _cell(cls, value: Any) -> Any:
+        if value == "random":
+            return value
+        whole = [x for x in value if type(x) is int] if isinstance(value, list | tuple) else []
+        if len(whole) != 2 or len(value) != 2:
+            raise ValueError('a cell is [row, column], two whole numbers, or "random"')
+        return value
+
+    @model_validator(mode="after")
+    def _reachable(self) -> AttentionChecks:
+        for name, cell in (("start", self.start), ("star", self.star)):
+            if cell != "random" and not all(0 <= x < self.size for x in cell):
+                raise ValueError(
+                    f"{name} {list(cell)} is off the {self.size}x{self.size} grid "
+                    f"(rows and columns 0 to {self.size - 1})"
+                )
+        if self.start == "random" or self.star == "random":
+            least = 2 * (self.size - 1)
+        else:
+            if self.start == self.star:
+                raise ValueError("start and star are the same cell")
+            least = abs(self.start[0] - self.star[0]) + abs(self.start[1] - self.star[1])
+        if self.moves < least:
+            raise ValueError(
+                f"moves ({self.moves}) is less than the {least} the star may need at the least"
+            )
+        return self
+
+    def after_agents(self, agents: int) -> list[int]:
+        """The agents' positions (from 0) after which a check comes, of ``agents`` agents."""
+        if not self.enabled:
+            return []
+        return [p for p in range(agents - 1) if (p + 1) % self.every == 0]
+
+
 class Completion(_Strict):
     """How a participant finishes: MTurk's externalSubmit, Prolific's redirect, or a code page."""
 
@@ -519,6 +600,11 @@ class StudyConfig(_Strict):
         description="The study's own environments, one [environments.NAME] table each (NAME: "
         "lower-case letters, digits and '-'), listed in a domain of their family.",
     )
+    attention_checks: AttentionChecks = Field(
+        AttentionChecks(),
+        description="Instructional attention checks between agents (the table below); none "
+        "unless enabled.",
+    )
     prolific: ProlificStudy | None = Field(
         None,
         description="The study on Prolific, for `bam-study prolific create` (the table below).",
@@ -561,6 +647,11 @@ class StudyConfig(_Strict):
         if len(self.colours) < most:
             raise ValueError(
                 f"{len(self.colours)} colours for up to {most} agents: each agent needs its own"
+            )
+        if self.attention_checks.enabled and not self.attention_checks.after_agents(most):
+            raise ValueError(
+                f"attention_checks: every = {self.attention_checks.every} leaves no check "
+                f"between agents (a participant teaches at most {most}; none after the last)"
             )
         return self
 

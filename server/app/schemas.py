@@ -179,6 +179,33 @@ class Progress(BaseModel):
     of: int
 
 
+class AttentionCheckView(BaseModel):
+    """An instructional attention check: move the robot to the star on an open grid."""
+
+    number: int = Field(description="1.. among the participant's checks.")
+    of: int = Field(description="The participant's checks.")
+    size: int = Field(description="The grid's width and height, in cells.")
+    robot: tuple[int, int] = Field(description="Where the robot is: [row, column].")
+    star: tuple[int, int] = Field(description="Where the star is: [row, column].")
+    moves_made: int
+    moves_allowed: int
+    status: Literal["active", "passed", "failed"]
+
+
+class AttentionMoveRequest(SeqRequest):
+    action: Move = Field(description="The arrow pressed.")
+
+
+class AttentionOutcome(BaseModel):
+    """The answer to a move in an attention check: the check after it and where the
+    participant is (the next agent once the check is over)."""
+
+    seq: int
+    kind: str
+    check: AttentionCheckView
+    participant: ParticipantBrief
+
+
 class ParticipantState(ParticipantBrief):
     participant_id: int
     platform: Literal["mturk", "prolific", "lab"]
@@ -186,6 +213,9 @@ class ParticipantState(ParticipantBrief):
     progress: Progress
     sessions: list[SessionSummary]
     tutorial_step: int = Field(description="The tutorial step reached, from 0.")
+    attention_check: AttentionCheckView | None = Field(
+        None, description="The attention check being taken, if any (between two agents)."
+    )
 
 
 class ArrivalResponse(BaseModel):

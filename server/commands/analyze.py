@@ -87,7 +87,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         metavar="CHECK[,CHECK]",
         help="drop the sessions of participants any of these quality checks flags "
         "(quality.csv): exceptionally_fast, long_idle, poor_demonstrations, "
-        "inconsistent_feedback",
+        "inconsistent_feedback, failed_attention",
     )
     parser.add_argument(
         "--include-unfinished",

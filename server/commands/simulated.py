@@ -83,10 +83,18 @@ class TeachingPlan:
     # move; idle: careful, but away for idle_seconds before each agent
     kind: str = "careful"
     idle_seconds: float = 0.0
+    # In an attention check (move the robot to the star): the chance of a random arrow instead
+    # of one along the shortest way (a key-masher presses only random arrows).
+    check_mistake_probability: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.feedback_alpha > 0:
             raise ValueError(f"feedback_alpha must be above 0, got {self.feedback_alpha!r}")
+        if not 0 <= self.check_mistake_probability <= 1:
+            raise ValueError(
+                "check_mistake_probability must be between 0 and 1, got "
+                f"{self.check_mistake_probability!r}"
+            )
         if self.kind not in PARTICIPANT_KINDS:
             raise ValueError(
                 f"kind must be one of {', '.join(PARTICIPANT_KINDS)}, got {self.kind!r}"
@@ -111,6 +119,8 @@ class ParticipantRun:
     completion_code: str | None = None
     sessions: int = 0
     episodes: int = 0
+    attention_checks: int = 0  # checks taken
+    failed_checks: int = 0  # of them failed (as the server decided)
     latencies: dict[str, list[float]] = field(default_factory=dict)
     update_waits: list[float] = field(default_factory=list)
     error: str | None = None
@@ -303,6 +313,9 @@ class SimulatedParticipant:
             finish = self.teach(current)
             self.run.sessions += 1
             current = finish["participant"]["current_session_id"]
+            if current is None and finish["participant"]["status"] == "teaching":
+                finish = self.attention_check()  # between two agents
+                current = finish["participant"]["current_session_id"]
         if finish["participant"]["status"] == "questionnaire":
             answers = self.questionnaire_answers()
             finish = self.act("/api/participant/questionnaire", "questionnaire", answers=answers)
@@ -454,6 +467,34 @@ class SimulatedParticipant:
                 if tutorial or self.rng.random() < self.plan.agent_try_probability:
                     state = self.agent_try(base, env, teacher, k)
         return self.act(f"{base}/finish", "finish")
+
+    def attention_check(self) -> dict[str, Any]:
+        """Move the robot to the star as asked (careful and idle participants: the shortest
+        way; key-mashers: random arrows) until the server ends the check; its last answer."""
+        me = self.request("GET", "/api/participant", "read_participant")
+        check = me["attention_check"]
+        if check is None:
+            raise StudyClientError("between two agents, but no attention check in progress")
+        self.run.attention_checks += 1
+        arrows = ("UP", "DOWN", "LEFT", "RIGHT")
+        while True:
+            (row, column), (star_row, column_star) = check["robot"], check["star"]
+            if self.plan.kind == "key-masher" or self.rng.random() < (
+                self.plan.check_mistake_probability
+            ):
+                action = arrows[int(self.rng.integers(len(arrows)))]
+            elif row != star_row:
+                action = "UP" if star_row < row else "DOWN"
+            else:
+                action = "LEFT" if column_star < column else "RIGHT"
+            self._pause(self.plan.think_seconds)
+            data = self.act(
+                "/api/participant/attention-check/move", "attention_move", action=action
+            )
+            check = data["check"]
+            if check["status"] != "active":
+                self.run.failed_checks += check["status"] == "failed"
+                return data
 
     def demonstrate(self, base: str, env: Any, teacher: Teacher, task: int) -> int:
         self._pause(self.plan.episode_pause_seconds)

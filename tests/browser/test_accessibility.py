@@ -1,7 +1,8 @@
 """Every page a person sees, checked by axe-core (bundled by axe-playwright-python: nothing is
 fetched) against the WCAG 2.0 and 2.1 A and AA rules: the MTurk replica's pages, the preview,
 consent, each tutorial step, the teaching page of each domain (idle, demonstrating, the agent
-trying, after feedback), the completion page, the error pages, the errors the study's page draws
+trying, after feedback), the attention check between agents (being taken, and recorded), the
+completion page, the error pages, the errors the study's page draws
 itself (a participant the server no longer knows, a request the server failed), the login page
 and the dashboard (its list, a participant, a curve, a replay). Each page or state is checked in
 a 1280x800, a 1280x720 and a 1024x640 window (what scrolls, and so must take the keyboard's
@@ -76,6 +77,7 @@ LAB_STATES = (
     "place-not-found",
     "something-went-wrong",
 )
+CHECK_STATES = ("attention-check", "attention-check-recorded")
 
 
 SIZES = ((1280, 800), (1280, 720), (1024, 640))
@@ -486,3 +488,63 @@ def test_the_teaching_page_is_usable_at_200_percent_zoom(
         expect(page.locator(".next-reason")).to_be_in_viewport()
     finally:
         context.close()
+
+
+# -- the attention check between two agents ---------------------------------------------------
+@pytest.fixture(scope="module")
+def check_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+    config = study_toml(
+        mode="lab",
+        domains_toml=domain_toml("navigation", "wall"),
+        learners='["cloning"]',
+        agents=2,
+        allow_anonymous=True,
+        tutorial=False,
+    )
+    checks = "\n[attention_checks]\nenabled = true\nmoves = 8\n"
+    yield from run_live_server(tmp_path_factory.mktemp("accessibility-check"), config + checks)
+
+
+@pytest.fixture(scope="module")
+def check_found(
+    browser: Browser, browser_context_args: dict[str, Any], check_server: LiveServer
+) -> Iterator[Found]:
+    page = new_page(browser, browser_context_args)
+    found = Found()
+
+    def steps() -> None:
+        page.goto(f"{check_server.url}/study")
+        page.click('[data-action="agree"]')
+        page.click('[data-action="start"]')
+        study = Study(page)
+        expect(study.teach).to_be_visible(timeout=WAIT_MS)
+        study.focus()
+        for task in range(page.locator(".task").count()):
+            study.demonstrate(task)
+        study.press("n")
+        expect(page.locator('[data-action="confirm-next"]')).to_be_visible()
+        study.press("Enter")
+        status = page.locator(".check-status")
+        expect(status).to_have_text("8 moves left.", timeout=WAIT_MS)
+        study.press("ArrowUp")
+        expect(status).to_have_text("7 moves left.", timeout=WAIT_MS)
+        found.check("attention-check", page)
+        for left, key in enumerate(["ArrowUp"] * 3 + ["ArrowRight"] * 3):
+            study.press(key)
+            expect(status).to_have_text(f"{6 - left} {'move' if left == 5 else 'moves'} left.")
+        study.press("ArrowRight")
+        expect(page.locator('[data-action="after-check"]')).to_be_focused(timeout=WAIT_MS)
+        found.check("attention-check-recorded", page)
+
+    yield drive(found, steps)
+    page.context.close()
+
+
+@pytest.mark.parametrize("size", SIZE_NAMES)
+@pytest.mark.parametrize("state", CHECK_STATES)
+def test_the_attention_check_has_no_wcag_violation(
+    check_found: Found, state: str, size: str
+) -> None:
+    key = f"{state}@{size}"
+    assert key in check_found, f"not reached: {check_found.error}"
+    assert check_found[key] == [], "\n".join(check_found[key])

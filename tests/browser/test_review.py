@@ -184,3 +184,36 @@ def test_the_summary_counts_statuses_and_domains_in_separate_rows(
         int(text.rsplit(": ", 1)[1]) for text in statuses.locator(".badge").all_inner_texts()
     )
     assert counted == rows
+
+
+def test_the_review_shows_the_ground_the_quality_checks_suggest(
+    page: Page, server: LiveServer
+) -> None:
+    submit_a_hit(page, server, "WSUGGEST")
+    (participant,) = server.query("SELECT id FROM participants WHERE worker_id = 'WSUGGEST'")
+    page.goto(f"{server.url}/dashboard")
+    page.locator(f'#participants tr[data-participant="{participant.id}"]').click()
+    detail = page.locator("#detail")
+    suggestion = detail.locator('[data-testid="suggested-ground"]')
+    expect(suggestion).to_have_text(
+        "Suggested ground: none (the quality checks support no rejection).", timeout=WAIT_MS
+    )
+    expect(detail.locator('[data-quality="attention-checks"]')).to_have_text(
+        "Attention checks: none taken"
+    )
+    # A failed attention check, in a study of under five minutes: Prolific's FAILED_CHECK.
+    server.query(
+        "INSERT INTO attention_checks (participant_id, number, after_ordinal, size, start_cell,"
+        " star_cell, moves_allowed, status, cell, moves) VALUES (:id, 0, 0, 5, 20, 4, 8,"
+        " 'failed', 20, :moves)",
+        id=participant.id,
+        moves='["LEFT", "LEFT", "LEFT", "LEFT", "LEFT", "LEFT", "LEFT", "LEFT"]',
+    )
+    page.reload()
+    page.locator(f'#participants tr[data-participant="{participant.id}"]').click()
+    expect(suggestion).to_have_text(
+        "Suggested ground: FAILED_CHECK (1 of 1 attention checks failed).", timeout=WAIT_MS
+    )
+    expect(detail.locator('[data-quality="attention-checks"]')).to_have_text(
+        "Attention checks failed: 1 of 1"
+    )

@@ -1,11 +1,13 @@
 """The quality checks built for teaching (``quality.csv``) separate simulated careful teachers
 from simulated key-mashers (random moves, random + and -, in a hurry) and idle participants
-(careful, but away between agents) by completion time, idle stretches and optimal
-demonstrations; exceptionally fast is 3 s.d. below the others' mean; each row names the
-Prolific ground that applies, if any."""
+(careful, but away between agents) by completion time, idle stretches, optimal
+demonstrations and attention checks; exceptionally fast is 3 s.d. below the others' mean;
+failed attention checks are a ground with two failures (one in a study under five minutes);
+each row names the Prolific ground that applies, if any."""
 
 from __future__ import annotations
 
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 
 import pandas as pd
@@ -13,9 +15,16 @@ from fastapi.testclient import TestClient
 
 from server.app.export.quality import Thresholds, quality_table
 from server.app.export.tables import DICTIONARY, export_tables
+from server.app.main import create_app
 from server.app.storage.db import Database
 from server.commands.simulated import SimulatedParticipant, TeachingPlan
-from tests.server.conftest import ADMIN_TOKEN, wait_for_updates, wait_until_ready
+from tests.server.conftest import (
+    ADMIN_TOKEN,
+    make_settings,
+    study_config,
+    wait_for_updates,
+    wait_until_ready,
+)
 from tests.server.test_erasure import study as study
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
@@ -29,7 +38,7 @@ CAREFUL = TeachingPlan(
     max_agent_steps=12,
     think_seconds=0.15,
     agent_step_seconds=0.15,
-    feedback_alpha=10.0,  # a person who judges each of the agent's moves
+    feedback_alpha=100.0,  # a person who judges each of the agent's moves
 )
 MASHER = TeachingPlan(
     kind="key-masher",
@@ -38,7 +47,9 @@ MASHER = TeachingPlan(
     agent_try_probability=1.0,
     idle_move_probability=0.0,
     refresh_probability=0.0,
-    max_agent_steps=12,
+    # Enough random + and - (over 100) that chance alone puts their share at 0.7 or more
+    # seldom (under 0.1%).
+    max_agent_steps=36,
 )
 IDLE_SECONDS = 20.0
 IDLE = replace(CAREFUL, kind="idle", idle_seconds=IDLE_SECONDS)
@@ -103,8 +114,8 @@ def test_each_check_separates_careful_teachers_from_key_mashers_and_idle_partici
     # Feedback: a careful teacher's + and - agree with the worth of the agent's move; random
     # + and - agree about half the time.
     consistent = by_kind(quality, ids, "consistent_feedback_share")
-    assert min(consistent["careful"] + consistent["idle"]) >= 0.8, consistent
-    assert consistent["masher"][0] is None or consistent["masher"][0] < 0.6, consistent
+    assert min(consistent["careful"] + consistent["idle"]) >= 0.7, consistent
+    assert consistent["masher"][0] is None or consistent["masher"][0] < 0.7, consistent
     assert by_kind(quality, ids, "inconsistent_feedback") == {
         "careful": [False] * 4,
         "masher": [consistent["masher"][0] is not None],
@@ -178,3 +189,102 @@ def test_exceptionally_fast_is_3_sd_below_the_others_mean() -> None:
     assert list(quality["exceptionally_fast"]) == [False] * 5 + [True]
     assert quality.loc[6, "minutes_z"] < -3 < quality.loc[1, "minutes_z"]
     assert list(quality["prolific_ground"]) == ["none"] * 5 + ["TOO_QUICKLY"]
+
+
+def test_attention_checks_separate_key_mashers_from_careful_and_idle_participants(
+    db: Database, executor: ProcessPoolExecutor
+) -> None:
+    """Two agents with a check between them (robot and star eight moves apart, ten moves
+    allowed): careful and idle participants pass it, a key-masher's random arrows fail it, and
+    in this short study one failed check is Prolific's FAILED_CHECK."""
+    study = study_config(
+        learners=["cloning"],
+        agents_per_environment=2,
+        domains=[{"name": "navigation", "environments": ["wall"]}],
+        tutorial={"enabled": False},
+        attention_checks={"enabled": True, "start": [4, 0], "star": [0, 4], "moves": 10},
+    )
+    quick = {"min_rounds": 1, "max_rounds": 1, "agent_try_probability": 0.0}
+    plans = {
+        "careful": replace(CAREFUL, **quick),
+        "masher": replace(MASHER, **quick),
+        "idle": replace(IDLE, **quick, idle_seconds=0.1),
+    }
+    settings = make_settings(db.engine.url.render_as_string(hide_password=False))
+    app = create_app(settings, study, db=db, executor=executor)
+    with TestClient(app):
+        runs = {}
+        for index, (kind, plan) in enumerate(plans.items()):
+            run = SimulatedParticipant(
+                "http://testserver", index, 11, plan, client=TestClient(app)
+            ).take_part()
+            assert run.error is None, run.error
+            runs[kind] = run
+        wait_for_updates(db)
+        tables = export_tables(db)
+    assert {kind: (run.attention_checks, run.failed_checks) for kind, run in runs.items()} == {
+        "careful": (1, 0),
+        "masher": (1, 1),
+        "idle": (1, 0),
+    }
+    checks = tables["attention_checks"].set_index("participant_id")
+    assert list(checks["outcome"]) == ["passed", "failed", "passed"]
+    assert checks.loc[1, "moves"] == "UP UP UP UP RIGHT RIGHT RIGHT RIGHT"
+    assert checks.loc[2, "moves_made"] == 10 and checks.loc[2, "after_position"] == 0
+    quality = quality_table(tables).set_index("participant_id")
+    assert list(quality["attention_checks"]) == [1, 1, 1]
+    assert list(quality["failed_attention_checks"]) == [0, 1, 0]
+    assert list(quality["failed_attention"]) == [False, True, False]
+    assert "failed_attention" in quality.loc[2, "flags"]
+    assert list(quality["prolific_ground"]) == ["none", "FAILED_CHECK", "none"]
+
+
+def test_failed_check_needs_two_failures_in_a_study_of_five_minutes_or_more() -> None:
+    failed = [0, 1, 2, 1]
+    tables = {
+        "participants": pd.DataFrame(
+            {
+                "participant_id": range(1, 5),
+                "minutes": [20.0, 21.0, 19.0, 20.0],
+                "completed_at": ["2026-01-01T00:00:00+00:00"] * 4,
+            }
+        ),
+        "sessions": pd.DataFrame({"session_id": [], "environment": []}),
+        "events": pd.DataFrame(
+            columns=[
+                "event_id", "participant_id", "session_id", "created_at", "record", "task",
+                "state", "action", "feedback",
+            ]
+        ),
+        "attention_checks": pd.DataFrame(
+            {
+                "participant_id": [p for p in range(1, 5) for _ in range(3)],
+                "outcome": [
+                    outcome
+                    for p in range(1, 5)
+                    for outcome in ["failed"] * failed[p - 1] + ["passed"] * (3 - failed[p - 1])
+                ],
+            }
+        ),
+    }  # fmt: skip
+    # A study of about 20 minutes (the median): one failure is not enough.
+    quality = quality_table(tables).set_index("participant_id")
+    assert list(quality["failed_attention_checks"]) == failed
+    assert list(quality["attention_checks"]) == [3] * 4
+    assert list(quality["failed_attention"]) == [False, False, True, False]
+    assert list(quality["prolific_ground"]) == ["none", "none", "FAILED_CHECK", "none"]
+    # A study under five minutes: one failure is.
+    short = quality_table(tables, Thresholds(study_minutes=4.0)).set_index("participant_id")
+    assert list(short["prolific_ground"]) == [
+        "none",
+        "FAILED_CHECK",
+        "FAILED_CHECK",
+        "FAILED_CHECK",
+    ]
+    # Exactly five minutes is a study of five minutes or more.
+    five = quality_table(tables, Thresholds(study_minutes=5.0)).set_index("participant_id")
+    assert list(five["failed_attention"]) == [False, False, True, False]
+    # An export made before attention checks existed has none.
+    del tables["attention_checks"]
+    older = quality_table(tables).set_index("participant_id")
+    assert list(older["attention_checks"]) == [0] * 4

@@ -1,12 +1,14 @@
 """Quality checks built for teaching, one row per participant (``quality.csv``): how long they
 took against the other participants, their longest idle stretch, how many of their
 demonstrated moves were optimal, and how often their + and - agreed with whether the agent's
-move was better or worse than average. None rejects anybody by itself: each row says which ground a platform
-accepts for a rejection, if any (Prolific: ``TOO_QUICKLY`` only for exceptionally fast
+move was better or worse than average, and how many instructional attention checks they
+failed. None rejects anybody by itself: each row says which ground a platform accepts for a
+rejection, if any (Prolific: ``FAILED_CHECK`` for failed instructional attention checks, more
+than one in a study of five minutes or more; ``TOO_QUICKLY`` only for exceptionally fast
 completion, three standard deviations below the mean; never for poor performance).
 
-Computed from the export's tables (``participants``, ``events``), so that it reads a database
-or an export alike.
+Computed from the export's tables (``participants``, ``events``, ``attention_checks``), so that
+it reads a database or an export alike.
 """
 
 from __future__ import annotations
@@ -29,12 +31,26 @@ class Thresholds:
     fast_sd: float = 3.0  # completion this many s.d. below the others' mean
     idle_minutes: float = 5.0  # a gap this long between two requests
     demonstration_share: float = 0.7  # optimal demonstrated moves below this share
-    feedback_share: float = 0.6  # consistent feedback below this share
+    feedback_share: float = 0.7  # consistent feedback below this share
     least_moves: int = 10  # fewer demonstrated moves (feedback signals): not judged
+    # Prolific: a study of five minutes or more needs more than one failed attention check.
+    long_study_minutes: float = 5.0
+    # The study's length; None: the median minutes of the participants who completed.
+    study_minutes: float | None = None
+
+    def failures_needed(self, study_minutes: float) -> int:
+        """Failed attention checks that support Prolific's FAILED_CHECK."""
+        return 2 if study_minutes >= self.long_study_minutes else 1
 
 
 # The checks that flag a participant (each a column of its own, and a word of ``flags``).
-FLAGS = ("exceptionally_fast", "long_idle", "poor_demonstrations", "inconsistent_feedback")
+FLAGS = (
+    "exceptionally_fast",
+    "long_idle",
+    "poor_demonstrations",
+    "inconsistent_feedback",
+    "failed_attention",
+)
 
 COLUMNS: dict[str, str] = {
     "participant_id": "The participant (participants.csv).",
@@ -55,12 +71,20 @@ COLUMNS: dict[str, str] = {
     "move was better or worse than the average move there for the selected task under the "
     "true dynamics (+ for better, - for worse; signals on a move where every move is as good "
     "are not counted; empty with fewer than 10).",
-    "inconsistent_feedback": "True when consistent_feedback_share is below 0.6 (random + and "
+    "inconsistent_feedback": "True when consistent_feedback_share is below 0.7 (random + and "
     "- score near 0.5).",
+    "attention_checks": "Instructional attention checks the participant took (passed or "
+    "failed; attention_checks.csv).",
+    "failed_attention_checks": "Attention checks failed (the moves allowed used up before the "
+    "robot reached the star).",
+    "failed_attention": "True when failed_attention_checks is at least two, or at least one in "
+    "a study under five minutes (the study's length: the median minutes of the participants "
+    "who completed), as Prolific requires for rejecting on failed attention checks.",
     "flags": "The checks flagged, separated by spaces (empty: none).",
-    "prolific_ground": "The Prolific rejection ground the flags support: TOO_QUICKLY "
-    "(exceptionally fast) or none. Idle stretches and poor demonstrations or feedback are not "
-    "grounds: Prolific does not allow rejecting for performance.",
+    "prolific_ground": "The Prolific rejection ground the flags support: FAILED_CHECK "
+    "(failed_attention), else TOO_QUICKLY (exceptionally fast), else none. Idle stretches and "
+    "poor demonstrations or feedback are not grounds: Prolific does not allow rejecting for "
+    "performance.",
 }
 
 
@@ -93,6 +117,15 @@ def quality_table(
     events = tables["events"]
     events = events[events["session_id"].isin(list(sessions))]
     minutes = done.set_index("participant_id")["minutes"].astype(float)
+    study_minutes = thresholds.study_minutes
+    if study_minutes is None:
+        study_minutes = float(minutes.median()) if len(minutes) else 0.0
+    checks = tables.get("attention_checks")  # an export made before the checks has none
+    if checks is None:
+        checks = pd.DataFrame(columns=["participant_id", "outcome"])
+    taken = checks[checks["outcome"].isin(["passed", "failed"])]
+    checks_taken = taken.groupby("participant_id").size().to_dict()
+    checks_failed = taken[taken["outcome"] == "failed"].groupby("participant_id").size().to_dict()
     seen = tables["events"].assign(at=pd.to_datetime(tables["events"]["created_at"]))
     rows: list[dict[str, Any]] = []
     for participant_id, own_minutes in minutes.items():
@@ -139,12 +172,29 @@ def quality_table(
             "consistent_feedback_share": feedback_share,
             "inconsistent_feedback": feedback_share is not None
             and feedback_share < thresholds.feedback_share,
+            "attention_checks": int(checks_taken.get(participant_id, 0)),
+            "failed_attention_checks": int(checks_failed.get(participant_id, 0)),
         }
+        row["failed_attention"] = row["failed_attention_checks"] >= thresholds.failures_needed(
+            study_minutes
+        )
         flags = [name for name in FLAGS if row[name]]
         row["flags"] = " ".join(flags)
-        row["prolific_ground"] = "TOO_QUICKLY" if row["exceptionally_fast"] else "none"
+        row["prolific_ground"] = (
+            "FAILED_CHECK"
+            if row["failed_attention"]
+            else "TOO_QUICKLY"
+            if row["exceptionally_fast"]
+            else "none"
+        )
         rows.append(row)
     frame = pd.DataFrame(rows, columns=list(COLUMNS))
-    for name in ("participant_id", "demonstrated_moves", "feedback_signals"):
+    for name in (
+        "participant_id",
+        "demonstrated_moves",
+        "feedback_signals",
+        "attention_checks",
+        "failed_attention_checks",
+    ):
         frame[name] = frame[name].astype("Int64")
     return frame

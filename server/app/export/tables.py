@@ -30,6 +30,7 @@ from server.app.storage.db import Database
 from server.app.storage.figures import participant_figures, study_sessions_by_participant
 from server.app.storage.models import (
     AssignmentReview,
+    AttentionCheck,
     Bonus,
     Episode,
     Erasure,
@@ -134,11 +135,13 @@ DICTIONARY: dict[str, dict[str, str]] = {
     "events": {
         "event_id": "Event number (database id; increasing in time).",
         "participant_id": "The participant.",
-        "session_id": "The learning session (empty for consent, start, tutorial, submission).",
+        "session_id": "The learning session (empty for consent, start, tutorial, submission "
+        "and attention_move).",
         "seq": "The participant's sequence number of the request.",
         "kind": "consent, start, tutorial (a tutorial step reached), submission, open (teaching "
         "begun after the agent's introduction page), task, mode, move, agent_step, feedback, "
-        "reset, end_episode or finish.",
+        "reset, end_episode, finish, or attention_move (a move in an attention check: state "
+        "and next_state are its grid's cells, row x size + column).",
         "created_at": "When the request was committed (UTC).",
         "task": "Task selected (for task: the new one).",
         "mode": "Mode after the event: idle, demonstrate or agent.",
@@ -227,6 +230,23 @@ DICTIONARY: dict[str, dict[str, str]] = {
         "requested_at": "When the experimenter asked for the bonus (UTC).",
         "paid_at": "When the platform took the bonus (UTC; empty until paid).",
     },
+    "attention_checks": {
+        "participant_id": "The participant.",
+        "number": "The check's number among the participant's, from 1.",
+        "after_position": "The position (0-5) of the agent it followed.",
+        "size": "The grid's width and height, in cells.",
+        "start_row": "Where the robot started: its row, from 0 at the top.",
+        "start_column": "Where the robot started: its column, from 0 on the left.",
+        "star_row": "The star's row.",
+        "star_column": "The star's column.",
+        "moves_allowed": "The moves allowed to reach the star.",
+        "moves_made": "The moves the participant made.",
+        "moves": "The arrows pressed, in order, separated by spaces (UP, DOWN, LEFT, RIGHT).",
+        "outcome": "passed (the star reached within the moves allowed), failed (the moves "
+        "used up), active (being taken) or pending (not reached yet).",
+        "started_at": "When the check was shown (UTC; empty if not reached).",
+        "finished_at": "When it was passed or failed (UTC).",
+    },
     "erasures": {
         "erasure_id": "Erasure number (database id).",
         "erased_at": "When the participant's data was erased (UTC).",
@@ -248,6 +268,7 @@ DICTIONARY: dict[str, dict[str, str]] = {
                 "learner_updates",
                 "status_changes",
                 "questionnaire_answers",
+                "attention_checks",
                 "participant_tokens",
                 "assignment_reviews",
                 "bonuses",
@@ -292,6 +313,17 @@ INTEGER_COLUMNS = frozenset(
         "feedback_given",
         "updates",
         "erasure_id",
+        "number",
+        "after_position",
+        "size",
+        "start_row",
+        "start_column",
+        "star_row",
+        "star_column",
+        "moves_allowed",
+        "moves_made",
+        "attention_checks",
+        "failed_attention_checks",
         *(name for name in DICTIONARY["erasures"] if name.endswith("_rows")),
     }
 )
@@ -311,9 +343,11 @@ DESCRIPTIONS = {
     "reviews": "One row per submitted MTurk assignment or Prolific submission the "
     "experimenter approved or rejected.",
     "bonuses": "One row per bonus the experimenter paid (or asked the platform to pay).",
+    "attention_checks": "One row per instructional attention check of a participant (the "
+    "study file's [attention_checks]; none without it): move the robot to the star.",
     "quality": "One row per participant who completed: quality checks built for teaching "
     "(completion time against the others', idle stretches, optimal demonstrations, consistent "
-    "feedback) and the rejection ground, if any, that Prolific accepts for them. None rejects "
+    "feedback, attention checks failed) and the rejection ground, if any, that Prolific accepts for them. None rejects "
     "anybody by itself.",
     "erasures": "One row per participant whose data was erased (withdrawal or request): the "
     "other files hold nothing of theirs; remove their rows (by participant_id or pseudonym) "
@@ -400,6 +434,9 @@ def export_tables(
         reviews = s.scalars(select(AssignmentReview).order_by(AssignmentReview.id)).all()
         bonuses = s.scalars(select(Bonus).order_by(Bonus.id)).all()
         erasures = s.scalars(select(Erasure).order_by(Erasure.id)).all()
+        checks = s.scalars(
+            select(AttentionCheck).order_by(AttentionCheck.participant_id, AttentionCheck.number)
+        ).all()
         sessions = s.scalars(select(LearningSession).order_by(LearningSession.id)).all()
         episodes = s.scalars(select(Episode).order_by(Episode.id)).all()
         updates = s.execute(
@@ -636,6 +673,27 @@ def export_tables(
             "episode_end": e.episode_end,
         }
 
+    def check_row(x: AttentionCheck) -> dict[str, Any]:
+        start, star = divmod(x.start_cell, x.size), divmod(x.star_cell, x.size)
+        return {
+            "participant_id": x.participant_id,
+            "number": x.number + 1,
+            "after_position": position_of.get((x.participant_id, x.after_ordinal)),
+            "size": x.size,
+            "start_row": start[0],
+            "start_column": start[1],
+            "star_row": star[0],
+            "star_column": star[1],
+            "moves_allowed": x.moves_allowed,
+            "moves_made": len(x.moves),
+            "moves": " ".join(x.moves),
+            "outcome": x.status,
+            "started_at": _iso(x.started_at),
+            "finished_at": _iso(x.finished_at),
+        }
+
+    position_of = {(x.participant_id, x.ordinal): x.position for x in sessions}
+
     def evaluation_rows() -> Iterable[dict[str, Any]]:
         for u in updates:
             session = session_by_id[u.session_id]
@@ -689,6 +747,7 @@ def export_tables(
         "questionnaire_answers": _frame("questionnaire_answers", map(answer_row, answers)),
         "reviews": _frame("reviews", map(review_row, reviews)),
         "bonuses": _frame("bonuses", map(bonus_row, bonuses)),
+        "attention_checks": _frame("attention_checks", map(check_row, checks)),
         "erasures": _frame("erasures", map(erasure_row, erasures)),
     }
     for frame in tables.values():

@@ -12,11 +12,12 @@ from typing import Any
 import numpy as np
 from sqlalchemy import Connection, and_, func, or_, select
 
-from server.app.config import StudyConfig
+from server.app.config import AttentionChecks, StudyConfig
 from server.app.errors import ApiError
 from server.app.participants import tokens
 from server.app.participants.completion import complete
 from server.app.participants.tokens import (
+    CHECKS,
     IN_PROGRESS,
     LOCK_DOMAIN_ASSIGNMENT,
     PARTICIPANTS,
@@ -24,7 +25,7 @@ from server.app.participants.tokens import (
     set_status,
 )
 from server.app.participants.transaction import Transaction
-from server.app.storage.records import Record, add, load_all
+from server.app.storage.records import Record, add, load, load_all
 from server.domains import make as make_environment
 
 
@@ -158,6 +159,46 @@ def create_sessions(
             demonstrated=[],
             **row,
         )
+    # The checks are drawn after the sessions, which stay as they are without checks.
+    ordinal_of = {row["position"]: ordinal for ordinal, row in enumerate(rows)}
+    checks = study.attention_checks
+    for number, after in enumerate(checks.after_agents(position)):
+        start, star = draw_check_cells(checks, draws)
+        add(
+            c,
+            CHECKS,
+            participant_id=participant.id,
+            number=number,
+            after_ordinal=ordinal_of[after],
+            size=checks.size,
+            start_cell=start,
+            star_cell=star,
+            moves_allowed=checks.moves,
+            status="pending",
+            cell=start,
+            moves=[],
+        )
+
+
+def draw_check_cells(checks: AttentionChecks, draws: random.Random) -> tuple[int, int]:
+    """The robot's and the star's cells (row * size + column) of one attention check: as the
+    study file fixes them, or drawn, at least size - 1 moves apart."""
+    n = checks.size
+    cells = [(row, column) for row in range(n) for column in range(n)]
+
+    def far_from(cell: tuple[int, int]) -> list[tuple[int, int]]:
+        return [x for x in cells if abs(x[0] - cell[0]) + abs(x[1] - cell[1]) >= n - 1]
+
+    start, star = _fixed(checks.start), _fixed(checks.star)
+    if start is None:
+        start = draws.choice(cells if star is None else far_from(star))
+    if star is None:
+        star = draws.choice(far_from(start))
+    return start[0] * n + start[1], star[0] * n + star[1]
+
+
+def _fixed(cell: tuple[int, int] | str) -> tuple[int, int] | None:
+    return None if isinstance(cell, str) else (cell[0], cell[1])
 
 
 def start(transaction: Transaction) -> Record:
@@ -224,9 +265,26 @@ def random_start(environment: str, task: int, rng: Any) -> int:
 
 
 def advance(transaction: Transaction, finished: Record) -> Record | None:
-    """After ``finished``: the next session begins, or the questionnaire (if the study has
-    one), or the participant has completed."""
-    following = _next_session(transaction.c, transaction.participant.id, finished.ordinal)
+    """After ``finished``: its attention check (if it has one) begins, or the next session, or
+    the questionnaire (if the study has one), or the participant has completed."""
+    check = load(
+        transaction.c,
+        CHECKS,
+        CHECKS.c.participant_id == transaction.participant.id,
+        CHECKS.c.after_ordinal == finished.ordinal,
+        CHECKS.c.status == "pending",
+    )
+    if check is not None:
+        check.status = "active"
+        check.started_at = transaction.now
+        transaction.track(check)
+        return None
+    return continue_after(transaction, finished.ordinal)
+
+
+def continue_after(transaction: Transaction, ordinal: int) -> Record | None:
+    """The session after ``ordinal`` begins, or the questionnaire, or the completion."""
+    following = _next_session(transaction.c, transaction.participant.id, ordinal)
     if following is not None:
         activate(transaction, following)
         return following

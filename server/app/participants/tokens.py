@@ -14,6 +14,7 @@ from server.app.errors import ApiError
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import (
+    AttentionCheck,
     Event,
     LearnerUpdate,
     LearningSession,
@@ -51,6 +52,7 @@ UPDATES = table_of(LearnerUpdate)
 STATUS_CHANGES = table_of(StatusChange)
 TOKENS = table_of(ParticipantToken)
 ANSWERS = table_of(QuestionnaireAnswer)
+CHECKS = table_of(AttentionCheck)
 
 SYSTEM_RANDOM = secrets.SystemRandom()
 # Prepared: every request looks its participant up by token.

@@ -8,8 +8,9 @@ from sqlalchemy import Connection, select
 
 from server.app.config import StudyConfig
 from server.app.participants.completion import completion
-from server.app.participants.tokens import SESSIONS
+from server.app.participants.tokens import CHECKS, SESSIONS
 from server.app.schemas import (
+    AttentionCheckView,
     ParticipantBrief,
     ParticipantState,
     Progress,
@@ -66,4 +67,26 @@ def participant_state(c: Connection, participant: Any, study: StudyConfig) -> Pa
         progress=Progress(agent=len(reached), of=len(study_sessions)),
         sessions=[summary(x) for x in sessions],
         tutorial_step=participant.tutorial_step,
+        attention_check=attention_check(c, participant),
+    )
+
+
+def attention_check(c: Connection, participant: Any) -> AttentionCheckView | None:
+    """The attention check being taken (``participants.attention``), if any."""
+    checks = load_all(c, CHECKS, CHECKS.c.participant_id == participant.id)
+    active = next((x for x in checks if x.status == "active"), None)
+    return None if active is None else check_view(active, len(checks))
+
+
+def check_view(check: Any, of: int) -> AttentionCheckView:
+    """An attention check as the page draws it (``of``: the participant's checks)."""
+    return AttentionCheckView(
+        number=check.number + 1,
+        of=of,
+        size=check.size,
+        robot=divmod(check.cell, check.size),
+        star=divmod(check.star_cell, check.size),
+        moves_made=len(check.moves),
+        moves_allowed=check.moves_allowed,
+        status=check.status,
     )

@@ -19,6 +19,7 @@ from server.app.rights.identifiers import own_replica_rows, rewrite_ids, shared_
 from server.app.storage.db import Database
 from server.app.storage.models import (
     AssignmentReview,
+    AttentionCheck,
     Bonus,
     Episode,
     Erasure,
@@ -142,6 +143,10 @@ def erase(
             delete(AssignmentReview).where(AssignmentReview.participant_id == participant_id),
         ),
         ("bonuses", delete(Bonus).where(Bonus.participant_id == participant_id)),
+        (
+            "attention_checks",
+            delete(AttentionCheck).where(AttentionCheck.participant_id == participant_id),
+        ),
         (
             "status_changes",
             delete(StatusChange).where(StatusChange.participant_id == participant_id),

@@ -11,6 +11,7 @@ from server.app.deps import StateDep, TokenDep
 from server.app.errors import ApiError
 from server.app.participants import (
     assignment,
+    attention,
     completion,
     places,
     tokens,
@@ -21,6 +22,8 @@ from server.app.participants.transaction import Transaction
 from server.app.rights.withdrawal import Withdrawal, withdraw
 from server.app.routers.common import answer
 from server.app.schemas import (
+    AttentionMoveRequest,
+    AttentionOutcome,
     Completion,
     ConsentRequest,
     Outcome,
@@ -41,7 +44,7 @@ async def perform(
     token: str | None,
     kind: str,
     body: SeqRequest,
-    handler: Callable[[Transaction], RequestOutcome],
+    handler: Callable[[Transaction], RequestOutcome | AttentionOutcome],
 ) -> Response:
     return answer(
         state, await state.run_db(lambda: transaction.perform(state, token, kind, body, handler))
@@ -119,6 +122,26 @@ async def tutorial_step(body: TutorialStepRequest, state: StateDep, token: Token
         return participant_response(transaction)
 
     return await perform(state, token, "tutorial", body, handle)
+
+
+@router.post("/attention-check/move", response_model=AttentionOutcome)
+async def attention_move(body: AttentionMoveRequest, state: StateDep, token: TokenDep) -> Response:
+    """An arrow in the attention check being taken (409 when none is): the server moves the
+    robot and decides whether the check is passed (the star reached) or failed (the moves
+    allowed used up); either ends it, and the next agent begins."""
+
+    def handle(transaction: Transaction) -> AttentionOutcome:
+        check = attention.move(transaction, body.action)
+        transaction.flush()
+        current = views.current_session_id(transaction.c, transaction.participant)
+        return AttentionOutcome(
+            seq=transaction.seq,
+            kind=transaction.event["kind"],
+            check=attention.view(transaction.c, check),
+            participant=views.brief(transaction.participant, transaction.study, current),
+        )
+
+    return await perform(state, token, "attention_move", body, handle)
 
 
 @router.post("/questionnaire", response_model=RequestOutcome)

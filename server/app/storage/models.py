@@ -6,6 +6,7 @@ participants ─< status_changes
              ─< learning_sessions ─< episodes
                                   ─< learner_updates   (one per update: learner state + evaluation)
              ─< events            (append-only, one per acknowledged request, keyed by seq)
+             ─< attention_checks   (the instructional attention checks between agents)
              ─< questionnaire_answers
              ─< assignment_reviews (the experimenter's approval or rejection of the submission)
              ─< bonuses
@@ -265,6 +266,33 @@ class LearnerUpdate(Base):
     learner_state: Mapped[bytes | None] = mapped_column(LargeBinary)
     greedy_policy: Mapped[bytes | None] = mapped_column(LargeBinary)
     error: Mapped[str | None] = mapped_column(Text)
+
+
+class AttentionCheck(Base):
+    """One instructional attention check of a participant (the study file's
+    ``[attention_checks]``): made at consent, shown after the study session ``after_ordinal``
+    is finished. The participant moves a robot on an open ``size`` x ``size`` grid (cells
+    numbered row * size + column) towards the star; the server decides: ``passed`` when the
+    star is reached within ``moves_allowed`` moves, ``failed`` when the moves run out. Each
+    move is also an event (kind ``attention_move``)."""
+
+    __tablename__ = "attention_checks"
+    __table_args__ = (UniqueConstraint("participant_id", "number"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), index=True)
+    number: Mapped[int] = mapped_column(Integer)  # 0.. in the participant's order
+    after_ordinal: Mapped[int] = mapped_column(Integer)  # the session it follows
+    size: Mapped[int] = mapped_column(Integer)
+    start_cell: Mapped[int] = mapped_column(Integer)
+    star_cell: Mapped[int] = mapped_column(Integer)
+    moves_allowed: Mapped[int] = mapped_column(Integer)
+    # pending, active (being taken), passed or failed
+    status: Mapped[str] = mapped_column(String(16), default="pending")
+    cell: Mapped[int] = mapped_column(Integer)  # where the robot is
+    moves: Mapped[list[str]] = mapped_column(JSON, default=list)  # the arrows, in order
+    started_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
 
 
 class QuestionnaireAnswer(Base):

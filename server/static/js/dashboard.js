@@ -159,7 +159,10 @@ function qualitySection(p) {
         h("li", {}, `Time: ${q.minutes.toFixed(1)} min`, q.minutes_z === null ? "" : ` (${q.minutes_z} s.d. from the others)`),
         h("li", {}, `Longest idle stretch: ${q.longest_idle_minutes.toFixed(1)} min`),
         h("li", {}, `Optimal demonstrated moves: ${share(q.optimal_demonstration_share)}`),
-        h("li", {}, `Consistent feedback: ${share(q.consistent_feedback_share)}`)),
+        h("li", {}, `Consistent feedback: ${share(q.consistent_feedback_share)}`),
+        h("li", { "data-quality": "attention-checks" }, q.attention_checks === 0
+          ? "Attention checks: none taken"
+          : `Attention checks failed: ${q.failed_attention_checks} of ${q.attention_checks}`)),
       h("p", {}, h("strong", {}, "Flags: "), q.flags || "none",
         h("strong", {}, "  Prolific ground: "), q.prolific_ground === "none" ? "none applies" : q.prolific_ground));
   }).catch(() => body.replaceChildren(none()));
@@ -198,6 +201,15 @@ function erasureSection(p) {
 function requestToken() {
   const bytes = crypto.getRandomValues(new Uint8Array(16));
   return Array.from(bytes, (b) => b.toString(16).padStart(2, "0")).join("");
+}
+
+/** Why the quality checks suggest a Prolific ground, in words. */
+function groundReason(q) {
+  if (q.prolific_ground === "FAILED_CHECK") {
+    return `${q.failed_attention_checks} of ${q.attention_checks} attention checks failed`;
+  }
+  if (q.prolific_ground === "TOO_QUICKLY") return `exceptionally fast: ${q.minutes_z} s.d. below the others' mean`;
+  return q.flags;
 }
 
 const REJECTION_CATEGORIES = ["TOO_QUICKLY", "TOO_SLOWLY", "FAILED_INSTRUCTIONS", "INCOMP_LONGITUDINAL",
@@ -267,8 +279,18 @@ function reviewSection(p) {
       }
       send("rejection", { message: text, rejection_category: prolific ? category.value : null }, [approve, reject], message);
     });
+    const suggestion = h("p", { class: "muted", "data-testid": "suggested-ground" }, "Suggested ground: loading the quality checks…");
+    getJSON(`${API}/participants/${p.participant_id}/quality`).then((q) => {
+      suggestion.textContent = q.prolific_ground === "none"
+        ? "Suggested ground: none (the quality checks support no rejection)."
+        : `Suggested ground: ${q.prolific_ground} (${groundReason(q)}).`;
+      if (q.prolific_ground === "none") return;
+      suggestion.classList.remove("muted");
+      if (prolific && !category.value) category.value = q.prolific_ground;
+    }).catch(() => { suggestion.textContent = "Suggested ground: the quality checks are not available."; });
     decision = h("div", { class: "review-decision" },
       h("p", { class: "muted" }, "Not reviewed yet."),
+      suggestion,
       h("label", { for: "review-feedback" }, prolific ? "Rejection message (at least 100 characters)" : "Feedback to the worker (needed to reject)"), feedback,
       ...(prolific ? [category] : []),
       h("div", { class: "review-buttons" }, approve, reject), message);

@@ -495,7 +495,7 @@ export class GridView {
   }
 }
 
-function starPath(cx, cy, outer, inner) {
+export function starPath(cx, cy, outer, inner) {
   const points = [];
   for (let i = 0; i < 10; i++) {
     const radius = i % 2 === 0 ? outer : inner;

@@ -1,8 +1,10 @@
 // The participant's page: asks the server where the participant is and shows that step
-// (consent, instructions, the tutorial, an agent, the questionnaire if the study has one,
-// completion), so that a reload continues there.
+// (consent, instructions, the tutorial, an agent, an attention check between agents if the
+// study has them, the questionnaire if the study has one, completion), so that a reload
+// continues there.
 
 import { ApiError, Sequencer, getJSON, postJSON, useParticipantToken } from "./api.js";
+import { AttentionCheck } from "./attention.js";
 import { environmentTitle, h, paragraphs } from "./dom.js";
 import { robotIcon, svg } from "./grid.js";
 import { Teacher } from "./teach.js";
@@ -19,6 +21,7 @@ const app = document.getElementById("app");
 let seq = null;
 let participant = null;
 let teacher = null;
+let check = null;
 
 const offline = h("div", { class: "offline", role: "alert", hidden: true },
   h("span", { class: "spinner", "aria-hidden": "true" }), " The connection to the study server was lost; retrying…");
@@ -72,6 +75,8 @@ withdrawConfirm.addEventListener("click", async () => {
 function show(...children) {
   teacher?.close();
   teacher = null;
+  check?.close();
+  check = null;
   app.replaceChildren(...children);
   const heading = app.querySelector("h1");
   if (heading) {
@@ -130,6 +135,7 @@ async function route() {
     case "submitted":
       return completionPage();
     default:
+      if (participant.attention_check) return attentionPage(participant.attention_check);
       if (participant.current_session_id !== null) {
         const current = participant.sessions.find((x) => x.session_id === participant.current_session_id);
         if (current && !current.opened) return meetPage(current);
@@ -246,6 +252,18 @@ async function finished() {
   teacher = null;
   await refresh();
   return route();
+}
+
+/** The attention check between two agents (a reload shows it again, as it was). */
+function attentionPage(view) {
+  show();
+  check = new AttentionCheck({
+    root: app,
+    check: view,
+    post,
+    onDone: () => finished(),
+  });
+  check.start();
 }
 
 /** The introduction of the next agent, until the participant begins teaching it (a reload

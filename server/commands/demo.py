@@ -27,6 +27,7 @@ from server.cores import available_cores
 
 if TYPE_CHECKING:
     from server.app.storage.db import Database
+    from server.commands.simulated import ProlificArrival
 
 PROG = "bam-study demo"
 DEFAULT_SEED = 0
@@ -49,6 +50,7 @@ class DemoOptions:
     workers: int = 0  # learner-update processes (0: one per core)
     learner_settings: str = ""  # TOML appended to the shipped study configuration
     study: Path | None = None  # a study file to run instead of the paper's
+    platform: str = "mturk"  # how the simulated participants arrive: mturk ids, or prolific
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -59,6 +61,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
         type=Path,
         metavar="STUDY.toml",
         help="run this study file (its own environments included) instead of the paper's",
+    )
+    parser.add_argument(
+        "--platform",
+        choices=("mturk", "prolific"),
+        default="mturk",
+        help="how the simulated participants arrive: with MTurk ids (default), or as Prolific "
+        "participants through the server's Prolific replica (the study made and published "
+        "there first, each participant sent back to it at the end)",
     )
     parser.add_argument(
         "--out",
@@ -112,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
         rounds=args.rounds,
         mistake_probability=args.mistake_probability,
         workers=args.workers,
+        platform=args.platform,
     )
     try:
         check(options)
@@ -228,7 +239,10 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
     out.mkdir(parents=True, exist_ok=True)
     url = f"sqlite:///{out / 'study.sqlite'}"
     study = out / "study.toml"
-    study.write_text(study_text(options) + options.learner_settings)
+    text = study_text(options)
+    if options.platform == "prolific":
+        text = on_prolific(text)
+    study.write_text(text + options.learner_settings)
     admin_token = write_admin_token(out)
     if options.study is not None:
         from server.commands.studies import StudyEnvironmentsError, register_study
@@ -261,6 +275,9 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
             flush=True,
         )
         with ServerProcess(out, environment) as server:
+            prolific = None
+            if options.platform == "prolific":
+                prolific = publish_on_replica(study, server.url, admin_token, options, err)
             progress = Progress(options.participants, stream=err, label="participants")
             progress.start()
             lock = threading.Lock()
@@ -277,6 +294,7 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
                 plan,
                 progress=finished,
                 in_order=True,
+                prolific=prolific,
             )
             progress.finish()
             failed = [p for p in study_run.participants if not p.completed]
@@ -299,6 +317,74 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
         raise DemoError(f"the analysis refused the export: {error}") from error
     write_outputs(analysis, out / "analysis")
     return table1_markdown(analysis)
+
+
+# What the demo's study says for Prolific (a rehearsal on the server's own replica: the
+# public address is a stand-in, the study link is the demo server's own).
+PROLIFIC_COMPLETION = """[completion]
+mode = "prolific"
+prolific_code = "C1DEMO01"
+prolific_no_consent_code = "C0DEMO00"
+"""
+PROLIFIC_TABLE = """
+[prolific]
+name = "Teach a robot (a rehearsal)"
+description = "Teach simulated robots in a grid world with the arrow keys."
+places = {places}
+reward = 6.00
+estimated_minutes = 30
+maximum_minutes = 90
+public_url = "https://study.example.org"
+"""
+
+
+def on_prolific(text: str) -> str:
+    """The study file's text for a run on the Prolific replica: its ``[completion]`` table in
+    Prolific's mode, and a ``[prolific]`` table unless it has one."""
+    import re
+
+    table = re.compile(r"^\[completion\][^\n]*\n(?:(?!\[)[^\n]*\n?)*", re.MULTILINE)
+    if table.search(text):
+        text = table.sub(lambda _: PROLIFIC_COMPLETION + "\n", text, count=1)
+    elif re.search(r"^\s*completion\s*[.=]", text, re.MULTILINE):
+        raise DemoError(
+            "--platform prolific: the study file sets its completion without a [completion] "
+            "table; write it as one"
+        )
+    else:
+        text = text.rstrip("\n") + "\n\n" + PROLIFIC_COMPLETION
+    if not re.search(r"^\[prolific\]", text, re.MULTILINE):
+        text = text.rstrip("\n") + "\n" + PROLIFIC_TABLE.format(places=1000)
+    return text
+
+
+def publish_on_replica(
+    study: Path, url: str, admin_token: str, options: DemoOptions, err: TextIO
+) -> ProlificArrival:
+    """Make the study on the server's Prolific replica and publish it; how the simulated
+    participants arrive there."""
+    from server.app.config import StudyConfigError, load_study_config
+    from server.app.platforms.prolific import ProlificClient, ProlificRefused, draft_study
+    from server.commands.simulated import ProlificArrival
+
+    try:
+        config = load_study_config(study)
+        draft = draft_study(config, max_concurrent=options.concurrency, base_url=url)
+    except (StudyConfigError, ValueError) as error:
+        raise DemoError(f"--platform prolific: {error}") from None
+    draft["total_available_places"] = max(
+        int(draft["total_available_places"]), options.participants
+    )
+    client = ProlificClient(f"{url}/prolific/api/v1", admin_token)
+    try:
+        made = client.create_study(draft)
+        client.transition_study(made["id"], "PUBLISH")
+    except ProlificRefused as refused:
+        raise DemoError(f"the Prolific replica refused the demo's study: {refused}") from None
+    finally:
+        client.close()
+    print(f"the study is {made['id']} on the server's Prolific replica", file=err, flush=True)
+    return ProlificArrival(made["id"], admin_token)
 
 
 def study_text(options: DemoOptions) -> str:

@@ -231,3 +231,62 @@ def test_a_study_s_teacher_datasets_are_minari_datasets(
         task = int(episode.infos["task"][0])
         assert env.tasks[task].start[int(episode.observations[0])] > 0
         assert env.is_goal(task, int(episode.observations[-1]))
+
+
+@pytest.mark.slow
+def test_demo_runs_on_the_prolific_replica(tmp_path: Path, forget: None) -> None:
+    """``bam-study demo --platform prolific``: the study made and published on the server's
+    Prolific replica, the simulated participants arriving there as Prolific participants and
+    sent back to it at the end: every submission awaits review, and the export and the
+    analysis are made as for MTurk arrivals."""
+    from sqlalchemy import select
+
+    from server.app.storage.db import Database
+    from server.app.storage.models import Participant
+    from server.app.storage.replica_models import ProlificReplicaSubmission
+    from server.commands.demo import DemoOptions, check, run_demo
+
+    options = DemoOptions(
+        out=tmp_path / "demo",
+        participants=2,
+        concurrency=2,
+        rounds=(1, 1),
+        workers=1,
+        study=EXAMPLES / "office-study.toml",
+        platform="prolific",
+        learner_settings="\n[learner_settings.bam]\nalternations = 1\ncost_steps = 5\n"
+        "dynamics_steps = 5\n",
+    )
+    check(options)
+    table = run_demo(options)
+    assert "| BAM " in table
+    db = Database.from_url(f"sqlite:///{options.out / 'study.sqlite'}")
+    try:
+        with db.read() as s:
+            submissions = list(s.scalars(select(ProlificReplicaSubmission)))
+            participants = list(s.scalars(select(Participant)))
+    finally:
+        db.dispose()
+    assert [row.status for row in submissions] == ["AWAITING REVIEW"] * 2
+    assert {row.study_code for row in submissions} == {"C1DEMO01"}
+    assert sorted((p.platform, p.status, p.worker_id) for p in participants) == sorted(
+        ("prolific", "submitted", row.participant_id) for row in submissions
+    )
+    with (options.out / "export" / "participants.csv").open() as file:
+        assert [row["platform"] for row in csv.DictReader(file)] == ["prolific"] * 2
+
+
+def test_a_study_file_goes_on_prolific_for_the_demo() -> None:
+    """The study's [completion] table in Prolific's mode and a [prolific] table, whatever the
+    file said; the file still reads as a study."""
+    import tomllib
+
+    from server.app.config import DEFAULT_STUDY_CONFIG, parse_study_config
+    from server.commands.demo import on_prolific
+
+    for path in (DEFAULT_STUDY_CONFIG, EXAMPLES / "office-study.toml"):
+        text = on_prolific(path.read_text())
+        study = parse_study_config(tomllib.loads(text), str(path), path.parent)
+        assert study.completion.mode == "prolific" and study.prolific is not None
+    assert "[prolific]" in on_prolific('title = "x"\n')
+    assert on_prolific('title = "x"\n').count("[completion]") == 1

@@ -98,33 +98,26 @@ def error_body(status: int, detail: str) -> dict[str, Any]:
 
 
 # -- views ------------------------------------------------------------------------------------
-def places_taken(s: Session, study_id: str) -> int:
-    return int(
-        s.scalar(
-            select(func.count())
-            .select_from(ProlificReplicaSubmission)
-            .where(
-                ProlificReplicaSubmission.study_id == study_id,
-                ProlificReplicaSubmission.status.in_(HOLDING),
-            )
+def _submissions(s: Session, study_id: str, statuses: tuple[str, ...]) -> int:
+    """The study's submissions in one of ``statuses``."""
+    count = s.scalar(
+        select(func.count())
+        .select_from(ProlificReplicaSubmission)
+        .where(
+            ProlificReplicaSubmission.study_id == study_id,
+            ProlificReplicaSubmission.status.in_(statuses),
         )
-        or 0
     )
+    return int(count or 0)
+
+
+def places_taken(s: Session, study_id: str) -> int:
+    return _submissions(s, study_id, HOLDING)
 
 
 def taking_part(s: Session, study_id: str) -> int:
     """Submissions under way (what max_concurrent_submissions caps)."""
-    return int(
-        s.scalar(
-            select(func.count())
-            .select_from(ProlificReplicaSubmission)
-            .where(
-                ProlificReplicaSubmission.study_id == study_id,
-                ProlificReplicaSubmission.status.in_(("RESERVED", "ACTIVE")),
-            )
-        )
-        or 0
-    )
+    return _submissions(s, study_id, ("RESERVED", "ACTIVE"))
 
 
 def concurrency_limit(study: ProlificReplicaStudy) -> int | None:

@@ -177,6 +177,7 @@ def run_live_server(
     engine = create_db_engine(database_url)
     upgrade(engine)
     engine.dispose()
+    known = set(domains.names())
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("BAM_DATABASE_URL", database_url)
         mp.setenv("BAM_ADMIN_TOKEN", ADMIN_TOKEN)
@@ -185,8 +186,13 @@ def run_live_server(
         mp.setenv("BAM_UPDATE_WORKER_NICENESS", "0")
         mp.setenv("BAM_AGENT_WAIT_SECONDS", "120")
         app = create_app(Settings(), executor=executor)
-    with live(app) as url:
-        yield LiveServer(url, database_url)
+    try:
+        with live(app) as url:
+            yield LiveServer(url, database_url)
+    finally:
+        # The study's own environments, registered in this process by the app, go with it.
+        for name in set(domains.names()) - known:
+            domains.unregister(name)
 
 
 # -- watching the page ----------------------------------------------------------------------

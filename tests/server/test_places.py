@@ -4,6 +4,7 @@ the capacity on the dashboard's API."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from datetime import timedelta
@@ -174,7 +175,12 @@ def test_the_queue_shows_updates_pending_and_the_oldest_wait(
     participant, _ = arrival(full_client, "W1")
     participant.act("/api/participant/consent", agree=True)
     session = participant.act("/api/participant/start")["participant"]["current_session_id"]
-    wait_for_updates(db)  # its first update done: nothing of the server's changes the mark
+    wait_for_updates(db)  # its first update done and stored
+    # ... and the manager done with it (an update that ends clears its session's mark).
+    deadline = time.monotonic() + 60
+    while manager.backlog:
+        assert time.monotonic() < deadline, manager.queue()
+        time.sleep(0.05)
     # As if the participant had been waiting 12.5 s for the agent after their fifth episode.
     manager.order._awaited[session] = (manager.order.loop.time() - 12.5, 5)
     queue = full_client.get("/api/admin/queue", headers=ADMIN).json()

@@ -228,16 +228,16 @@ class Watch:
 
 
 # -- driving the study page -----------------------------------------------------------------
-def shortest_path(environment: str, state: int, task: int) -> list[str]:
-    """The fewest moves from ``state`` to the task's goal under the true dynamics."""
+def moves_to(environment: str, state: int, reached: Callable[[int], bool], what: str) -> list[str]:
+    """The fewest moves from ``state`` to a state ``reached`` accepts, under the true dynamics
+    (``what`` names it in the error when there is none)."""
     env = domains.make(environment)
     rng = np.random.default_rng(0)
-    goal = env.tasks[task].reward > 0
     previous: dict[int, tuple[int, str] | None] = {state: None}
     queue = deque([state])
     while queue:
         current = queue.popleft()
-        if goal[current]:
+        if reached(current):
             path: list[str] = []
             while previous[current] is not None:
                 current, action = previous[current]  # type: ignore[misc]
@@ -248,7 +248,13 @@ def shortest_path(environment: str, state: int, task: int) -> list[str]:
             if following not in previous:
                 previous[following] = (current, ACTIONS[action])
                 queue.append(following)
-    raise AssertionError(f"no path to task {task} from state {state} in {environment}")
+    raise AssertionError(f"no path to {what} from state {state} in {environment}")
+
+
+def shortest_path(environment: str, state: int, task: int) -> list[str]:
+    """The fewest moves from ``state`` to the task's goal under the true dynamics."""
+    goal = domains.make(environment).tasks[task].reward > 0
+    return moves_to(environment, state, lambda s: bool(goal[s]), f"task {task}")
 
 
 def next_state(environment: str, state: int, action: str) -> int:

@@ -8,16 +8,13 @@ and its letter as the built-in colours do."""
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 
-import numpy as np
 import pytest
 from playwright.sync_api import Locator, Page, expect
 
 from server import domains
-from server.domains.base import ACTIONS
 from tests.browser.conftest import (
     FAST_LEARNERS,
     WAIT_MS,
@@ -27,6 +24,7 @@ from tests.browser.conftest import (
     admin_login,
     axe_violations,
     domain_toml,
+    moves_to,
     run_live_server,
     study_toml,
 )
@@ -65,24 +63,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
 
 def path_to(environment: str, state: int, target: int) -> list[str]:
     """The fewest moves from ``state`` to ``target`` under the true dynamics."""
-    env = domains.make(environment)
-    rng = np.random.default_rng(0)
-    previous: dict[int, tuple[int, str] | None] = {state: None}
-    queue = deque([state])
-    while queue:
-        current = queue.popleft()
-        if current == target:
-            path: list[str] = []
-            while previous[current] is not None:
-                current, action = previous[current]  # type: ignore[misc]
-                path.append(action)
-            return path[::-1]
-        for action in range(1, len(ACTIONS)):
-            following = env.step(current, action, rng)
-            if following not in previous:
-                previous[following] = (current, ACTIONS[action])
-                queue.append(following)
-    raise AssertionError(f"no path from state {state} to state {target} in {environment}")
+    return moves_to(environment, state, lambda s: s == target, f"state {target}")
 
 
 def trellis_state() -> int:

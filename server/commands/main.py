@@ -25,6 +25,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "server.commands.simulate",
         "Run the paper's simulated-teacher experiments and write curves, figures and a report.",
     ),
+    "fidelity": (
+        "server.commands.fidelity",
+        "Set a simulation run's curves beside a reference run's: did the agents change?",
+    ),
     "serve": ("server.commands.serve", "Run the study server (settings from BAM_* variables)."),
     "db": ("server.commands.db", "Create or upgrade the study database's schema (migrations)."),
     "export": ("server.commands.export", "Export the study's data as CSV files with a dictionary."),

@@ -26,7 +26,8 @@ class BAM(PlannerLearner):
         # With optimizer "warm-lbfgs": alternations of the momentum schedule that a warm update
         # runs before L-BFGS-B (0: L-BFGS-B alone). Two reach at least the reference schedule's
         # value of equation (5) on average over whole runs, at about a third of its passes;
-        # L-BFGS-B alone reaches less (docs/reproduction.md, "A faster optimiser").
+        # L-BFGS-B alone reaches less. The agents learn less well than with the reference
+        # schedule (docs/reproduction.md, "A faster optimiser"): a setting, not the default.
         "warm_alternations": 0,
     }
 

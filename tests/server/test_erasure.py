@@ -254,3 +254,56 @@ def test_the_balanced_assignment_no_longer_counts_an_erased_participant(
         third = s.get(Participant, ids[2])
         assert third is not None
         assert third.domain == domains[0]
+
+
+def test_a_table_added_with_a_key_to_a_participant_is_erased_without_a_word_elsewhere() -> None:
+    """Erasure and scrubbing find a participant's tables from the foreign keys: a new table
+    keyed to participants, and one keyed to that one, are found, children first."""
+    from sqlalchemy import Column, ForeignKey, Integer, MetaData, Table
+
+    from server.app.rights.identifiers import study_rows
+
+    metadata = MetaData()
+    for table in Base.metadata.sorted_tables:
+        table.to_metadata(metadata)
+    Table(
+        "notes",
+        metadata,
+        Column("id", Integer, primary_key=True),
+        Column("participant_id", ForeignKey("participants.id")),
+    )
+    Table(
+        "note_replies",
+        metadata,
+        Column("id", Integer, primary_key=True),
+        Column("note_id", ForeignKey("notes.id")),
+    )
+    Table("unrelated", metadata, Column("id", Integer, primary_key=True))
+    rows = study_rows(7, metadata)
+    names = [table.name for table, _ in rows]
+    today = [table.name for table, _ in study_rows(7)]
+    assert set(names) == set(today) | {"notes", "note_replies"}
+    assert names.index("note_replies") < names.index("notes")
+    assert names.index("episodes") < names.index("learning_sessions")
+    assert "unrelated" not in names and "participants" not in names
+    conditions = {
+        table.name: str(where.compile(compile_kwargs={"literal_binds": True}))
+        for table, where in rows
+    }
+    assert conditions["notes"] == "notes.participant_id = 7"
+    assert "note_replies.note_id IN (SELECT notes.id" in conditions["note_replies"]
+    assert "notes.participant_id = 7" in conditions["note_replies"]
+    # The study's own tables today, and none of the platform replicas' (their participant_id
+    # is a platform's id): what erasure deletes besides the replica rows of the turn.
+    assert set(today) == {
+        "assignment_reviews",
+        "attention_checks",
+        "bonuses",
+        "episodes",
+        "events",
+        "learner_updates",
+        "learning_sessions",
+        "participant_tokens",
+        "questionnaire_answers",
+        "status_changes",
+    }

@@ -15,22 +15,18 @@ from pydantic import BaseModel, Field
 from sqlalchemy import Connection, delete, select
 
 from server.app.errors import ApiError
-from server.app.rights.identifiers import own_replica_rows, rewrite_ids, shared_replica_rows
+from server.app.rights.identifiers import (
+    own_replica_rows,
+    rewrite_ids,
+    shared_replica_rows,
+    study_rows,
+)
 from server.app.storage.db import Database
 from server.app.storage.models import (
-    AssignmentReview,
-    AttentionCheck,
-    Bonus,
-    Episode,
     Erasure,
-    Event,
     Installation,
-    LearnerUpdate,
     LearningSession,
     Participant,
-    ParticipantToken,
-    QuestionnaireAnswer,
-    StatusChange,
     utcnow,
 )
 from server.app.storage.records import Record, add, table_of
@@ -127,38 +123,9 @@ def erase(
         raise ApiError(404, f"no participant {participant_id}")
     record = Record(PARTICIPANTS, participant)
     worker, assignment = pseudonyms(record, secret)
-    sessions = select(SESSIONS.c.id).where(SESSIONS.c.participant_id == participant_id)
-    mine = Event.participant_id == participant_id
     # Children before parents (foreign keys); each statement's count is the table's figure.
     statements: list[tuple[str, Any]] = [
-        ("episodes", delete(Episode).where(Episode.session_id.in_(sessions))),
-        ("learner_updates", delete(LearnerUpdate).where(LearnerUpdate.session_id.in_(sessions))),
-        ("events", delete(Event).where(mine)),
-        (
-            "questionnaire_answers",
-            delete(QuestionnaireAnswer).where(QuestionnaireAnswer.participant_id == participant_id),
-        ),
-        (
-            "assignment_reviews",
-            delete(AssignmentReview).where(AssignmentReview.participant_id == participant_id),
-        ),
-        ("bonuses", delete(Bonus).where(Bonus.participant_id == participant_id)),
-        (
-            "attention_checks",
-            delete(AttentionCheck).where(AttentionCheck.participant_id == participant_id),
-        ),
-        (
-            "status_changes",
-            delete(StatusChange).where(StatusChange.participant_id == participant_id),
-        ),
-        (
-            "participant_tokens",
-            delete(ParticipantToken).where(ParticipantToken.participant_id == participant_id),
-        ),
-        (
-            "learning_sessions",
-            delete(LearningSession).where(LearningSession.participant_id == participant_id),
-        ),
+        (table.name, delete(table).where(where)) for table, where in study_rows(participant_id)
     ]
     # The local platform replica's rows of this participant's turn.
     statements += [

@@ -1,5 +1,7 @@
-"""The rows of the local platform replicas (MTurk's and Prolific's) that hold one participant's
-turn, and the rewriting of raw ids in text cells that erasure and scrubbing share.
+"""The rows that hold one participant's data, and the rewriting of raw ids in text cells, that
+erasure and scrubbing share: the study's own rows, found from the foreign keys that lead to the
+participant (``study_rows``), and the rows of the local platform replicas (MTurk's and
+Prolific's) that hold their turn.
 
 The replicas stand in for the platforms, which keep their own copies; on a server that uses a
 replica, its rows are this server's data, so erasure removes them and scrubbing replaces their
@@ -11,8 +13,9 @@ from __future__ import annotations
 import re
 from typing import Any
 
-from sqlalchemy import JSON, Connection, String, Table, Text, and_, select, update
+from sqlalchemy import JSON, Connection, MetaData, String, Table, Text, and_, select, update
 
+from server.app.storage.models import Base, Participant
 from server.app.storage.records import table_of
 from server.app.storage.replica_models import (
     ProlificReplicaBonusSetup,
@@ -29,6 +32,34 @@ MTURK_BONUSES = table_of(ReplicaBonus)
 PROLIFIC_SUBMISSIONS = table_of(ProlificReplicaSubmission)
 PROLIFIC_PAYMENTS = table_of(ProlificReplicaPayment)
 PROLIFIC_BONUS_SETUPS = table_of(ProlificReplicaBonusSetup)
+PARTICIPANTS = table_of(Participant)
+
+
+def study_rows(participant_id: int, metadata: MetaData = Base.metadata) -> list[tuple[Table, Any]]:
+    """(table, condition) for every table whose rows lead to the participant by foreign keys
+    (their ``participant_id``, or a learning session of theirs, and so on), children before
+    parents: erasure deletes them in this order. A table added to the schema with such a key
+    is found here without a word elsewhere. The participants row itself is not among them; the
+    replicas' rows (``participant_id`` there is a platform's id) are not either."""
+    participants = metadata.tables[PARTICIPANTS.name]
+    conditions: dict[Table, Any] = {participants: participants.c.id == participant_id}
+    for table in metadata.sorted_tables:  # parents before children
+        if table is participants:
+            continue
+        keys = [key for key in table.foreign_keys if key.column.table in conditions]
+        direct = [key for key in keys if key.column.table is participants]
+        if direct:  # its own participant_id says whose a row is (events: not its session)
+            conditions[table] = direct[0].parent == participant_id
+        elif keys:
+            key = min(keys, key=lambda key: key.parent.name)
+            conditions[table] = key.parent.in_(
+                select(key.column).where(conditions[key.column.table])
+            )
+    return [
+        (table, conditions[table])
+        for table in reversed(metadata.sorted_tables)
+        if table in conditions and table is not participants
+    ]
 
 
 def own_replica_rows(participant: Any) -> list[tuple[Table, Any]]:

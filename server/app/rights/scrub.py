@@ -15,26 +15,22 @@ from __future__ import annotations
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import Connection, Table, select, update
+from sqlalchemy import Connection, select, update
 
 from server.app.export.tables import pseudonym
 from server.app.rights.erasure import installation_secret
-from server.app.rights.identifiers import own_replica_rows, rewrite_ids, shared_replica_rows
+from server.app.rights.identifiers import (
+    own_replica_rows,
+    rewrite_ids,
+    shared_replica_rows,
+    study_rows,
+)
 from server.app.storage.db import Database
-from server.app.storage.models import Base, Participant, utcnow
+from server.app.storage.models import Participant, utcnow
 from server.app.storage.records import table_of
 
 PARTICIPANTS = table_of(Participant)
 PLATFORMS = ("mturk", "prolific")
-
-
-def refers_to_participants(table: Table) -> bool:
-    """Whether ``table`` has a ``participant_id`` that is a participants row's id (the
-    Prolific replica's ``participant_id`` is a PROLIFIC_PID instead)."""
-    column = table.c.get("participant_id")
-    return column is not None and any(
-        key.column.table is PARTICIPANTS for key in column.foreign_keys
-    )
 
 
 def replacements(participant: Any, secret: str) -> dict[str, str]:
@@ -52,10 +48,11 @@ def scrub_participant(c: Connection, participant: Any, secret: str, now: datetim
     docstring), in the transaction ``c``."""
     raw_ids = replacements(participant, secret)
     if raw_ids:
-        for table in Base.metadata.sorted_tables:
-            if table is not PARTICIPANTS and refers_to_participants(table):
-                rewrite_ids(c, table, table.c.participant_id == participant.id, raw_ids)
-        for table, where in own_replica_rows(participant) + shared_replica_rows(participant):
+        for table, where in (
+            study_rows(participant.id)
+            + own_replica_rows(participant)
+            + shared_replica_rows(participant)
+        ):
             rewrite_ids(c, table, where, raw_ids)
         rewrite_ids(c, PARTICIPANTS, PARTICIPANTS.c.id == participant.id, raw_ids)
     c.execute(

@@ -359,12 +359,22 @@ class TransitionModel:
         row_probability = np.bincount(
             observed.entry_rows, weights=entry_probability, minlength=count
         )
-        if np.any(row_probability <= 0.0):
-            bad = int(np.argmin(row_probability))
-            raise ValueError(
-                f"observed transition {tuple(int(x) for x in observed.rows[bad])} is impossible "
-                "under the model space"
-            )
+        rounded = row_probability <= 0.0
+        if np.any(rounded):
+            # A row the model space can give some probability (an entry theta moves, or a
+            # fixed one above 0) that rounds to 0 at this theta: a saturated logit, p within
+            # 2^-53 of 1, leaves 1 - p = 0 (farming's logits reach +-50). It counts as the
+            # least normal probability; the rest are impossible whatever theta.
+            entries = observed.entries
+            possible = (self._coef_flat[entries] != 0.0) | (self._const_flat[entries] > 0.0)
+            reachable = np.bincount(observed.entry_rows[possible], minlength=count) > 0
+            if not np.all(reachable[rounded]):
+                bad = int(np.flatnonzero(rounded & ~reachable)[0])
+                raise ValueError(
+                    f"observed transition {tuple(int(x) for x in observed.rows[bad])} is "
+                    "impossible under the model space"
+                )
+            row_probability = np.where(rounded, LEAST_PROBABILITY, row_probability)
         value = float(np.log(row_probability).sum())
         if rule == "authors" and self.outcomes is not None:
             # One term per observed transition, from its first parametric entry.
@@ -378,15 +388,20 @@ class TransitionModel:
             terms = _outcome_factors(outcomes[parametric][first], np.ones_like(pk), pk)
             d_p = np.bincount(k, weights=terms, minlength=self.num_primitives)
             return value, self.primitives_pullback(theta, d_p)
+        # d ln T / dT = 1 / T; a row rounded to 0 adds nothing (its entries' derivatives
+        # through theta round to 0 as well, and 1 / LEAST_PROBABILITY would blow them up).
+        weights = np.where(rounded, 0.0, 1.0 / row_probability)
         d_probabilities = np.bincount(
             observed.entries,
-            weights=1.0 / row_probability[observed.entry_rows],
+            weights=weights[observed.entry_rows],
             minlength=self._const_flat.size,
         ).reshape(self.next_states.shape)
         return value, self.pullback(theta, d_probabilities)
 
 
 GRADIENT_RULES = ("authors", "exact")
+# An observed transition's probability where the model space's rounds to 0 (its ln: -708.4).
+LEAST_PROBABILITY = float(np.finfo(np.float64).tiny)
 
 
 def check_gradient_rule(rule: str) -> None:

@@ -9,7 +9,7 @@ import pytest
 
 from server import domains
 from server.domains import farming, gravity, navigation
-from server.domains.base import LEFT, RIGHT, STAY, UP, all_finite, check_finite
+from server.domains.base import DOWN, LEFT, RIGHT, STAY, UP, all_finite, check_finite
 from server.domains.grid import Region, load_map, parse_map
 
 NORTH, EAST = 0, 2
@@ -199,3 +199,33 @@ def test_all_finite_refuses_any_nan_or_infinity(values, finite) -> None:  # type
             check_finite("x", array)
     else:
         assert check_finite("x", array) is array
+
+
+def test_a_possible_transition_whose_probability_rounds_to_0_is_not_impossible() -> None:
+    """Farming's logits reach +-50 (the authors' clip), where a machine works with probability
+    1 - 1e-43, which is 1: a failed move then had probability 0, and a participant's update
+    failed ("impossible"). It counts as the least normal probability instead; a transition the
+    model space can never give stays an error."""
+    env = domains.make("two-fields")
+    model = env.model
+    # Entry 55: state 5, DOWN, staying put (a failure), probability 1 - p[1]; theta[1] is the
+    # logit of p[1] against theta[0], theta[2], theta[3].
+    theta = np.full(model.num_parameters, -50.0)
+    theta[1] = 50.0
+    assert model.primitives(theta)[1] == 1.0
+    failure = np.array([[5, DOWN, 5]])
+    for rule in ("exact", "authors"):
+        value, gradient = model.transition_log_likelihood(theta, failure, rule=rule)
+        assert value == pytest.approx(np.log(np.finfo(np.float64).tiny))
+        assert np.all(np.isfinite(gradient)) and np.all(np.abs(gradient) < 1.0)
+    # Beside other transitions, their terms are as before to the last bit.
+    others = np.array([[env.state_of(0, 0), STAY, env.state_of(0, 0)]])
+    alone, alone_gradient = model.transition_log_likelihood(theta, others)
+    both, both_gradient = model.transition_log_likelihood(theta, np.vstack([others, failure]))
+    assert both == alone + np.log(np.finfo(np.float64).tiny)
+    assert np.array_equal(both_gradient, alone_gradient)
+    # Carrying nothing never enters a field, whatever theta.
+    with pytest.raises(ValueError, match="impossible"):
+        model.transition_log_likelihood(
+            theta, np.array([[env.state_of(2, 3, 0), LEFT, env.state_of(2, 2, 0)]])
+        )

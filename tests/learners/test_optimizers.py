@@ -181,3 +181,16 @@ def test_lbfgs_keeps_the_dynamics_parameters_where_observations_stay_possible(
     learner.record_idle_move(122, 4, 122)  # (9, 5) RIGHT into the wall at (9, 6): it fails
     learner.update()
     assert np.all(np.abs(learner.theta) <= THETA_BOUND)
+
+
+def test_bam_learns_on_after_observing_what_its_saturated_model_ruled_out() -> None:
+    """Farming's authors' clip at +-50 leaves a machine working with probability 1; a failed
+    move seen then made the next update fail (a participant's, in a study)."""
+    env = domains.make("two-fields")
+    learner = learners.make("bam", env)
+    learner.theta = np.full(env.model.num_parameters, -50.0)
+    learner.theta[1] = 50.0  # as the clip leaves a machine it is sure of
+    learner.record_idle_move(5, 2, 5)  # DOWN  # and yet the move failed
+    learner.update()
+    assert np.all(np.isfinite(learner.theta))
+    assert np.all(np.abs(learner.theta) <= 50.0)

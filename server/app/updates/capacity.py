@@ -25,9 +25,11 @@ import numpy as np
 
 # Busier than this, queues grow faster than the priority of awaited updates can hide.
 TARGET_UTILISATION = 0.75
-# Rounds of demonstrations (every task once) of the reference sessions: the fewest the
-# simulated participants of benchmarks/server.py teach (2 to 4).
-REFERENCE_ROUNDS = 2
+# Rounds of demonstrations (every task once) of the reference sessions: the most the simulated
+# participants of benchmarks/server.py teach an agent (2 to 4). An update costs more as the data
+# grow (the paper's study on an AMD EPYC: 0.101 s a session's update on average over 2 rounds,
+# 0.117 s over 4), and shorter sessions overstated the capacity.
+REFERENCE_ROUNDS = 4
 LIVE_UPDATES = 200  # the updates the live cost is the mean of
 LIVE_MINIMUM = 30  # fewer run since the start: the reference cost still stands
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from typing import Any
@@ -161,14 +162,24 @@ ONE_AGENT = {
 }
 
 
+def one_slot_app(db: Database, settings: Settings) -> tuple[Any, Gated]:
+    """The app with one update process (the gated pool's one thread) to warm up and run the
+    updates, and an agent step that waits as long as the test's bound."""
+    gated = Gated()
+    one = settings.model_copy(update={"update_workers": 1, "agent_wait_seconds": BOUND})
+    return create_app(one, study_config(**ONE_AGENT), db=db, executor=gated), gated
+
+
+def sessions_by_seed(db: Database, *session_ids: int) -> dict[int, int]:
+    """Session ids by their learner seed (what ``Gated.started`` records)."""
+    with db.read() as s:
+        return {s.get(LearningSession, i).seed: i for i in session_ids}  # type: ignore[union-attr]
+
+
 def test_demonstrations_go_on_while_updates_wait_and_each_agent_is_the_one_recorded(
     db: Database, settings: Settings
 ) -> None:
-    gated = Gated()
-    # One update process (this thread pool's one thread) to warm up and run the updates, and
-    # an agent step that waits as long as the test's bound.
-    one = settings.model_copy(update={"update_workers": 1, "agent_wait_seconds": BOUND})
-    app = create_app(one, study_config(**ONE_AGENT), db=db, executor=gated)
+    app, gated = one_slot_app(db, settings)
     with TestClient(app) as client:
         teacher, taught = teaching_participant(client)
         trier, tried = teaching_participant(TestClient(app), "W2", "A2")
@@ -186,8 +197,7 @@ def test_demonstrations_go_on_while_updates_wait_and_each_agent_is_the_one_recor
         base = trier.session(tried)
         trier.act(f"{base}/reset")
         assert trier.act(f"{base}/mode", mode="agent")["session"]["learning"]["pending"] == 1
-        with db.read() as s:
-            seeds = {s.get(LearningSession, i).seed: i for i in (taught, tried)}  # type: ignore[union-attr]
+        seeds = sessions_by_seed(db, taught, tried)
         gated.gate.set()
         step = trier.act(f"{base}/agent-step")
         wait_for_updates(db)
@@ -223,11 +233,7 @@ def test_a_slots_next_update_is_read_from_the_database_while_its_last_one_runs(
 ) -> None:
     """The process does not wait for the database: with one slot, the next session's update
     is read while the one before is running (held here), and runs only after it."""
-    import time
-
-    gated = Gated()
-    one = settings.model_copy(update={"update_workers": 1, "agent_wait_seconds": BOUND})
-    app = create_app(one, study_config(**ONE_AGENT), db=db, executor=gated)
+    app, gated = one_slot_app(db, settings)
     with TestClient(app) as client:
         teacher, taught = teaching_participant(client)
         other, theirs = teaching_participant(TestClient(app), "W2", "A2")
@@ -254,8 +260,7 @@ def test_a_slots_next_update_is_read_from_the_database_while_its_last_one_runs(
             time.sleep(0.05)
         assert loaded == [taught, theirs]
         assert gated.started == []  # the first is still held: the second was read meanwhile
-        with db.read() as s:
-            seeds = {s.get(LearningSession, i).seed: i for i in (taught, theirs)}  # type: ignore[union-attr]
+        seeds = sessions_by_seed(db, taught, theirs)
         gated.gate.set()
         wait_for_updates(db)
     assert [seeds[seed] for seed in gated.started] == [taught, theirs]

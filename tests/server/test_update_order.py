@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from typing import Any
@@ -232,3 +233,41 @@ def test_demonstrations_go_on_while_updates_wait_and_each_agent_is_the_one_recor
         outcome = response["outcome"]
         task = response["session"]["task"]
         assert outcome["action"] == ACTIONS[policy[task, outcome["state"]]]
+
+
+def test_a_slots_next_update_is_read_from_the_database_while_its_last_one_runs(
+    db: Database, settings: Settings
+) -> None:
+    """The process does not wait for the database: with one slot, the next session's update
+    is read while the one before is running (held here), and runs only after it."""
+    app, gated = one_slot_app(db, settings)
+    with TestClient(app) as client:
+        teacher, taught = teaching_participant(client)
+        other, theirs = teaching_participant(TestClient(app), "W2", "A2")
+        demonstrate(teacher, taught, 0)
+        wait_for_updates(db)
+        manager = app.state.server.updates
+        loaded: list[int] = []
+        load = manager.store.load
+
+        def reading(session_id: int) -> Any:
+            job = load(session_id)
+            loaded.append(session_id)
+            return job
+
+        manager.store.load = reading
+        gated.gate.clear()
+        gated.started.clear()
+        demonstrate(teacher, taught, 1)  # its update takes the one slot and is held there
+        deadline = time.monotonic() + BOUND
+        while taught not in loaded and time.monotonic() < deadline:
+            time.sleep(0.05)
+        demonstrate(other, theirs, 0)
+        while theirs not in loaded and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert loaded == [taught, theirs]
+        assert gated.started == []  # the first is still held: the second was read meanwhile
+        seeds = sessions_by_seed(db, taught, theirs)
+        gated.gate.set()
+        wait_for_updates(db)
+    assert [seeds[seed] for seed in gated.started] == [taught, theirs]

@@ -20,6 +20,10 @@ the learner state the one before saved, so the agent shown after episode k is th
 after episode k. No request but the agent step waits for an update: demonstrations, moves and
 episode ends go on while the session's updates are pending.
 
+A slot's next update is read from the database while its last one runs, and stored while the
+next one runs (``PREPARED_PER_SLOT``), so the processes do not wait for the database; an
+awaited session that arrives then may run after the updates already prepared, one per slot.
+
 Pending updates are found again in the database when the server starts, so none is lost by a
 restart. With ``BAM_UPDATE_SCHEDULER`` the same function runs on the workers of a Dask cluster
 instead of the local processes (``server.app.updates.cluster``), in the same order.
@@ -63,6 +67,10 @@ log = logging.getLogger("bam_study.updates")
 
 RESCAN_SECONDS = 30.0
 RETRY_SECONDS = 5.0  # a session whose update could not be run (database, scheduler) waits
+# Updates read from the database ahead of a free slot, per slot: a slot's next update is ready
+# when its last one ends, and the storing of one overlaps the next one's run (120 simulated
+# participants, SQLite, 2 cores: 10.8 updates a second against 10.0 without).
+PREPARED_PER_SLOT = 1
 
 
 class UpdateManager:
@@ -91,7 +99,11 @@ class UpdateManager:
             else LocalUpdates(workers, niceness, threads, executor)
         )
         self._capacity = workers  # updates run at once: the slots
+        # Updates under way: running on a slot, or read from the database and waiting for one,
+        # or being stored (PREPARED_PER_SLOT per slot beyond the running one).
         self._slots: asyncio.Semaphore | None = None
+        # Updates running in the processes (or on the cluster's workers): one per slot.
+        self._processes: asyncio.Semaphore | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
         self.completed = 0
         self.failed = 0
@@ -148,7 +160,8 @@ class UpdateManager:
     # -- lifecycle ---------------------------------------------------------------------------
     async def start(self) -> None:
         self.order.start()
-        self._slots = asyncio.Semaphore(self._capacity)
+        self._slots = asyncio.Semaphore(self._capacity * (1 + PREPARED_PER_SLOT))
+        self._processes = asyncio.Semaphore(self._capacity)
         self.runner.start(self._spawn)
         self._spawn(self._dispatch())
         self._spawn(self._rescan_forever())
@@ -191,7 +204,9 @@ class UpdateManager:
             if job is None:
                 return
             try:
-                outcome, deaths = await self._run(job)
+                assert self._processes is not None
+                async with self._processes:
+                    outcome, deaths = await self._run(job)
             except WorkerDied as died:
                 log.error(
                     "an update process died during update %s of session %s",
@@ -282,10 +297,10 @@ class UpdateManager:
     async def _measure_reference(self) -> None:
         """Once the runner is warm: time the reference updates on one of its processes (or
         workers), holding one slot meanwhile, and say the capacity."""
-        assert self._slots is not None and self.reference_jobs is not None
+        assert self._processes is not None and self.reference_jobs is not None
         while not self.ready:
             await asyncio.sleep(0.5)
-        async with self._slots:
+        async with self._processes:
             try:
                 seconds = await self.runner.measure({"jobs": self.reference_jobs})
             except asyncio.CancelledError:
@@ -301,15 +316,17 @@ class UpdateManager:
     def _resize(self, capacity: int) -> None:
         """As many slots as ``capacity`` (at least one: with no worker yet, one update waits
         at the scheduler for the first)."""
-        assert self._slots is not None
+        assert self._slots is not None and self._processes is not None
         capacity = max(1, capacity)
         change, self._capacity = capacity - self._capacity, capacity
         for _ in range(change):
-            self._slots.release()
+            self._processes.release()
+            for _ in range(1 + PREPARED_PER_SLOT):
+                self._slots.release()
         if change < 0:
-            self._spawn(self._take_slots(-change))
+            self._spawn(self._take(self._processes, -change))
+            self._spawn(self._take(self._slots, -change * (1 + PREPARED_PER_SLOT)))
 
-    async def _take_slots(self, count: int) -> None:
-        assert self._slots is not None
+    async def _take(self, semaphore: asyncio.Semaphore, count: int) -> None:
         for _ in range(count):
-            await self._slots.acquire()
+            await semaphore.acquire()

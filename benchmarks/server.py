@@ -99,11 +99,70 @@ def learner_settings_toml(
     return "\n".join(lines) + "\n"
 
 
+CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def _proc_stat(pid: int) -> tuple[int, float] | None:
+    """A process's parent and CPU seconds so far (user + system), from /proc; None once gone."""
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = text[text.rindex(")") + 2 :].split()  # after the command name, which may hold spaces
+    return int(fields[1]), (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+
+
+def cpu_by_group(server_pid: int, cluster_pids: list[int]) -> dict[str, float]:
+    """CPU seconds so far of the server's own process, of its descendants (the update
+    processes), of a local Dask cluster's processes and their descendants, of this benchmark (the
+    simulated participants), and of the whole machine (busy, from /proc/stat)."""
+    stats = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit() and (stat := _proc_stat(int(entry.name))) is not None:
+            stats[int(entry.name)] = stat
+
+    def tree(root: int) -> set[int]:
+        found, frontier = {root}, [root]
+        while frontier:
+            parent = frontier.pop()
+            children = [pid for pid, (ppid, _) in stats.items() if ppid == parent]
+            found.update(children)
+            frontier += children
+        return found
+
+    def seconds(pids: set[int]) -> float:
+        return sum(stats[pid][1] for pid in pids if pid in stats)
+
+    updates = tree(server_pid) - {server_pid}
+    cluster = set().union(*(tree(pid) for pid in cluster_pids)) if cluster_pids else set()
+    own = os.times()
+    line = Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]
+    ticks = [int(x) for x in line]
+    idle = ticks[3] + ticks[4]  # idle and iowait
+    return {
+        "server": seconds({server_pid}),
+        "update processes": seconds(updates),
+        "Dask cluster": seconds(cluster),
+        "simulated participants": own.user + own.system,
+        "machine": (sum(ticks[:8]) - idle) / CLOCK_TICKS,
+    }
+
+
+def core_use_line(before: dict[str, float], after: dict[str, float], seconds: float) -> str:
+    """The cores each group used on average between two ``cpu_by_group`` readings; "other" is
+    the rest of the machine's busy time (a PostgreSQL server on it, say)."""
+    used = {name: (after[name] - before[name]) / seconds for name in before}
+    groups = [name for name in used if name != "machine" and (used[name] > 0.005)]
+    other = used["machine"] - sum(used[name] for name in groups)
+    parts = [f"{name} {used[name]:.2f}" for name in groups] + [f"other {max(0.0, other):.2f}"]
+    return f"cores used (of {os.cpu_count()})      " + ", ".join(parts)
+
+
 @contextlib.contextmanager
-def local_cluster(workers: int, folder: Path) -> Iterator[str]:
+def local_cluster(workers: int, folder: Path) -> Iterator[tuple[str, list[int]]]:
     """A Dask scheduler and ``workers`` single-threaded worker processes beside the server,
     started as on other machines (``dask scheduler``, ``dask worker``), at the niceness of
-    local update processes; yields the scheduler's address."""
+    local update processes; yields the scheduler's address and the two processes' ids."""
     address = f"tcp://127.0.0.1:{free_port()}"
     port = address.rsplit(":", 1)[1]
     cli = [sys.executable, "-m"]
@@ -132,7 +191,7 @@ def local_cluster(workers: int, folder: Path) -> Iterator[str]:
                         command, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
                     )
                 )
-        yield address
+        yield address, [process.pid for process in processes]
     finally:
         for process in reversed(processes):
             if process.poll() is None:
@@ -290,9 +349,10 @@ def main(argv: list[str] | None = None) -> int:
         f"{os.cpu_count()} cores; server log in {folder}",
         flush=True,
     )
+    cluster_pids: list[int] = []
     with contextlib.ExitStack() as stack:
         if cluster_workers is not None:
-            environment["BAM_UPDATE_SCHEDULER"] = stack.enter_context(
+            environment["BAM_UPDATE_SCHEDULER"], cluster_pids = stack.enter_context(
                 local_cluster(cluster_workers, folder)
             )
         elif args.scheduler:
@@ -318,11 +378,14 @@ def main(argv: list[str] | None = None) -> int:
             )
 
         thread = threading.Thread(target=teach)
+        assert server.process is not None
+        cpu_before = cpu_by_group(server.process.pid, cluster_pids)
         started = time.perf_counter()
         thread.start()
         thread.join(timeout=args.seconds)
         stop.set()
         stopped = time.perf_counter()
+        cpu_after = cpu_by_group(server.process.pid, cluster_pids)
         thread.join()
         elapsed = time.perf_counter() - started
         at_stop, after_mark, drained_after = follow_drain(db, stopped)
@@ -380,6 +443,7 @@ def main(argv: list[str] | None = None) -> int:
     tries = sum(len(p.latencies.get("agent_step", [])) for p in run.participants)
     print(f"agent steps that waited    {len(run.update_waits)} of {tries + len(run.update_waits)}")
     print(f"capacity stated at start   {measured['capacity']} participants")
+    print(core_use_line(cpu_before, cpu_after, stopped - started))
     print(f"participants with errors   {len(errors)}")
     for participant in errors[:5]:
         print(f"  participant {participant.index}: {participant.error}", file=sys.stderr)

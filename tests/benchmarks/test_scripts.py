@@ -95,3 +95,65 @@ def test_the_server_benchmark_s_learner_settings_are_a_valid_study_file(tmp_path
         **module.FAST_LEARNERS["model-based"],
         "optimizer": "warm-lbfgs",
     }
+
+
+BURN = """
+import subprocess, sys, time
+from pathlib import Path
+def burn(seconds):
+    began = time.process_time()
+    while time.process_time() - began < seconds:
+        pass
+folder = Path(sys.argv[1])
+if sys.argv[2] == "server":
+    burn(0.3)
+    subprocess.Popen([sys.executable, __file__, sys.argv[1], "update"])
+else:
+    burn(0.6)
+    (folder / "done").write_text("")
+time.sleep(120)
+"""
+
+
+def test_the_server_benchmark_counts_the_cores_the_server_and_its_update_processes_use(
+    tmp_path: Path,
+) -> None:
+    """The server's own CPU time and its descendants' (the update processes) are told apart,
+    and the cores line divides them by the run's length."""
+    import os
+    import signal
+    import sys
+    import time
+
+    module = load_script(BENCHMARKS / "server.py", "server_benchmark")
+    script = tmp_path / "burn.py"
+    script.write_text(BURN)
+    server = subprocess.Popen(
+        [sys.executable, str(script), str(tmp_path), "server"], start_new_session=True
+    )
+    try:
+        before = {name: 0.0 for name in module.cpu_by_group(server.pid, [])}
+        deadline = time.monotonic() + 120
+        while not (tmp_path / "done").exists():
+            assert time.monotonic() < deadline, "the burning processes did not finish"
+            time.sleep(0.05)
+        after = module.cpu_by_group(server.pid, [])
+    finally:
+        os.killpg(server.pid, signal.SIGKILL)
+        server.wait()
+    assert 0.3 <= after["server"] < 0.6  # its own burn and its start, not its child's
+    assert 0.6 <= after["update processes"] < 0.9
+    assert after["Dask cluster"] == 0.0
+    assert after["machine"] >= after["server"] + after["update processes"] - 0.05
+    line = module.core_use_line(
+        before, {**after, "simulated participants": 0.0, "machine": 1.2 * 10}, 10.0
+    )
+    # 10 s: the server 0.03-0.06 cores, the updates 0.06-0.09, the rest of the busy machine other.
+    assert line.startswith(f"cores used (of {os.cpu_count()})")
+    parts = dict(part.rsplit(" ", 1) for part in line.split(")", 1)[1].strip().split(", "))
+    assert 0.03 <= float(parts["server"]) < 0.06
+    assert 0.06 <= float(parts["update processes"]) < 0.09
+    assert "Dask cluster" not in parts and "simulated participants" not in parts
+    assert float(parts["other"]) == pytest.approx(
+        1.2 - float(parts["server"]) - float(parts["update processes"]), abs=0.011
+    )

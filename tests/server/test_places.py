@@ -4,10 +4,12 @@ the capacity on the dashboard's API."""
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from datetime import timedelta
+from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
@@ -219,3 +221,49 @@ def test_the_capacity_is_measured_on_the_latest_updates_once_there_are_enough() 
     assert capacity is not None and capacity.update_seconds == 0.125
     assert capacity.measured_on == f"the latest {LIVE_MINIMUM} updates"
     assert capacity.participants == participants_at_once(0.125, 1, 10.0) == 60
+
+
+def test_the_reference_updates_are_timed_a_session_at_a_time_and_averaged_per_update() -> None:
+    """Each session is one job (a server stopped meanwhile waits for one session's updates,
+    not for all of them), only the first warms the process up, and the capacity's update time
+    is the mean over every update of every session."""
+    from concurrent.futures import Executor, Future
+
+    from server.app.updates.capacity import measure_update_cost
+    from server.app.updates.manager import UpdateManager
+    from server.app.updates.policies import PolicyCache
+
+    sessions = [{"episodes": [[]] * 3, "mean": 1.0}, {"episodes": [[]] * 7, "mean": 2.0}]
+    asked: list[dict[str, Any]] = []
+
+    class Timing(Executor):
+        def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> Future[Any]:
+            future: Future[Any] = Future()
+            if fn is measure_update_cost:
+                asked.append(args[0])
+                future.set_result(args[0]["jobs"][0]["mean"])
+            else:  # worker_ready: the one process is warm
+                future.set_result(1)
+            return future
+
+    async def measure() -> float | None:
+        db: Database = None  # type: ignore[assignment]
+        manager = UpdateManager(
+            db,
+            PolicyCache(),
+            lambda name: {},
+            workers=1,
+            executor=Timing(),
+            reference_jobs=sessions,
+        )
+        manager.order.start()
+        manager._slots = asyncio.Semaphore(2)
+        manager._processes = asyncio.Semaphore(1)
+        manager.runner.start(manager._spawn)
+        await asyncio.wait_for(manager._measure_reference(), 60)
+        return manager.reference_seconds
+
+    seconds = asyncio.run(measure())
+    assert [request["jobs"] for request in asked] == [[sessions[0]], [sessions[1]]]
+    assert [request["warm"] for request in asked] == [True, False]
+    assert seconds == pytest.approx((4 * 1.0 + 8 * 2.0) / 12)

@@ -296,18 +296,25 @@ class UpdateManager:
 
     async def _measure_reference(self) -> None:
         """Once the runner is warm: time the reference updates on one of its processes (or
-        workers), holding one slot meanwhile, and say the capacity."""
+        workers), a session at a time, each holding one slot meanwhile (a server stopped
+        meanwhile waits for one session's updates, not for all), and say the capacity."""
         assert self._processes is not None and self.reference_jobs is not None
         while not self.ready:
             await asyncio.sleep(0.5)
-        async with self._processes:
-            try:
-                seconds = await self.runner.measure({"jobs": self.reference_jobs})
-            except asyncio.CancelledError:
-                raise
-            except Exception:
-                log.exception("could not time the reference learner updates")
-                return
+        total = updates = 0.0
+        for index, session in enumerate(self.reference_jobs):
+            async with self._processes:
+                try:
+                    mean = await self.runner.measure({"jobs": [session], "warm": index == 0})
+                except asyncio.CancelledError:
+                    raise
+                except Exception:
+                    log.exception("could not time the reference learner updates")
+                    return
+            count = len(session["episodes"]) + 1  # the untrained learner's update, then each
+            total += mean * count
+            updates += count
+        seconds = total / updates
         self.reference_seconds = seconds
         capacity = self.capacity()
         assert capacity is not None

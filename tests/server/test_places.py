@@ -232,6 +232,7 @@ def test_the_reference_updates_are_timed_a_session_at_a_time_and_averaged_per_up
     from server.app.updates.capacity import measure_update_cost
     from server.app.updates.manager import UpdateManager
     from server.app.updates.policies import PolicyCache
+    from tests.server.test_update_order import run_apart
 
     sessions = [{"episodes": [[]] * 3, "mean": 1.0}, {"episodes": [[]] * 7, "mean": 2.0}]
     asked: list[dict[str, Any]] = []
@@ -263,7 +264,7 @@ def test_the_reference_updates_are_timed_a_session_at_a_time_and_averaged_per_up
         await asyncio.wait_for(manager._measure_reference(), 60)
         return manager.reference_seconds
 
-    seconds = asyncio.run(measure())
+    seconds = run_apart(measure)  # its own thread: the browser tests may leave a loop running
     assert [request["jobs"] for request in asked] == [[sessions[0]], [sessions[1]]]
     assert [request["warm"] for request in asked] == [True, False]
     assert seconds == pytest.approx((4 * 1.0 + 8 * 2.0) / 12)

@@ -12,7 +12,8 @@ clock counts their turns too). ``--breakdown`` adds, per environment and learner
 update after 10 rounds spends its time: the planner passes it runs (forward and reverse) and
 their time, the rest (the likelihoods, the optimiser steps, the model's table and its
 pull-back), a forward pass's nanoseconds per backup and what NumPy's vectorised exp costs per
-number on the same CPU.
+number on the same CPU. ``--setting planner_precision=float32`` runs the updates and the
+timed passes (and NumPy's exp) in single precision.
 
 Targets (2-core machine, one planner thread, update after 10 rounds, median): BAM <= 100 ms
 and model-based IRL <= 50 ms on every environment; forward+backward <= 4x forward; learner
@@ -22,6 +23,7 @@ state < 5 MB.
 from __future__ import annotations
 
 import argparse
+import functools
 import statistics
 import sys
 import time
@@ -58,18 +60,19 @@ def time_update(env, learner, repeats: int) -> tuple[float, float]:
     return statistics.median(seconds), p95
 
 
-def time_planner(env, repeats: int) -> tuple[float, float]:
+def time_planner(env, repeats: int, precision: str = "float64") -> tuple[float, float]:
     operator = TransitionOperator.build(env.model.transitions(env.model.initial_parameters()))
     rewards = np.random.default_rng(0).normal(size=(len(env.tasks), env.num_states))
     d_q = np.ones((len(env.tasks), env.num_states, env.num_actions))
-    soft_plan(operator, rewards, 1.0, env.horizon).backward(d_q)  # compile / warm up
+    plan = functools.partial(soft_plan, operator, rewards, 1.0, env.horizon, precision=precision)
+    plan().backward(d_q)  # compile / warm up
     forward, both = [], []
     for _ in range(repeats):
         started = clock()
-        soft_plan(operator, rewards, 1.0, env.horizon, keep_trace=False)
+        plan(keep_trace=False)
         forward.append(clock() - started)
         started = clock()
-        soft_plan(operator, rewards, 1.0, env.horizon).backward(d_q)
+        plan().backward(d_q)
         both.append(clock() - started)
     return statistics.median(forward), statistics.median(both)
 
@@ -80,9 +83,10 @@ def backups(env) -> int:
     return env.num_states * env.num_actions * (env.horizon - 1) * len(env.tasks)
 
 
-def exp_seconds(count: int, repeats: int) -> float:
-    """NumPy's exp of ``count`` non-positive numbers (a pass's exponents), median."""
-    x = -np.random.default_rng(0).random(count) * 20.0
+def exp_seconds(count: int, repeats: int, precision: str = "float64") -> float:
+    """NumPy's exp of ``count`` non-positive numbers (a pass's exponents) in the passes'
+    precision, median."""
+    x = (-np.random.default_rng(0).random(count) * 20.0).astype(precision)
     out = np.empty_like(x)
     seconds = []
     for _ in range(repeats):
@@ -186,7 +190,8 @@ def main(argv: list[str] | None = None) -> int:
         env = domains.make(env_name)
         # A pass takes a millisecond or so: many of them, or a burst of the machine's noise
         # decides the median (flip's ratio read 4.0 in one run of 5, 2.6 in runs of 50).
-        forward, both = time_planner(env, max(args.repeats, PLANNER_REPEATS))
+        precision = str(settings.get("planner_precision", "float64"))
+        forward, both = time_planner(env, max(args.repeats, PLANNER_REPEATS), precision)
         for learner_name in args.learners:
             applicable = {
                 k: v for k, v in settings.items() if k in make(learner_name, env).settings
@@ -210,7 +215,8 @@ def main(argv: list[str] | None = None) -> int:
                             learner_name,
                             *pass_breakdown(env, learner, args.repeats),
                             forward / count,
-                            exp_seconds(count, max(args.repeats, PLANNER_REPEATS)) / count,
+                            exp_seconds(count, max(args.repeats, PLANNER_REPEATS), precision)
+                            / count,
                         )
                     )
                 learner.update()

@@ -38,9 +38,11 @@ thread, on an AVX2 machine: 1.45 ms before, 0.89 after; the exps had taken 60% o
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numba import njit, prange, types
-from numba.extending import intrinsic
+from numba.extending import intrinsic, overload
 
 # exp(x) = 2^k exp(r) with k = round(x / ln 2) and r = x - k ln 2 (ln 2 split in two parts so
 # that r is exact to double precision; the constants are fdlibm's).
@@ -78,6 +80,28 @@ def _bits_float(typingctx, x):  # type: ignore[no-untyped-def]
     return signature, codegen
 
 
+@intrinsic
+def _float32_bits(typingctx, x):  # type: ignore[no-untyped-def]
+    """The IEEE-754 bits of a float32 as an int32."""
+    signature = types.int32(types.float32)
+
+    def codegen(context, builder, sig, args):  # type: ignore[no-untyped-def]
+        return builder.bitcast(args[0], context.get_value_type(types.int32))
+
+    return signature, codegen
+
+
+@intrinsic
+def _bits_float32(typingctx, x):  # type: ignore[no-untyped-def]
+    """The float32 whose IEEE-754 bits are an int32."""
+    signature = types.float32(types.int32)
+
+    def codegen(context, builder, sig, args):  # type: ignore[no-untyped-def]
+        return builder.bitcast(args[0], context.get_value_type(types.float32))
+
+    return signature, codegen
+
+
 # exp(r)'s Taylor coefficients 1/13!, 1/12!, ..., 1/1!, 1/0!, in Horner's order.
 HORNER_FIRST = 1.0 / 479001600.0
 HORNER = (
@@ -94,6 +118,36 @@ HORNER = (
     1.0,
     1.0,
 )
+
+
+# Float32 passes (the setting ``planner_precision = "float32"``): the same exp in single
+# precision. ln 2 split as Cephes' expf has it, |r| <= ln(2) / 2, where the degree-7 Taylor
+# polynomial's error (5e-9) is below float32's half unit in the last place (6e-8); x is clamped
+# at -87 (exp(-87) = 1.6e-38 is the smallest weight, above float32's least normal number).
+# Module-level float32 constants stay float32 in compiled code: a bare float literal would
+# make every expression it touches float64.
+def _single(x: float) -> float:
+    """x rounded to a float32 constant (typed float for the type checker)."""
+    return np.float32(x)  # type: ignore[return-value]
+
+
+LN2_HI_32 = _single(0.693359375)
+LN2_LO_32 = _single(-2.12194440e-4)
+LOG2E_32 = _single(LOG2E)
+HALF_32 = _single(0.5)
+ZERO_32 = _single(0.0)
+ONE_32 = _single(1.0)
+EXP_FLOOR_32 = _single(-87.0)
+TWO_23_PLUS_BIAS_32 = _single(12582912.0 + 127.0)  # 1.5 * 2^23 + 127
+EXPONENT_BIAS_BITS_32 = np.int32(0x4B400000)  # the bits of 1.5 * 2^23
+# 1/7!, 1/6!, ..., 1/1!, 1/0! (written out in the Horner steps below: a loop over a tuple,
+# inlined through ``overload``, trips numba's SSA checks).
+C7_32 = _single(1.0 / 5040.0)
+C6_32 = _single(1.0 / 720.0)
+C5_32 = _single(1.0 / 120.0)
+C4_32 = _single(1.0 / 24.0)
+C3_32 = _single(1.0 / 6.0)
+C2_32 = _single(0.5)
 
 
 @njit(inline="always", fastmath=False, error_model="numpy")
@@ -114,7 +168,114 @@ def _exp_scale(p: float, k: float) -> float:
 
 
 @njit(inline="always", fastmath=False, error_model="numpy")
+def _exp_reduce_32(x: float) -> tuple[float, float]:
+    """``_exp_reduce`` in float32, x clamped at -87."""
+    v = max(x, EXP_FLOOR_32)
+    k = np.floor(v * LOG2E_32 + HALF_32)
+    return k, (v - k * LN2_HI_32) - k * LN2_LO_32
+
+
+@njit(inline="always", fastmath=False, error_model="numpy")
+def _exp_scale_32(p: float, k: float) -> float:
+    """``_exp_scale`` in float32: k + 127 + 1.5 * 2^23 is exact, and its bits are
+    EXPONENT_BIAS_BITS_32 + k + 127."""
+    bits: int = _float32_bits(k + TWO_23_PLUS_BIAS_32)  # type: ignore[call-arg]
+    return p * _bits_float32((bits - EXPONENT_BIAS_BITS_32) << 23)  # type: ignore[call-arg]
+
+
+@njit(inline="always", fastmath=False, error_model="numpy")
+def _exp_one_32(x: float) -> float:
+    """exp(x) for float32 x <= 0, within 2 units in the last place of float32's exp."""
+    k, r = _exp_reduce_32(x)
+    return _exp_scale_32(_horner_32(r), k)
+
+
+@njit(inline="always", fastmath=False, error_model="numpy")
+def _horner_32(r: float) -> float:
+    """exp(r)'s degree-7 Taylor polynomial in float32, Horner's order."""
+    p = C7_32 * r + C6_32
+    p = p * r + C5_32
+    p = p * r + C4_32
+    p = p * r + C3_32
+    p = p * r + C2_32
+    p = p * r + ONE_32
+    return p * r + ONE_32
+
+
+@njit(inline="always", fastmath=False, error_model="numpy")
+def _exp_five_32(
+    x0: float, x1: float, x2: float, x3: float, x4: float
+) -> tuple[float, float, float, float, float]:
+    """``_exp_five_64`` in float32."""
+    k0, r0 = _exp_reduce_32(x0)
+    k1, r1 = _exp_reduce_32(x1)
+    k2, r2 = _exp_reduce_32(x2)
+    k3, r3 = _exp_reduce_32(x3)
+    k4, r4 = _exp_reduce_32(x4)
+    return (
+        _exp_scale_32(_horner_32(r0), k0),
+        _exp_scale_32(_horner_32(r1), k1),
+        _exp_scale_32(_horner_32(r2), k2),
+        _exp_scale_32(_horner_32(r3), k3),
+        _exp_scale_32(_horner_32(r4), k4),
+    )
+
+
+def _is_float32(x: Any) -> bool:
+    return isinstance(x, types.Float) and x.bitwidth == 32
+
+
 def exp_nonpositive_one(x: float) -> float:
+    """exp(x) for x <= 0 in compiled code, in the precision of x (``_exp_one_64``,
+    ``_exp_one_32``)."""
+    raise NotImplementedError("compiled code only")
+
+
+@overload(exp_nonpositive_one, inline="always")
+def _exp_one_of(x: float):  # type: ignore[no-untyped-def]  # (annotated as the implementations are)
+    return (_exp_one_32 if _is_float32(x) else _exp_one_64).py_func
+
+
+def exp_nonpositive_five(
+    x0: float, x1: float, x2: float, x3: float, x4: float
+) -> tuple[float, float, float, float, float]:
+    """Five exps of x <= 0 in compiled code, in the precision of x0 (``_exp_five_64``,
+    ``_exp_five_32``)."""
+    raise NotImplementedError("compiled code only")
+
+
+@overload(exp_nonpositive_five, inline="always")
+def _exp_five_of(x0: float, x1: float, x2: float, x3: float, x4: float):  # type: ignore[no-untyped-def]
+    return (_exp_five_32 if _is_float32(x0) else _exp_five_64).py_func
+
+
+def zero_as(x: float) -> float:
+    """0 in the precision of x, in compiled code (a bare 0.0 is float64 there, and makes
+    float32 arithmetic it touches float64)."""
+    raise NotImplementedError("compiled code only")
+
+
+@overload(zero_as, inline="always")
+def _zero_as_of(x):  # type: ignore[no-untyped-def]
+    if _is_float32(x):
+        return lambda x: ZERO_32
+    return lambda x: 0.0
+
+
+def one_as(x: float) -> float:
+    """1 in the precision of x, in compiled code (see ``zero_as``)."""
+    raise NotImplementedError("compiled code only")
+
+
+@overload(one_as, inline="always")
+def _one_as_of(x):  # type: ignore[no-untyped-def]
+    if _is_float32(x):
+        return lambda x: ONE_32
+    return lambda x: 1.0
+
+
+@njit(inline="always", fastmath=False, error_model="numpy")
+def _exp_one_64(x: float) -> float:
     """exp(x) for x <= 0, within 4e-16 relative of ``np.exp`` (x below -708, where exp
     underflows to subnormals, is taken as -708: a weight of 3e-308 instead of less). exp(0) is
     exactly 1.
@@ -129,10 +290,10 @@ def exp_nonpositive_one(x: float) -> float:
 
 
 @njit(inline="always", fastmath=False, error_model="numpy")
-def exp_nonpositive_five(
+def _exp_five_64(
     x0: float, x1: float, x2: float, x3: float, x4: float
 ) -> tuple[float, float, float, float, float]:
-    """``exp_nonpositive_one`` of five numbers, the same operations on each, their Horner steps
+    """``_exp_one_64`` of five numbers, the same operations on each, their Horner steps
     interleaved: the five chains of dependent steps then run side by side (one after the
     other, each step waited on the one before; a forward pass spent 60% of its time there)."""
     k0, r0 = _exp_reduce(x0)
@@ -284,11 +445,13 @@ def _soft_forward(
 ) -> None:
     num_states = rewards.shape[1]
     n = num_states * num_actions
-    previous = np.zeros(num_states)
-    rows = np.empty(n)  # Q_t, row a * S + s
-    weights = np.empty(n)
-    total = np.empty(num_states)
-    value = np.empty(num_states)
+    dtype = rewards.dtype  # float64, or float32 passes
+    previous = np.zeros(num_states, dtype)
+    rows = np.empty(n, dtype)  # Q_t, row a * S + s
+    weights = np.empty(n, dtype)
+    total = np.empty(num_states, dtype)
+    value = np.empty(num_states, dtype)
+    one = one_as(beta)
     for k in range(first, last):
         reward = rewards[k]
         for s in range(num_states):
@@ -329,7 +492,7 @@ def _soft_forward(
                 for a in range(num_actions):
                     for s in range(num_states):
                         i = a * num_states + s
-                        jacobians_t[a, s] = weights[i] * (1.0 + beta * (rows[i] - value[s]))
+                        jacobians_t[a, s] = weights[i] * (one + beta * (rows[i] - value[s]))
 
 
 @njit(inline="always", fastmath=False, error_model="numpy")
@@ -353,7 +516,7 @@ def _boltzmann(
         for a in range(1, num_actions):
             candidate = rows[a * num_states + s]
             shift = candidate if candidate > shift else shift
-        sum_ = 0.0
+        sum_ = zero_as(beta)
         for a in range(num_actions):
             i = a * num_states + s
             weight = exp_nonpositive_one(beta * (rows[i] - shift))
@@ -404,7 +567,7 @@ def _boltzmann_five(rows: np.ndarray, beta: float, weights: np.ndarray, value: n
         weights[2 * num_states + s] = w2
         weights[3 * num_states + s] = w3
         weights[4 * num_states + s] = w4
-        v = 0.0
+        v = zero_as(q0)
         v = v + w0 * q0
         v = v + w1 * q1
         v = v + w2 * q2
@@ -580,9 +743,10 @@ def _soft_backward(
         d_probs,
         not (keep_terms or by_task),
     )
-    g = np.empty(n)  # dL/dQ_t, row a * S + s
-    g_v = np.empty(num_states)
-    acc = np.empty(num_states)
+    dtype = d_q.dtype  # float64, or float32 passes
+    g = np.empty(n, dtype)  # dL/dQ_t, row a * S + s
+    g_v = np.empty(num_states, dtype)
+    acc = np.empty(num_states, dtype)
     for k in range(first, last):
         if by_task:
             entry_sums[:] = 0.0
@@ -639,7 +803,7 @@ def _entry_places(
     count = gradient_entries.shape[0]
     rows = np.empty(count, dtype=np.int64)
     nexts = np.empty(count, dtype=np.int64)
-    sums = np.empty(count)
+    sums = np.empty(count, d_probs.dtype)
     for e in range(count):
         j = gradient_entries[e]
         rows[e] = pass_row(j // width, num_states, num_actions)
@@ -681,7 +845,7 @@ def add_terms(terms: np.ndarray, gradient_entries: np.ndarray, d_probs: np.ndarr
     The entries are distinct; their sums are kept side by side while the terms go in (a loop
     the compiler vectorises; in place, each addition was a gather and a scatter)."""
     num_entries = gradient_entries.shape[0]
-    sums = np.empty(num_entries)
+    sums = np.empty(num_entries, d_probs.dtype)
     for e in range(num_entries):
         sums[e] = d_probs[gradient_entries[e]]
     for k in range(terms.shape[0]):

@@ -68,6 +68,10 @@ COST_SETTINGS: dict[str, Any] = {
     # ends lower; BAM's `warm_alternations` runs part of the momentum schedule first (see
     # docs/reproduction.md, "A faster optimiser").
     "optimizer": "momentum",
+    # "float64": the planner's passes in double precision (the reference); "float32": in
+    # single precision, Q and the gradients to about 1e-5 relative (docs/benchmarks.md,
+    # "Float32 passes").
+    "planner_precision": "float64",
     "max_evaluations": 40,
     "warm_evaluations": 20,
 }
@@ -236,9 +240,18 @@ def planned_teacher_log_likelihood(
     ``rewards`` is (tasks with data, S). Returns the value, dL/drewards and, if asked, dL/dT on
     the operator's sparse entries (S, A, M).
     """
-    plan = soft_plan(operator, rewards, float(settings["beta"]), horizon)
+    plan = soft_plan(
+        operator,
+        rewards,
+        float(settings["beta"]),
+        horizon,
+        precision=settings["planner_precision"],
+    )
     value, d_q = teacher_log_likelihood(
-        plan.q_all, data, action_model(settings), feedback_model(settings)
+        plan.q_all.astype(np.float64, copy=False),
+        data,
+        action_model(settings),
+        feedback_model(settings),
     )
     d_rewards, d_transitions = plan.backward(d_q, need_transitions=need_transitions)
     return value, d_rewards, d_transitions

@@ -31,7 +31,7 @@ from server.learners.objective import (
     planned_teacher_log_likelihood,
     taught_tasks,
 )
-from server.learners.planning import TransitionOperator, soft_plan
+from server.learners.planning import PRECISIONS, TransitionOperator, soft_plan
 
 THETA_BOUND = 15.0
 COST_CELLS = ("domain", "every")
@@ -65,6 +65,7 @@ class PlannerLearner(Learner):
             check_count(name, self.settings[name], minimum=1)
         check_choice("cost_optimizers", self.settings["cost_optimizers"], OPTIMIZER_SCOPES)
         check_choice("cost_cells", self.settings["cost_cells"], COST_CELLS)
+        check_choice("planner_precision", self.settings["planner_precision"], tuple(PRECISIONS))
         check_gradient_rule(self.settings["dynamics_gradient"])
         check_positive_or_none("dynamics_prior_sd", self.settings["dynamics_prior_sd"])
         self.theta = env.model.initial_parameters()

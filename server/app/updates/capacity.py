@@ -95,6 +95,12 @@ def reference_jobs(
     return sessions
 
 
+def session_updates(session: dict[str, Any]) -> list[list[Any]]:
+    """The records of each update a reference session runs: none for update 0 (the untrained
+    learner), then one episode's for each later update."""
+    return [[], *session["episodes"]]
+
+
 def measure_update_cost(request: dict[str, Any]) -> float:
     """In an update process: the mean wall time of the updates of ``request["jobs"]``
     (``reference_jobs``), each session's run as the server runs them: update 0 (the untrained
@@ -110,7 +116,7 @@ def measure_update_cost(request: dict[str, Any]) -> float:
     def replay(session: dict[str, Any]) -> list[float]:
         seconds = []
         state = None
-        for index, records in enumerate([[], *session["episodes"]]):
+        for index, records in enumerate(session_updates(session)):
             job = {
                 **{
                     key: session.get(key)

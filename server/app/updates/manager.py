@@ -52,6 +52,7 @@ from server.app.updates.capacity import (
     Capacity,
     describe,
     participants_at_once,
+    session_updates,
 )
 from server.app.updates.policies import PolicyCache, decode
 from server.app.updates.pool import UpdatesUnavailable, WorkerDied
@@ -311,7 +312,7 @@ class UpdateManager:
                 except Exception:
                     log.exception("could not time the reference learner updates")
                     return
-            count = len(session["episodes"]) + 1  # the untrained learner's update, then each
+            count = len(session_updates(session))
             total += mean * count
             updates += count
         seconds = total / updates

@@ -12,8 +12,10 @@ clock counts their turns too). ``--breakdown`` adds, per environment and learner
 update after 10 rounds spends its time: the planner passes it runs (forward and reverse) and
 their time, the rest (the likelihoods, the optimiser steps, the model's table and its
 pull-back), a forward pass's nanoseconds per backup and what NumPy's vectorised exp costs per
-number on the same CPU. ``--setting planner_precision=float32`` runs the updates and the
-timed passes (and NumPy's exp) in single precision.
+number on the same CPU, all in the passes' precision (``--setting planner_precision=float64``:
+double). ``--versus NAME=VALUE`` adds the update after 10 rounds timed alternately at the
+settings and with that setting changed, from the same saved state, and their ratio: the way to
+compare two settings on a machine whose speed drifts (``--versus planner_precision=float64``).
 
 Targets (2-core machine, one planner thread, update after 10 rounds, median): BAM <= 100 ms
 and model-based IRL <= 50 ms on every environment; forward+backward <= 4x forward; learner
@@ -126,6 +128,38 @@ def pass_breakdown(env, learner, repeats: int) -> tuple[int, int, float, float]:
     return counts["forward"], counts["reverse"], statistics.median(passes), statistics.median(whole)
 
 
+def parse_settings(items: list[str]) -> dict:
+    """``NAME=VALUE`` items as settings, each value an int, a float or else a string."""
+    settings: dict = {}
+    for item in items:
+        name, _, value = item.partition("=")
+        try:
+            settings[name] = int(value)
+        except ValueError:
+            try:
+                settings[name] = float(value)
+            except ValueError:
+                settings[name] = value
+    return settings
+
+
+def time_versus(env, learner, other: dict, repeats: int) -> tuple[float, float]:
+    """The update after 10 rounds of ``learner`` and of the same saved state with the settings
+    ``other`` (from the same data and parameters), timed alternately ``repeats`` times each so
+    that both meet the same drifts of the machine: the median seconds of each."""
+    state = learner.state_dict()
+    changed = {**state, "settings": {**state["settings"], **other}}
+    restore(env, changed).update()  # compile / warm up
+    seconds: tuple[list[float], list[float]] = ([], [])
+    for _ in range(repeats):
+        for times, saved in zip(seconds, (state, changed), strict=True):
+            copy = restore(env, saved)
+            started = clock()
+            copy.update()
+            times.append(clock() - started)
+    return statistics.median(seconds[0]), statistics.median(seconds[1])
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
@@ -155,6 +189,14 @@ def main(argv: list[str] | None = None) -> int:
         help="wall: elapsed time (default); cpu: the process's CPU time",
     )
     parser.add_argument(
+        "--versus",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="also time the update after 10 rounds with this setting changed, alternately "
+        "with the update at the other settings (a third table; repeatable)",
+    )
+    parser.add_argument(
         "--breakdown",
         action="store_true",
         help="also where the update after 10 rounds spends its time (a second table)",
@@ -168,16 +210,8 @@ def main(argv: list[str] | None = None) -> int:
     clock = CLOCKS[args.clock]
     set_planner_threads(args.threads)
     print(f"planner threads: {args.threads}, clock: {args.clock}")
-    settings = {}
-    for item in args.setting:
-        name, _, value = item.partition("=")
-        try:
-            settings[name] = int(value)
-        except ValueError:
-            try:
-                settings[name] = float(value)
-            except ValueError:
-                settings[name] = value
+    settings = parse_settings(args.setting)
+    versus = parse_settings(args.versus)
     header = (
         f"{'environment':13s} {'learner':12s} "
         + " ".join(f"{'upd@' + str(r) + ' med/p95 ms':>19s}" for r in CHECKPOINTS)
@@ -186,6 +220,7 @@ def main(argv: list[str] | None = None) -> int:
     print(header)
     print("-" * len(header))
     breakdown = []
+    versus_rows = []
     for env_name in args.environments:
         env = domains.make(env_name)
         # A pass takes a millisecond or so: many of them, or a burst of the machine's noise
@@ -207,6 +242,11 @@ def main(argv: list[str] | None = None) -> int:
                 if round_ in CHECKPOINTS:
                     median, p95 = time_update(env, learner, args.repeats)
                     cells.append(f"{median * 1e3:9.0f}/{p95 * 1e3:<9.0f}")
+                if versus and round_ == max(CHECKPOINTS):
+                    other = {k: v for k, v in versus.items() if k in learner.settings}
+                    versus_rows.append(
+                        (env_name, learner_name, *time_versus(env, learner, other, args.repeats))
+                    )
                 if args.breakdown and round_ == max(CHECKPOINTS):
                     count = backups(env)
                     breakdown.append(
@@ -229,7 +269,25 @@ def main(argv: list[str] | None = None) -> int:
             )
     if breakdown:
         print_breakdown(breakdown)
+    if versus_rows:
+        print_versus(versus_rows, " ".join(args.versus))
     return 0
+
+
+def print_versus(rows: list[tuple], changed: str) -> None:
+    header = (
+        f"{'environment':13s} {'learner':12s} {'upd@10 ms':>10s} {'with ' + changed:>28s} "
+        f"{'ratio':>6s}"
+    )
+    print()
+    print(header)
+    print("-" * len(header))
+    for env_name, learner_name, before, after in rows:
+        print(
+            f"{env_name:13s} {learner_name:12s} {before * 1e3:10.0f} {after * 1e3:28.0f} "
+            f"{after / before:6.2f}",
+            flush=True,
+        )
 
 
 def print_breakdown(rows: list[tuple]) -> None:

@@ -68,10 +68,11 @@ COST_SETTINGS: dict[str, Any] = {
     # ends lower; BAM's `warm_alternations` runs part of the momentum schedule first (see
     # docs/reproduction.md, "A faster optimiser").
     "optimizer": "momentum",
-    # "float64": the planner's passes in double precision (the reference); "float32": in
-    # single precision, Q and the gradients to about 1e-5 relative (docs/benchmarks.md,
-    # "Float32 passes").
-    "planner_precision": "float64",
+    # The planner's passes: "float32" in single precision, Q and the gradients to about 1e-5
+    # relative, the agents as the float64 passes' (the 50-agent demonstrations experiment:
+    # docs/reproduction.md, "Float32 passes"), an update 0-33% cheaper; "float64" in double
+    # precision, as the published reproduction runs were made.
+    "planner_precision": "float32",
     "max_evaluations": 40,
     "warm_evaluations": 20,
 }

@@ -50,6 +50,37 @@ def test_a_bad_benchmark_argument_exits_non_zero_with_a_message(
     assert "Traceback" not in result.stderr
 
 
+def test_versus_times_the_same_saved_update_at_both_settings_alternately(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """``learners.py --versus``: the update at the learner's settings and the same saved state
+    with the setting changed (and nothing else), one after the other, ``repeats`` times."""
+    from server import domains
+    from server.learners import make
+
+    script = load_script(BENCHMARKS / "learners.py", "learners_benchmark")
+    env = domains.make("wall")
+    learner = make("model-based", env, seed=0)
+    restored: list[dict] = []
+    real_restore = script.restore
+
+    def recording(env_, state):  # type: ignore[no-untyped-def]
+        restored.append(state)
+        return real_restore(env_, state)
+
+    monkeypatch.setattr(script, "restore", recording)
+    before, after = script.time_versus(env, learner, {"planner_precision": "float64"}, 2)
+    assert before > 0 and after > 0
+    precisions = [state["settings"]["planner_precision"] for state in restored]
+    # A warm-up at the changed settings, then the two alternately.
+    assert precisions == ["float64", "float32", "float64", "float32", "float64"]
+    # The same saved state (the same objects) but for that one setting.
+    first = restored[0]
+    for state in restored:
+        assert all(state[key] is first[key] for key in first if key != "settings")
+        assert {k: v for k, v in state["settings"].items() if k != "planner_precision"} == {
+            k: v for k, v in learner.settings.items() if k != "planner_precision"
+        }
+
+
 @pytest.mark.slow
 def test_compare_times_both_versions_of_the_same_update(tmp_path: Path) -> None:
     """Against HEAD itself (the same code twice): one row per environment, both versions

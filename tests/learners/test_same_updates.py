@@ -46,7 +46,7 @@ SLOW = {"flip", "choices", "two-fields", "three-fields"}
 def updated_parameters(env_name: str, learner_name: str) -> dict[str, np.ndarray]:
     """A learner's parameters after ``ROUNDS`` rounds of demonstrations, updated after each."""
     env = domains.make(env_name)
-    learner = make(learner_name, env, seed=0)
+    learner = make(learner_name, env, seed=0, planner_precision="float64")
     teacher = Teacher(env, seed=0)
     rng = np.random.default_rng(0)
     for _ in range(ROUNDS):

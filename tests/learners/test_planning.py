@@ -691,16 +691,17 @@ def test_dense_levels_sum_each_state_s_terms_in_level_order(levels: int) -> None
         assert g_v[s] == expected, (s, g_v[s], expected)
 
 
+@pytest.mark.parametrize("precision", ["float64", "float32"])
 @pytest.mark.parametrize("backend", ["openmp", "python"])
 @pytest.mark.parametrize("name", ["doorway", "two-rooms", "flip"])
 def test_passes_split_over_threads_compute_the_same_bits(
-    name: str, backend: str, monkeypatch
+    name: str, backend: str, precision: str, monkeypatch
 ) -> None:  # type: ignore[no-untyped-def]
     """A pass whose tasks are split over two or three threads gives the one-thread pass's
     numbers bit for bit (Q, the trace, and both gradients, the transition gradient summed
     over tasks in the one-thread order), with every entry's gradient and with the learners'
-    narrowed entries, on OpenMP threads and on Python ones; the thread count is restored
-    afterwards."""
+    narrowed entries, on OpenMP threads and on Python ones, in either precision; the thread
+    count is restored afterwards."""
     if backend == "openmp" and not planning.compiled_threads():
         pytest.skip("no OpenMP runtime on this machine")
     if backend == "python":
@@ -720,8 +721,9 @@ def test_passes_split_over_threads_compute_the_same_bits(
         results[threads] = []
         with planning.using_planner_threads(threads):
             for op in operators:
-                plan = soft_plan(op, rewards, 0.8, env.horizon)
+                plan = soft_plan(op, rewards, 0.8, env.horizon, precision=precision)
                 d_reward, d_transitions = plan.backward(d_q)
+                assert plan.values.dtype == precision
                 results[threads] += [plan.q, plan.values, plan.value_jacobians, d_reward]
                 results[threads] += [d_transitions]
     for threads in (2, 3):

@@ -58,48 +58,24 @@ EXPONENT_BIAS_BITS = np.int64(0x4330000000000000)  # the bits of 2^52
 FIVE_ACTIONS = 5
 
 
-@intrinsic
-def _float_bits(typingctx, x):  # type: ignore[no-untyped-def]
-    """The IEEE-754 bits of a float64 as an int64 (a register move, no conversion)."""
-    signature = types.int64(types.float64)
+def _reinterpretation(name: str, source: types.Type, target: types.Type) -> Any:
+    """An intrinsic ``name``: the ``target`` whose IEEE-754 bits are those of a ``source`` (a
+    register move, no conversion)."""
 
-    def codegen(context, builder, sig, args):  # type: ignore[no-untyped-def]
-        return builder.bitcast(args[0], context.get_value_type(types.int64))
+    def typer(typingctx, x):  # type: ignore[no-untyped-def]
+        def codegen(context, builder, sig, args):  # type: ignore[no-untyped-def]
+            return builder.bitcast(args[0], context.get_value_type(target))
 
-    return signature, codegen
+        return target(source), codegen
 
-
-@intrinsic
-def _bits_float(typingctx, x):  # type: ignore[no-untyped-def]
-    """The float64 whose IEEE-754 bits are an int64."""
-    signature = types.float64(types.int64)
-
-    def codegen(context, builder, sig, args):  # type: ignore[no-untyped-def]
-        return builder.bitcast(args[0], context.get_value_type(types.float64))
-
-    return signature, codegen
+    typer.__name__ = typer.__qualname__ = name
+    return intrinsic(typer)
 
 
-@intrinsic
-def _float32_bits(typingctx, x):  # type: ignore[no-untyped-def]
-    """The IEEE-754 bits of a float32 as an int32."""
-    signature = types.int32(types.float32)
-
-    def codegen(context, builder, sig, args):  # type: ignore[no-untyped-def]
-        return builder.bitcast(args[0], context.get_value_type(types.int32))
-
-    return signature, codegen
-
-
-@intrinsic
-def _bits_float32(typingctx, x):  # type: ignore[no-untyped-def]
-    """The float32 whose IEEE-754 bits are an int32."""
-    signature = types.float32(types.int32)
-
-    def codegen(context, builder, sig, args):  # type: ignore[no-untyped-def]
-        return builder.bitcast(args[0], context.get_value_type(types.float32))
-
-    return signature, codegen
+_float_bits = _reinterpretation("_float_bits", types.float64, types.int64)
+_bits_float = _reinterpretation("_bits_float", types.int64, types.float64)
+_float32_bits = _reinterpretation("_float32_bits", types.float32, types.int32)
+_bits_float32 = _reinterpretation("_bits_float32", types.int32, types.float32)
 
 
 # exp(r)'s Taylor coefficients 1/13!, 1/12!, ..., 1/1!, 1/0!, in Horner's order.

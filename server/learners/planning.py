@@ -626,8 +626,9 @@ def soft_plan(
     """Forward pass of soft value iteration, keeping what the reverse pass needs.
 
     ``precision`` "float32" runs the pass (and its reverse pass) in single precision: Q, the
-    trace and the gradients carry float32's 7 digits (about 1e-6 relative), and the pass is
-    about 1.5 times as fast (twice the numbers per SIMD register, half the trace's memory)."""
+    trace and the gradients carry float32's 7 digits (Q to about 1e-6 relative, the gradients
+    to about 1e-5), and the trace takes half the memory (flip's passes of an update: 498 ms in
+    float64, 293 ms in float32, on an AVX-512 AMD EPYC)."""
     if precision not in PRECISIONS:
         raise ValueError(
             f"precision must be one of {', '.join(map(repr, PRECISIONS))}, got {precision!r}"

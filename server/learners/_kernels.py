@@ -260,9 +260,27 @@ def _exp_one_64(x: float) -> float:
     Taylor polynomial's error is below 1e-17, and 2^k is built from its IEEE-754 bits."""
     k, r = _exp_reduce(x)
     p = HORNER_FIRST
-    for c in HORNER:
-        p = p * r + c
+    for step in range(12):  # each coefficient by a constant index (see _horner_steps_64)
+        p = p * r + HORNER[step]
     return _exp_scale(p, k)
+
+
+@njit(inline="always", fastmath=False, error_model="numpy")
+def _horner_steps_64(
+    p0: float,
+    p1: float,
+    p2: float,
+    p3: float,
+    p4: float,
+    r0: float,
+    r1: float,
+    r2: float,
+    r3: float,
+    r4: float,
+    c: float,
+) -> tuple[float, float, float, float, float]:
+    """One Horner step of five polynomials side by side: p * r + c of each."""
+    return p0 * r0 + c, p1 * r1 + c, p2 * r2 + c, p3 * r3 + c, p4 * r4 + c
 
 
 @njit(inline="always", fastmath=False, error_model="numpy")
@@ -278,12 +296,20 @@ def _exp_five_64(
     k3, r3 = _exp_reduce(x3)
     k4, r4 = _exp_reduce(x4)
     p0 = p1 = p2 = p3 = p4 = HORNER_FIRST
-    for c in HORNER:
-        p0 = p0 * r0 + c
-        p1 = p1 * r1 + c
-        p2 = p2 * r2 + c
-        p3 = p3 * r3 + c
-        p4 = p4 * r4 + c
+    # The steps written out, not a loop over HORNER: such a loop, inlined through
+    # ``exp_nonpositive_five``'s overload, trips numba's SSA checks (a warning at compile time).
+    p0, p1, p2, p3, p4 = _horner_steps_64(p0, p1, p2, p3, p4, r0, r1, r2, r3, r4, HORNER[0])
+    p0, p1, p2, p3, p4 = _horner_steps_64(p0, p1, p2, p3, p4, r0, r1, r2, r3, r4, HORNER[1])
+    p0, p1, p2, p3, p4 = _horner_steps_64(p0, p1, p2, p3, p4, r0, r1, r2, r3, r4, HORNER[2])
+    p0, p1, p2, p3, p4 = _horner_steps_64(p0, p1, p2, p3, p4, r0, r1, r2, r3, r4, HORNER[3])
+    p0, p1, p2, p3, p4 = _horner_steps_64(p0, p1, p2, p3, p4, r0, r1, r2, r3, r4, HORNER[4])
+    p0, p1, p2, p3, p4 = _horner_steps_64(p0, p1, p2, p3, p4, r0, r1, r2, r3, r4, HORNER[5])
+    p0, p1, p2, p3, p4 = _horner_steps_64(p0, p1, p2, p3, p4, r0, r1, r2, r3, r4, HORNER[6])
+    p0, p1, p2, p3, p4 = _horner_steps_64(p0, p1, p2, p3, p4, r0, r1, r2, r3, r4, HORNER[7])
+    p0, p1, p2, p3, p4 = _horner_steps_64(p0, p1, p2, p3, p4, r0, r1, r2, r3, r4, HORNER[8])
+    p0, p1, p2, p3, p4 = _horner_steps_64(p0, p1, p2, p3, p4, r0, r1, r2, r3, r4, HORNER[9])
+    p0, p1, p2, p3, p4 = _horner_steps_64(p0, p1, p2, p3, p4, r0, r1, r2, r3, r4, HORNER[10])
+    p0, p1, p2, p3, p4 = _horner_steps_64(p0, p1, p2, p3, p4, r0, r1, r2, r3, r4, HORNER[11])
     return (
         _exp_scale(p0, k0),
         _exp_scale(p1, k1),

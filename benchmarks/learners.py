@@ -40,6 +40,7 @@ import numpy as np
 from server import domains
 from server.cores import available_cores
 from server.learners import NAMES, _kernels, dumps, make, planning, restore
+from server.learners.objective import COST_SETTINGS
 from server.learners.planning import TransitionOperator, set_planner_threads, soft_plan
 from server.teacher import Teacher
 
@@ -225,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
         env = domains.make(env_name)
         # A pass takes a millisecond or so: many of them, or a burst of the machine's noise
         # decides the median (flip's ratio read 4.0 in one run of 5, 2.6 in runs of 50).
-        precision = str(settings.get("planner_precision", "float64"))
+        precision = str(settings.get("planner_precision", COST_SETTINGS["planner_precision"]))
         forward, both = time_planner(env, max(args.repeats, PLANNER_REPEATS), precision)
         for learner_name in args.learners:
             applicable = {

@@ -412,6 +412,13 @@ class QueueView(BaseModel):
     )
     update_seconds: float | None = Field(description="The measured wall time of one update.")
     measured_on: str | None = Field(description="What the update time was measured on.")
+    longest_update_seconds: float | None = Field(
+        description="The longest update timed at start: an agent that follows one is ready "
+        "that long after its episode ends, however few participants teach (none: not timed)."
+    )
+    longest_update_of: str | None = Field(
+        description="The learner and environment of that update, as 'learner in environment'."
+    )
     slots: int = Field(
         description="Updates run at once (processes on their own cores, or workers)."
     )

@@ -166,11 +166,12 @@ class LiveServer:
 
 
 def run_live_server(
-    tmp: Path, config: str, executor: Executor | None = None
+    tmp: Path, config: str, executor: Executor | None = None, measure_capacity: bool = False
 ) -> Iterator[LiveServer]:
     """A study server on a free port: settings from the BAM_* environment variables, a fresh
     SQLite database migrated by ``server.app.storage.db.upgrade``, learner updates in a process (or in
-    ``executor``)."""
+    ``executor``); with ``measure_capacity`` it times the study's reference updates, as
+    ``serve`` does."""
     config_path = tmp / "study.toml"
     config_path.write_text(config, encoding="utf-8")
     database_url = f"sqlite:///{tmp / 'study.db'}"
@@ -185,7 +186,7 @@ def run_live_server(
         mp.setenv("BAM_UPDATE_WORKERS", "1")
         mp.setenv("BAM_UPDATE_WORKER_NICENESS", "0")
         mp.setenv("BAM_AGENT_WAIT_SECONDS", "120")
-        app = create_app(Settings(), executor=executor)
+        app = create_app(Settings(), executor=executor, measure_capacity=measure_capacity)
     try:
         with live(app) as url:
             yield LiveServer(url, database_url)

@@ -3,6 +3,7 @@ axe-core and lets them in by itself when a place frees; the dashboard shows the 
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 
 import pytest
@@ -28,7 +29,9 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
     config = "max_active_participants = 1\n" + study_toml(
         mode="lab", domains_toml=domain_toml("navigation", "wall"), learners='["cloning"]', agents=1
     )
-    yield from run_live_server(tmp_path_factory.mktemp("waiting-study"), config)
+    yield from run_live_server(
+        tmp_path_factory.mktemp("waiting-study"), config, measure_capacity=True
+    )
 
 
 def test_an_arrival_beyond_the_limit_waits_and_goes_in_when_a_place_frees(
@@ -53,6 +56,14 @@ def test_an_arrival_beyond_the_limit_waits_and_goes_in_when_a_place_frees(
         expect(queue.locator('[data-queue="active"] dd')).to_have_text("1 / 1")
         expect(queue.locator('[data-queue="waiting"] dd')).to_have_text("1")
         expect(queue.locator('[data-queue="pending"] dd')).to_have_text("0")
+        # Once the reference updates are timed (the page refreshes itself): the capacity, and
+        # the longest update with its learner and environment.
+        longest = queue.locator('[data-queue="longest"]')
+        expect(longest.locator("dd")).to_have_text(
+            re.compile(r"^\d+\.\d (s|min)$"), timeout=ADMITTED_WITHIN_MS
+        )
+        expect(longest.locator("dt")).to_contain_text("cloning in wall")
+        expect(queue.locator('[data-queue="capacity"] dd')).to_have_text(re.compile(r"^\d+$"))
         assert axe_violations(dashboard) == []
 
         # The first participant declines: the waiting page opens the study by itself.

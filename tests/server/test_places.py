@@ -21,7 +21,14 @@ from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Participant as ParticipantRow
 from server.app.storage.models import utcnow
-from server.app.updates.capacity import LIVE_MINIMUM, participants_at_once
+from server.app.updates.capacity import (
+    LIVE_MINIMUM,
+    Capacity,
+    LongestUpdate,
+    describe,
+    measure_updates,
+    participants_at_once,
+)
 from tests.server.conftest import (
     ADMIN_TOKEN,
     Participant,
@@ -155,11 +162,13 @@ def test_without_a_limit_in_the_study_file_the_measured_capacity_is_the_limit(
     with TestClient(app) as client:
         manager = app.state.server.updates
         # Not measured yet: no limit.
-        assert client.get("/api/admin/queue", headers=ADMIN).json()["limit"] is None
+        unmeasured = client.get("/api/admin/queue", headers=ADMIN).json()
+        assert unmeasured["limit"] is None and unmeasured["longest_update_seconds"] is None
         _, status = arrival(client, "W1")
         assert status == "arrived"
         # An update measured at 20 s, a participant queueing one every second: one at a time.
         manager.reference_seconds = 20.0
+        manager.reference_longest = LongestUpdate(31.25, "flip", "bam")
         _, status = arrival(client, "W2")
         assert status == "waiting"
         queue = client.get("/api/admin/queue", headers=ADMIN).json()
@@ -168,6 +177,8 @@ def test_without_a_limit_in_the_study_file_the_measured_capacity_is_the_limit(
     assert queue["measured_on"] == "the study's learners at start"
     assert queue["participants_active"] == 1 and queue["participants_waiting"] == 1
     assert queue["update_seconds"] == 20.0
+    assert queue["longest_update_seconds"] == 31.25
+    assert queue["longest_update_of"] == "bam in flip"
 
 
 def test_the_queue_shows_updates_pending_and_the_oldest_wait(
@@ -202,6 +213,38 @@ def test_the_capacity_follows_the_cost_of_an_update_and_the_slots() -> None:
         participants_at_once(0.0, 2, 10.0)
 
 
+def test_the_longest_reference_update_is_found_across_sessions_and_said(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The longest single update of every session timed (not the session with the highest
+    mean), the warm-up replay not counted; ``serve``'s line says it beside the capacity."""
+    from server.app.updates import capacity, worker
+
+    durations = {"wall": [0.1, 0.2, 0.3], "flip": [0.5, 0.05, 0.05]}
+    clock = [0.0]
+
+    def run_update(job: dict[str, Any]) -> dict[str, Any]:
+        index = job["base_state"] or 0
+        clock[0] += durations[job["environment"]][index]
+        return {"learner_state": index + 1}
+
+    monkeypatch.setattr(worker, "run_update", run_update)
+    monkeypatch.setattr(capacity.time, "perf_counter", lambda: clock[0])
+    sessions = [
+        {"environment": name, "learner": "bam", "episodes": [[], []]} for name in ("wall", "flip")
+    ]
+    cost = measure_updates({"jobs": sessions})
+    assert cost.mean_seconds == pytest.approx(1.2 / 6)  # wall's mean is the higher: 0.2
+    assert cost.longest == LongestUpdate(pytest.approx(0.5), "flip", "bam")
+
+    line = describe(
+        Capacity(60, cost.mean_seconds, 2, 10.0, "the study's learners at start", cost.longest)
+    )
+    assert line.startswith("Capacity: 60 participants teaching at once")
+    assert "The longest update, bam in flip, takes 0.50 s" in line
+    assert "longest" not in describe(Capacity(60, 0.2, 2, 10.0, "the latest 30 updates"))
+
+
 def test_the_capacity_is_measured_on_the_latest_updates_once_there_are_enough() -> None:
     from server.app.updates.manager import UpdateManager
     from server.app.updates.policies import PolicyCache
@@ -229,25 +272,31 @@ def test_the_reference_updates_are_timed_a_session_at_a_time_and_averaged_per_up
     is the mean over every update of every session."""
     from concurrent.futures import Executor, Future
 
-    from server.app.updates.capacity import measure_update_cost
+    from server.app.updates.capacity import UpdateCost
     from server.app.updates.manager import UpdateManager
     from server.app.updates.policies import PolicyCache
+    from server.app.updates.queue import ProcessGate
     from tests.server.test_update_order import run_apart
 
-    sessions = [{"episodes": [[]] * 3, "mean": 1.0}, {"episodes": [[]] * 7, "mean": 2.0}]
+    sessions = [
+        {"episodes": [[]] * 3, "mean": 1.0, "longest": 3.0, "environment": "flip"},
+        {"episodes": [[]] * 7, "mean": 2.0, "longest": 2.5, "environment": "wall"},
+    ]
     asked: list[dict[str, Any]] = []
 
     class Timing(Executor):
         def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> Future[Any]:
             future: Future[Any] = Future()
-            if fn is measure_update_cost:
+            if fn is measure_updates:
                 asked.append(args[0])
-                future.set_result(args[0]["jobs"][0]["mean"])
+                session = args[0]["jobs"][0]
+                longest = LongestUpdate(session["longest"], session["environment"], "bam")
+                future.set_result(UpdateCost(session["mean"], longest))
             else:  # worker_ready: the one process is warm
                 future.set_result(1)
             return future
 
-    async def measure() -> float | None:
+    async def measure() -> tuple[float | None, LongestUpdate | None]:
         db: Database = None  # type: ignore[assignment]
         manager = UpdateManager(
             db,
@@ -259,12 +308,15 @@ def test_the_reference_updates_are_timed_a_session_at_a_time_and_averaged_per_up
         )
         manager.order.start()
         manager._slots = asyncio.Semaphore(2)
-        manager._processes = asyncio.Semaphore(1)
+        manager._processes = ProcessGate(1, manager.order.priority)
         manager.runner.start(manager._spawn)
         await asyncio.wait_for(manager._measure_reference(), 60)
-        return manager.reference_seconds
+        return manager.reference_seconds, manager.reference_longest
 
-    seconds = run_apart(measure)  # its own thread: the browser tests may leave a loop running
+    # In a thread of its own: the browser tests may leave a loop running.
+    seconds, longest = run_apart(measure)
     assert [request["jobs"] for request in asked] == [[sessions[0]], [sessions[1]]]
     assert [request["warm"] for request in asked] == [True, False]
     assert seconds == pytest.approx((4 * 1.0 + 8 * 2.0) / 12)
+    # The longest update of all the sessions, not of the last or of the slowest on average.
+    assert longest == LongestUpdate(3.0, "flip", "bam")

@@ -600,7 +600,7 @@ def test_a_study_s_own_environment_is_learned_on_workers_that_never_saw_its_file
 
     from server import domains
     from server.app.config import load_study_config
-    from server.app.updates.capacity import measure_update_cost, reference_jobs
+    from server.app.updates.capacity import UpdateCost, measure_updates, reference_jobs
     from server.app.updates.cluster import UpdateCluster
     from server.app.updates.worker import run_update
 
@@ -621,22 +621,23 @@ def test_a_study_s_own_environment_is_learned_on_workers_that_never_saw_its_file
         }
         here = run_update(job)
 
-        async def scenario() -> tuple[dict[str, Any], float]:
+        async def scenario() -> tuple[dict[str, Any], UpdateCost]:
             updates = UpdateCluster.connect(cluster.scheduler_address)
             try:
                 there, _ = await updates.run(run_update, job, "learner-update-office-1")
-                seconds, _ = await updates.run(
-                    measure_update_cost, {"jobs": [session]}, "learner-update-office-reference"
+                cost, _ = await updates.run(
+                    measure_updates, {"jobs": [session]}, "learner-update-office-reference"
                 )
-                return there, seconds
+                return there, cost
             finally:
                 await asyncio.to_thread(updates.close)
 
         with ThreadPoolExecutor(1) as pool:
-            there, seconds = pool.submit(asyncio.run, scenario()).result()
+            there, cost = pool.submit(asyncio.run, scenario()).result()
     finally:
         for name in set(domains.names()) - before:
             domains.unregister(name)
     assert there["greedy_policy"] == here["greedy_policy"]
     assert there["normalized_return"] == here["normalized_return"]
-    assert seconds > 0
+    assert 0 < cost.mean_seconds <= cost.longest.seconds
+    assert (cost.longest.environment, cost.longest.learner) == ("office-floor", "cloning")

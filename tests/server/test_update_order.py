@@ -18,7 +18,7 @@ from server.app.main import create_app
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import LearnerUpdate, LearningSession
-from server.app.updates.queue import UpdateQueue
+from server.app.updates.queue import ProcessGate, UpdateQueue
 from server.app.updates.worker import run_update
 from server.domains import make
 from server.domains.base import ACTIONS
@@ -105,6 +105,66 @@ def test_an_update_someone_waits_for_goes_before_one_nobody_waits_for() -> None:
     # While 3 was being updated it was still awaited, and 4, done, was not any more.
     assert list(marks) == [3]
     assert waits == [False, True, True, True, True]
+
+
+def test_a_freed_process_goes_to_the_prepared_update_awaited_longest() -> None:
+    """Updates read from the database wait for a process: the one someone waits for goes
+    first, also when the waiting began after it was read (its priority is read when a process
+    frees); the others go in the order they came; a cancelled waiter neither takes a process
+    nor loses one."""
+
+    async def scenario() -> tuple[list[int], int]:
+        queue = UpdateQueue(lambda session_id: 0)
+        queue.start()
+        gate = ProcessGate(1, queue.priority)
+        got: list[int] = []
+
+        async def prepared(session_id: int) -> None:
+            await gate.acquire(session_id)
+            got.append(session_id)
+
+        await gate.acquire(0)  # the one process is busy
+        waiters = {s: asyncio.ensure_future(prepared(s)) for s in (1, 2, 3, 4, 5)}
+        while gate.waiting < 5:
+            await asyncio.sleep(0)
+        queue.mark_awaited(3, 1)  # its participant lets the agent try: 3 was read third
+        queue.mark_awaited(5, 1)
+        waiters[2].cancel()  # its server request went away, say
+        await asyncio.gather(waiters[2], return_exceptions=True)
+        for _ in range(4):
+            before = len(got)
+            gate.release()
+            while len(got) == before:
+                await asyncio.sleep(0)
+        await asyncio.gather(*(w for s, w in waiters.items() if s != 2))
+        return got, gate.free
+
+    got, free = run_apart(scenario)
+    assert got == [3, 5, 1, 4]  # awaited longest first, then the order they came in
+    assert free == 0  # the last holder (4) still has the one process
+
+
+def test_a_process_gate_that_shrinks_hands_out_no_process_until_enough_are_back() -> None:
+    async def scenario() -> list[int]:
+        gate = ProcessGate(2, lambda session_id: (1, 0.0))
+        got: list[int] = []
+
+        async def prepared(session_id: int) -> None:
+            await gate.acquire(session_id)
+            got.append(session_id)
+
+        await gate.acquire(0)
+        await gate.acquire(1)
+        gate.resize(-1)  # a cluster worker left: one process fewer
+        waiter = asyncio.ensure_future(prepared(2))
+        gate.release()  # 0 done: still one held, one process left: none free
+        await asyncio.sleep(0.05)
+        handed_early = list(got)
+        gate.release()  # 1 done: the one process is free
+        await asyncio.wait_for(waiter, BOUND)
+        return [*handed_early, -1, *got]
+
+    assert run_apart(scenario) == [-1, 2]
 
 
 def test_a_session_awaited_for_a_later_update_stays_first_until_that_one_is_done() -> None:

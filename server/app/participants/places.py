@@ -123,6 +123,7 @@ def queue_view(state: ServerState, queue: QueueState | None) -> QueueView:
     manager's, read on its event loop."""
     manager = state.updates
     capacity = manager.capacity() if manager is not None else None
+    longest = capacity.longest_update if capacity is not None else None
     now = utcnow()
     with state.db.connect() as c:
         active = active_count(c, now, state.settings.active_minutes)
@@ -137,6 +138,8 @@ def queue_view(state: ServerState, queue: QueueState | None) -> QueueView:
         capacity=capacity.participants if capacity is not None else None,
         update_seconds=round(capacity.update_seconds, 4) if capacity is not None else None,
         measured_on=capacity.measured_on if capacity is not None else None,
+        longest_update_seconds=round(longest.seconds, 4) if longest is not None else None,
+        longest_update_of=f"{longest.learner} in {longest.environment}" if longest else None,
         slots=manager.slots if manager is not None else 0,
         update_interval_seconds=state.settings.update_interval_seconds,
         limit=study_limit(state),

@@ -10,7 +10,12 @@ participant waits about one update as long as the slots are busy less than
     capacity = TARGET_UTILISATION x slots x update_interval_seconds / update_seconds
 
 The cost is measured at start on the study's own learners and environments (``reference_jobs``,
-``measure_update_cost``, in an update process), then from the updates the server runs.
+``measure_updates``, in an update process), then from the updates the server runs.
+
+The capacity bounds the queue, not one update's own time: an agent step that follows an update
+waits for it however few participants teach. The longest reference update is said beside the
+capacity (``LongestUpdate``): where it takes seconds (a slow CPU, a large environment), the
+participants of that environment wait that long at any capacity.
 """
 
 from __future__ import annotations
@@ -35,12 +40,32 @@ LIVE_MINIMUM = 30  # fewer run since the start: the reference cost still stands
 
 
 @dataclass(frozen=True)
+class LongestUpdate:
+    """The longest update of the reference sessions: what an agent step that follows such an
+    update waits with no queue at all."""
+
+    seconds: float
+    environment: str
+    learner: str
+
+
+@dataclass(frozen=True)
+class UpdateCost:
+    """What timing reference sessions found: the mean wall time of an update over all of
+    them, and the longest update's (wall seconds, its environment and learner)."""
+
+    mean_seconds: float
+    longest: LongestUpdate
+
+
+@dataclass(frozen=True)
 class Capacity:
     participants: int  # teaching at once without waiting
     update_seconds: float  # wall time of one update
     slots: int  # updates run at once
     update_interval_seconds: float  # how often an active participant queues an update
     measured_on: str  # what the update cost was measured on
+    longest_update: LongestUpdate | None = None  # of the reference sessions, once timed
 
 
 def participants_at_once(update_seconds: float, slots: int, update_interval_seconds: float) -> int:
@@ -56,7 +81,7 @@ def reference_jobs(
     settings_of: Callable[[str], dict[str, Any]],
     rounds: int = REFERENCE_ROUNDS,
 ) -> list[dict[str, Any]]:
-    """A learning session for each (environment, learner), as ``measure_update_cost`` replays
+    """A learning session for each (environment, learner), as ``measure_updates`` replays
     it: the untrained learner, then ``rounds`` rounds of the simulated teacher's
     demonstrations (every task once a round), one episode at a time."""
     from server.domains import definition, make
@@ -101,8 +126,8 @@ def session_updates(session: dict[str, Any]) -> list[list[Any]]:
     return [[], *session["episodes"]]
 
 
-def measure_update_cost(request: dict[str, Any]) -> float:
-    """In an update process: the mean wall time of the updates of ``request["jobs"]``
+def measure_updates(request: dict[str, Any]) -> UpdateCost:
+    """In an update process: the wall time of the updates of ``request["jobs"]``
     (``reference_jobs``), each session's run as the server runs them: update 0 (the untrained
     learner), then one update per episode from the learner state the one before saved. The
     first session is run once untimed first, to load whatever the process has not loaded
@@ -134,7 +159,22 @@ def measure_update_cost(request: dict[str, Any]) -> float:
 
     if request.get("warm", True):
         replay(sessions[0])
-    return float(np.mean([x for session in sessions for x in replay(session)]))
+    timed = [(session, replay(session)) for session in sessions]
+    session, seconds = max(timed, key=lambda pair: max(pair[1]))
+    return UpdateCost(
+        mean_seconds=float(np.mean([x for _, times in timed for x in times])),
+        longest=LongestUpdate(max(seconds), str(session["environment"]), str(session["learner"])),
+    )
+
+
+def measure_update_cost(request: dict[str, Any]) -> float:
+    """``measure_updates``' mean wall time of an update."""
+    return measure_updates(request).mean_seconds
+
+
+def longest_of(costs: Iterable[UpdateCost]) -> LongestUpdate:
+    """The longest update of several timings."""
+    return max((cost.longest for cost in costs), key=lambda longest: longest.seconds)
 
 
 def describe(capacity: Capacity) -> str:
@@ -145,4 +185,14 @@ def describe(capacity: Capacity) -> str:
         f"{capacity.update_seconds:.2f} s measured on {capacity.measured_on}, a participant "
         f"queues one every {capacity.update_interval_seconds:.0f} s, slots busy at most "
         f"{TARGET_UTILISATION:.0%})."
+        + (f" {waits(capacity.longest_update)}" if capacity.longest_update is not None else "")
+    )
+
+
+def waits(longest: LongestUpdate) -> str:
+    """What the longest reference update means for the participants, in a sentence."""
+    return (
+        f"The longest update, {longest.learner} in {longest.environment}, takes "
+        f"{longest.seconds:.2f} s: an agent that follows one is ready that long after its "
+        "episode ends, however few participants teach."
     )

@@ -21,8 +21,9 @@ after episode k. No request but the agent step waits for an update: demonstratio
 episode ends go on while the session's updates are pending.
 
 A slot's next update is read from the database while its last one runs, and stored while the
-next one runs (``PREPARED_PER_SLOT``), so the processes do not wait for the database; an
-awaited session that arrives then may run after the updates already prepared, one per slot.
+next one runs (``PREPARED_PER_SLOT``), so the processes do not wait for the database. When a
+process frees, the prepared update whose session is awaited longest takes it (``ProcessGate``),
+so an update read before anyone waited for it goes first once someone does.
 
 Pending updates are found again in the database when the server starts, so none is lost by a
 restart. With ``BAM_UPDATE_SCHEDULER`` the same function runs on the workers of a Dask cluster
@@ -50,13 +51,16 @@ from server.app.updates.capacity import (
     LIVE_MINIMUM,
     LIVE_UPDATES,
     Capacity,
+    LongestUpdate,
+    UpdateCost,
     describe,
+    longest_of,
     participants_at_once,
     session_updates,
 )
 from server.app.updates.policies import PolicyCache, decode
 from server.app.updates.pool import UpdatesUnavailable, WorkerDied
-from server.app.updates.queue import QueueState, UpdateQueue
+from server.app.updates.queue import ProcessGate, QueueState, UpdateQueue
 from server.app.updates.runners import ClusterUpdates, LocalUpdates, Runner
 from server.app.updates.store import Job, UpdateStore
 from server.domains import make as make_environment
@@ -72,6 +76,7 @@ RETRY_SECONDS = 5.0  # a session whose update could not be run (database, schedu
 # when its last one ends, and the storing of one overlaps the next one's run (120 simulated
 # participants, SQLite, 2 cores: 10.8 updates a second against 10.0 without).
 PREPARED_PER_SLOT = 1
+REFERENCE = -1  # the session id the reference updates hold a process as (no session's)
 
 
 class UpdateManager:
@@ -103,8 +108,9 @@ class UpdateManager:
         # Updates under way: running on a slot, or read from the database and waiting for one,
         # or being stored (PREPARED_PER_SLOT per slot beyond the running one).
         self._slots: asyncio.Semaphore | None = None
-        # Updates running in the processes (or on the cluster's workers): one per slot.
-        self._processes: asyncio.Semaphore | None = None
+        # Updates running in the processes (or on the cluster's workers): one per slot, the
+        # most urgent prepared one next.
+        self._processes: ProcessGate | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
         self.completed = 0
         self.failed = 0
@@ -113,6 +119,7 @@ class UpdateManager:
         self.update_interval_seconds = update_interval_seconds
         self.reference_jobs = reference_jobs
         self.reference_seconds: float | None = None
+        self.reference_longest: LongestUpdate | None = None
         self._costs: deque[float] = deque(maxlen=LIVE_UPDATES)
 
     # -- what the server reads ---------------------------------------------------------------
@@ -162,7 +169,7 @@ class UpdateManager:
     async def start(self) -> None:
         self.order.start()
         self._slots = asyncio.Semaphore(self._capacity * (1 + PREPARED_PER_SLOT))
-        self._processes = asyncio.Semaphore(self._capacity)
+        self._processes = ProcessGate(self._capacity, self.order.priority)
         self.runner.start(self._spawn)
         self._spawn(self._dispatch())
         self._spawn(self._rescan_forever())
@@ -206,7 +213,7 @@ class UpdateManager:
                 return
             try:
                 assert self._processes is not None
-                async with self._processes:
+                async with self._processes.holding(session_id):
                     outcome, deaths = await self._run(job)
             except WorkerDied as died:
                 log.error(
@@ -293,6 +300,7 @@ class UpdateManager:
             slots=self.slots,
             update_interval_seconds=self.update_interval_seconds,
             measured_on=measured_on,
+            longest_update=self.reference_longest,
         )
 
     async def _measure_reference(self) -> None:
@@ -303,20 +311,22 @@ class UpdateManager:
         while not self.ready:
             await asyncio.sleep(0.5)
         total = updates = 0.0
+        costs: list[UpdateCost] = []
         for index, session in enumerate(self.reference_jobs):
-            async with self._processes:
+            async with self._processes.holding(REFERENCE):
                 try:
-                    mean = await self.runner.measure({"jobs": [session], "warm": index == 0})
+                    cost = await self.runner.measure({"jobs": [session], "warm": index == 0})
                 except asyncio.CancelledError:
                     raise
                 except Exception:
                     log.exception("could not time the reference learner updates")
                     return
             count = len(session_updates(session))
-            total += mean * count
+            total += cost.mean_seconds * count
             updates += count
-        seconds = total / updates
-        self.reference_seconds = seconds
+            costs.append(cost)
+        self.reference_longest = longest_of(costs)
+        self.reference_seconds = total / updates
         capacity = self.capacity()
         assert capacity is not None
         log.info("%s", describe(capacity))
@@ -327,12 +337,10 @@ class UpdateManager:
         assert self._slots is not None and self._processes is not None
         capacity = max(1, capacity)
         change, self._capacity = capacity - self._capacity, capacity
-        for _ in range(change):
-            self._processes.release()
-            for _ in range(1 + PREPARED_PER_SLOT):
-                self._slots.release()
+        self._processes.resize(change)
+        for _ in range(change * (1 + PREPARED_PER_SLOT)):
+            self._slots.release()
         if change < 0:
-            self._spawn(self._take(self._processes, -change))
             self._spawn(self._take(self._slots, -change * (1 + PREPARED_PER_SLOT)))
 
     async def _take(self, semaphore: asyncio.Semaphore, count: int) -> None:

@@ -29,6 +29,72 @@ class QueueState:
     failed: int
 
 
+class ProcessGate:
+    """The update processes (or cluster slots), handed out by urgency: when one frees, the
+    prepared update whose session is awaited longest takes it, else the one prepared first.
+    ``priority`` is read at that moment, so an update read from the database before anyone
+    waited for it goes first once someone does (a FIFO semaphore left it behind the updates
+    prepared before it)."""
+
+    def __init__(self, processes: int, priority: Callable[[int], tuple[int, float]]) -> None:
+        self.free = processes  # below 0 while more are held than there are (after a shrink)
+        self.priority = priority
+        self._waiting: dict[asyncio.Future[None], int] = {}  # in the order they came
+
+    @property
+    def waiting(self) -> int:
+        return len(self._waiting)
+
+    async def acquire(self, session_id: int) -> None:
+        """A process for the session's prepared update (waits for one)."""
+        if self.free > 0 and not self._waiting:
+            self.free -= 1
+            return
+        future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._waiting[future] = session_id
+        try:
+            await future
+        except asyncio.CancelledError:
+            if self._waiting.pop(future, None) is None and not future.cancelled():
+                self.release()  # handed a process, then cancelled: pass it on
+            raise
+
+    def release(self) -> None:
+        self.free += 1
+        self._hand_out()
+
+    def resize(self, change: int) -> None:
+        """``change`` processes more (or fewer: the next ones released are not handed out)."""
+        self.free += change
+        self._hand_out()
+
+    def _hand_out(self) -> None:
+        while self.free > 0 and self._waiting:
+            # min keeps the first of equals: the order they came in.
+            future = min(self._waiting, key=lambda f: self.priority(self._waiting[f]))
+            del self._waiting[future]
+            if future.done():  # cancelled meanwhile
+                continue
+            self.free -= 1
+            future.set_result(None)
+
+    def holding(self, session_id: int) -> _Held:
+        """``async with gate.holding(session_id):`` a process while the block runs."""
+        return _Held(self, session_id)
+
+
+class _Held:
+    def __init__(self, gate: ProcessGate, session_id: int) -> None:
+        self.gate = gate
+        self.session_id = session_id
+
+    async def __aenter__(self) -> None:
+        await self.gate.acquire(self.session_id)
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.gate.release()
+
+
 class UpdateQueue:
     """Sessions with pending updates, in dispatch order: awaited sessions first, the one
     awaited longest first, then the others in the order their updates were queued."""

@@ -13,7 +13,7 @@ from concurrent.futures import Executor
 from concurrent.futures.process import BrokenProcessPool
 from typing import TYPE_CHECKING, Any, Protocol
 
-from server.app.updates.capacity import measure_update_cost
+from server.app.updates.capacity import UpdateCost, measure_updates
 from server.app.updates.pool import WorkerDied, new_executor
 from server.app.updates.worker import run_update, worker_ready
 from server.cores import available_cores, share_threads
@@ -40,7 +40,7 @@ class Runner(Protocol):
 
     async def run(self, payload: dict[str, Any], name: str) -> tuple[dict[str, Any], int]: ...
 
-    async def measure(self, request: dict[str, Any]) -> float: ...
+    async def measure(self, request: dict[str, Any]) -> UpdateCost: ...
 
     async def stop(self) -> None: ...
 
@@ -105,9 +105,10 @@ class LocalUpdates:
             self._in_flight -= 1
         return outcome, 0
 
-    async def measure(self, request: dict[str, Any]) -> float:
+    async def measure(self, request: dict[str, Any]) -> UpdateCost:
         assert self.executor is not None
-        return float(await asyncio.wrap_future(self.executor.submit(measure_update_cost, request)))
+        cost: UpdateCost = await asyncio.wrap_future(self.executor.submit(measure_updates, request))
+        return cost
 
     def _replace_executor(self, broken: Executor) -> None:
         if self._stopping:  # no new workers while shutting down: they would outlive the server
@@ -186,11 +187,10 @@ class ClusterUpdates:
         outcome, deaths = await self.cluster.run(run_update, payload, name)
         return outcome, deaths
 
-    async def measure(self, request: dict[str, Any]) -> float:
-        seconds, _ = await self.cluster.run(
-            measure_update_cost, request, "learner-update-reference"
-        )
-        return float(seconds)
+    async def measure(self, request: dict[str, Any]) -> UpdateCost:
+        cost, _ = await self.cluster.run(measure_updates, request, "learner-update-reference")
+        assert isinstance(cost, UpdateCost)
+        return cost
 
     async def _watch(self, spawn: Spawn) -> None:
         """Follow the cluster's workers: as many updates at once as they have threads, and

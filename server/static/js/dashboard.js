@@ -482,6 +482,10 @@ async function loadQueue() {
   $("#queue").replaceChildren(
     item("capacity", "Capacity: participants at once without waiting", capacity,
       q.capacity === null ? null : `an update takes ${q.update_seconds.toFixed(2)} s on ${q.measured_on}, ${count(q.slots, "slot")}`),
+    item("longest", "The longest update",
+      q.longest_update_seconds === null ? "not timed yet" : seconds(q.longest_update_seconds),
+      q.longest_update_seconds === null ? null : `${q.longest_update_of}: an agent that follows one is ready that long after its episode, however few teach`,
+      q.longest_update_seconds !== null && q.longest_update_seconds > 2),
     item("active", "Participants in the study / limit", limit, q.limit_from ? `limit from the ${q.limit_from}` : "no limit"),
     item("waiting", "Participants waiting for a place", String(q.participants_waiting)),
     item("pending", "Learner updates pending", String(q.updates_pending), `${q.sessions_updating} running`),

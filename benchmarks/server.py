@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import os
 import secrets
@@ -58,8 +59,8 @@ from server.app.storage.db import Database, upgrade
 from server.app.storage.models import Event, LearnerUpdate
 from server.commands.live import ServerProcess, free_port
 from server.commands.simulated import (
+    STUDY_PLAN,
     StudyRun,
-    TeachingPlan,
     latency_row,
     percentile,
     run_participants,
@@ -326,13 +327,11 @@ def main(argv: list[str] | None = None) -> int:
         "BAM_UPDATE_WORKERS": str(args.workers),
         "BAM_SQLITE_SYNCHRONOUS": args.sqlite_synchronous,
     }
-    plan = TeachingPlan(
-        min_rounds=2,
-        max_rounds=4,
+    plan = dataclasses.replace(
+        STUDY_PLAN,
         think_seconds=args.think_seconds,
         agent_step_seconds=args.agent_step_seconds,
         episode_pause_seconds=args.episode_pause_seconds,
-        max_agent_steps=30,
         retry_seconds=24 * 3600.0,  # a participant waits for the agent until the run stops
     )
     stop = threading.Event()
@@ -361,7 +360,8 @@ def main(argv: list[str] | None = None) -> int:
         measured = wait_for_capacity(server.url, admin_token, args.capacity_timeout)
         print(
             f"the server's capacity: {measured['capacity']} participants at once (an update "
-            f"{measured['update_seconds']} s on {measured['measured_on']}, "
+            f"{measured['update_seconds']} s on {measured['measured_on']}, the server's own "
+            f"work {measured['server_seconds_per_update']} s a core per update, "
             f"{measured['slots']} slot(s))",
             flush=True,
         )

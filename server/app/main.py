@@ -6,7 +6,8 @@ import asyncio
 import json
 import logging
 import math
-from collections.abc import AsyncIterator
+import threading
+from collections.abc import AsyncIterator, Callable
 from concurrent.futures import Executor
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -129,13 +130,16 @@ def create_app(
     executor: Executor | None = None,
     cluster: UpdateCluster | None = None,
     measure_capacity: bool = False,
+    server_share: Callable[[threading.Event], float] | None = None,
 ) -> FastAPI:
     """The app for one study database. ``executor`` runs learner updates (a process pool of
     ``BAM_UPDATE_WORKERS`` is made when None), or ``cluster``, a Dask cluster's client (one is
     connected to ``BAM_UPDATE_SCHEDULER`` when that is set and ``cluster`` is None); the schema must be up to date (``bam-study db
     upgrade``, which ``bam-study serve`` runs itself on SQLite). ``measure_capacity``: time
     the study's reference updates once the update processes are warm
-    (``server.app.updates.capacity``; ``serve`` does)."""
+    (``server.app.updates.capacity``; ``serve`` does); ``server_share``: then time the
+    server's own CPU seconds per update (``server.commands.server_share``), which the
+    capacity counts where the update processes share the server's cores."""
     settings = settings or get_settings()
     study_config = study_config or load_study_config(settings.study_config)
     study_config.register_environments()
@@ -179,6 +183,7 @@ def create_app(
                 if measure_capacity
                 else None
             ),
+            server_share=server_share if measure_capacity else None,
         )
         state.updates = manager
         await manager.start()

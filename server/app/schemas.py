@@ -412,6 +412,11 @@ class QueueView(BaseModel):
     )
     update_seconds: float | None = Field(description="The measured wall time of one update.")
     measured_on: str | None = Field(description="What the update time was measured on.")
+    server_seconds_per_update: float | None = Field(
+        description="The server process's own CPU seconds per update (a participant's requests "
+        "between two updates, the update's reading and storing), which the capacity counts "
+        "where the update processes share the server's cores (none: not counted)."
+    )
     longest_update_seconds: float | None = Field(
         description="The longest update timed at start: an agent that follows one is ready "
         "that long after its episode ends, however few participants teach (none: not timed)."

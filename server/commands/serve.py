@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import socket
 import sys
 from typing import TYPE_CHECKING
@@ -139,7 +140,16 @@ def run(args: argparse.Namespace) -> int:
     for line in startup_notes(address, admin_token(settings) is not None, study):
         print(line, file=sys.stderr)
     logging.basicConfig(level=args.log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
-    app = create_app(settings, study, db=db, cluster=cluster, measure_capacity=True)
+    from server.commands.server_share import measure_server_share
+
+    app = create_app(
+        settings,
+        study,
+        db=db,
+        cluster=cluster,
+        measure_capacity=True,
+        server_share=functools.partial(measure_server_share, settings, study),
+    )
     server = uvicorn.Server(
         server_config(app, settings, args.host, args.port, args.log_level, args.access_log)
     )

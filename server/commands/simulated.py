@@ -101,6 +101,12 @@ class TeachingPlan:
             )
 
 
+# The participants of the server benchmark (benchmarks/server.py, at its pace) and of the
+# capacity's timing of the server's own work (server_share.py): two to four rounds an agent,
+# at most 30 agent steps a try.
+STUDY_PLAN = TeachingPlan(min_rounds=2, max_rounds=4, max_agent_steps=30)
+
+
 @dataclass
 class ParticipantRun:
     """What one simulated participant did, as the client saw it."""

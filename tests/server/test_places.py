@@ -5,6 +5,7 @@ the capacity on the dashboard's API."""
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
@@ -169,6 +170,7 @@ def test_without_a_limit_in_the_study_file_the_measured_capacity_is_the_limit(
         # An update measured at 20 s, a participant queueing one every second: one at a time.
         manager.reference_seconds = 20.0
         manager.reference_longest = LongestUpdate(31.25, "flip", "bam")
+        manager.reference_server_seconds = 0.5
         _, status = arrival(client, "W2")
         assert status == "waiting"
         queue = client.get("/api/admin/queue", headers=ADMIN).json()
@@ -177,6 +179,7 @@ def test_without_a_limit_in_the_study_file_the_measured_capacity_is_the_limit(
     assert queue["measured_on"] == "the study's learners at start"
     assert queue["participants_active"] == 1 and queue["participants_waiting"] == 1
     assert queue["update_seconds"] == 20.0
+    assert queue["server_seconds_per_update"] == 0.5
     assert queue["longest_update_seconds"] == 31.25
     assert queue["longest_update_of"] == "bam in flip"
 
@@ -211,6 +214,21 @@ def test_the_capacity_follows_the_cost_of_an_update_and_the_slots() -> None:
     assert participants_at_once(60.0, 1, 10.0) == 1  # never none
     with pytest.raises(ValueError):
         participants_at_once(0.0, 2, 10.0)
+
+
+def test_the_capacity_counts_the_servers_own_work_where_it_shares_the_cores() -> None:
+    # Two update processes on two cores, which also do the server's 0.05 s per update: 75% of
+    # 2 cores x 10 s / (0.25 + 0.05) s = 50, not the 60 of the updates alone.
+    assert participants_at_once(0.25, 2, 10.0, server_seconds=0.05, cores=2) == 50
+    # Two update processes on eight cores: the slots, not the cores, are the limit.
+    assert participants_at_once(0.25, 2, 10.0, server_seconds=0.05, cores=8) == 60
+    # The slots elsewhere (a cluster's workers): the server's work takes nothing from them.
+    assert participants_at_once(0.25, 2, 10.0, server_seconds=0.05) == 60
+    with pytest.raises(ValueError):
+        participants_at_once(0.25, 2, 10.0, server_seconds=-0.01, cores=2)
+    line = describe(Capacity(50, 0.25, 2, 10.0, "the study's learners at start", None, 0.05))
+    assert "the server's own work 0.05 s of a core per update" in line
+    assert "server's own work" not in describe(Capacity(60, 0.25, 2, 10.0, "the latest 30"))
 
 
 def test_the_longest_reference_update_is_found_across_sessions_and_said(
@@ -266,10 +284,35 @@ def test_the_capacity_is_measured_on_the_latest_updates_once_there_are_enough() 
     assert capacity.participants == participants_at_once(0.125, 1, 10.0) == 60
 
 
-def test_the_reference_updates_are_timed_a_session_at_a_time_and_averaged_per_update() -> None:
+def test_the_live_capacity_counts_the_servers_cpu_time_per_update(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Once enough updates ran, the server's own work is its process's CPU time from the end
+    of the first of the latest updates to the end of the last, over the updates between."""
+    from server.app.updates import manager as manager_module
+    from server.app.updates.manager import UpdateManager
+    from server.app.updates.policies import PolicyCache
+
+    monkeypatch.setattr(manager_module, "available_cores", lambda: 1)
+    db: Database = None  # type: ignore[assignment]
+    manager = UpdateManager(db, PolicyCache(), lambda name: {}, workers=1)
+    for index in range(LIVE_MINIMUM + 1):
+        manager._costs.append(0.125)
+        manager._cpu_marks.append(3.0 + 0.125 * index)  # 0.125 s of the server's CPU each
+    capacity = manager.capacity()
+    assert capacity is not None and capacity.server_seconds == pytest.approx(0.125)
+    # 75% of one core x 10 s / (0.125 + 0.125) s: half of the 60 of the updates alone.
+    assert capacity.participants == 30
+
+
+@pytest.mark.parametrize("share_timed", [True, False])
+def test_the_reference_updates_are_timed_a_session_at_a_time_and_averaged_per_update(
+    share_timed: bool,
+) -> None:
     """Each session is one job (a server stopped meanwhile waits for one session's updates,
     not for all of them), only the first warms the process up, and the capacity's update time
-    is the mean over every update of every session."""
+    is the mean over every update of every session. The server's own work is timed after
+    them; where that fails, the capacity is stated without it."""
     from concurrent.futures import Executor, Future
 
     from server.app.updates.capacity import UpdateCost
@@ -296,7 +339,20 @@ def test_the_reference_updates_are_timed_a_session_at_a_time_and_averaged_per_up
                 future.set_result(1)
             return future
 
+    shares: list[float] = []
+
+    def server_share(stop: threading.Event) -> float:
+        # The capacity is not stated while the server's own work is being timed.
+        assert manager.capacity() is None
+        shares.append(0.5)
+        if not share_timed:
+            raise RuntimeError("the scratch study's server did not start")
+        return 0.5
+
+    manager: UpdateManager
+
     async def measure() -> tuple[float | None, LongestUpdate | None]:
+        nonlocal manager
         db: Database = None  # type: ignore[assignment]
         manager = UpdateManager(
             db,
@@ -305,6 +361,7 @@ def test_the_reference_updates_are_timed_a_session_at_a_time_and_averaged_per_up
             workers=1,
             executor=Timing(),
             reference_jobs=sessions,
+            server_share=server_share,
         )
         manager.order.start()
         manager._slots = asyncio.Semaphore(2)
@@ -320,3 +377,9 @@ def test_the_reference_updates_are_timed_a_session_at_a_time_and_averaged_per_up
     assert seconds == pytest.approx((4 * 1.0 + 8 * 2.0) / 12)
     # The longest update of all the sessions, not of the last or of the slowest on average.
     assert longest == LongestUpdate(3.0, "flip", "bam")
+    # The server's own work is timed once, after the updates, and counted.
+    assert shares == [0.5]
+    capacity = manager.capacity()
+    assert capacity is not None
+    assert capacity.server_seconds == (0.5 if share_timed else None)
+    assert capacity.measured_on == "the study's learners at start"

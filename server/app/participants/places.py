@@ -138,6 +138,11 @@ def queue_view(state: ServerState, queue: QueueState | None) -> QueueView:
         capacity=capacity.participants if capacity is not None else None,
         update_seconds=round(capacity.update_seconds, 4) if capacity is not None else None,
         measured_on=capacity.measured_on if capacity is not None else None,
+        server_seconds_per_update=(
+            round(capacity.server_seconds, 4)
+            if capacity is not None and capacity.server_seconds is not None
+            else None
+        ),
         longest_update_seconds=round(longest.seconds, 4) if longest is not None else None,
         longest_update_of=f"{longest.learner} in {longest.environment}" if longest else None,
         slots=manager.slots if manager is not None else 0,

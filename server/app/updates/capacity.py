@@ -9,8 +9,16 @@ participant waits about one update as long as the slots are busy less than
 
     capacity = TARGET_UTILISATION x slots x update_interval_seconds / update_seconds
 
-The cost is measured at start on the study's own learners and environments (``reference_jobs``,
-``measure_updates``, in an update process), then from the updates the server runs.
+Where the slots are processes on the server's own machine, its cores also do the server's own
+work for each update (``server_seconds``: the participants' requests and the update's reading
+and storing, CPU seconds of the server's process per update), and the capacity is at most
+
+    TARGET_UTILISATION x cores x update_interval_seconds / (update_seconds + server_seconds)
+
+The costs are measured at start on the study's own learners and environments
+(``reference_jobs``, ``measure_updates``, in an update process; the server's own work on a
+scratch copy of the study, ``server.commands.server_share``), then from the updates the server
+runs and its process's CPU time meanwhile.
 
 The capacity bounds the queue, not one update's own time: an agent step that follows an update
 waits for it however few participants teach. The longest reference update is said beside the
@@ -66,13 +74,28 @@ class Capacity:
     update_interval_seconds: float  # how often an active participant queues an update
     measured_on: str  # what the update cost was measured on
     longest_update: LongestUpdate | None = None  # of the reference sessions, once timed
+    # The server process's CPU seconds per update, where the slots share its cores (None:
+    # not counted: the slots are a cluster's, or it could not be timed).
+    server_seconds: float | None = None
 
 
-def participants_at_once(update_seconds: float, slots: int, update_interval_seconds: float) -> int:
-    """The capacity (module docstring); at least 1."""
+def participants_at_once(
+    update_seconds: float,
+    slots: int,
+    update_interval_seconds: float,
+    server_seconds: float = 0.0,
+    cores: int | None = None,
+) -> int:
+    """The capacity (module docstring); at least 1. ``cores``: the cores the slots share with
+    the server's process (None: the slots are elsewhere, a cluster's workers)."""
     if update_seconds <= 0:
         raise ValueError("an update takes some time")
+    if server_seconds < 0:
+        raise ValueError("the server's work per update is not negative")
     share = TARGET_UTILISATION * max(1, slots) * update_interval_seconds / update_seconds
+    if cores is not None:
+        shared = update_interval_seconds / (update_seconds + server_seconds)
+        share = min(share, TARGET_UTILISATION * max(1, cores) * shared)
     return max(1, math.floor(share))
 
 
@@ -182,9 +205,14 @@ def describe(capacity: Capacity) -> str:
     return (
         f"Capacity: {capacity.participants} participants teaching at once without waiting "
         f"for their agents ({capacity.slots} update slot(s), an update takes "
-        f"{capacity.update_seconds:.2f} s measured on {capacity.measured_on}, a participant "
-        f"queues one every {capacity.update_interval_seconds:.0f} s, slots busy at most "
-        f"{TARGET_UTILISATION:.0%})."
+        f"{capacity.update_seconds:.2f} s measured on {capacity.measured_on}"
+        + (
+            f", the server's own work {capacity.server_seconds:.2f} s of a core per update"
+            if capacity.server_seconds is not None
+            else ""
+        )
+        + f", a participant queues one every {capacity.update_interval_seconds:.0f} s, slots "
+        f"busy at most {TARGET_UTILISATION:.0%})."
         + (f" {waits(capacity.longest_update)}" if capacity.longest_update is not None else "")
     )
 

@@ -38,9 +38,11 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 import time
 import traceback
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import Executor
 from typing import TYPE_CHECKING, Any
 
@@ -63,6 +65,7 @@ from server.app.updates.pool import UpdatesUnavailable, WorkerDied
 from server.app.updates.queue import ProcessGate, QueueState, UpdateQueue
 from server.app.updates.runners import ClusterUpdates, LocalUpdates, Runner
 from server.app.updates.store import Job, UpdateStore
+from server.cores import available_cores
 from server.domains import make as make_environment
 
 if TYPE_CHECKING:
@@ -94,6 +97,7 @@ class UpdateManager:
         cluster: UpdateCluster | None = None,
         update_interval_seconds: float = 10.0,
         reference_jobs: list[dict[str, Any]] | None = None,
+        server_share: Callable[[threading.Event], float] | None = None,
     ) -> None:
         self.policies = policies
         self.store = UpdateStore(db, learner_settings)
@@ -121,6 +125,12 @@ class UpdateManager:
         self.reference_seconds: float | None = None
         self.reference_longest: LongestUpdate | None = None
         self._costs: deque[float] = deque(maxlen=LIVE_UPDATES)
+        # The server's own work per update (capacity.py), where the update processes share
+        # its cores: timed at start by ``server_share`` once the reference updates are, then
+        # from this process's CPU time at the end of each of the latest updates.
+        self.server_share = server_share if cluster is None else None
+        self.reference_server_seconds: float | None = None
+        self._cpu_marks: deque[float] = deque(maxlen=LIVE_UPDATES + 1)
 
     # -- what the server reads ---------------------------------------------------------------
     @property
@@ -269,6 +279,7 @@ class UpdateManager:
         name = f"learner-update-{job.session_id}-{job.update_index}"
         outcome, deaths = await self.runner.run(job.payload, name)
         self._costs.append(time.perf_counter() - started)
+        self._cpu_marks.append(time.process_time())
         return outcome, deaths
 
     async def _rescan_forever(self) -> None:
@@ -286,22 +297,39 @@ class UpdateManager:
         """Participants who can teach at once without waiting (``server.app.updates.capacity``):
         from the mean wall time of the latest updates once there are enough, else from the
         reference updates timed at start; None before either."""
+        server: float | None
         if len(self._costs) >= LIVE_MINIMUM:
             seconds = float(np.mean(self._costs))
             measured_on = f"the latest {len(self._costs)} updates"
-        elif self.reference_seconds is not None:
+            marks = self._cpu_marks
+            shared = self.cluster is None and len(marks) > 1
+            server = (marks[-1] - marks[0]) / (len(marks) - 1) if shared else None
+        elif self.reference_seconds is not None and not self._timing_server_share:
             seconds = self.reference_seconds
             measured_on = "the study's learners at start"
+            server = self.reference_server_seconds
         else:
             return None
         return Capacity(
-            participants=participants_at_once(seconds, self.slots, self.update_interval_seconds),
+            participants=participants_at_once(
+                seconds,
+                self.slots,
+                self.update_interval_seconds,
+                server_seconds=server or 0.0,
+                cores=None if server is None else available_cores(),
+            ),
             update_seconds=seconds,
             slots=self.slots,
             update_interval_seconds=self.update_interval_seconds,
             measured_on=measured_on,
             longest_update=self.reference_longest,
+            server_seconds=server,
         )
+
+    @property
+    def _timing_server_share(self) -> bool:
+        """The server's own work per update is to be timed at start and is not yet."""
+        return self.server_share is not None and self.reference_server_seconds is None
 
     async def _measure_reference(self) -> None:
         """Once the runner is warm: time the reference updates on one of its processes (or
@@ -327,6 +355,16 @@ class UpdateManager:
             costs.append(cost)
         self.reference_longest = longest_of(costs)
         self.reference_seconds = total / updates
+        if self.server_share is not None:
+            stop = threading.Event()  # set: the server is stopping, the timing ends
+            try:
+                self.reference_server_seconds = await asyncio.to_thread(self.server_share, stop)
+            except asyncio.CancelledError:
+                stop.set()
+                raise
+            except Exception:
+                log.exception("could not time the server's own work per update")
+                self.server_share = None  # the capacity is stated without it
         capacity = self.capacity()
         assert capacity is not None
         log.info("%s", describe(capacity))

@@ -1,0 +1,216 @@
+"""The study server's own work per learner update, timed at start for the capacity.
+
+Beside the updates, the server's process answers each participant's requests (the moves, the
+agent's steps, the feedback) and reads and stores each update: about 23 requests and some
+0.06 s of an AVX-512 AMD EPYC's core for every update a participant queues. On a machine whose
+update processes share the cores with it, that work takes from the updates' cores, and the
+capacity counts it (``server.app.updates.capacity``).
+
+``measure_server_share`` runs, in a process of its own, a scratch copy of the study: the same
+study file and learners, on a new SQLite database in a temporary folder, served by uvicorn on a
+free port of 127.0.0.1 with one update process, and a few simulated participants teaching it
+as fast as they can over HTTP. After a few seconds untimed, the server's share is that
+process's CPU time less the participants' own (their threads' CPU time), over the updates
+queued meanwhile. The study's
+database is never touched. On PostgreSQL a request costs more than on SQLite; the capacity
+the server shows once participants teach counts the live figure.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import signal
+import socket
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from multiprocessing.connection import Connection
+
+    from server.app.config import StudyConfig
+    from server.app.settings import Settings
+
+PARTICIPANTS = 6  # teaching the scratch study at once
+WARM_SECONDS = 5.0  # untimed: what the server does once only (its first requests, imports)
+SECONDS = 20.0  # timed
+READY_SECONDS = 600.0  # the scratch server's update process may compile the learners first
+
+
+class Stopped(Exception):
+    """The timing was stopped (the server that asked for it is stopping)."""
+
+
+def measure_server_share(
+    settings: Settings,
+    study: StudyConfig,
+    stop: threading.Event | None = None,
+    *,
+    participants: int = PARTICIPANTS,
+    seconds: float = SECONDS,
+    warm_seconds: float = WARM_SECONDS,
+) -> float:
+    """The server process's CPU seconds per update queued (module docstring), timed in a
+    process of its own so that the calling server's own work is not counted. ``stop``, once
+    set, ends the scratch study within a second or two and raises ``Stopped``."""
+    context = multiprocessing.get_context("spawn")
+    # A pipe both ways (the answer; the word to stop), not a queue or an event: those hold
+    # named semaphores, which a server stopped meanwhile would leave behind.
+    ours, theirs = context.Pipe()
+    # Not a pool's worker: those are daemons, which may not start the scratch server's own
+    # update process.
+    process = context.Process(
+        target=_answer,
+        args=(theirs, settings, study, participants, seconds, warm_seconds),
+        daemon=False,
+    )
+    process.start()
+    theirs.close()
+    told = False
+    try:
+        while not ours.poll(0.2):
+            if stop is not None and stop.is_set() and not told:
+                ours.send(STOPPED)
+                told = True
+            if not process.is_alive() and not ours.poll():
+                raise RuntimeError("the scratch study's process ended with no answer")
+        share, problem = ours.recv()
+    finally:
+        if not told and process.is_alive():
+            ours.send(STOPPED)
+        process.join()
+        ours.close()
+    if problem is not None:
+        raise Stopped(problem) if problem == STOPPED else RuntimeError(problem)
+    return float(share)
+
+
+STOPPED = "stopped"
+
+
+def _answer(connection: Connection, *args: Any) -> None:
+    stopping = threading.Event()
+
+    def listen() -> None:  # the word to stop, or the server gone
+        with contextlib.suppress(EOFError, OSError):
+            connection.recv()
+        stopping.set()
+
+    threading.Thread(target=listen, daemon=True).start()
+    # A server stopped by a signal to its process group (Ctrl-C, a service manager's SIGTERM)
+    # stops this process through ``stopping``, so that its scratch server shuts down in order.
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, lambda *_: stopping.set())
+    try:
+        answer: tuple[float | None, str | None] = (_scratch_study(stopping, *args), None)
+    except Stopped:
+        answer = (None, STOPPED)
+    except BaseException as error:
+        answer = (None, f"{type(error).__name__}: {error}")
+    with contextlib.suppress(OSError):
+        connection.send(answer)
+
+
+def _scratch_study(
+    stopping: threading.Event,
+    settings: Settings,
+    study: StudyConfig,
+    participants: int,
+    seconds: float,
+    warm_seconds: float,
+) -> float:
+    import uvicorn
+    from sqlalchemy import func, select
+
+    from server.app.main import create_app
+    from server.app.storage.db import Database, prepare_schema
+    from server.app.storage.models import LearnerUpdate
+    from server.commands.simulated import STUDY_PLAN, SimulatedParticipant
+
+    with tempfile.TemporaryDirectory(prefix="bam-server-share-") as folder:
+        url = f"sqlite:///{Path(folder) / 'scratch.db'}"
+        scratch = settings.model_copy(
+            update={"database_url": url, "update_workers": 1, "update_scheduler": None}
+        )
+        db = Database.from_url(
+            url,
+            busy_timeout_ms=settings.sqlite_busy_timeout_ms,
+            synchronous=settings.sqlite_synchronous,
+        )
+        prepare_schema(db.engine)
+        # The simulated participants arrive as from MTurk's replica, whatever the platform:
+        # an arrival and a completion are a few of a participant's hundreds of requests.
+        copy = study.model_copy(
+            update={"completion": study.completion.model_copy(update={"mode": "mturk"})}
+        )
+        app = create_app(scratch, copy, db=db)
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            port = probe.getsockname()[1]
+        server = uvicorn.Server(
+            uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning")
+        )
+        serving = threading.Thread(target=server.run, daemon=True)
+        serving.start()
+        try:
+            deadline = time.monotonic() + READY_SECONDS
+            while not (server.started and app.state.server.updates.ready):
+                if not serving.is_alive() or time.monotonic() > deadline:
+                    raise RuntimeError("the scratch study's server did not start")
+                if stopping.wait(0.1):
+                    raise Stopped
+            base = f"http://127.0.0.1:{port}"
+            stop = threading.Event()
+            timing = threading.Event()
+            own: list[float] = []  # the participants' CPU seconds while timed
+            errors: list[str] = []
+
+            def teach(index: int) -> None:
+                run = SimulatedParticipant(base, index, 0, STUDY_PLAN, stop=stop)
+                started: float | None = None
+
+                def timed(*args: Any, **kwargs: Any) -> Any:
+                    nonlocal started
+                    if started is None and timing.is_set():
+                        started = time.thread_time()
+                    return send(*args, **kwargs)
+
+                send, run.client.request = run.client.request, timed  # type: ignore[method-assign]
+                outcome = run.take_part()
+                if started is not None:
+                    own.append(time.thread_time() - started)
+                if outcome.error is not None:
+                    errors.append(outcome.error)
+
+            def updates() -> int:
+                with db.read() as s:
+                    return s.scalar(select(func.count()).select_from(LearnerUpdate)) or 0
+
+            threads = [threading.Thread(target=teach, args=(i,)) for i in range(participants)]
+            for thread in threads:
+                thread.start()
+            try:
+                if stopping.wait(warm_seconds):
+                    raise Stopped
+                before, cpu = updates(), time.process_time()
+                timing.set()
+                if stopping.wait(seconds):
+                    raise Stopped
+            finally:
+                stop.set()
+                for thread in threads:
+                    thread.join()
+            cpu = time.process_time() - cpu - sum(own)
+            queued = updates() - before
+            if errors:
+                raise RuntimeError(f"a participant of the scratch study failed: {errors[0]}")
+            if queued < 1:
+                raise RuntimeError("the scratch study's participants queued no update")
+            return cpu / queued
+        finally:
+            server.should_exit = True
+            serving.join(timeout=30)
+            db.dispose()

@@ -11,9 +11,8 @@ study file and learners, on a new SQLite database in a temporary folder, served 
 free port of 127.0.0.1 with one update process, and a few simulated participants teaching it
 as fast as they can over HTTP. After a few seconds untimed, the server's share is that
 process's CPU time less the participants' own (their threads' CPU time), over the updates
-queued meanwhile. The study's
-database is never touched. On PostgreSQL a request costs more than on SQLite; the capacity
-the server shows once participants teach counts the live figure.
+queued meanwhile. The study's database is never touched. On PostgreSQL a request costs more
+than on SQLite; the capacity the server shows once participants teach counts the live figure.
 """
 
 from __future__ import annotations
@@ -21,7 +20,6 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import signal
-import socket
 import tempfile
 import threading
 import time
@@ -128,6 +126,7 @@ def _scratch_study(
     from server.app.main import create_app
     from server.app.storage.db import Database, prepare_schema
     from server.app.storage.models import LearnerUpdate
+    from server.commands.live import free_port
     from server.commands.simulated import STUDY_PLAN, SimulatedParticipant
 
     with tempfile.TemporaryDirectory(prefix="bam-server-share-") as folder:
@@ -147,9 +146,7 @@ def _scratch_study(
             update={"completion": study.completion.model_copy(update={"mode": "mturk"})}
         )
         app = create_app(scratch, copy, db=db)
-        with socket.socket() as probe:
-            probe.bind(("127.0.0.1", 0))
-            port = probe.getsockname()[1]
+        port = free_port()
         server = uvicorn.Server(
             uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning")
         )

@@ -24,7 +24,7 @@ from server.app.storage.models import (
     StatusChange,
     utcnow,
 )
-from server.app.storage.records import Record, add, load_all, table_of
+from server.app.storage.records import Record, add, fetch_one, load_all, table_of
 
 PREVIEW_ASSIGNMENT = "ASSIGNMENT_ID_NOT_AVAILABLE"
 # Flow statuses, in order; "returned" (MTurk: the HIT was returned), "abandoned" (idle too long)
@@ -95,10 +95,10 @@ def participant_by_token(c: Connection, token: str, lock: bool = False) -> Recor
     """The participant whose token (any of its browsers') this is; ``lock`` holds its row until
     the transaction ends (PostgreSQL; SQLite writes are serialised already)."""
     token_hash = {"token_hash": hash_token(token)}
-    row = c.execute(_BY_TOKEN_LOCKED if lock else _BY_TOKEN, token_hash).mappings().first()
+    row = fetch_one(c, _BY_TOKEN_LOCKED if lock else _BY_TOKEN, token_hash)
     if row is None:
         further = _BY_FURTHER_TOKEN_LOCKED if lock else _BY_FURTHER_TOKEN
-        row = c.execute(further, token_hash).mappings().first()
+        row = fetch_one(c, further, token_hash)
     return None if row is None else Record(PARTICIPANTS, row)
 
 

@@ -17,6 +17,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
+from fastapi.telemetry import TelemetryConfig
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from server.app.config import StudyConfig, load_study_config
@@ -47,6 +48,9 @@ if TYPE_CHECKING:
 log = logging.getLogger("bam_study")
 STATIC_DIR = Path(__file__).resolve().parents[1] / "static"
 SWEEP_SECONDS = 60.0
+
+# FastAPI's OpenTelemetry instrumentation, off unless BAM_OPENTELEMETRY (settings.py).
+TELEMETRY_OFF: TelemetryConfig = {"tracing": False, "metrics": False, "logs": False}
 
 
 # The most bytes JSON spends on one byte of text: "\u0001" for a control character.
@@ -206,6 +210,7 @@ def create_app(
         summary="Participants teach learning agents in grid worlds; every event is stored.",
         lifespan=lifespan,
         responses=ERROR_RESPONSES,
+        telemetry=None if settings.opentelemetry else TELEMETRY_OFF,
     )
     app.state.server = state
     # The questionnaire's answers may be longer than any other request (free text).
@@ -230,11 +235,13 @@ def create_app(
         # write (NaN, Infinity, a lone surrogate): the echo is made writable here.
         return JSONResponse({"detail": _writable(list(error.errors()))}, status_code=422)
 
+    # Teaching's requests come first: the router tries the routers in this order, and they are
+    # most of a study's requests.
     for router in (
+        sessions.router,
         study.router,
         arrivals.router,
         participant.router,
-        sessions.router,
         admin.router,
         pages.router,
         dashboard.pages,

@@ -151,6 +151,12 @@ class Settings(BaseSettings):
         "believed: the client's address (its sign-in limit) and scheme are then theirs. Empty: "
         "no proxy is trusted and the headers are ignored.",
     )
+    opentelemetry: bool = Field(
+        False,
+        description="Trace requests and record their metrics with OpenTelemetry (FastAPI's own "
+        "instrumentation, to the providers configured in the environment). Off, FastAPI looks "
+        "for the providers on no request: a tenth of a move's CPU time on the server.",
+    )
     sqlite_busy_timeout_ms: int = Field(
         10_000, ge=0, description="How long a SQLite connection waits for a lock held elsewhere."
     )

@@ -444,6 +444,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"agent steps that waited    {len(run.update_waits)} of {tries + len(run.update_waits)}")
     print(f"capacity stated at start   {measured['capacity']} participants")
     print(core_use_line(cpu_before, cpu_after, stopped - started))
+    server_cpu = cpu_after["server"] - cpu_before["server"]
+    print(f"server CPU per request     {1000 * server_cpu / max(1, requests):.2f} ms")
     print(f"participants with errors   {len(errors)}")
     for participant in errors[:5]:
         print(f"  participant {participant.index}: {participant.error}", file=sys.stderr)

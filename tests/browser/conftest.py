@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import re
+import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
@@ -166,12 +167,16 @@ class LiveServer:
 
 
 def run_live_server(
-    tmp: Path, config: str, executor: Executor | None = None, measure_capacity: bool = False
+    tmp: Path,
+    config: str,
+    executor: Executor | None = None,
+    measure_capacity: bool = False,
+    server_share: Callable[[threading.Event], float] | None = None,
 ) -> Iterator[LiveServer]:
     """A study server on a free port: settings from the BAM_* environment variables, a fresh
     SQLite database migrated by ``server.app.storage.db.upgrade``, learner updates in a process (or in
     ``executor``); with ``measure_capacity`` it times the study's reference updates, as
-    ``serve`` does."""
+    ``serve`` does, and the server's own work per update with ``server_share``."""
     config_path = tmp / "study.toml"
     config_path.write_text(config, encoding="utf-8")
     database_url = f"sqlite:///{tmp / 'study.db'}"
@@ -186,7 +191,12 @@ def run_live_server(
         mp.setenv("BAM_UPDATE_WORKERS", "1")
         mp.setenv("BAM_UPDATE_WORKER_NICENESS", "0")
         mp.setenv("BAM_AGENT_WAIT_SECONDS", "120")
-        app = create_app(Settings(), executor=executor, measure_capacity=measure_capacity)
+        app = create_app(
+            Settings(),
+            executor=executor,
+            measure_capacity=measure_capacity,
+            server_share=server_share,
+        )
     try:
         with live(app) as url:
             yield LiveServer(url, database_url)

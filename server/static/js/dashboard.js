@@ -481,7 +481,8 @@ async function loadQueue() {
   const limit = q.limit === null ? "none" : `${q.participants_active} / ${q.limit}`;
   $("#queue").replaceChildren(
     item("capacity", "Capacity: participants at once without waiting", capacity,
-      q.capacity === null ? null : `an update takes ${q.update_seconds.toFixed(2)} s on ${q.measured_on}, ${count(q.slots, "slot")}`),
+      q.capacity === null ? null : `an update takes ${q.update_seconds.toFixed(2)} s on ${q.measured_on}, ${count(q.slots, "slot")}` +
+        (q.server_seconds_per_update === null ? "" : `, the server's own work ${q.server_seconds_per_update.toFixed(2)} s of a core per update`)),
     item("longest", "The longest update",
       q.longest_update_seconds === null ? "not timed yet" : seconds(q.longest_update_seconds),
       q.longest_update_seconds === null ? null : `${q.longest_update_of}: an agent that follows one is ready that long after its episode, however few teach`,

@@ -9,8 +9,8 @@ from datetime import UTC, datetime
 from typing import Any
 
 import pytest
-from sqlalchemy import Connection, Table, insert, select
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy import Connection, Table, bindparam, insert, select
+from sqlalchemy.exc import IntegrityError, InvalidRequestError
 
 from server.app.participants.tokens import (
     EVENTS,
@@ -20,7 +20,7 @@ from server.app.participants.tokens import (
     participant_by_token,
 )
 from server.app.storage.db import Database
-from server.app.storage.records import add, get
+from server.app.storage.records import add, fetch_one, get
 
 WHEN = datetime(2026, 11, 27, 13, 45, 6, 123456, tzinfo=UTC)
 SESSION = {
@@ -164,3 +164,22 @@ def test_a_broken_constraint_is_sqlalchemy_s_integrity_error_and_stores_nothing(
     with db.transaction() as c:
         assert c.execute(select(EVENTS.c.id)).all() == []
         assert read(c, SESSIONS, session_id)["participant_id"] == participant_id
+
+
+def test_literal_values_missing_values_and_expanding_lists(db: Database) -> None:
+    with db.transaction() as c:
+        first = new_participant(c, "a" * 64)
+        new_participant(c, "b" * 64)
+        latest = select(PARTICIPANTS.c.id).order_by(PARTICIPANTS.c.id.desc()).limit(1)
+        assert fetch_one(c, latest, {}) == {"id": first + 1}
+        by_hash = select(PARTICIPANTS.c.id).where(
+            PARTICIPANTS.c.token_hash == bindparam("token_hash")
+        )
+        assert fetch_one(c, by_hash, {"token_hash": "a" * 64}) == {"id": first}
+        with pytest.raises(InvalidRequestError, match="token_hash"):
+            fetch_one(c, by_hash, {})
+        listed = select(PARTICIPANTS.c.id).where(
+            PARTICIPANTS.c.id.in_(bindparam("ids", expanding=True))
+        )
+        with pytest.raises(ValueError, match="expanding"):
+            fetch_one(c, listed, {"ids": [first]})

@@ -25,7 +25,7 @@ from typing import Any, cast
 
 from sqlalchemy import Connection, Insert, Select, Table, bindparam, insert, select, update
 from sqlalchemy.engine import Dialect
-from sqlalchemy.exc import DBAPIError
+from sqlalchemy.exc import DBAPIError, InvalidRequestError
 from sqlalchemy.sql import ColumnElement
 from sqlalchemy.sql.compiler import SQLCompiler
 from sqlalchemy.sql.dml import Update
@@ -33,6 +33,7 @@ from sqlalchemy.sql.elements import ClauseElement
 from sqlalchemy.types import TypeEngine
 
 Processor = Callable[[Any], Any] | None
+REQUIRED = object()  # a bind parameter with no value of its own
 
 
 def table_of(model: Any) -> Table:
@@ -72,7 +73,7 @@ class Native:
 
     sql: str
     names: tuple[str, ...] | None  # the binds in order (positional paramstyles), or None
-    binds: tuple[tuple[str, Processor], ...]
+    binds: tuple[tuple[str, Processor, Any], ...]  # name, processor, the value if not given
     columns: tuple[tuple[str, TypeEngine[Any]], ...]  # the result's keys and types
     dialect: Dialect
     # The result's processors: some depend on the type the driver says it returns (a float
@@ -83,8 +84,15 @@ class Native:
     @cache
     def of(cls, statement: ClauseElement, dialect: Dialect) -> Native:
         compiled = cast(SQLCompiler, statement.compile(dialect=dialect))
+        if any(bind.expanding for bind in compiled.binds.values()):
+            # Their SQL is rendered anew for each list of values.
+            raise ValueError(f"a prepared statement cannot hold an expanding IN: {statement}")
         binds = tuple(
-            (name, bind.type.dialect_impl(dialect).bind_processor(dialect))
+            (
+                name,
+                bind.type.dialect_impl(dialect).bind_processor(dialect),
+                REQUIRED if bind.required else bind.effective_value,
+            )
             for name, bind in compiled.binds.items()
         )
         columns = tuple(
@@ -95,10 +103,12 @@ class Native:
         return cls(compiled.string, names, binds, columns, dialect)
 
     def parameters(self, values: Mapping[str, Any]) -> Any:
-        processed = {
-            name: values[name] if process is None else process(values[name])
-            for name, process in self.binds
-        }
+        processed = {}
+        for name, process, literal in self.binds:
+            value = values[name] if name in values else literal
+            if value is REQUIRED:
+                raise InvalidRequestError(f"a value is required for bind parameter {name!r}")
+            processed[name] = value if process is None else process(value)
         if self.names is None:
             return processed
         return tuple(processed[name] for name in self.names)

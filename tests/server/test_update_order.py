@@ -11,6 +11,7 @@ from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
+import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
@@ -331,3 +332,91 @@ def test_a_slots_next_update_is_read_from_the_database_while_its_last_one_runs(
         gated.gate.set()
         wait_for_updates(db)
     assert [seeds[seed] for seed in gated.started] == [taught, theirs]
+
+
+class HeldPool(Executor):
+    """An update pool whose jobs end when the test says (``end``, from any thread)."""
+
+    def __init__(self) -> None:
+        self.jobs: list[tuple[int, Future[Any]]] = []  # (session, its future), as submitted
+        self.submitted = threading.Condition()
+
+    def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> Future[Any]:
+        future: Future[Any] = Future()
+        with self.submitted:
+            self.jobs.append((args[0]["session"], future))
+            self.submitted.notify_all()
+        return future
+
+    def wait_for(self, count: int) -> bool:
+        with self.submitted:
+            return self.submitted.wait_for(lambda: len(self.jobs) >= count, BOUND)
+
+
+def test_a_freed_update_process_takes_the_next_prepared_update_while_the_event_loop_is_busy() -> (
+    None
+):
+    """With many participants the server's event loop is busy for tens of milliseconds at a
+    time; an update process that waited for a turn of it between updates sat idle. The next
+    prepared update is handed the process in the thread that sees the last one end."""
+    from server.app.updates.runners import LocalUpdates
+
+    pool = HeldPool()
+    runner = LocalUpdates(workers=1, niceness=0, threads=1, executor=pool)
+
+    async def scenario() -> tuple[bool, list[tuple[dict[str, Any], int, float]]]:
+        gate = ProcessGate(1, lambda session_id: (1, 0.0))
+        first = asyncio.ensure_future(runner.run({"session": 1}, "a", gate, 1))
+        second = asyncio.ensure_future(runner.run({"session": 2}, "b", gate, 2))
+        while not (len(pool.jobs) == 1 and gate.waiting == 1):
+            await asyncio.sleep(0)
+        # The loop is busy (this coroutine does not yield) while the first update ends.
+        threading.Thread(target=pool.jobs[0][1].set_result, args=({"done": 1},)).start()
+        started_meanwhile = pool.wait_for(2)
+        pool.jobs[1][1].set_result({"done": 2})
+        return started_meanwhile, list(await asyncio.gather(first, second))
+
+    started_meanwhile, outcomes = run_apart(scenario)
+    assert started_meanwhile, "the second update waited for the event loop to start"
+    assert [session for session, _ in pool.jobs] == [1, 2]
+    assert [(outcome, deaths) for outcome, deaths, _ in outcomes] == [
+        ({"done": 1}, 0),
+        ({"done": 2}, 0),
+    ]
+    assert all(seconds >= 0 for _, _, seconds in outcomes)
+
+
+def test_an_update_whose_process_died_reports_it_and_the_pool_is_replaced(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The dead pool's update raises ``WorkerDied``; the next update runs on a new pool, and
+    the process it held is handed on."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    from server.app.updates import runners
+    from server.app.updates.pool import WorkerDied
+
+    broken, fresh = HeldPool(), HeldPool()
+    monkeypatch.setattr(runners, "new_executor", lambda workers, niceness: fresh)
+    runner = runners.LocalUpdates(workers=1, niceness=0, threads=1, executor=broken)
+    runner._own_executor = True  # as a pool the runner made itself
+    monkeypatch.setattr(runner, "_start_workers", lambda: None)
+
+    async def scenario() -> tuple[BaseException | None, dict[str, Any]]:
+        gate = ProcessGate(1, lambda session_id: (1, 0.0))
+        first = asyncio.ensure_future(runner.run({"session": 1}, "a", gate, 1))
+        while not broken.jobs:
+            await asyncio.sleep(0)
+        broken.jobs[0][1].set_exception(BrokenProcessPool("a process died"))
+        died = (await asyncio.gather(first, return_exceptions=True))[0]
+        second = asyncio.ensure_future(runner.run({"session": 2}, "b", gate, 2))
+        while not fresh.jobs:
+            await asyncio.sleep(0)
+        fresh.jobs[0][1].set_result({"done": 2})
+        outcome, _, _ = await second
+        return died if isinstance(died, BaseException) else None, outcome
+
+    died, outcome = run_apart(scenario)
+    assert isinstance(died, WorkerDied)
+    assert runner.executor is fresh
+    assert outcome == {"done": 2}

@@ -23,7 +23,9 @@ episode ends go on while the session's updates are pending.
 A slot's next update is read from the database while its last one runs, and stored while the
 next one runs (``PREPARED_PER_SLOT``), so the processes do not wait for the database. When a
 process frees, the prepared update whose session is awaited longest takes it (``ProcessGate``),
-so an update read before anyone waited for it goes first once someone does.
+so an update read before anyone waited for it goes first once someone does. A local process is
+handed on in the process pool's own thread, the moment its update ends: the next update starts
+without waiting for a turn of the event loop, which many participants' requests keep busy.
 
 Pending updates are found again in the database when the server starts, so none is lost by a
 restart. With ``BAM_UPDATE_SCHEDULER`` the same function runs on the workers of a Dask cluster
@@ -222,9 +224,7 @@ class UpdateManager:
             if job is None:
                 return
             try:
-                assert self._processes is not None
-                async with self._processes.holding(session_id):
-                    outcome, deaths = await self._run(job)
+                outcome, deaths = await self._run(job)
             except WorkerDied as died:
                 log.error(
                     "an update process died during update %s of session %s",
@@ -274,11 +274,14 @@ class UpdateManager:
         self.order.finish(session_id, more)
 
     async def _run(self, job: Job) -> tuple[dict[str, Any], int]:
-        """``run_update`` where the runner runs it, timed for the capacity."""
-        started = time.perf_counter()
+        """``run_update`` where the runner runs it, once a process is the job's (the most
+        urgent prepared update first, ``ProcessGate``), timed for the capacity."""
+        assert self._processes is not None
         name = f"learner-update-{job.session_id}-{job.update_index}"
-        outcome, deaths = await self.runner.run(job.payload, name)
-        self._costs.append(time.perf_counter() - started)
+        outcome, deaths, seconds = await self.runner.run(
+            job.payload, name, self._processes, job.session_id
+        )
+        self._costs.append(seconds)
         self._cpu_marks.append(time.process_time())
         return outcome, deaths
 

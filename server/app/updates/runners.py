@@ -7,14 +7,16 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 import time
 from collections.abc import Callable, Coroutine
-from concurrent.futures import Executor
+from concurrent.futures import Executor, Future
 from concurrent.futures.process import BrokenProcessPool
 from typing import TYPE_CHECKING, Any, Protocol
 
 from server.app.updates.capacity import UpdateCost, measure_updates
 from server.app.updates.pool import WorkerDied, new_executor
+from server.app.updates.queue import ProcessGate
 from server.app.updates.worker import run_update, worker_ready
 from server.cores import available_cores, share_threads
 
@@ -38,7 +40,9 @@ class Runner(Protocol):
 
     def start(self, spawn: Spawn) -> None: ...
 
-    async def run(self, payload: dict[str, Any], name: str) -> tuple[dict[str, Any], int]: ...
+    async def run(
+        self, payload: dict[str, Any], name: str, gate: ProcessGate, session_id: int
+    ) -> tuple[dict[str, Any], int, float]: ...
 
     async def measure(self, request: dict[str, Any]) -> UpdateCost: ...
 
@@ -59,6 +63,7 @@ class LocalUpdates:
         self.executor = executor
         self._own_executor = executor is None
         self._in_flight = 0  # updates submitted to the processes and not yet returned
+        self._lock = threading.Lock()  # guards _in_flight: updates start in the pool's thread
         self._stopping = False
         self.warm_processes = 0
         self.ready = False
@@ -85,25 +90,73 @@ class LocalUpdates:
             # Python's exit handlers, and their semaphores would be reported leaked.
             await asyncio.to_thread(executor.shutdown, wait=True, cancel_futures=True)
 
-    async def run(self, payload: dict[str, Any], name: str) -> tuple[dict[str, Any], int]:
-        """``run_update`` in an update process, its planner given this server's threads shared
-        among the updates running with it: its outcome, and no death. Raises ``WorkerDied``
-        when the process running it died (the pool is replaced)."""
-        executor = self.executor
-        assert executor is not None
-        self._in_flight += 1
+    async def run(
+        self, payload: dict[str, Any], name: str, gate: ProcessGate, session_id: int
+    ) -> tuple[dict[str, Any], int, float]:
+        """``run_update`` in an update process once ``gate`` hands the session one, its
+        planner given this server's threads shared among the updates running with it: its
+        outcome, no death, and its wall time. The process is handed on where its update
+        ends, in the pool's own thread (``ProcessGate``). Raises ``WorkerDied`` when the
+        process running it died (the pool is replaced)."""
+        loop = asyncio.get_running_loop()
+        result: asyncio.Future[tuple[Future[Any], float]] = loop.create_future()
+        used: list[Executor] = []  # the pool it was submitted to
+
+        def settle(future: Future[Any], seconds: float) -> None:
+            """In the thread that saw the update end (or fail to start)."""
+            gate.release()  # the next prepared update starts now, in this thread
+            try:
+                loop.call_soon_threadsafe(_deliver, result, future, seconds)
+            except RuntimeError:  # the loop is closed: the server stopped
+                pass
+
+        def begin() -> None:
+            """In whichever thread handed this update a process."""
+            started = time.perf_counter()
+            try:
+                future = self._submit(payload, used)
+            except BaseException as error:  # a broken or stopped pool
+                failed: Future[Any] = Future()
+                failed.set_exception(error)
+                settle(failed, 0.0)
+                return
+            future.add_done_callback(lambda done: settle(done, time.perf_counter() - started))
+
+        claim = gate.claim(session_id, begin)
         try:
-            # The updates in flight, this one included, share the threads.
-            threads = share_threads(self.threads, self._in_flight)
-            outcome = await asyncio.wrap_future(
-                executor.submit(run_update, {**payload, "threads": threads})
-            )
+            future, seconds = await result
+        except asyncio.CancelledError:
+            # Not started: it never will be. Started: it runs to its end, which frees its process.
+            gate.withdraw(claim)
+            raise
+        try:
+            outcome = future.result()
         except BrokenProcessPool:
-            self._replace_executor(executor)
+            self._replace_executor(used[0])  # the pool it was submitted to broke
             raise WorkerDied() from None
-        finally:
+        return outcome, 0, seconds
+
+    def _submit(self, payload: dict[str, Any], used: list[Executor]) -> Future[Any]:
+        """``run_update`` submitted to the pool (noted in ``used``), with the planner threads
+        its share (the updates in flight, this one included, share them)."""
+        executor = self.executor
+        if executor is None:
+            raise RuntimeError("the update processes have stopped")
+        used.append(executor)
+        with self._lock:
+            self._in_flight += 1
+            threads = share_threads(self.threads, self._in_flight)
+        try:
+            future = executor.submit(run_update, {**payload, "threads": threads})
+        except BaseException:
+            self._finished()
+            raise
+        future.add_done_callback(lambda _: self._finished())
+        return future
+
+    def _finished(self) -> None:
+        with self._lock:
             self._in_flight -= 1
-        return outcome, 0
 
     async def measure(self, request: dict[str, Any]) -> UpdateCost:
         assert self.executor is not None
@@ -182,10 +235,15 @@ class ClusterUpdates:
     async def stop(self) -> None:
         return None
 
-    async def run(self, payload: dict[str, Any], name: str) -> tuple[dict[str, Any], int]:
-        """The outcome, and how many workers died running it before it came back."""
-        outcome, deaths = await self.cluster.run(run_update, payload, name)
-        return outcome, deaths
+    async def run(
+        self, payload: dict[str, Any], name: str, gate: ProcessGate, session_id: int
+    ) -> tuple[dict[str, Any], int, float]:
+        """The outcome, how many workers died running it before it came back, and its wall
+        time; it holds one of ``gate``'s slots meanwhile."""
+        async with gate.holding(session_id):
+            started = time.perf_counter()
+            outcome, deaths = await self.cluster.run(run_update, payload, name)
+            return outcome, deaths, time.perf_counter() - started
 
     async def measure(self, request: dict[str, Any]) -> UpdateCost:
         cost, _ = await self.cluster.run(measure_updates, request, "learner-update-reference")
@@ -233,3 +291,11 @@ class ClusterUpdates:
             raise
         except Exception:
             log.exception("could not ask the Dask cluster's workers to warm up")
+
+
+def _deliver(
+    result: asyncio.Future[tuple[Future[Any], float]], future: Future[Any], seconds: float
+) -> None:
+    """On the loop: an update's end to the coroutine awaiting it (unless it went away)."""
+    if not result.done():
+        result.set_result((future, seconds))

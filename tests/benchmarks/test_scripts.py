@@ -5,6 +5,7 @@ the script's folder comes first on sys.path, where benchmarks/server.py would sh
 from __future__ import annotations
 
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
@@ -188,3 +189,23 @@ def test_the_server_benchmark_counts_the_cores_the_server_and_its_update_process
     assert float(parts["other"]) == pytest.approx(
         1.2 - float(parts["server"]) - float(parts["update processes"]), abs=0.011
     )
+
+
+def test_the_server_benchmark_reads_the_pending_updates_from_the_stop_on_while_participants_end(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The readings at the stop and a mark after it are taken then, not once the participants'
+    threads have ended (those waiting for an agent end only when it is ready, which took
+    longer than the mark at 200 participants)."""
+    module = load_script(BENCHMARKS / "server.py", "server_benchmark")
+    monkeypatch.setattr(module, "DRAINED_WITHIN_SECONDS", 0.25)
+    stopped = time.perf_counter()
+    # Three updates pending until 1.2 s after the stop, none after.
+    monkeypatch.setattr(
+        module, "pending_updates", lambda db: 3 if time.perf_counter() - stopped < 1.2 else 0
+    )
+    drained = module.drain_watch(None, stopped)
+    time.sleep(2.0)  # the participants' threads end meanwhile
+    at_stop, at_mark, drained_after = drained()
+    assert (at_stop, at_mark) == (3, 3)
+    assert drained_after is not None and 1.2 <= drained_after < 2.0

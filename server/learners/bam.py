@@ -40,7 +40,8 @@ class BAM(PlannerLearner):
         observed = self.env.model.observe(self.data.observed_transitions())
         optimizer, evaluations = self.schedule(data)
         if optimizer == "momentum":
-            return self._fit_momentum(data, observed, int(self.settings["alternations"]))
+            alternations = self.momentum_steps(int(self.settings["alternations"]), data)
+            return self._fit_momentum(data, observed, alternations)
         steps = 0
         if self.settings["optimizer"] == "warm-lbfgs" and self.settings["warm_alternations"]:
             self.stop_momentum()

@@ -40,11 +40,11 @@ class ModelBasedIRL(PlannerLearner):
             )
             return dynamics_objective + teacher_objective, dynamics_evaluations + cost_evaluations
         teacher_objective = 0.0
+        cost_steps = 0
         if not data.empty:
             operator = self.operator(data)
-            for _ in range(int(self.settings["cost_steps"])):
+            cost_steps = self.momentum_steps(int(self.settings["cost_steps"]), data)
+            for _ in range(cost_steps):
                 teacher_objective = self.cost_step(operator, data)
-        steps = int(self.settings["dynamics_steps"]) + (
-            0 if data.empty else int(self.settings["cost_steps"])
-        )
+        steps = int(self.settings["dynamics_steps"]) + cost_steps
         return dynamics_objective + teacher_objective, steps

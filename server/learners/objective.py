@@ -75,6 +75,11 @@ COST_SETTINGS: dict[str, Any] = {
     "planner_precision": "float32",
     "max_evaluations": 40,
     "warm_evaluations": 20,
+    # With optimizer "momentum": the share of the planning steps (BAM's alternations,
+    # model-based IRL's cost steps) an update runs when every task it plans has been fitted
+    # before (a warm start); 1 is the authors' schedule on every update. A task's first fit
+    # always runs the whole schedule.
+    "warm_share": 1.0,
 }
 
 OPTIMIZERS = ("momentum", "lbfgs", "warm-lbfgs")

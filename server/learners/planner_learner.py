@@ -44,6 +44,12 @@ def check_count(name: str, value: Any, minimum: int) -> None:
         raise ValueError(f"{name} must be a {kind} integer, got {value!r}")
 
 
+def check_share(name: str, value: Any) -> None:
+    """A setting that is a number in (0, 1]; bools are refused."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value <= 1:
+        raise ValueError(f"{name} must be a number greater than 0 and at most 1, got {value!r}")
+
+
 class PlannerLearner(Learner):
     """Learned dynamics parameters theta (the environment's model space) and per-cell reward
     parameters per task (the paper's cost C = -reward), acting greedily on soft Q.
@@ -63,6 +69,7 @@ class PlannerLearner(Learner):
             )
         for name in ("max_evaluations", "warm_evaluations"):
             check_count(name, self.settings[name], minimum=1)
+        check_share("warm_share", self.settings["warm_share"])
         check_choice("cost_optimizers", self.settings["cost_optimizers"], OPTIMIZER_SCOPES)
         check_choice("cost_cells", self.settings["cost_cells"], COST_CELLS)
         check_choice("planner_precision", self.settings["planner_precision"], tuple(PRECISIONS))
@@ -102,11 +109,23 @@ class PlannerLearner(Learner):
         if optimizer == "lbfgs":
             return "lbfgs", int(self.settings["max_evaluations"])
         if optimizer == "warm-lbfgs":
-            if np.all(self.fitted_tasks[data.tasks]) and self.updates > 0:
+            if self.warm(data):
                 return "lbfgs", int(self.settings["warm_evaluations"])
             # A cold start: the momentum schedule from rest.
             self.stop_momentum()
         return "momentum", 0
+
+    def warm(self, data: TeacherData) -> bool:
+        """Whether this update starts warm: an earlier update has fitted every task in ``data``."""
+        return self.updates > 0 and bool(np.all(self.fitted_tasks[data.tasks]))
+
+    def momentum_steps(self, steps: int, data: TeacherData) -> int:
+        """``steps`` of the momentum schedule, or their ``warm_share`` (at least one) on a warm
+        update."""
+        share = float(self.settings["warm_share"])
+        if share == 1.0 or not self.warm(data):
+            return steps
+        return max(1, round(steps * share))
 
     def stop_momentum(self) -> None:
         """Momentum steps from rest next: the velocity of earlier momentum steps is stale

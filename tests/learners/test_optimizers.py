@@ -90,7 +90,12 @@ def test_warm_alternations_run_momentum_alternations_from_rest_then_lbfgs() -> N
     state = learner.state_dict()
     momentum_state = {
         **state,
-        "settings": {**state["settings"], "optimizer": "momentum", "alternations": 2},
+        "settings": {
+            **state["settings"],
+            "optimizer": "momentum",
+            "alternations": 2,
+            "warm_share": 1.0,
+        },
         "parameters": {
             **state["parameters"],
             "theta_velocity": np.zeros_like(state["parameters"]["theta_velocity"]),
@@ -117,6 +122,42 @@ def test_warm_alternations_run_momentum_alternations_from_rest_then_lbfgs() -> N
     kept = learners.restore(env, {**momentum_state, "parameters": state["parameters"]})
     kept.update()
     assert np.abs(kept.theta - momentum.theta).max() > 1e-3
+
+
+@pytest.mark.parametrize("name", PLANNER_LEARNERS)
+def test_warm_share_runs_the_whole_schedule_for_a_first_fit_and_its_share_afterwards(
+    name: str,
+) -> None:
+    """``warm_share = 0.5``: a task's first fit is the reference schedule; a warm update runs
+    half of BAM's alternations, or half of model-based IRL's cost steps (its dynamics steps
+    never plan and stay whole), and those steps are exactly the reference schedule's first
+    half from the same state."""
+    env = domains.make("doorway")
+    learner = learners.make(name, env, seed=0, warm_share=0.5)
+    teacher, rng = Teacher(env, seed=0), np.random.default_rng(0)
+    steps = []
+    for tasks in ([0], [0], [0, 1], [0, 1]):
+        for task in tasks:
+            demonstrate_task(learner, env, teacher, task, rng)
+        steps.append(learner.update().steps)
+    full = reference_passes(learner)
+    s = learner.settings
+    if name == "bam":
+        half = 5 * (int(s["cost_steps"]) + int(s["dynamics_steps"]))
+    else:
+        half = int(s["dynamics_steps"]) + int(s["cost_steps"]) // 2
+    assert steps == [full, half, full, half]
+    # The warm update is the reference schedule cut short, not another optimiser.
+    demonstrate_task(learner, env, teacher, 0, rng)
+    state = learner.state_dict()
+    cut = {"alternations": 5} if name == "bam" else {"cost_steps": int(s["cost_steps"]) // 2}
+    reference = learners.restore(
+        env, {**state, "settings": {**state["settings"], "warm_share": 1.0, **cut}}
+    )
+    restored = learners.restore(env, state)
+    assert restored.update().steps == reference.update().steps == half
+    np.testing.assert_array_equal(restored.theta, reference.theta)
+    np.testing.assert_array_equal(restored.costs, reference.costs)
 
 
 def test_warm_lbfgs_state_round_trips_with_its_fitted_tasks() -> None:
@@ -153,6 +194,10 @@ def test_a_state_saved_before_the_schedule_existed_counts_its_tasks_as_fitted() 
         ({"max_evaluations": 2.5}, "max_evaluations must be a positive integer"),
         ({"warm_alternations": -1}, "warm_alternations must be a non-negative integer"),
         ({"warm_alternations": True}, "warm_alternations must be a non-negative integer"),
+        ({"warm_share": 0}, "warm_share must be a number greater than 0 and at most 1"),
+        ({"warm_share": 1.5}, "warm_share must be a number greater than 0 and at most 1"),
+        ({"warm_share": True}, "warm_share must be a number greater than 0 and at most 1"),
+        ({"warm_share": "half"}, "warm_share must be a number greater than 0 and at most 1"),
     ],
 )
 def test_bad_optimiser_settings_are_refused(settings: dict[str, Any], message: str) -> None:

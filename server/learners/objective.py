@@ -78,7 +78,9 @@ COST_SETTINGS: dict[str, Any] = {
     # With optimizer "momentum": the share of the planning steps (BAM's alternations,
     # model-based IRL's cost steps) an update runs when every task it plans has been fitted
     # before (a warm start); 1 is the authors' schedule on every update. A task's first fit
-    # always runs the whole schedule.
+    # always runs the whole schedule. BAM's and model-based IRL's defaults are below 1 (their
+    # classes): the 50-agent demonstrations experiment keeps their curves there
+    # (docs/reproduction.md, "Shorter warm updates").
     "warm_share": 1.0,
 }
 

@@ -120,12 +120,11 @@ class PlannerLearner(Learner):
         return self.updates > 0 and bool(np.all(self.fitted_tasks[data.tasks]))
 
     def momentum_steps(self, steps: int, data: TeacherData) -> int:
-        """``steps`` of the momentum schedule, or their ``warm_share`` (at least one) on a warm
-        update."""
-        share = float(self.settings["warm_share"])
-        if share == 1.0 or not self.warm(data):
+        """``steps`` of the momentum schedule, or their ``warm_share`` on a warm update: at
+        least one, and none where the schedule has none."""
+        if not self.warm(data):
             return steps
-        return max(1, round(steps * share))
+        return min(steps, max(1, round(steps * float(self.settings["warm_share"]))))
 
     def stop_momentum(self) -> None:
         """Momentum steps from rest next: the velocity of earlier momentum steps is stale

@@ -160,6 +160,24 @@ def test_warm_share_runs_the_whole_schedule_for_a_first_fit_and_its_share_afterw
     np.testing.assert_array_equal(restored.costs, reference.costs)
 
 
+@pytest.mark.parametrize(
+    ("name", "settings"), [("bam", {"alternations": 0}), ("model-based", {"cost_steps": 0})]
+)
+def test_a_schedule_without_planning_steps_runs_none_on_a_warm_update(
+    name: str, settings: dict[str, Any]
+) -> None:
+    """A share of no steps is none: the at-least-one rule of a short warm update must not add a
+    step the study's settings leave out."""
+    env = domains.make("wall")
+    learner = learners.make(name, env, seed=0, **settings)
+    teacher, rng = Teacher(env, seed=0), np.random.default_rng(0)
+    steps = []
+    for _ in range(2):
+        demonstrate_round(learner, env, teacher, rng)
+        steps.append(learner.update().steps)
+    assert steps == [reference_passes(learner)] * 2
+
+
 def test_warm_lbfgs_state_round_trips_with_its_fitted_tasks() -> None:
     env = domains.make("wall")
     original = learners.make("bam", env, seed=1, optimizer="warm-lbfgs")

@@ -31,17 +31,23 @@ def demonstrate_task(learner: Any, env: Any, teacher: Teacher, task: int, rng: A
         learner.record_demonstration(task, state, action, next_state)
 
 
-@pytest.mark.parametrize("name", PLANNER_LEARNERS)
-def test_warm_lbfgs_runs_momentum_for_a_first_fit_and_lbfgs_afterwards(name: str) -> None:
-    env = domains.make("doorway")
-    learner = learners.make(name, env, seed=0, optimizer="warm-lbfgs", warm_evaluations=7)
+def first_and_warm_fits(learner: Any, env: Any) -> list[int]:
+    """The steps of four updates: after task 0 alone, task 0 again, then task 1 for the first
+    time with task 0, then both again (a first fit, a warm one, a first fit, a warm one)."""
     teacher, rng = Teacher(env, seed=0), np.random.default_rng(0)
     steps = []
-    # Task 0 alone, task 0 again, then task 1 for the first time, then both again.
     for tasks in ([0], [0], [0, 1], [0, 1]):
         for task in tasks:
             demonstrate_task(learner, env, teacher, task, rng)
         steps.append(learner.update().steps)
+    return steps
+
+
+@pytest.mark.parametrize("name", PLANNER_LEARNERS)
+def test_warm_lbfgs_runs_momentum_for_a_first_fit_and_lbfgs_afterwards(name: str) -> None:
+    env = domains.make("doorway")
+    learner = learners.make(name, env, seed=0, optimizer="warm-lbfgs", warm_evaluations=7)
+    steps = first_and_warm_fits(learner, env)
     full = reference_passes(learner)
     # A cold update is the whole reference schedule; a warm one at most the cap on
     # L-BFGS-B's evaluations (model-based IRL adds its planner-free dynamics steps).
@@ -134,12 +140,8 @@ def test_warm_share_runs_the_whole_schedule_for_a_first_fit_and_its_share_afterw
     half from the same state."""
     env = domains.make("doorway")
     learner = learners.make(name, env, seed=0, warm_share=0.5)
-    teacher, rng = Teacher(env, seed=0), np.random.default_rng(0)
-    steps = []
-    for tasks in ([0], [0], [0, 1], [0, 1]):
-        for task in tasks:
-            demonstrate_task(learner, env, teacher, task, rng)
-        steps.append(learner.update().steps)
+    steps = first_and_warm_fits(learner, env)
+    teacher, rng = Teacher(env, seed=1), np.random.default_rng(1)
     full = reference_passes(learner)
     s = learner.settings
     if name == "bam":

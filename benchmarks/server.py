@@ -45,6 +45,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 # This file is benchmarks/server.py: run as a script, its folder comes first on sys.path and
@@ -249,6 +250,24 @@ def follow_drain(db: Database, stopped: float) -> tuple[int, int, float | None]:
         time.sleep(0.5)
 
 
+def busy_share(
+    updates: list[tuple[datetime | None, float | None, float | None]],
+    slots: object,
+    since: datetime,
+    until: datetime,
+) -> float:
+    """The share of the slots' time from ``since`` to ``until`` that the updates finished
+    then took (their fit and evaluation, ``updates``: finished at, seconds, evaluation
+    seconds; an update running across ``since`` counts whole)."""
+    assert isinstance(slots, int)
+    busy = sum(
+        (fit or 0.0) + (evaluation or 0.0)
+        for finished, fit, evaluation in updates
+        if finished is not None and since <= finished <= until
+    )
+    return busy / (max(1, slots) * max(1e-9, (until - since).total_seconds()))
+
+
 def drain_watch(db: Database, stopped: float) -> Callable[[], tuple[int, int, float | None]]:
     """``follow_drain`` in a thread of its own from the stop on, while the participants' own
     threads end (those waiting for an agent's update end only when they get it, which took
@@ -329,6 +348,7 @@ def main(argv: list[str] | None = None) -> int:
     upgrade(db.engine)
     with db.read() as s:
         events_before = int(s.scalar(select(func.count()).select_from(Event)) or 0)
+        updates_before = int(s.scalar(select(func.count()).select_from(LearnerUpdate)) or 0)
     study = folder / "study.toml"
     study.write_text(
         f"max_active_participants = {args.participants}\n"
@@ -396,11 +416,11 @@ def main(argv: list[str] | None = None) -> int:
         thread = threading.Thread(target=teach)
         assert server.process is not None
         cpu_before = cpu_by_group(server.process.pid, cluster_pids)
-        started = time.perf_counter()
+        started, started_at = time.perf_counter(), datetime.now(UTC)
         thread.start()
         thread.join(timeout=args.seconds)
         stop.set()
-        stopped = time.perf_counter()
+        stopped, stopped_at = time.perf_counter(), datetime.now(UTC)
         cpu_after = cpu_by_group(server.process.pid, cluster_pids)
         drained = drain_watch(db, stopped)
         thread.join()
@@ -414,9 +434,17 @@ def main(argv: list[str] | None = None) -> int:
                 select(LearnerUpdate.status, func.count()).group_by(LearnerUpdate.status)
             ).all()
         )
-        update_seconds = list(
-            s.scalars(select(LearnerUpdate.seconds).where(LearnerUpdate.status == "done"))
-        )
+        done = [
+            (finished, fit, evaluation)
+            for finished, fit, evaluation in s.execute(
+                select(
+                    LearnerUpdate.finished_at,
+                    LearnerUpdate.seconds,
+                    LearnerUpdate.evaluation_seconds,
+                ).where(LearnerUpdate.status == "done")
+            )
+        ]
+        update_seconds = [fit for _, fit, _ in done]
     db.dispose()
 
     errors = [p for p in run.participants if p.error]
@@ -460,6 +488,22 @@ def main(argv: list[str] | None = None) -> int:
     tries = sum(len(p.latencies.get("agent_step", [])) for p in run.participants)
     print(f"agent steps that waited    {len(run.update_waits)} of {tries + len(run.update_waits)}")
     print(f"capacity stated at start   {measured['capacity']} participants")
+    queued = sum(updates.values()) - updates_before
+    # Each participant teaches from its arrival (spread over the ramp) until the stop.
+    teaching = args.participants * max(1.0, stopped - started - args.ramp_seconds / 2)
+    print(
+        f"updates queued             {queued}, one every {teaching / max(1, queued):.1f} s a "
+        f"participant (the capacity assumes {measured['update_interval_seconds']:.0f} s)"
+    )
+    # Updates cost more as an agent's data grow: the run's last minute shows the steady state
+    # that its start (fresh agents, cheap updates) hides.
+    minute = timedelta(seconds=min(60.0, stopped - started))
+    print(
+        f"update slots busy          "
+        f"{busy_share(done, measured['slots'], started_at, stopped_at):.0%} over the run, "
+        f"{busy_share(done, measured['slots'], stopped_at - minute, stopped_at):.0%} over "
+        f"its last {minute.total_seconds():.0f} s (the updates' fit and evaluation)"
+    )
     print(core_use_line(cpu_before, cpu_after, stopped - started))
     server_cpu = cpu_after["server"] - cpu_before["server"]
     print(f"server CPU per request     {1000 * server_cpu / max(1, requests):.2f} ms")

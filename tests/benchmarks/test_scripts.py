@@ -209,3 +209,26 @@ def test_the_server_benchmark_reads_the_pending_updates_from_the_stop_on_while_p
     at_stop, at_mark, drained_after = drained()
     assert (at_stop, at_mark) == (3, 3)
     assert drained_after is not None and 1.2 <= drained_after < 2.0
+
+
+def test_the_server_benchmark_s_busy_share_counts_the_updates_finished_within_the_window() -> None:
+    """The slots' busy share over a window: the fit and evaluation of the updates finished in
+    it, over the slots' time; updates finished before or after it, or not finished, do not
+    count."""
+    from datetime import UTC, datetime, timedelta
+
+    module = load_script(BENCHMARKS / "server.py", "server_benchmark")
+    start = datetime(2026, 11, 27, 12, 0, tzinfo=UTC)
+    at = lambda seconds: start + timedelta(seconds=seconds)  # noqa: E731
+    updates = [
+        (at(5), 0.5, 0.1),  # before the last minute
+        (at(70), 3.0, 1.0),
+        (at(100), 2.0, None),  # evaluation not recorded: the fit alone
+        (at(120), 6.0, 0.0),  # at the window's end: counted
+        (at(130), 9.0, 1.0),  # after it
+        (None, 7.0, 1.0),  # not finished
+    ]
+    # Two slots for 60 s: 120 slot-seconds, 12 of them busy.
+    assert module.busy_share(updates, 2, at(60), at(120)) == pytest.approx(0.1)
+    # One slot over the first 120 s: 12.6 of 120.
+    assert module.busy_share(updates, 1, at(0), at(120)) == pytest.approx(0.105)

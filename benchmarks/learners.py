@@ -42,6 +42,7 @@ from server.cores import available_cores
 from server.learners import NAMES, _kernels, dumps, make, planning, restore
 from server.learners.objective import COST_SETTINGS
 from server.learners.planning import TransitionOperator, set_planner_threads, soft_plan
+from server.simulation.config import ConfigError, parse_learner_settings
 from server.teacher import Teacher
 
 CHECKPOINTS = (1, 5, 10)
@@ -129,21 +130,6 @@ def pass_breakdown(env, learner, repeats: int) -> tuple[int, int, float, float]:
     return counts["forward"], counts["reverse"], statistics.median(passes), statistics.median(whole)
 
 
-def parse_settings(items: list[str]) -> dict:
-    """``NAME=VALUE`` items as settings, each value an int, a float or else a string."""
-    settings: dict = {}
-    for item in items:
-        name, _, value = item.partition("=")
-        try:
-            settings[name] = int(value)
-        except ValueError:
-            try:
-                settings[name] = float(value)
-            except ValueError:
-                settings[name] = value
-    return settings
-
-
 def time_versus(env, learner, other: dict, repeats: int) -> tuple[float, float]:
     """The update after 10 rounds of ``learner`` and of the same saved state with the settings
     ``other`` (from the same data and parameters), timed alternately ``repeats`` times each so
@@ -211,8 +197,15 @@ def main(argv: list[str] | None = None) -> int:
     clock = CLOCKS[args.clock]
     set_planner_threads(args.threads)
     print(f"planner threads: {args.threads}, clock: {args.clock}")
-    settings = parse_settings(args.setting)
-    versus = parse_settings(args.versus)
+    try:  # each value of the type of the learner's default (true/false, numbers, text)
+        settings_of, _ = parse_learner_settings(args.setting, args.learners)
+        versus_of, _ = parse_learner_settings(args.versus, args.learners)
+    except ConfigError as error:
+        parser.error(str(error))
+    precision = next(
+        (str(s["planner_precision"]) for s in settings_of.values() if "planner_precision" in s),
+        COST_SETTINGS["planner_precision"],
+    )
     header = (
         f"{'environment':13s} {'learner':12s} "
         + " ".join(f"{'upd@' + str(r) + ' med/p95 ms':>19s}" for r in CHECKPOINTS)
@@ -226,13 +219,9 @@ def main(argv: list[str] | None = None) -> int:
         env = domains.make(env_name)
         # A pass takes a millisecond or so: many of them, or a burst of the machine's noise
         # decides the median (flip's ratio read 4.0 in one run of 5, 2.6 in runs of 50).
-        precision = str(settings.get("planner_precision", COST_SETTINGS["planner_precision"]))
         forward, both = time_planner(env, max(args.repeats, PLANNER_REPEATS), precision)
         for learner_name in args.learners:
-            applicable = {
-                k: v for k, v in settings.items() if k in make(learner_name, env).settings
-            }
-            learner = make(learner_name, env, seed=args.seed, **applicable)
+            learner = make(learner_name, env, seed=args.seed, **settings_of.get(learner_name, {}))
             teacher = Teacher(env, seed=args.seed)
             rng = np.random.default_rng(args.seed)
             cells = []
@@ -243,8 +232,8 @@ def main(argv: list[str] | None = None) -> int:
                 if round_ in CHECKPOINTS:
                     median, p95 = time_update(env, learner, args.repeats)
                     cells.append(f"{median * 1e3:9.0f}/{p95 * 1e3:<9.0f}")
-                if versus and round_ == max(CHECKPOINTS):
-                    other = {k: v for k, v in versus.items() if k in learner.settings}
+                if args.versus and round_ == max(CHECKPOINTS):
+                    other = versus_of.get(learner_name, {})
                     versus_rows.append(
                         (env_name, learner_name, *time_versus(env, learner, other, args.repeats))
                     )

@@ -116,14 +116,29 @@ class BehavioralCloning(Learner):
         steps = int(self.settings["steps"])
         if steps <= 0:
             return 0.0, 0
-        actions, feedback = action_model(self.settings), feedback_model(self.settings)
-        sds = self.settings["q_bound_sds"]
         prior_sd = float(self.settings["q_prior_sd"])
         check_finite("Q table", self.table)
         if not np.isfinite(prior_sd) or prior_sd <= 0:
             raise ValueError(f"prior standard deviation must be positive, got {prior_sd!r}")
-        optimizer = self.optimizer
         table, velocity, before, demo_values, step_values, code = _ascend(
+            *self.ascent_arguments(data, steps)
+        )
+        if code == NOT_FINITE:
+            raise FloatingPointError("the objective's gradient is not finite")
+        _refuse(code, (len(data.tasks), *self.table.shape[1:]))
+        self.table, self.optimizer.velocity = table, velocity
+        # The objective at the last step's start, summed as NumPy sums.
+        prior = float(-0.5 * (before**2).sum() / prior_sd**2)
+        return float(demo_values.sum()) + float(step_values.sum()) + prior, steps
+
+    def ascent_arguments(self, data: TeacherData, steps: int) -> tuple[Any, ...]:
+        """``_ascend``'s arguments for ``steps`` steps of this learner's table and optimiser on
+        ``data``, as its settings have them."""
+        actions, feedback = action_model(self.settings), feedback_model(self.settings)
+        prior_sd = float(self.settings["q_prior_sd"])
+        sds = self.settings["q_bound_sds"]
+        optimizer = self.optimizer
+        return (
             np.ascontiguousarray(self.table, dtype=np.float64),
             np.ascontiguousarray(optimizer.velocity, dtype=np.float64),
             data.tasks.astype(np.int64),
@@ -150,13 +165,6 @@ class BehavioralCloning(Learner):
             optimizer.rows,
             np.inf if sds is None else float(sds) * prior_sd,
         )
-        if code == NOT_FINITE:
-            raise FloatingPointError("the objective's gradient is not finite")
-        _refuse(code, (len(data.tasks), *self.table.shape[1:]))
-        self.table, optimizer.velocity = table, velocity
-        # The objective at the last step's start, summed as NumPy sums.
-        prior = float(-0.5 * (before**2).sum() / prior_sd**2)
-        return float(demo_values.sum()) + float(step_values.sum()) + prior, steps
 
     def policy(self, task: int) -> np.ndarray:
         task = self.env.check_task(task)
@@ -255,6 +263,7 @@ def _ascend(
     data_row = np.full(num_tasks, -1, dtype=np.int64)  # a task's row in q (-1: no data)
     for t in range(tasks.shape[0]):
         data_row[tasks[t]] = t
+    sums = np.zeros(4)
     for step in range(steps):
         for t in range(tasks.shape[0]):
             q[t] = table[tasks[t]]
@@ -303,7 +312,7 @@ def _ascend(
             first, last = r * per_row, (r + 1) * per_row
             # Four running sums (not one): a chain of dependent additions was the step's
             # slowest part.
-            sums = np.zeros(4)
+            sums[:] = 0.0
             for i in range(first, last - (last - first) % 4, 4):
                 for j in range(4):
                     sums[j] += velocity[i + j] * velocity[i + j]

@@ -108,12 +108,13 @@ def test_a_demonstration_ended_by_the_participant_gets_a_synthetic_stay(
     participant, session_id = teaching_participant(client)
     base = participant.session(session_id)
     env = make(participant.get(base)["summary"]["environment"])
-    participant.act(f"{base}/mode", mode="demonstrate")
-    # One demonstrated move that does not reach the goal (start again if it did).
+    # One demonstrated move that does not reach the goal (start again if it did: an episode
+    # that reaches the goal leaves the mode idle, so demonstrating is chosen on every try).
     for _ in range(20):
         start = participant.act(f"{base}/reset")["session"]["agent"]["state"]
         if env.is_goal(0, start):
             continue
+        participant.act(f"{base}/mode", mode="demonstrate")
         moved = participant.act(f"{base}/move", action="UP")
         if not moved["outcome"]["episode_ended"]:
             break

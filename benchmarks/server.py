@@ -233,6 +233,21 @@ def wait_for_capacity(url: str, token: str, timeout: float) -> dict[str, object]
         time.sleep(1.0)
 
 
+def capacity_line(queue: dict[str, object]) -> str:
+    """The capacity the server stated at start, as its queue view gives it; the server's own
+    work per update is timed only where the updates share its cores (not on a Dask cluster)."""
+    server = queue["server_seconds_per_update"]
+    own = (
+        "its own work per update not counted (the updates run on the cluster's cores)"
+        if server is None
+        else f"the server's own work {server} s a core per update"
+    )
+    return (
+        f"the server's capacity: {queue['capacity']} participants at once (an update "
+        f"{queue['update_seconds']} s on {queue['measured_on']}, {own}, {queue['slots']} slot(s))"
+    )
+
+
 def follow_drain(db: Database, stopped: float) -> tuple[int, int, float | None]:
     """Pending updates at the stop (``stopped``, a perf_counter time) and 10 s after it, and
     how long after it none was left (None: not within ``DRAIN_WATCH_SECONDS``)."""
@@ -394,13 +409,7 @@ def main(argv: list[str] | None = None) -> int:
             environment["BAM_UPDATE_SCHEDULER"] = args.scheduler
         server = stack.enter_context(ServerProcess(folder, environment))
         measured = wait_for_capacity(server.url, admin_token, args.capacity_timeout)
-        print(
-            f"the server's capacity: {measured['capacity']} participants at once (an update "
-            f"{measured['update_seconds']} s on {measured['measured_on']}, the server's own "
-            f"work {measured['server_seconds_per_update']} s a core per update, "
-            f"{measured['slots']} slot(s))",
-            flush=True,
-        )
+        print(capacity_line(measured), flush=True)
 
         def teach() -> None:
             result["run"] = run_participants(

@@ -232,3 +232,21 @@ def test_the_server_benchmark_s_busy_share_counts_the_updates_finished_within_th
     assert module.busy_share(updates, 2, at(60), at(120)) == pytest.approx(0.1)
     # One slot over the first 120 s: 12.6 of 120.
     assert module.busy_share(updates, 1, at(0), at(120)) == pytest.approx(0.105)
+
+
+def test_the_server_benchmark_says_when_the_server_s_own_work_is_not_counted() -> None:
+    """On a Dask cluster the server does not time its own work per update: the capacity line
+    says so instead of printing "None s"."""
+    module = load_script(BENCHMARKS / "server.py", "server_benchmark")
+    queue = {
+        "capacity": 181,
+        "update_seconds": 0.0828,
+        "measured_on": "the study's learners at start",
+        "slots": 2,
+    }
+    local = module.capacity_line({**queue, "server_seconds_per_update": 0.022})
+    assert "the server's own work 0.022 s a core per update" in local
+    assert local.startswith("the server's capacity: 181 participants at once (an update 0.0828 s")
+    cluster = module.capacity_line({**queue, "server_seconds_per_update": None})
+    assert "None" not in cluster
+    assert "its own work per update not counted" in cluster and cluster.endswith("2 slot(s))")

@@ -341,63 +341,117 @@ def table_row(row: int, num_states: int, num_actions: int) -> int:
 @njit(cache=True)
 def split_rows(
     next_flat: np.ndarray, probs_flat: np.ndarray, width: int, num_states: int, num_actions: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The table's non-zero entries for forward passes, by the passes' rows ``a * S + s`` and
-    without a per-row inner loop: every row's first one (``first_next[i]``,
-    ``first_probability[i]``; a row of probabilities has at least one), then the others as
-    flat (``more_rows``, ``more_next``, ``more_probability``) triples, all second entries before
-    all third ones and so on. The table comes in its flat layout (row ``s * A + a``).
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The table's non-zero entries for forward passes, by level (every row's first entry,
+    then every second one, and so on; a row of probabilities has at least one), each level's
+    entries as shifted rows and flat triples. The table comes in its flat layout (row
+    ``s * A + a``); the passes' rows are ``a * S + s``.
 
-    A pass adds r, then the first entries' terms, then the others in that order: each row's
-    terms in its own order, the sums of the loop over each row's entries. Rows have one entry
-    (most of gravity and farming: flip 1946 of 2000) or a few (navigation: move and stay), and
-    the variable-length inner loop cost 22% of a forward pass."""
+    A shifted row is one action's entries of a level that lead from state s to s + d for one
+    offset d: ``shifts[g] = (a, d, lo, hi)`` and ``shifted_probability[g, s]``, the states
+    lo .. hi - 1 spanning them, 0 where a state's entry is not in it. A pass adds it as one loop
+    over states, which the compiler turns into SIMD code (a next state's value read at a fixed
+    offset, not gathered); adding 0 * V leaves a sum as it is. Grid worlds' moves are a few
+    offsets per action (flip: 1990 of its 2000 first entries in 12 shifted rows), so a forward
+    pass gathers only the rest: the flat triples, row ``rows[e]`` adds ``probability[e]`` times
+    the value of ``next[e]``. ``shift_start`` and ``flat_start`` give each level's groups.
+    Every row's terms are added in its own order, each level after the one before."""
     num_rows = num_states * num_actions
-    first_next = np.empty(num_rows, dtype=np.int64)
-    first_probability = np.empty(num_rows)
     counts = np.zeros(num_rows, dtype=np.int64)
     for i in range(num_rows):  # the pass's row i is the table's row s * A + a
         base = table_row(i, num_states, num_actions) * width
         for m in range(width):
-            j = base + m
-            if probs_flat[j] != 0.0:
-                if counts[i] == 0:
-                    first_next[i] = next_flat[j]
-                    first_probability[i] = probs_flat[j]
+            if probs_flat[base + m] != 0.0:
                 counts[i] += 1
-    num_more = 0
+    levels = 0
     for i in range(num_rows):
-        num_more += counts[i] - 1
-    more_rows = np.empty(num_more, dtype=np.int64)
-    more_next = np.empty(num_more, dtype=np.int64)
-    more_probability = np.empty(num_more)
-    e = 0
-    for level in range(1, width):
+        levels = max(levels, counts[i])
+    # Each row's entry of each level (its flat index), -1 past its last.
+    entry = np.full((levels, num_rows), -1, dtype=np.int64)
+    for i in range(num_rows):
+        base = table_row(i, num_states, num_actions) * width
+        seen = 0
+        for m in range(width):
+            if probs_flat[base + m] != 0.0:
+                entry[seen, i] = base + m
+                seen += 1
+    span = 2 * num_states - 1  # offsets -(S - 1) .. S - 1
+    # An offset's shifted row pays for a loop over its states; a flat entry costs a few times
+    # a state's share of that loop: shifted when it carries a sixteenth of the states or more.
+    shifted = np.zeros((levels, num_actions, span), dtype=np.bool_)
+    group_count = 0
+    flat_count = 0
+    for level in range(levels):
+        offsets = np.zeros((num_actions, span), dtype=np.int64)
         for i in range(num_rows):
-            if counts[i] <= level:
-                continue
-            base = table_row(i, num_states, num_actions) * width
-            seen = 0
-            for m in range(width):
-                j = base + m
-                if probs_flat[j] != 0.0:
-                    if seen == level:
-                        more_rows[e] = i
-                        more_next[e] = next_flat[j]
-                        more_probability[e] = probs_flat[j]
-                        e += 1
-                        break
-                    seen += 1
-    return first_next, first_probability, more_rows, more_next, more_probability
+            j = entry[level, i]
+            if j >= 0:
+                offsets[i // num_states, next_flat[j] - i % num_states + num_states - 1] += 1
+        for a in range(num_actions):
+            for o in range(span):
+                if offsets[a, o] > 0:
+                    if 16 * offsets[a, o] >= num_states:
+                        shifted[level, a, o] = True
+                        group_count += 1
+                    else:
+                        flat_count += offsets[a, o]
+    shifts = np.empty((group_count, 4), dtype=np.int64)
+    shifted_probability = np.zeros((group_count, num_states), dtype=probs_flat.dtype)
+    shift_start = np.zeros(levels + 1, dtype=np.int64)
+    flat_rows = np.empty(flat_count, dtype=np.int64)
+    flat_next = np.empty(flat_count, dtype=np.int64)
+    flat_probability = np.empty(flat_count, dtype=probs_flat.dtype)
+    flat_start = np.zeros(levels + 1, dtype=np.int64)
+    g = 0
+    e = 0
+    for level in range(levels):
+        for a in range(num_actions):
+            for o in range(span):
+                if not shifted[level, a, o]:
+                    continue
+                lo, hi = num_states, 0
+                for s in range(num_states):
+                    j = entry[level, a * num_states + s]
+                    if j >= 0 and next_flat[j] - s + num_states - 1 == o:
+                        shifted_probability[g, s] = probs_flat[j]
+                        lo = min(lo, s)
+                        hi = max(hi, s + 1)
+                shifts[g, 0] = a
+                shifts[g, 1] = o - (num_states - 1)
+                shifts[g, 2] = lo
+                shifts[g, 3] = hi
+                g += 1
+        for i in range(num_rows):
+            j = entry[level, i]
+            if j >= 0:
+                s = i % num_states
+                if not shifted[level, i // num_states, next_flat[j] - s + num_states - 1]:
+                    flat_rows[e] = i
+                    flat_next[e] = next_flat[j]
+                    flat_probability[e] = probs_flat[j]
+                    e += 1
+        shift_start[level + 1] = g
+        flat_start[level + 1] = e
+    return (
+        shifts,
+        shifted_probability,
+        shift_start,
+        flat_rows,
+        flat_next,
+        flat_probability,
+        flat_start,
+    )
 
 
 @njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def soft_forward_tasks(
-    first_next: np.ndarray,
-    first_probability: np.ndarray,
-    more_rows: np.ndarray,
-    more_next: np.ndarray,
-    more_probability: np.ndarray,
+    shifts: np.ndarray,
+    shifted_probability: np.ndarray,
+    shift_start: np.ndarray,
+    flat_rows: np.ndarray,
+    flat_next: np.ndarray,
+    flat_probability: np.ndarray,
+    flat_start: np.ndarray,
     rewards: np.ndarray,
     beta: float,
     horizon: int,
@@ -417,23 +471,27 @@ def soft_forward_tasks(
     num_actions = q.shape[2]
     if num_actions == FIVE_ACTIONS:
         _soft_forward(
-            first_next, first_probability, more_rows, more_next, more_probability, rewards,
+            shifts, shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
+            flat_start, rewards,
             beta, horizon, keep_trace, q, values, jacobians, first, last, FIVE_ACTIONS,
         )  # fmt: skip
     else:
         _soft_forward(
-            first_next, first_probability, more_rows, more_next, more_probability, rewards,
+            shifts, shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
+            flat_start, rewards,
             beta, horizon, keep_trace, q, values, jacobians, first, last, num_actions,
         )  # fmt: skip
 
 
 @njit(inline="always", fastmath=False, error_model="numpy")
 def _soft_forward(
-    first_next: np.ndarray,
-    first_probability: np.ndarray,
-    more_rows: np.ndarray,
-    more_next: np.ndarray,
-    more_probability: np.ndarray,
+    shifts: np.ndarray,
+    shifted_probability: np.ndarray,
+    shift_start: np.ndarray,
+    flat_rows: np.ndarray,
+    flat_next: np.ndarray,
+    flat_probability: np.ndarray,
+    flat_start: np.ndarray,
     rewards: np.ndarray,
     beta: float,
     horizon: int,
@@ -454,6 +512,7 @@ def _soft_forward(
     total = np.empty(num_states, dtype)
     value = np.empty(num_states, dtype)
     one = one_as(beta)
+    shifted_flat = shifted_probability.reshape(-1)
     for k in range(first, last):
         reward = rewards[k]
         for s in range(num_states):
@@ -467,11 +526,22 @@ def _soft_forward(
                 # r + each entry's term in row order (see ``split_rows``).
                 for a in range(num_actions):
                     for s in range(num_states):
-                        i = a * num_states + s
-                        rows[i] = reward[s] + first_probability[i] * previous[first_next[i]]
-                for e in range(more_rows.shape[0]):
-                    i = more_rows[e]
-                    rows[i] = rows[i] + more_probability[e] * previous[more_next[e]]
+                        rows[a * num_states + s] = reward[s]
+                for level in range(shift_start.shape[0] - 1):
+                    for g in range(shift_start[level], shift_start[level + 1]):
+                        a, d, lo, hi = shifts[g, 0], shifts[g, 1], shifts[g, 2], shifts[g, 3]
+                        # Unsigned indices: no test for a negative one (counted from the end),
+                        # which kept the loop scalar; each lies in its array (split_rows).
+                        row = np.uint64(a * num_states + lo)
+                        cell = np.uint64(g * num_states + lo)
+                        source = np.uint64(lo + d)
+                        for j in range(np.uint64(hi - lo)):
+                            rows[row + j] = (
+                                rows[row + j] + shifted_flat[cell + j] * previous[source + j]
+                            )
+                    for e in range(flat_start[level], flat_start[level + 1]):
+                        i = flat_rows[e]
+                        rows[i] = rows[i] + flat_probability[e] * previous[flat_next[e]]
             if t == horizon - 1:
                 # Q_horizon is the output; its Boltzmann value is never used.
                 for s in range(num_states):
@@ -909,11 +979,13 @@ def probe_parallel(x: np.ndarray) -> None:
 
 @njit(cache=True, parallel=True, nogil=True)
 def soft_forward_chunks(
-    first_next: np.ndarray,
-    first_probability: np.ndarray,
-    more_rows: np.ndarray,
-    more_next: np.ndarray,
-    more_probability: np.ndarray,
+    shifts: np.ndarray,
+    shifted_probability: np.ndarray,
+    shift_start: np.ndarray,
+    flat_rows: np.ndarray,
+    flat_next: np.ndarray,
+    flat_probability: np.ndarray,
+    flat_start: np.ndarray,
     rewards: np.ndarray,
     beta: float,
     horizon: int,
@@ -927,7 +999,8 @@ def soft_forward_chunks(
     """``soft_forward_tasks`` on the task ranges ``firsts[c] .. lasts[c] - 1``, in parallel."""
     for c in prange(firsts.shape[0]):
         soft_forward_tasks(
-            first_next, first_probability, more_rows, more_next, more_probability, rewards,
+            shifts, shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
+            flat_start, rewards,
             beta, horizon, keep_trace, q, values, jacobians, firsts[c], lasts[c],
         )  # fmt: skip
 

@@ -213,7 +213,9 @@ NO_ENTRIES = np.empty(0, dtype=np.int64)
 
 # A table's non-zero entries for forward passes (``_kernels.split_rows``) and by next state for
 # reverse passes (``_kernels.incoming``).
-ForwardRows = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+ForwardRows = tuple[
+    np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray
+]
 IncomingEntries = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
@@ -228,11 +230,13 @@ class _PassLayout:
 
     nonzero: np.ndarray  # of the model's moved entries
     distinct: tuple[np.ndarray, np.ndarray, np.ndarray]
-    first_next: np.ndarray
-    first_source: np.ndarray
-    more_rows: np.ndarray
-    more_next: np.ndarray
-    more_source: np.ndarray
+    shifts: np.ndarray
+    shifted_source: np.ndarray
+    shift_start: np.ndarray
+    flat_rows: np.ndarray
+    flat_next: np.ndarray
+    flat_source: np.ndarray
+    flat_start: np.ndarray
     dense_rows: np.ndarray
     dense_source: np.ndarray
     targets: np.ndarray
@@ -248,7 +252,9 @@ class _PassLayout:
         )
         shape = (operator.next_flat, numbered, operator.width)
         sizes = (operator.num_states, operator.num_actions)
-        first_next, first, more_rows, more_next, more = _kernels.split_rows(*shape, *sizes)
+        shifts, shifted, shift_start, flat_rows, flat_next, flat, flat_start = _kernels.split_rows(
+            *shape, *sizes
+        )
         dense_rows, dense, targets, sources, incoming = _kernels.incoming(*shape, *sizes)
 
         def entry(numbers: np.ndarray) -> np.ndarray:
@@ -257,11 +263,13 @@ class _PassLayout:
         return cls(
             nonzero.copy(),
             operator._sort_out_entries(),
-            first_next,
-            entry(first),
-            more_rows,
-            more_next,
-            entry(more),
+            shifts,
+            entry(shifted),
+            shift_start,
+            flat_rows,
+            flat_next,
+            entry(flat),
+            flat_start,
             dense_rows,
             entry(dense),
             targets,
@@ -270,12 +278,15 @@ class _PassLayout:
         )
 
     def rows(self, probs_flat: np.ndarray) -> ForwardRows:
+        padded = np.append(probs_flat, 0.0)  # source -1: a shifted row's probability 0
         return (
-            self.first_next,
-            probs_flat[self.first_source],
-            self.more_rows,
-            self.more_next,
-            probs_flat[self.more_source],
+            self.shifts,
+            padded[self.shifted_source],
+            self.shift_start,
+            self.flat_rows,
+            self.flat_next,
+            probs_flat[self.flat_source],
+            self.flat_start,
         )
 
     def incoming(self, probs_flat: np.ndarray) -> IncomingEntries:

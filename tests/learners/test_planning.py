@@ -837,13 +837,23 @@ def test_pass_entries_keep_each_row_s_and_each_next_state_s_order() -> None:
     probabilities = np.array(
         [[0.0, 0.5, 0.0, 0.5], [1.0, 0.0, 0.0, 0.0], [0.25, 0.25, 0.0, 0.5], [0.0, 0.0, 0.0, 1.0]]
     )
-    # Four states, one action: the passes' rows are the table's.
-    first_next, first_p, more_rows, more_next, more_p = _kernels.split_rows(
+    # Four states, one action: the passes' rows are the table's. Every offset is a sixteenth of
+    # four states or more, so every entry is in a shifted row: (action, offset, lo, hi), level by
+    # level, offsets in increasing order.
+    shifts, shifted_p, shift_start, flat_rows, _, _, flat_start = _kernels.split_rows(
         next_states.reshape(-1), probabilities.reshape(-1), 4, 4, 1
     )
-    assert first_next.tolist() == [1, 2, 0, 2] and first_p.tolist() == [0.5, 1.0, 0.25, 1.0]
-    assert more_rows.tolist() == [0, 2, 2]  # the second entries of rows 0 and 2, then row 2's third
-    assert more_next.tolist() == [0, 3, 2] and more_p.tolist() == [0.5, 0.25, 0.5]
+    assert shift_start.tolist() == [0, 3, 5, 6] and flat_rows.size == 0
+    assert flat_start.tolist() == [0, 0, 0, 0]
+    # Level 1: row 2 -> 0 (offset -2), row 3 -> 2 (-1), rows 0 and 1 -> 1 and 2 (+1).
+    # Level 2: row 0 -> 0 (0), row 2 -> 3 (+1). Level 3: row 2 -> 2 (0).
+    assert shifts.tolist() == [
+        [0, -2, 2, 3], [0, -1, 3, 4], [0, 1, 0, 2], [0, 0, 0, 1], [0, 1, 2, 3], [0, 0, 2, 3]
+    ]  # fmt: skip
+    assert shifted_p.tolist() == [
+        [0, 0, 0.25, 0], [0, 0, 0, 1.0], [0.5, 1.0, 0, 0], [0.5, 0, 0, 0], [0, 0, 0.25, 0],
+        [0, 0, 0.5, 0],
+    ]  # fmt: skip
     # Reverse passes: by next state, every state's first entry in table order, then seconds...
     # States 0 and 2 have two or more entries (dense level 1), only state 2 a third (flat).
     dense_sources, dense_p, targets, sources, incoming_p = _kernels.incoming(
@@ -861,8 +871,11 @@ def test_pass_rows_are_held_action_by_action() -> None:
 
     next_states = np.array([1, 0, 1, 0])
     probabilities = np.ones(4)
-    first_next, _, more_rows, _, _ = _kernels.split_rows(next_states, probabilities, 1, 2, 2)
-    assert first_next.tolist() == [1, 1, 0, 0] and more_rows.size == 0
+    shifts, _, _, flat_rows, _, _, _ = _kernels.split_rows(next_states, probabilities, 1, 2, 2)
+    # Action 0: state 1 stays (offset 0), state 0 moves to 1 (+1); action 1: state 1 moves to
+    # 0 (-1), state 0 stays.
+    assert shifts.tolist() == [[0, 0, 1, 2], [0, 1, 0, 1], [1, -1, 1, 2], [1, 0, 0, 1]]
+    assert flat_rows.size == 0
     dense_sources, _, targets, _, _ = _kernels.incoming(next_states, probabilities, 1, 2, 2)
     # State 0 is reached from (s0, a1) and (s1, a1), rows 2 and 3; state 1 from rows 0 and 1.
     assert dense_sources.tolist() == [[2, 0], [3, 1]] and targets.size == 0
@@ -880,6 +893,56 @@ def test_pass_rows_are_held_action_by_action() -> None:
     np.testing.assert_allclose(
         plan.jacobians_by_action[1, 0], [[(1 - p) ** 2] * 2, [p * (2 - p)] * 2], rtol=1e-12
     )
+
+
+def test_offsets_carried_by_few_states_are_gathered_not_shifted() -> None:
+    """An offset that a sixteenth of the states or more take is a shifted row; the others are
+    flat entries, each level's in the passes' row order: 32 states in a line, each moving one
+    on, the last staying, state 5 jumping to 20 or moving on, half and half."""
+    from server.learners import _kernels
+
+    states = 32
+    next_states = np.zeros((states, 2), dtype=np.int64)
+    probabilities = np.zeros((states, 2))
+    next_states[:, 0] = np.minimum(np.arange(states) + 1, states - 1)
+    probabilities[:, 0] = 1.0
+    next_states[5] = [20, 6]
+    probabilities[5] = [0.5, 0.5]
+    shifts, shifted_p, shift_start, flat_rows, flat_next, flat_p, flat_start = _kernels.split_rows(
+        next_states.reshape(-1), probabilities.reshape(-1), 2, states, 1
+    )
+    # Level 1: offset +1 in 30 states (0 .. 30 but 5) is shifted; 5 -> 20 and 31 -> 31 are one
+    # state each (fewer than 32 / 16): flat. Level 2: 5 -> 6, flat.
+    assert shifts.tolist() == [[0, 1, 0, 31]] and shift_start.tolist() == [0, 1, 1]
+    assert shifted_p[0].tolist() == [0.0 if s in (5, 31) else 1.0 for s in range(states)]
+    assert flat_rows.tolist() == [5, 31, 5] and flat_next.tolist() == [20, 31, 6]
+    assert flat_p.tolist() == [0.5, 1.0, 0.5] and flat_start.tolist() == [0, 2, 3]
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+@pytest.mark.parametrize("name", domains.NAMES)
+def test_forward_passes_add_each_row_s_terms_in_its_order(name: str, precision: str) -> None:
+    """Q from the shifted rows and flat entries is, bit for bit, r plus each row's terms
+    added in the table's order (the row's non-zero entries one after the other, in the passes'
+    precision), after every number of backups, in every environment's model at a random
+    theta."""
+    env = domains.make(name)
+    rng = np.random.default_rng(17)
+    theta = env.model.initial_parameters() + rng.normal(size=env.model.num_parameters)
+    operator = TransitionOperator.of_model(env.model, theta)
+    dtype = np.dtype(precision).type
+    rewards = rng.normal(size=(len(env.tasks), env.num_states))
+    table = operator.probs_flat.reshape(env.num_states, env.num_actions, -1).astype(dtype)
+    following = operator.next_flat.reshape(table.shape)
+    for horizon in range(2, 7):
+        plan = soft_plan(operator, rewards, 1.0, horizon, precision=precision)
+        previous = plan.values[horizon - 2]  # V_{horizon - 1}, (tasks, S)
+        expected = np.repeat(rewards.astype(dtype)[:, :, None], env.num_actions, axis=2)
+        for m in range(table.shape[2]):
+            term = table[None, :, :, m] * previous[:, following[:, :, m]]
+            expected = np.where(table[None, :, :, m] != 0.0, expected + term, expected)
+        assert expected.dtype == dtype
+        np.testing.assert_array_equal(plan.q_all, expected)
 
 
 def _split_pass_in_child(queue) -> None:  # type: ignore[no-untyped-def]

@@ -39,10 +39,15 @@ A forward pass adds each row's terms (probability times the next state's value) 
 level, those of one action that lead the same distance away as one SIMD loop over states (a
 shifted row, ``split_rows``), gathering only the rest: the gather had been two thirds of the
 pass. Flip's forward pass with its trace, float32, one thread, on a Zen 5 AMD EPYC: 284 us
-before, 220 after; doorway 137 us, 80. The reverse pass keeps its gathered layout
-(``incoming``): the same shifted layout there made doorway's and two-fields' reverse passes
-cheaper (86 us to 55, 178 to 155) but flip's and choices' dearer (205 to 217, 123 to 154),
-whose next states' levels carry many entries off the common offsets, added one by one.
+before, 220 after; doorway 137 us, 80.
+
+A reverse pass sums each next state's dL/dV from the dL/dQ of the rows that lead there. In
+float64 passes it sums them in the table's order (``incoming``, gathered by next state), which
+reproduces the published runs to the last bit; the shifted layout by next state was no faster
+there (flip's and choices' next states carry many entries off the common offsets, added one by
+one). Float32 passes scatter through the forward pass's layout instead (``_scatter_levels``):
+each shifted row's terms added at its offset as one SIMD loop, the same terms in another
+order, so other last bits. Flip's reverse pass without the table's gradient, float32, on the Zen 5 AMD EPYC: 205 us before, 171 after; two-fields 179 us, 118.
 """
 
 from __future__ import annotations
@@ -735,6 +740,14 @@ def soft_backward_tasks(
     targets: np.ndarray,
     sources: np.ndarray,
     probabilities: np.ndarray,
+    scatter: bool,
+    shifts: np.ndarray,
+    shifted_probability: np.ndarray,
+    shift_start: np.ndarray,
+    flat_rows: np.ndarray,
+    flat_next: np.ndarray,
+    flat_probability: np.ndarray,
+    flat_start: np.ndarray,
     next_flat: np.ndarray,
     width: int,
     values: np.ndarray,
@@ -772,13 +785,17 @@ def soft_backward_tasks(
     num_actions = d_q.shape[2]
     if num_actions == FIVE_ACTIONS:
         _soft_backward(
-            dense_sources, dense_probabilities, targets, sources, probabilities, next_flat,
+            dense_sources, dense_probabilities, targets, sources, probabilities, scatter, shifts,
+            shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
+            flat_start, next_flat,
             width, values, jacobians, d_q, horizon, gradient_entries, d_reward, d_probs,
             chunk_terms, chunk_sums, first, last, FIVE_ACTIONS,
         )  # fmt: skip
     else:
         _soft_backward(
-            dense_sources, dense_probabilities, targets, sources, probabilities, next_flat,
+            dense_sources, dense_probabilities, targets, sources, probabilities, scatter, shifts,
+            shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
+            flat_start, next_flat,
             width, values, jacobians, d_q, horizon, gradient_entries, d_reward, d_probs,
             chunk_terms, chunk_sums, first, last, num_actions,
         )  # fmt: skip
@@ -791,6 +808,14 @@ def _soft_backward(
     targets: np.ndarray,
     sources: np.ndarray,
     probabilities: np.ndarray,
+    scatter: bool,
+    shifts: np.ndarray,
+    shifted_probability: np.ndarray,
+    shift_start: np.ndarray,
+    flat_rows: np.ndarray,
+    flat_next: np.ndarray,
+    flat_probability: np.ndarray,
+    flat_start: np.ndarray,
     next_flat: np.ndarray,
     width: int,
     values: np.ndarray,
@@ -826,6 +851,7 @@ def _soft_backward(
     )
     dtype = d_q.dtype  # float64, or float32 passes
     g = np.empty(n, dtype)  # dL/dQ_t, row a * S + s
+    shifted_flat = shifted_probability.reshape(-1)
     g_v = np.empty(num_states, dtype)
     acc = np.empty(num_states, dtype)
     for k in range(first, last):
@@ -854,10 +880,16 @@ def _soft_backward(
                 else:
                     for e in range(num_entries):
                         entry_sums[e] += g[entry_rows[e]] * v[entry_next[e]]
-            _dense_levels(g_v, dense_sources, dense_probabilities, g)
-            for e in range(targets.shape[0]):
-                s = targets[e]
-                g_v[s] = g_v[s] + probabilities[e] * g[sources[e]]
+            if scatter:
+                _scatter_levels(
+                    g_v, g, shifts, shifted_flat, shift_start, flat_rows, flat_next,
+                    flat_probability, flat_start,
+                )  # fmt: skip
+            else:
+                _dense_levels(g_v, dense_sources, dense_probabilities, g)
+                for e in range(targets.shape[0]):
+                    s = targets[e]
+                    g_v[s] = g_v[s] + probabilities[e] * g[sources[e]]
             jacobians_t = jacobians[t - 2, k]
             for a in range(num_actions):
                 for s in range(num_states):
@@ -917,6 +949,39 @@ def _dense_levels(
         for s in range(num_states):
             g_v[s] = g_v[s] + probabilities[level, s] * g[sources[level, s]]
         level += 1
+
+
+@njit(inline="always", fastmath=False, error_model="numpy")
+def _scatter_levels(
+    g_v: np.ndarray,
+    g: np.ndarray,
+    shifts: np.ndarray,
+    shifted_flat: np.ndarray,
+    shift_start: np.ndarray,
+    flat_rows: np.ndarray,
+    flat_next: np.ndarray,
+    flat_probability: np.ndarray,
+    flat_start: np.ndarray,
+) -> None:
+    """dL/dV_t-1 into ``g_v`` from dL/dQ_t (``g``) through the forward pass's layout
+    (``split_rows``): each shifted row's terms added into the next states at its offset as one
+    SIMD loop over states, then the flat triples, level by level. Each next state's terms are
+    summed in the forward layout's order, not the table's (the float32 passes' reverse pass)."""
+    num_states = g_v.shape[0]
+    for s in range(num_states):
+        g_v[s] = 0.0
+    for level in range(shift_start.shape[0] - 1):
+        for k in range(shift_start[level], shift_start[level + 1]):
+            a, d, lo, hi = shifts[k, 0], shifts[k, 1], shifts[k, 2], shifts[k, 3]
+            # Unsigned indices, as in the forward pass (each lies in its array).
+            to = np.uint64(lo + d)
+            at = np.uint64(k * num_states + lo)
+            row = np.uint64(a * num_states + lo)
+            for j in range(np.uint64(hi - lo)):
+                g_v[to + j] = g_v[to + j] + shifted_flat[at + j] * g[row + j]
+        for e in range(flat_start[level], flat_start[level + 1]):
+            s = flat_next[e]
+            g_v[s] = g_v[s] + flat_probability[e] * g[flat_rows[e]]
 
 
 @njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
@@ -1021,6 +1086,14 @@ def soft_backward_chunks(
     targets: np.ndarray,
     sources: np.ndarray,
     probabilities: np.ndarray,
+    scatter: bool,
+    shifts: np.ndarray,
+    shifted_probability: np.ndarray,
+    shift_start: np.ndarray,
+    flat_rows: np.ndarray,
+    flat_next: np.ndarray,
+    flat_probability: np.ndarray,
+    flat_start: np.ndarray,
     next_flat: np.ndarray,
     width: int,
     values: np.ndarray,
@@ -1039,7 +1112,9 @@ def soft_backward_chunks(
     """``soft_backward_tasks`` on the task ranges ``firsts[c] .. lasts[c] - 1``, in parallel."""
     for c in prange(firsts.shape[0]):
         soft_backward_tasks(
-            dense_sources, dense_probabilities, targets, sources, probabilities, next_flat,
+            dense_sources, dense_probabilities, targets, sources, probabilities, scatter, shifts,
+            shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
+            flat_start, next_flat,
             width, values, jacobians, d_q, horizon, gradient_entries, d_reward, d_probs, terms,
             kept_from, task_sums, firsts[c], lasts[c],
         )  # fmt: skip

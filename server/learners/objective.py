@@ -160,8 +160,10 @@ class TeacherData:
         """This data planned over the states it can reach under ``model`` (at any theta):
         the rest have no bearing on its likelihood, and the passes skip them (three-fields:
         112 of 384 states, out of reach of its starts). The likelihood, its gradient and the
-        pull-back to theta are the whole model's to the last bit (tests/learners). The data
-        itself when it reaches every state, or has none."""
+        pull-back to theta are the whole model's to the last bit in float64 passes; float32
+        passes' gradients to float32's rounding (their reverse pass sums in an order that
+        depends on the states planned; tests/learners). The data itself when it reaches every
+        state, or has none."""
         if self.empty or self.plan_states is not None:
             return self
         states = model.reachable(np.concatenate([self.demo_states, self.step_states]))

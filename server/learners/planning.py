@@ -585,6 +585,9 @@ class SoftPlan:
             _kernels.soft_backward_chunks,
             (
                 *op.entries_in(dtype)[1],
+                # Float32 passes sum dL/dV by the forward layout (``_kernels._scatter_levels``).
+                dtype == np.float32,
+                *op.entries_in(dtype)[0],
                 op.next_flat,
                 op.width,
                 self.values,

@@ -200,14 +200,19 @@ def test_cloning_update_increases_its_objective() -> None:
     assert after > before + 1.0
 
 
+@pytest.mark.parametrize("precision", ["float64", "float32"])
 @pytest.mark.parametrize("name", PLANNER_LEARNERS)
-def test_planning_over_the_states_the_data_reaches_changes_no_bit(name: str) -> None:
+def test_planning_over_the_states_the_data_reaches_changes_no_bit(
+    name: str, precision: str
+) -> None:
     """Three-fields' data reaches part of its states (machines that cannot be carried into a
     field): updates plan over those only. The teacher-data likelihood, its gradient on every
     task's rewards (0 out of reach) and its pull-back to theta equal the whole model's to the
-    last bit, with demonstrations, agent steps and feedback."""
+    last bit in float64 passes, with demonstrations, agent steps and feedback. Float32 passes'
+    reverse passes sum a next state's terms in the order of the forward pass's layout, which
+    depends on the states planned: there they agree to float32's rounding."""
     env = domains.make("three-fields")
-    learner: Any = learners.make(name, env, seed=3)
+    learner: Any = learners.make(name, env, seed=3, planner_precision=precision)
     teach(learner, seed=3)
     randomise(learner, seed=3)
     whole = TeacherData.from_log(learner.data)
@@ -227,8 +232,15 @@ def test_planning_over_the_states_the_data_reaches_changes_no_bit(name: str) -> 
     (value, d_rewards, d_theta), (part_value, part_d_rewards, part_d_theta) = results
     assert part_value == value
     assert d_rewards.shape == part_d_rewards.shape == (len(whole.tasks), env.num_states)
-    np.testing.assert_array_equal(part_d_rewards.view(np.uint64), d_rewards.view(np.uint64))
-    np.testing.assert_array_equal(part_d_theta.view(np.uint64), d_theta.view(np.uint64))
+    if precision == "float64":
+        np.testing.assert_array_equal(part_d_rewards.view(np.uint64), d_rewards.view(np.uint64))
+        np.testing.assert_array_equal(part_d_theta.view(np.uint64), d_theta.view(np.uint64))
+    else:
+        scale = np.abs(d_rewards).max()
+        np.testing.assert_allclose(part_d_rewards, d_rewards, rtol=1e-4, atol=1e-5 * scale)
+        np.testing.assert_allclose(
+            part_d_theta, d_theta, rtol=1e-4, atol=1e-5 * np.abs(d_theta).max()
+        )
     assert np.abs(d_theta).max() > 1e-3 and np.abs(d_rewards[:, part.plan_states]).max() > 1e-3
 
 

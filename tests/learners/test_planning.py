@@ -626,20 +626,26 @@ def test_five_action_code_computes_what_the_general_code_does() -> None:
         np.testing.assert_array_equal(a, b)
     d_q = rng.normal(size=special[0].shape)
 
-    def backward(kernel, *terms_and_the_rest):  # type: ignore[no-untyped-def]
+    def backward(kernel, scatter, *terms_and_the_rest):  # type: ignore[no-untyped-def]
         out = (np.zeros((tasks, env.num_states)), np.zeros(op.next_flat.shape[0]))
         kernel(
-            *op.incoming, op.next_flat, op.width, special[1], special[2], d_q, horizon,
-            op.gradient_entries, *out, *terms_and_the_rest,
+            *op.incoming, scatter, *op.rows, op.next_flat, op.width, special[1], special[2],
+            d_q, horizon, op.gradient_entries, *out, *terms_and_the_rest,
         )  # fmt: skip
         return out
 
     no_terms, no_gradients = np.empty((0, 0, 0)), np.empty((0, 0, 0))
-    # The public kernel takes where kept terms start (none kept: all tasks add at once).
-    special_back = backward(_kernels.soft_backward_tasks, no_terms, tasks, no_gradients, 0, tasks)
-    general_back = backward(_kernels._soft_backward, no_terms, no_gradients, 0, tasks, 5)
-    for a, b in zip(special_back, general_back, strict=True):
-        np.testing.assert_array_equal(a, b)
+    # Both orders of summing dL/dV: the table's (float64 passes) and the forward layout's.
+    for scatter in (False, True):
+        # The public kernel takes where kept terms start (none kept: all tasks add at once).
+        special_back = backward(
+            _kernels.soft_backward_tasks, scatter, no_terms, tasks, no_gradients, 0, tasks
+        )
+        general_back = backward(
+            _kernels._soft_backward, scatter, no_terms, no_gradients, 0, tasks, 5
+        )
+        for a, b in zip(special_back, general_back, strict=True):
+            np.testing.assert_array_equal(a, b)
 
 
 @pytest.mark.parametrize("beta", [0.5, 1.0, 3.0])

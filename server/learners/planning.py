@@ -378,7 +378,8 @@ class TransitionOperator:
         self._rows: ForwardRows | None = None
         self._incoming: IncomingEntries | None = None
         # rows and incoming with their probabilities in float32, for float32 passes.
-        self._single: tuple[ForwardRows, IncomingEntries] | None = None
+        self._single_rows: ForwardRows | None = None
+        self._single_incoming: IncomingEntries | None = None
         self._layout: _PassLayout | None = None
 
     @classmethod
@@ -477,16 +478,23 @@ class TransitionOperator:
                 )
         return self._incoming
 
-    def entries_in(self, dtype: type) -> tuple[ForwardRows, IncomingEntries]:
-        """``rows`` and ``incoming`` with their probabilities in ``dtype`` (float64: themselves;
-        float32: rounded copies, made once per table)."""
-        if dtype == np.float64:
-            return self.rows, self.incoming
-        if dtype != np.float32:
-            raise ValueError(f"passes run in float64 or float32, not {np.dtype(dtype).name}")
-        if self._single is None:
-            self._single = (_in_float32(self.rows), _in_float32(self.incoming))
-        return self._single
+    def rows_in(self, dtype: type) -> ForwardRows:
+        """``rows`` with their probabilities in ``dtype`` (float64: themselves; float32: a
+        rounded copy, made once per table)."""
+        if _check_pass_dtype(dtype) == np.float64:
+            return self.rows
+        if self._single_rows is None:
+            self._single_rows = _in_float32(self.rows)
+        return self._single_rows
+
+    def incoming_in(self, dtype: type) -> IncomingEntries:
+        """``incoming`` in ``dtype``, as ``rows_in``; float32 reverse passes do not read it
+        (they scatter through ``rows``), so it is made only when asked for."""
+        if _check_pass_dtype(dtype) == np.float64:
+            return self.incoming
+        if self._single_incoming is None:
+            self._single_incoming = _in_float32(self.incoming)
+        return self._single_incoming
 
     @property
     def matrix(self) -> sp.csr_matrix:
@@ -498,6 +506,23 @@ class TransitionOperator:
                 shape=(self.num_states * self.num_actions, self.num_states),
             )
         return self._matrix
+
+
+def _check_pass_dtype(dtype: type) -> type:
+    if dtype != np.float64 and dtype != np.float32:
+        raise ValueError(f"passes run in float64 or float32, not {np.dtype(dtype).name}")
+    return dtype
+
+
+# A reverse pass's table by next state when it scatters through the forward layout instead
+# (float32 passes): empty, of the types the kernel is compiled for.
+NO_INCOMING_32: IncomingEntries = (
+    np.empty((0, 0), dtype=np.int64),
+    np.empty((0, 0), dtype=np.float32),
+    NO_ENTRIES,
+    NO_ENTRIES,
+    np.empty(0, dtype=np.float32),
+)
 
 
 def _in_float32(arrays: tuple[np.ndarray, ...]) -> Any:
@@ -578,16 +603,17 @@ class SoftPlan:
             else NO_TERMS.astype(dtype)
         )
         g_q = np.ascontiguousarray(g_q, dtype)
+        scatter = dtype == np.float32
 
         run_pass(
             chunks,
             _kernels.soft_backward_tasks,
             _kernels.soft_backward_chunks,
             (
-                *op.entries_in(dtype)[1],
                 # Float32 passes sum dL/dV by the forward layout (``_kernels._scatter_levels``).
-                dtype == np.float32,
-                *op.entries_in(dtype)[0],
+                *(NO_INCOMING_32 if scatter else op.incoming_in(dtype)),
+                scatter,
+                *op.rows_in(dtype),
                 op.next_flat,
                 op.width,
                 self.values,
@@ -672,7 +698,7 @@ def soft_plan(
     jacobians: np.ndarray = np.empty(
         (trace_len, num_tasks, operator.num_actions, operator.num_states), dtype
     )
-    rows = operator.entries_in(dtype)[0]
+    rows = operator.rows_in(dtype)
     rewards = np.ascontiguousarray(rewards, dtype=dtype)
 
     run_pass(

@@ -126,6 +126,26 @@ class DataLog:
         return log
 
 
+# Settings added after learner states were first saved, each with the value that does what the
+# learners did before it existed, so that a state saved without one is restored doing the same:
+# an agent in a study that runs across an upgrade keeps its schedule and its arithmetic.
+SETTINGS_BEFORE_THEY_EXISTED: dict[str, Any] = {
+    # 2026-11-25: the paper authors' choices became the defaults; the ones before them.
+    "momentum_clip": "velocity",
+    "cost_optimizers": "joint",
+    "optimizers": "joint",
+    "cost_cells": "every",
+    "dynamics_gradient": "exact",
+    "variance_floor": 1e-8,
+    "q_bound_sds": None,
+    "tie_tolerance": 1e-9,
+    # 2026-11-27 and 2026-11-28: float64 passes, the whole schedule, NumPy cloning steps.
+    "planner_precision": "float64",
+    "warm_share": 1.0,
+    "compiled_steps": False,
+}
+
+
 class Learner(ABC):
     """Base class of every learner (see the module docstring)."""
 
@@ -252,14 +272,21 @@ class Learner(ABC):
 
     @classmethod
     def from_state_dict(cls, env: Environment, state: dict[str, Any]) -> Learner:
-        """The learner ``state_dict`` captured, restored exactly (its data checked again)."""
+        """The learner ``state_dict`` captured, restored exactly (its data checked again). A
+        setting the state lacks, saved before the setting existed, takes the value that does
+        what the learner did then (``SETTINGS_BEFORE_THEY_EXISTED``), not today's default."""
         if state.get("learner") != cls.name:
             raise ValueError(f"state is for learner {state.get('learner')!r}, not {cls.name!r}")
         if state.get("environment") != env.name:
             raise ValueError(
                 f"state is for environment {state.get('environment')!r}, not {env.name!r}"
             )
-        learner = cls(env, seed=state["seed"], **state["settings"])
+        before = {
+            key: value
+            for key, value in SETTINGS_BEFORE_THEY_EXISTED.items()
+            if key in cls.default_settings
+        }
+        learner = cls(env, seed=state["seed"], **{**before, **state["settings"]})
         learner.updates = int(state["updates"])
         learner.rng.bit_generator.state = state["rng"]
         # Re-record every row through the checks, so corrupt data fails here, clearly.

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from server import domains, learners
+from server.learners.base import SETTINGS_BEFORE_THEY_EXISTED
 from server.teacher import Teacher
 from tests.learners._support import demonstrate_round
 
@@ -204,6 +205,40 @@ def test_a_state_saved_before_the_schedule_existed_counts_its_tasks_as_fitted() 
     state = learner.state_dict()
     del state["parameters"]["fitted_tasks"]
     np.testing.assert_array_equal(learners.restore(env, state).fitted_tasks, [False, True])
+
+
+@pytest.mark.parametrize("name", ["bam", "model-based", "global-cost", "cloning"])
+def test_a_state_saved_before_its_settings_existed_restores_what_the_learner_did_then(
+    name: str,
+) -> None:
+    """A learner saved before some of its settings existed (float32 passes, shorter warm
+    updates, compiled cloning steps, the authors' rules) did what their earlier values do: its
+    state, which lacks them, restores with those values, not today's defaults, and its next
+    update is the one it would have made."""
+    env = domains.make("wall")
+    then = {
+        k: v
+        for k, v in SETTINGS_BEFORE_THEY_EXISTED.items()
+        if k in learners.make(name, env).settings
+    }
+    assert then
+    before = learners.make(name, env, seed=1, beta=2.0, **then)
+    demonstrate_task(before, env, Teacher(env, seed=1), 0, np.random.default_rng(1))
+    before.update()
+    state = before.state_dict()
+    for key in then:
+        del state["settings"][key]
+    restored = learners.restore(env, learners.loads(learners.dumps(state)))
+    assert {key: restored.settings[key] for key in then} == then
+    assert restored.settings["beta"] == 2.0
+    for learner in (before, restored):
+        demonstrate_task(learner, env, Teacher(env, seed=2), 0, np.random.default_rng(2))
+    results = [learner.update() for learner in (before, restored)]
+    assert results[0].steps == results[1].steps
+    saved, again = before._parameters_state(), restored._parameters_state()
+    assert saved.keys() == again.keys()
+    for key in saved:
+        np.testing.assert_array_equal(saved[key], again[key], err_msg=key)
 
 
 @pytest.mark.parametrize(

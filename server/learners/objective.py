@@ -86,8 +86,8 @@ COST_SETTINGS: dict[str, Any] = {
 
 # Teacher data is planned over the states it reaches when those are at most this share of
 # the states (``TeacherData.restricted``). On an AVX-512 AMD EPYC, 2 cores, 2026-11-28:
-# three-fields' data reaches 272 of 384 states, and its passes restricted ran 12-22% faster than
-# over every state; two-fields' reaches 367, and they ran 32-36% slower.
+# three-fields' data reaches 272 of 384 states, and its passes restricted cost 14-16% less than
+# over every state; two-fields' reaches 367, and they cost 1.5-1.8 times as much.
 RESTRICT_BELOW = 0.9
 
 OPTIMIZERS = ("momentum", "lbfgs", "warm-lbfgs")
@@ -171,8 +171,8 @@ class TeacherData:
         depends on the states planned; tests/learners). The data itself when it has none, or
         reaches more than ``RESTRICT_BELOW`` of the states: renumbering the states breaks the
         grid's fixed offsets between a state and the next (``_kernels.split_rows``), which costs
-        more than a few states save (two-fields, 367 of 384 states reached: passes a third
-        dearer restricted)."""
+        more than a few states save (two-fields, 367 of 384 states reached: passes 1.5-1.8
+        times as dear restricted)."""
         if self.empty or self.plan_states is not None:
             return self
         states = model.reachable(np.concatenate([self.demo_states, self.step_states]))

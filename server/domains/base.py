@@ -306,8 +306,15 @@ class TransitionModel:
                 self.outcomes.reshape(-1)[moved], self._entry_probabilities(p, moved), p[k]
             )
         else:
-            # The entries theta moves, in table order (the others' coefficients are 0).
-            weights = self._parametric_coef * d_moved
+            return self._pull_back_moved(theta, d_moved)
+        d_p = np.bincount(self._parametric_index, weights=weights, minlength=self.num_primitives)
+        return self.primitives_pullback(theta, d_p)
+
+    def _pull_back_moved(self, theta: np.ndarray, d_moved: np.ndarray) -> np.ndarray:
+        """The exact gradient with respect to a checked theta of a function whose gradient on
+        the entries theta moves (``flat_parametric_entries``, in table order) is ``d_moved``:
+        the others' coefficients are 0."""
+        weights = self._parametric_coef * d_moved
         d_p = np.bincount(self._parametric_index, weights=weights, minlength=self.num_primitives)
         return self.primitives_pullback(theta, d_p)
 
@@ -331,8 +338,34 @@ class TransitionModel:
             raise ValueError("observed transition has an action out of range")
         match = self.next_states[s, a] == s2[:, None]  # (N, M)
         rows, columns = np.nonzero(match)  # row by row, entries in table order
-        entries = (s[rows] * self.num_actions + a[rows]) * self.width + columns
-        return ObservedTransitions(observed, entries.astype(np.int64), rows.astype(np.int64))
+        entries = ((s[rows] * self.num_actions + a[rows]) * self.width + columns).astype(np.int64)
+        rows = rows.astype(np.int64)
+        # Each entry's place among the entries theta moves, -1 for the others.
+        place = np.full(self._const_flat.size, -1, dtype=np.int64)
+        place[self.flat_parametric_entries] = np.arange(self.flat_parametric_entries.size)
+        moved = place[entries] >= 0
+        if self.outcomes is not None:
+            # The authors' update: one term per observed transition through a parametric
+            # row, from its first parametric entry (``transition_log_likelihood``).
+            outcomes = self.outcomes.reshape(-1)[entries]
+            parametric = outcomes != 0
+            _, first = np.unique(rows[parametric], return_index=True)
+            firsts = entries[parametric][first]
+            first_outcomes, first_index = outcomes[parametric][first], self._index_flat[firsts]
+        else:
+            first_outcomes = first_index = np.empty(0, dtype=np.int64)
+        return ObservedTransitions(
+            observed,
+            entries,
+            rows,
+            const=self._const_flat[entries],
+            coef=self._coef_flat[entries],
+            index=self._index_flat[entries],
+            moved_places=place[entries][moved],
+            moved_rows=rows[moved],
+            first_outcomes=first_outcomes,
+            first_index=first_index,
+        )
 
     def transition_log_likelihood(
         self,
@@ -353,8 +386,9 @@ class TransitionModel:
         if count == 0:
             return 0.0, np.zeros(self.num_parameters)
         # The observed entries' probabilities only (the table's, entry by entry).
-        p = self._primitives_at(self.check_parameters(theta))
-        entry_probability = self._entry_probabilities(p, observed.entries)
+        theta = self.check_parameters(theta)
+        p = self._primitives_at(theta)
+        entry_probability = observed.const + observed.coef * p[observed.index]
         # T(s, a, s') sums the row's entries that lead to s' (a next state may repeat).
         row_probability = np.bincount(
             observed.entry_rows, weights=entry_probability, minlength=count
@@ -365,8 +399,7 @@ class TransitionModel:
             # fixed one above 0) that rounds to 0 at this theta: a saturated logit, p within
             # 2^-53 of 1, leaves 1 - p = 0 (farming's logits reach +-50). It counts as the
             # least normal probability; the rest are impossible whatever theta.
-            entries = observed.entries
-            possible = (self._coef_flat[entries] != 0.0) | (self._const_flat[entries] > 0.0)
+            possible = (observed.coef != 0.0) | (observed.const > 0.0)
             reachable = np.bincount(observed.entry_rows[possible], minlength=count) > 0
             if not np.all(reachable[rounded]):
                 bad = int(np.flatnonzero(rounded & ~reachable)[0])
@@ -377,26 +410,24 @@ class TransitionModel:
             row_probability = np.where(rounded, LEAST_PROBABILITY, row_probability)
         value = float(np.log(row_probability).sum())
         if rule == "authors" and self.outcomes is not None:
-            # One term per observed transition, from its first parametric entry.
-            outcomes = self.outcomes.reshape(-1)[observed.entries]
-            parametric = outcomes != 0
-            _, first = np.unique(observed.entry_rows[parametric], return_index=True)
-            entries = observed.entries[parametric][first]
-            k = self._index_flat[entries]
+            # One term per observed transition, from its first parametric entry (``observe``).
             # The planner's rule with weight w = 1 for each transition (T_e / p read as 1 / p).
+            k = observed.first_index
             pk = p[k]
-            terms = _outcome_factors(outcomes[parametric][first], np.ones_like(pk), pk)
+            terms = _outcome_factors(observed.first_outcomes, np.ones_like(pk), pk)
             d_p = np.bincount(k, weights=terms, minlength=self.num_primitives)
             return value, self.primitives_pullback(theta, d_p)
         # d ln T / dT = 1 / T; a row rounded to 0 adds nothing (its entries' derivatives
         # through theta round to 0 as well, and 1 / LEAST_PROBABILITY would blow them up).
+        # Summed at the entries theta moves only, each entry's terms in the order of the
+        # observed rows, as over the whole table (whose other entries the pull-back drops).
         weights = np.where(rounded, 0.0, 1.0 / row_probability)
-        d_probabilities = np.bincount(
-            observed.entries,
-            weights=weights[observed.entry_rows],
-            minlength=self._const_flat.size,
-        ).reshape(self.next_states.shape)
-        return value, self.pullback(theta, d_probabilities)
+        d_moved = np.bincount(
+            observed.moved_places,
+            weights=weights[observed.moved_rows],
+            minlength=self.flat_parametric_entries.size,
+        )
+        return value, self._pull_back_moved(theta, d_moved)
 
 
 GRADIENT_RULES = ("authors", "exact")
@@ -424,11 +455,22 @@ def _outcome_factors(outcomes: np.ndarray, t: np.ndarray, pk: np.ndarray) -> np.
 
 @dataclass(frozen=True)
 class ObservedTransitions:
-    """Observed transitions matched to a model space's table (``TransitionModel.observe``)."""
+    """Observed transitions matched to a model space's table (``TransitionModel.observe``),
+    with what its likelihood reads of the model at every theta."""
 
     rows: np.ndarray  # (N, 3) state, action, next state
     entries: np.ndarray  # flat table entries (s * A + a) * M + m whose next state is the row's
     entry_rows: np.ndarray  # the observed row of each entry
+    # Each entry's probability is const + coef * p[index] at primitives p.
+    const: np.ndarray
+    coef: np.ndarray
+    index: np.ndarray
+    # The entries theta moves: their places in ``flat_parametric_entries`` and their rows.
+    moved_places: np.ndarray
+    moved_rows: np.ndarray
+    # The authors' farming update: each parametric row's first entry's outcome and primitive.
+    first_outcomes: np.ndarray
+    first_index: np.ndarray
 
 
 class SigmoidModel(TransitionModel):

@@ -169,6 +169,11 @@ class TransitionModel:
         self._index_flat = self.index.reshape(-1)
         self._parametric_coef = self._coef_flat[self.flat_parametric_entries]
         self._parametric_index = self._index_flat[self.flat_parametric_entries]
+        # Each entry's place among the entries theta moves, -1 for the others.
+        self._moved_place = np.full(self._const_flat.size, -1, dtype=np.int64)
+        self._moved_place[self.flat_parametric_entries] = np.arange(
+            self.flat_parametric_entries.size
+        )
         # The entries some theta makes non-zero.
         self._possible = (self.const != 0.0) | self._parametric
 
@@ -306,15 +311,13 @@ class TransitionModel:
                 self.outcomes.reshape(-1)[moved], self._entry_probabilities(p, moved), p[k]
             )
         else:
-            return self._pull_back_moved(theta, d_moved)
-        d_p = np.bincount(self._parametric_index, weights=weights, minlength=self.num_primitives)
-        return self.primitives_pullback(theta, d_p)
+            # The entries theta moves, in table order (the others' coefficients are 0).
+            weights = self._parametric_coef * d_moved
+        return self._pull_back_moved(theta, weights)
 
-    def _pull_back_moved(self, theta: np.ndarray, d_moved: np.ndarray) -> np.ndarray:
-        """The exact gradient with respect to a checked theta of a function whose gradient on
-        the entries theta moves (``flat_parametric_entries``, in table order) is ``d_moved``:
-        the others' coefficients are 0."""
-        weights = self._parametric_coef * d_moved
+    def _pull_back_moved(self, theta: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """The gradient with respect to a checked theta from ``weights`` on the entries theta
+        moves (``flat_parametric_entries``, in table order): each adds to its primitive's."""
         d_p = np.bincount(self._parametric_index, weights=weights, minlength=self.num_primitives)
         return self.primitives_pullback(theta, d_p)
 
@@ -340,10 +343,8 @@ class TransitionModel:
         rows, columns = np.nonzero(match)  # row by row, entries in table order
         entries = ((s[rows] * self.num_actions + a[rows]) * self.width + columns).astype(np.int64)
         rows = rows.astype(np.int64)
-        # Each entry's place among the entries theta moves, -1 for the others.
-        place = np.full(self._const_flat.size, -1, dtype=np.int64)
-        place[self.flat_parametric_entries] = np.arange(self.flat_parametric_entries.size)
-        moved = place[entries] >= 0
+        places = self._moved_place[entries]
+        moved = places >= 0
         if self.outcomes is not None:
             # The authors' update: one term per observed transition through a parametric
             # row, from its first parametric entry (``transition_log_likelihood``).
@@ -361,7 +362,7 @@ class TransitionModel:
             const=self._const_flat[entries],
             coef=self._coef_flat[entries],
             index=self._index_flat[entries],
-            moved_places=place[entries][moved],
+            moved_places=places[moved],
             moved_rows=rows[moved],
             first_outcomes=first_outcomes,
             first_index=first_index,
@@ -427,7 +428,7 @@ class TransitionModel:
             weights=weights[observed.moved_rows],
             minlength=self.flat_parametric_entries.size,
         )
-        return value, self._pull_back_moved(theta, d_moved)
+        return value, self._pull_back_moved(theta, self._parametric_coef * d_moved)
 
 
 GRADIENT_RULES = ("authors", "exact")

@@ -277,6 +277,16 @@ def farming_maps(draw: st.DrawFn) -> EnvironmentSpec:
         rows[draw(st.integers(0, height - 1))][draw(st.integers(0, width - 1))] = letter
     goal = (draw(st.integers(0, height - 1)), draw(st.integers(0, width - 1)))
     rows[goal[0]][goal[1]] = draw(st.sampled_from("sicv"))
+    if not any("." in row for row in rows):
+        # "anywhere" starts on free dirt: a map with none has no start cell, a fault of its
+        # letters, not of reachability. The first cell that is not a machine or the goal.
+        r, c = next(
+            (r, c)
+            for r in range(height)
+            for c in range(width)
+            if rows[r][c] not in "PWHT" and (r, c) != goal
+        )
+        rows[r][c] = "."
     header = f"task: F = rows {goal[0]}, columns {goal[1]}\nstart: anywhere\n"
     return EnvironmentSpec(
         "random",

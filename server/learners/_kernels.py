@@ -553,9 +553,11 @@ def _soft_forward(
                             rows[row + j] = (
                                 rows[row + j] + shifted_flat[cell + j] * previous[source + j]
                             )
-                    for e in range(flat_start[level], flat_start[level + 1]):
-                        i = flat_rows[e]
-                        rows[i] = rows[i] + flat_probability[e] * previous[flat_next[e]]
+                    # Unsigned here too: with the tests for negative indices, these gathers
+                    # took a third of flip's pass (each index lies in its array).
+                    for e in range(np.uint64(flat_start[level]), np.uint64(flat_start[level + 1])):
+                        i = np.uint64(flat_rows[e])
+                        rows[i] = rows[i] + flat_probability[e] * previous[np.uint64(flat_next[e])]
             if t == horizon - 1:
                 # Q_horizon is the output; its Boltzmann value is never used.
                 for s in range(num_states):
@@ -873,13 +875,14 @@ def _soft_backward(
                 break
             if num_entries > 0:
                 v = values[t - 2, k]
+                # Unsigned indices, as in the forward pass's gathers.
                 if keep_terms:
                     kept = terms[k - first, horizon - t]
                     for e in range(num_entries):
-                        kept[e] = g[entry_rows[e]] * v[entry_next[e]]
+                        kept[e] = g[np.uint64(entry_rows[e])] * v[np.uint64(entry_next[e])]
                 else:
                     for e in range(num_entries):
-                        entry_sums[e] += g[entry_rows[e]] * v[entry_next[e]]
+                        entry_sums[e] += g[np.uint64(entry_rows[e])] * v[np.uint64(entry_next[e])]
             if scatter:
                 _scatter_levels(
                     g_v, g, shifts, shifted_flat, shift_start, flat_rows, flat_next,
@@ -888,8 +891,8 @@ def _soft_backward(
             else:
                 _dense_levels(g_v, dense_sources, dense_probabilities, g)
                 for e in range(targets.shape[0]):
-                    s = targets[e]
-                    g_v[s] = g_v[s] + probabilities[e] * g[sources[e]]
+                    s = np.uint64(targets[e])
+                    g_v[s] = g_v[s] + probabilities[e] * g[np.uint64(sources[e])]
             jacobians_t = jacobians[t - 2, k]
             for a in range(num_actions):
                 for s in range(num_states):
@@ -937,17 +940,18 @@ def _dense_levels(
         g_v[s] = 0.0
     num_levels = sources.shape[0]
     level = 0
+    # Unsigned gathers (each source lies in ``g``), as in the passes' other gathers.
     while level + 4 <= num_levels:
         for s in range(num_states):
             g_v[s] = (
-                ((g_v[s] + probabilities[level, s] * g[sources[level, s]])
-                 + probabilities[level + 1, s] * g[sources[level + 1, s]])
-                + probabilities[level + 2, s] * g[sources[level + 2, s]]
-            ) + probabilities[level + 3, s] * g[sources[level + 3, s]]  # fmt: skip
+                ((g_v[s] + probabilities[level, s] * g[np.uint64(sources[level, s])])
+                 + probabilities[level + 1, s] * g[np.uint64(sources[level + 1, s])])
+                + probabilities[level + 2, s] * g[np.uint64(sources[level + 2, s])]
+            ) + probabilities[level + 3, s] * g[np.uint64(sources[level + 3, s])]  # fmt: skip
         level += 4
     while level < num_levels:
         for s in range(num_states):
-            g_v[s] = g_v[s] + probabilities[level, s] * g[sources[level, s]]
+            g_v[s] = g_v[s] + probabilities[level, s] * g[np.uint64(sources[level, s])]
         level += 1
 
 
@@ -979,9 +983,9 @@ def _scatter_levels(
             row = np.uint64(a * num_states + lo)
             for j in range(np.uint64(hi - lo)):
                 g_v[to + j] = g_v[to + j] + shifted_flat[at + j] * g[row + j]
-        for e in range(flat_start[level], flat_start[level + 1]):
-            s = flat_next[e]
-            g_v[s] = g_v[s] + flat_probability[e] * g[flat_rows[e]]
+        for e in range(np.uint64(flat_start[level]), np.uint64(flat_start[level + 1])):
+            s = np.uint64(flat_next[e])
+            g_v[s] = g_v[s] + flat_probability[e] * g[np.uint64(flat_rows[e])]
 
 
 @njit(cache=True, nogil=True, fastmath=False, error_model="numpy")

@@ -930,8 +930,8 @@ def test_offsets_carried_by_few_states_are_gathered_not_shifted() -> None:
 def test_forward_passes_add_each_row_s_terms_in_its_order(name: str, precision: str) -> None:
     """Q from the shifted rows and flat entries is, bit for bit, r plus each row's terms
     added in the table's order (the row's non-zero entries one after the other, in the passes'
-    precision), after every number of backups, in every environment's model at a random
-    theta."""
+    precision; float32 passes round each product and sum once, a fused multiply-add), after
+    every number of backups, in every environment's model at a random theta."""
     env = domains.make(name)
     rng = np.random.default_rng(17)
     theta = env.model.initial_parameters() + rng.normal(size=env.model.num_parameters)
@@ -945,8 +945,16 @@ def test_forward_passes_add_each_row_s_terms_in_its_order(name: str, precision: 
         previous = plan.values[horizon - 2]  # V_{horizon - 1}, (tasks, S)
         expected = np.repeat(rewards.astype(dtype)[:, :, None], env.num_actions, axis=2)
         for m in range(table.shape[2]):
-            term = table[None, :, :, m] * previous[:, following[:, :, m]]
-            expected = np.where(table[None, :, :, m] != 0.0, expected + term, expected)
+            p, v = table[None, :, :, m], previous[:, following[:, :, m]]
+            if dtype == np.float32:
+                # a * b + c rounded once: the product of two float32s is exact in x87's 64-bit
+                # significand, the sum rounded there first (a second rounding that decides a
+                # float32 result about once in 2^39).
+                wide = np.longdouble
+                added = (expected.astype(wide) + p.astype(wide) * v.astype(wide)).astype(dtype)
+            else:
+                added = expected + p * v
+            expected = np.where(p != 0.0, added, expected)
         assert expected.dtype == dtype
         np.testing.assert_array_equal(plan.q_all, expected)
 

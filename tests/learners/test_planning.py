@@ -630,7 +630,8 @@ def test_five_action_code_computes_what_the_general_code_does() -> None:
         out = (np.zeros((tasks, env.num_states)), np.zeros(op.next_flat.shape[0]))
         kernel(
             *op.incoming, scatter, *op.rows, op.next_flat, op.width, special[1], special[2],
-            d_q, horizon, op.gradient_entries, *out, *terms_and_the_rest,
+            d_q, horizon, op.gradient_entries, planning.NO_RUNS, planning.NO_ENTRIES, *out,
+            *terms_and_the_rest,
         )  # fmt: skip
         return out
 
@@ -737,6 +738,37 @@ def test_passes_split_over_threads_compute_the_same_bits(
             np.testing.assert_array_equal(split, one)
     assert np.any(results[1][-1] != 0.0)
     assert planning.planner_threads() == before
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+@pytest.mark.parametrize("name", domains.NAMES)
+def test_entries_summed_in_runs_have_the_gradient_of_entries_summed_alone(
+    name: str, precision: str
+) -> None:
+    """A reverse pass that sums the moved entries' terms in runs of states (a SIMD loop over
+    the states of one action and offset) gives every entry's gradient as summing each entry
+    alone does, bit for bit, in every environment's model at a random theta; in the navigation
+    environments, where the moved entries are moves to a neighbouring cell, runs hold most of
+    them."""
+    import dataclasses
+
+    env = domains.make(name)
+    rng = np.random.default_rng(35)
+    theta = env.model.initial_parameters() + rng.normal(size=env.model.num_parameters)
+    rewards = rng.normal(size=(len(env.tasks), env.num_states))
+    d_q = rng.normal(size=(len(env.tasks), env.num_states, env.num_actions))
+    op = TransitionOperator.of_model(env.model, theta)
+    layout = op._layout
+    assert layout is not None
+    in_runs = soft_plan(op, rewards, 1.0, env.horizon, precision=precision).backward(d_q)
+    op._layout = dataclasses.replace(layout, entry_runs=planning.NO_RUNS)
+    alone = soft_plan(op, rewards, 1.0, env.horizon, precision=precision).backward(d_q)
+    for a, b in zip(in_runs, alone, strict=True):
+        np.testing.assert_array_equal(a, b)
+    summed_in_runs = np.count_nonzero(layout.entry_slots >= 0)
+    if name in ("wall", "doorway", "two-rooms", "three-rooms"):
+        assert summed_in_runs > layout.entry_slots.shape[0] / 2
+    assert np.any(alone[1] != 0.0)
 
 
 @pytest.mark.parametrize("value", [0, -1, 1.5, "two", True, None])

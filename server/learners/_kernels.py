@@ -586,8 +586,8 @@ def _soft_forward(
                             rows[row + j] = multiply_add(
                                 shifted_flat[cell + j], previous[source + j], rows[row + j]
                             )
-                    # Unsigned here too: with the tests for negative indices, these gathers
-                    # took a third of flip's pass (each index lies in its array).
+                    # Unsigned here too (each index lies in its array): with the tests for
+                    # negative indices, flip's pass took a tenth longer.
                     for e in range(np.uint64(flat_start[level]), np.uint64(flat_start[level + 1])):
                         i = np.uint64(flat_rows[e])
                         rows[i] = multiply_add(
@@ -792,7 +792,7 @@ def soft_backward_tasks(
     d_q: np.ndarray,
     horizon: int,
     gradient_entries: np.ndarray,
-    sum_groups: np.ndarray,
+    entry_runs: np.ndarray,
     entry_slots: np.ndarray,
     d_reward: np.ndarray,
     d_probs: np.ndarray,
@@ -827,7 +827,7 @@ def soft_backward_tasks(
             dense_sources, dense_probabilities, targets, sources, probabilities, scatter, shifts,
             shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
             flat_start, next_flat,
-            width, values, jacobians, d_q, horizon, gradient_entries, sum_groups, entry_slots,
+            width, values, jacobians, d_q, horizon, gradient_entries, entry_runs, entry_slots,
             d_reward, d_probs, chunk_terms, chunk_sums, first, last, FIVE_ACTIONS,
         )  # fmt: skip
     else:
@@ -835,7 +835,7 @@ def soft_backward_tasks(
             dense_sources, dense_probabilities, targets, sources, probabilities, scatter, shifts,
             shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
             flat_start, next_flat,
-            width, values, jacobians, d_q, horizon, gradient_entries, sum_groups, entry_slots,
+            width, values, jacobians, d_q, horizon, gradient_entries, entry_runs, entry_slots,
             d_reward, d_probs, chunk_terms, chunk_sums, first, last, num_actions,
         )  # fmt: skip
 
@@ -862,7 +862,7 @@ def _soft_backward(
     d_q: np.ndarray,
     horizon: int,
     gradient_entries: np.ndarray,
-    sum_groups: np.ndarray,
+    entry_runs: np.ndarray,
     entry_slots: np.ndarray,
     d_reward: np.ndarray,
     d_probs: np.ndarray,
@@ -891,16 +891,16 @@ def _soft_backward(
         not (keep_terms or by_task),
     )
     dtype = d_q.dtype  # float64, or float32 passes
-    # Entries in runs of states (``sum_groups``: one action and offset, states lo .. hi - 1,
-    # their sums from ``at`` on) are summed side by side in ``run_sums``, a SIMD loop over the
-    # run's states per backup instead of two gathers per entry; each entry's sum takes the same
-    # terms in the same order, so the same bits. The others, and every entry when terms are
-    # kept, as before.
-    in_runs = sum_groups.shape[0] > 0 and not (keep_terms or by_task)
+    # Entries in runs of states (``entry_runs``: one action and offset, states lo .. hi - 1,
+    # their sums from ``at`` on, see ``planning._entry_runs``) are summed side by side in
+    # ``run_sums``, a SIMD loop over the run's states per backup instead of two gathers per
+    # entry; each entry's sum takes the same terms in the same order, so the same bits. The
+    # others, and every entry when terms are kept, as before.
+    in_runs = entry_runs.shape[0] > 0 and not (keep_terms or by_task)
     run_size = 0
     if in_runs:
-        for r in range(sum_groups.shape[0]):
-            run_size += sum_groups[r, 3] - sum_groups[r, 2]
+        for r in range(entry_runs.shape[0]):
+            run_size += entry_runs[r, 3] - entry_runs[r, 2]
     run_sums = np.zeros(run_size, dtype)
     alone = np.empty(num_entries if in_runs else 0, dtype=np.int64)
     num_alone = 0
@@ -940,16 +940,16 @@ def _soft_backward(
                     for e in range(num_entries):
                         kept[e] = g[np.uint64(entry_rows[e])] * v[np.uint64(entry_next[e])]
                 elif in_runs:
-                    for r in range(sum_groups.shape[0]):
+                    for r in range(entry_runs.shape[0]):
                         a, d, lo, hi = (
-                            sum_groups[r, 0],
-                            sum_groups[r, 1],
-                            sum_groups[r, 2],
-                            sum_groups[r, 3],
+                            entry_runs[r, 0],
+                            entry_runs[r, 1],
+                            entry_runs[r, 2],
+                            entry_runs[r, 3],
                         )
                         row = np.uint64(a * num_states + lo)
                         source = np.uint64(lo + d)
-                        at = np.uint64(sum_groups[r, 4])
+                        at = np.uint64(entry_runs[r, 4])
                         for j in range(np.uint64(hi - lo)):
                             run_sums[at + j] += g[row + j] * v[source + j]
                     for i in range(num_alone):
@@ -1184,7 +1184,7 @@ def soft_backward_chunks(
     d_q: np.ndarray,
     horizon: int,
     gradient_entries: np.ndarray,
-    sum_groups: np.ndarray,
+    entry_runs: np.ndarray,
     entry_slots: np.ndarray,
     d_reward: np.ndarray,
     d_probs: np.ndarray,
@@ -1200,6 +1200,6 @@ def soft_backward_chunks(
             dense_sources, dense_probabilities, targets, sources, probabilities, scatter, shifts,
             shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
             flat_start, next_flat,
-            width, values, jacobians, d_q, horizon, gradient_entries, sum_groups, entry_slots,
+            width, values, jacobians, d_q, horizon, gradient_entries, entry_runs, entry_slots,
             d_reward, d_probs, terms, kept_from, task_sums, firsts[c], lasts[c],
         )  # fmt: skip

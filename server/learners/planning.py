@@ -266,7 +266,9 @@ class _PassLayout:
             return numbers.astype(np.int64) - 1
 
         distinct = operator._sort_out_entries()
-        runs, slots = _entry_runs(shifts, entry(shifted), distinct[1], operator.num_states)
+        runs, slots = _entry_runs(
+            shifts, entry(shifted), distinct[1], operator.num_states, operator.probs_flat.size
+        )
         return cls(
             nonzero.copy(),
             distinct,
@@ -310,7 +312,11 @@ class _PassLayout:
 
 
 def _entry_runs(
-    shifts: np.ndarray, shifted_source: np.ndarray, entries: np.ndarray, num_states: int
+    shifts: np.ndarray,
+    shifted_source: np.ndarray,
+    entries: np.ndarray,
+    num_states: int,
+    table_size: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Runs of the gradient ``entries`` that lie in one shifted row (one action, one offset):
     ``(a, d, lo, hi, at)``, the entries of states lo .. hi - 1 summed side by side from place
@@ -319,12 +325,11 @@ def _entry_runs(
     where its entries are at least a quarter of its states (a gathered entry costs a few
     times a state's share of the loop). Navigation's moved entries all lie in runs (doorway:
     880 in 8 runs); gravity's and farming's are too scattered (flip: 30 of 480 in a shifted row)."""
-    place = np.full(int(shifted_source.max(initial=-1)) + 1, -1, dtype=np.int64)
+    # Each table entry's place in the shifted rows (row * S + state), -1 outside them.
+    place = np.full(table_size, -1, dtype=np.int64)
     groups, states = np.nonzero(shifted_source >= 0)
     place[shifted_source[groups, states]] = groups * num_states + states
-    placed = np.full(entries.shape[0], -1, dtype=np.int64)
-    inside = entries < place.shape[0]
-    placed[inside] = place[entries[inside]]
+    placed = place[entries]
     slots = np.full(entries.shape[0], -1, dtype=np.int64)
     runs = []
     at = 0

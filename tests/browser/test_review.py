@@ -126,8 +126,11 @@ def test_each_form_s_error_is_by_its_own_buttons(page: Page, server: LiveServer)
     detail.locator('[data-action="bonus"]').click()
     bonus_error = detail.locator(".bonus .form-error")
     expect(bonus_error).to_have_text("A bonus needs an amount and a reason.")
+    # Both boxes measured now: boxes are relative to the viewport, and the click may have
+    # scrolled the page since the button was measured above.
     bonus_box = bonus_error.bounding_box()
-    assert bonus_box and bonus_box["y"] > pay_box["y"]
+    pay_box = detail.locator('[data-action="bonus"]').bounding_box()
+    assert bonus_box and pay_box and bonus_box["y"] > pay_box["y"]
 
 
 def test_times_are_written_one_way_with_their_zone(browser: Browser, server: LiveServer) -> None:

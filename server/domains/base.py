@@ -161,6 +161,7 @@ class TransitionModel:
         self.flat_parametric_entries = np.flatnonzero(self._parametric.reshape(-1))
         self._last_probabilities: tuple[bytes, np.ndarray] | None = None
         self._last_primitives: tuple[bytes, np.ndarray] | None = None
+        self._last_finite = b""  # the bytes of the last theta ``check_parameters`` passed
         self._restrictions: dict[bytes, TransitionModel] = {}
         # Whose kept primitives this model uses: a restricted model shares its model's.
         self._primitives_owner: TransitionModel = self
@@ -246,7 +247,14 @@ class TransitionModel:
 
     def check_parameters(self, theta: np.ndarray) -> np.ndarray:
         theta = check_shape("dynamics parameters", theta, (self.num_parameters,))
-        return check_finite("dynamics parameters", theta)
+        theta = np.asarray(theta, dtype=np.float64)
+        # A learner's step asks for one theta three times (its likelihood, its table, the
+        # pull-back): the last theta found finite is known by its bytes.
+        key = theta.tobytes()
+        if key != self._primitives_owner._last_finite:
+            check_finite("dynamics parameters", theta)
+            self._primitives_owner._last_finite = key
+        return theta
 
     def probabilities(self, theta: np.ndarray) -> np.ndarray:
         """The (S, A, M) table's probabilities at ``theta`` (a new array each call).
@@ -395,7 +403,7 @@ class TransitionModel:
             observed.entry_rows, weights=entry_probability, minlength=count
         )
         rounded = row_probability <= 0.0
-        if np.any(rounded):
+        if rounded.any():
             # A row the model space can give some probability (an entry theta moves, or a
             # fixed one above 0) that rounds to 0 at this theta: a saturated logit, p within
             # 2^-53 of 1, leaves 1 - p = 0 (farming's logits reach +-50). It counts as the

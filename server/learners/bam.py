@@ -64,8 +64,10 @@ class BAM(PlannerLearner):
                 for _ in range(int(self.settings["cost_steps"])):
                     self.cost_step(operator, data)
                     steps += 1
+            # The dynamics steps leave the costs as they are, and their prior with them.
+            cost_prior, _ = self.cost_prior(self.costs)
             for _ in range(int(self.settings["dynamics_steps"])):
-                objective = self._dynamics_step(data, observed)
+                objective = self._dynamics_step(data, observed, cost_prior)
                 steps += 1
         return objective, steps
 
@@ -96,8 +98,11 @@ class BAM(PlannerLearner):
         self.set_cost_vector(data, best[num_theta:])
         return value, used
 
-    def _dynamics_step(self, data: TeacherData, observed: ObservedTransitions) -> float:
-        """One momentum step on theta for the whole of equation (5); returns it before."""
+    def _dynamics_step(
+        self, data: TeacherData, observed: ObservedTransitions, cost_prior: float
+    ) -> float:
+        """One momentum step on theta for the whole of equation (5), whose costs' prior is
+        ``cost_prior``; returns the objective before the step."""
         value, grad = self.transition_objective(self.theta, observed, exact=False)
         if not data.empty:
             teacher, _, d_transitions = self.teacher_objective(
@@ -106,6 +111,5 @@ class BAM(PlannerLearner):
             assert d_transitions is not None
             value += teacher
             grad = grad + self.pullback(data, d_transitions, exact=False)
-        cost_prior, _ = self.cost_prior(self.costs)
         self.theta_step(grad)
         return value + cost_prior

@@ -205,7 +205,7 @@ def data_log_likelihood(
     )
     _refuse(bad, q.shape)
     # Summed by NumPy, as before this was compiled: the same value to the last bit.
-    value = float(demo_values.sum()) + float(step_values.sum())
+    value = float(demo_values.sum()) + (float(step_values.sum()) if step_values.shape[0] else 0.0)
     if not math.isfinite(value):
         raise FloatingPointError("the teacher data's log-likelihood is not finite (Q is not)")
     if not step_tasks.shape[0]:

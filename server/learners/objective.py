@@ -17,7 +17,12 @@ from server.learners.likelihoods import (
     FeedbackModel,
     data_log_likelihood,
 )
-from server.learners.planning import TransitionOperator, soft_plan
+from server.learners.planning import (
+    PRECISIONS,
+    TransitionOperator,
+    check_horizon,
+    checked_soft_plan,
+)
 
 # Settings every learner shares (the paper's authors' reference settings).
 COMMON_SETTINGS: dict[str, Any] = {
@@ -259,20 +264,21 @@ def planned_teacher_log_likelihood(
     ``rewards`` is (tasks with data, S). Returns the value, dL/drewards and, if asked, dL/dT on
     the operator's sparse entries (S, A, M).
     """
-    plan = soft_plan(
+    # The rewards come from the learner's costs, finite and bounded (a step refuses a gradient
+    # that is not finite; a state's costs are checked as it loads); the likelihood refuses a Q
+    # that is not finite, so its dL/dQ is. The action model checks beta.
+    actions = action_model(settings)
+    plan = checked_soft_plan(
         operator,
         rewards,
-        float(settings["beta"]),
-        horizon,
-        precision=settings["planner_precision"],
+        actions.beta,
+        check_horizon(horizon),
+        dtype=PRECISIONS[settings["planner_precision"]],
     )
     value, d_q = teacher_log_likelihood(
-        plan.q_all.astype(np.float64, copy=False),
-        data,
-        action_model(settings),
-        feedback_model(settings),
+        plan.q_all.astype(np.float64, copy=False), data, actions, feedback_model(settings)
     )
-    d_rewards, d_transitions = plan.backward(d_q, need_transitions=need_transitions)
+    d_rewards, d_transitions = plan.checked_backward(d_q, need_transitions=need_transitions)
     return value, d_rewards, d_transitions
 
 

@@ -27,7 +27,7 @@ import math
 import os
 import threading
 import weakref
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -86,15 +86,17 @@ def planner_threads() -> int:
     return _threads
 
 
-def task_chunks(num_tasks: int) -> list[tuple[int, int]]:
+def task_chunks(num_tasks: int) -> tuple[tuple[int, int], ...]:
     """``num_tasks`` split into at most ``planner_threads()`` contiguous (first, last) runs."""
-    return even_chunks(num_tasks, planner_threads())
+    return even_chunks(num_tasks, _threads)
 
 
-def even_chunks(count: int, parts: int) -> list[tuple[int, int]]:
-    """``range(count)`` split into at most ``parts`` contiguous (first, last) runs."""
+@functools.lru_cache(maxsize=256)
+def even_chunks(count: int, parts: int) -> tuple[tuple[int, int], ...]:
+    """``range(count)`` split into at most ``parts`` contiguous (first, last) runs (kept: a
+    learner's update splits the same tasks before each of its hundreds of passes)."""
     parts = max(1, min(parts, count))
-    return [(i * count // parts, (i + 1) * count // parts) for i in range(parts)]
+    return tuple((i * count // parts, (i + 1) * count // parts) for i in range(parts))
 
 
 # Chunks run on numba's OpenMP threads where that layer loads (GNU libgomp), else on a Python
@@ -136,7 +138,7 @@ os.register_at_fork(after_in_child=_forked)
 
 
 def run_pass(
-    chunks: list[tuple[int, int]],
+    chunks: Sequence[tuple[int, int]],
     kernel: Callable[..., None],
     kernel_chunks: Callable[..., None],
     arguments: tuple[Any, ...],
@@ -171,7 +173,7 @@ def _bounds(chunks: tuple[tuple[int, int], ...]) -> tuple[np.ndarray, np.ndarray
     return firsts, lasts, min(len(chunks), config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]
 
 
-def run_chunks(work: Callable[[int, int], None], chunks: list[tuple[int, int]]) -> None:
+def run_chunks(work: Callable[[int, int], None], chunks: Sequence[tuple[int, int]]) -> None:
     """``work(first, last)`` for every chunk: the first in this thread, the others in the
     pool's, all finished (and their errors raised) on return."""
     if len(chunks) == 1:
@@ -208,7 +210,10 @@ def scratch(name: str, shape: tuple[int, ...], dtype: type = np.float64) -> np.n
     return buffer[:size].reshape(shape)
 
 
-NO_TERMS = np.empty((0, 0, 0))
+# The padding's probability in the passes' layouts (their source -1), in each precision.
+ZERO = {dtype: np.zeros(1, dtype) for dtype in (np.float64, np.float32)}
+# No kept terms, in each pass precision.
+NO_TERMS = {dtype: np.empty((0, 0, 0), dtype) for dtype in (np.float64, np.float32)}
 NO_ENTRIES = np.empty(0, dtype=np.int64)
 NO_RUNS = np.empty((0, 5), dtype=np.int64)
 
@@ -289,7 +294,8 @@ class _PassLayout:
         )
 
     def rows(self, probs_flat: np.ndarray) -> ForwardRows:
-        padded = np.append(probs_flat, 0.0)  # source -1: a shifted row's probability 0
+        # Source -1: a shifted row's probability 0 (in the table's own precision).
+        padded = np.concatenate((probs_flat, ZERO[probs_flat.dtype.type]))
         return (
             self.shifts,
             padded[self.shifted_source],
@@ -301,7 +307,7 @@ class _PassLayout:
         )
 
     def incoming(self, probs_flat: np.ndarray) -> IncomingEntries:
-        padded = np.append(probs_flat, 0.0)  # source -1: the padding's probability 0
+        padded = np.concatenate((probs_flat, ZERO[np.float64]))  # source -1: padding's 0
         return (
             self.dense_rows,
             padded[self.dense_source],
@@ -451,7 +457,7 @@ class TransitionOperator:
         # sorted out once per pattern of zeros of the entries theta moves.
         nonzero = operator.probs_flat[model.flat_parametric_entries] != 0.0
         layout = _model_layouts.get(model)
-        if layout is None or not np.array_equal(layout.nonzero, nonzero):
+        if layout is None or not (layout.nonzero == nonzero).all():
             layout = _PassLayout.of(operator, nonzero)
             _model_layouts[model] = layout
         operator._layout = layout
@@ -529,7 +535,12 @@ class TransitionOperator:
         if _check_pass_dtype(dtype) == np.float64:
             return self.rows
         if self._single_rows is None:
-            self._single_rows = _in_float32(self.rows)
+            if self._layout is not None and self._rows is None:
+                # Gathered from the table rounded once (a learner's dynamics step plans on a
+                # new table): the same numbers as the float64 rows rounded.
+                self._single_rows = self._layout.rows(self.probs_flat.astype(np.float32))
+            else:
+                self._single_rows = _in_float32(self.rows)
         return self._single_rows
 
     def incoming_in(self, dtype: type) -> IncomingEntries:
@@ -612,16 +623,26 @@ class SoftPlan:
         (dense (S, A, S) or the sparse (S, A, M) probabilities); ``need_transitions=False``
         skips it (a cost-only step).
         """
-        op = self.operator
-        dtype = self.q_all.dtype.type  # the forward pass's precision
         d_q = np.asarray(d_q, dtype=np.float64)
         expected = self.q.shape
         if d_q.shape != expected:
             raise ValueError(f"dL/dQ must have shape {expected}, got {d_q.shape}")
         check_finite("dL/dQ", d_q)
-        g_q = d_q[None] if self.single_task else d_q
+        d_reward, d_transitions = self.checked_backward(
+            d_q[None] if self.single_task else d_q, need_transitions=need_transitions
+        )
+        return (d_reward[0] if self.single_task else d_reward), d_transitions
+
+    def checked_backward(
+        self, g_q: np.ndarray, *, need_transitions: bool = True
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """``backward`` of a checked dL/dQ of every task, (tasks, S, A) in float64 (a learner's
+        from its teacher data's likelihood, which refuses Q that is not finite), from a plan
+        that kept its trace; dL/dreward is (tasks, S)."""
         if not self.has_trace:
             raise ValueError("this plan was computed without keep_trace; it has no reverse pass")
+        op = self.operator
+        dtype = self.q_all.dtype.type  # the forward pass's precision
         num_tasks = g_q.shape[0]
         runs, slots = NO_RUNS, NO_ENTRIES
         if need_transitions:
@@ -648,7 +669,7 @@ class SoftPlan:
         task_sums = (
             scratch("task sums", (num_tasks, 1, entries.shape[0]), dtype)
             if by_task
-            else NO_TERMS.astype(dtype)
+            else NO_TERMS[dtype]
         )
         g_q = np.ascontiguousarray(g_q, dtype)
         scatter = dtype == np.float32
@@ -686,8 +707,6 @@ class SoftPlan:
         if dtype != np.float64:
             d_reward = d_reward.astype(np.float64)
             d_probs = d_probs.astype(np.float64)
-        if self.single_task:
-            d_reward = d_reward[0]
         if not need_transitions:
             return d_reward, None
         # Dense input: width == S and the entries are T itself, so this is dL/dT.
@@ -739,7 +758,27 @@ def soft_plan(
         )
     if not np.isfinite(beta) or beta <= 0:
         raise ValueError(f"beta must be a positive finite number, got {beta!r}")
-    horizon = check_horizon(horizon)
+    plan = checked_soft_plan(
+        operator, rewards, float(beta), check_horizon(horizon), keep_trace=keep_trace, dtype=dtype
+    )
+    plan.single_task = single_task
+    return plan
+
+
+def checked_soft_plan(
+    operator: TransitionOperator,
+    rewards: np.ndarray,
+    beta: float,
+    horizon: int,
+    *,
+    keep_trace: bool = True,
+    dtype: type = np.float64,
+) -> SoftPlan:
+    """``soft_plan`` of arguments checked where they were made: ``rewards`` (tasks, S) finite,
+    beta positive and finite, the horizon a positive int, ``dtype`` one of the ``PRECISIONS``.
+    A learner plans hundreds of times an update on rewards from its own bounded costs: they
+    are checked where they are made, not around each pass (in wall, whose pass takes tens of
+    microseconds, the checks were a share of the update that shows)."""
     num_tasks = rewards.shape[0]
     q: np.ndarray = np.empty((num_tasks, operator.num_states, operator.num_actions), dtype)
     # V_horizon and its Jacobian are never used (Q_horizon is the output).
@@ -760,11 +799,11 @@ def soft_plan(
     return SoftPlan(
         q_all=q,
         operator=operator,
-        beta=float(beta),
+        beta=beta,
         horizon=horizon,
         values=values,
         jacobians_by_action=jacobians,
-        single_task=single_task,
+        single_task=False,
         has_trace=bool(keep_trace),
     )
 
@@ -787,6 +826,8 @@ def soft_value_iteration_backward(
 
 def check_horizon(horizon: object) -> int:
     """A positive whole number of backups (rejects NaN, infinity, fractions and bools)."""
+    if type(horizon) is int and horizon >= 1:  # the usual case, answered at once
+        return horizon
     if isinstance(horizon, bool) or not isinstance(horizon, int | float | np.integer | np.floating):
         raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
     if not np.isfinite(horizon) or int(horizon) != horizon or horizon < 1:

@@ -118,6 +118,19 @@ def test_bad_parameters(name: str) -> None:
         ):
             with pytest.raises(ValueError, match="NaN or infinite"):
                 call(theta)
+    # The model knows the last theta it found finite (a learner's step checks one theta three
+    # times): a theta changed in place after passing, or a restricted model's, is checked again.
+    theta = good.copy()
+    model.probabilities(theta)
+    theta[0] = np.nan
+    for call in (
+        lambda t: model.probabilities(t),
+        lambda t: model.pullback(t, weights),
+        lambda t: model.transition_log_likelihood(t, observed),
+        lambda t: model.restricted(np.arange(env.num_states)).probabilities(t),
+    ):
+        with pytest.raises(ValueError, match="NaN or infinite"):
+            call(theta)
     for theta in (good[:-1], np.append(good, 0.0), good.reshape(1, -1), np.asarray(0.0)):
         with pytest.raises(ValueError, match="shape"):
             model.probabilities(theta)

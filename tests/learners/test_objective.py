@@ -265,3 +265,18 @@ def test_data_that_reaches_nearly_every_state_plans_over_all_of_them() -> None:
     reached = env.model.reachable(np.concatenate([data.demo_states, data.step_states]))
     assert RESTRICT_BELOW * env.num_states < len(reached) < env.num_states
     assert data.restricted(env.model) is data
+
+
+@pytest.mark.parametrize("optimizer", ["momentum", "lbfgs"])
+@pytest.mark.parametrize("name", PLANNER_LEARNERS)
+def test_an_update_from_costs_that_are_not_finite_stops_with_an_error(
+    name: str, optimizer: str
+) -> None:
+    # A learner's steps plan on its costs without checking them again (they are checked where
+    # they are made): a NaN that got in anyway still stops the update.
+    env = domains.make("wall")
+    learner = learners.make(name, env, seed=0, optimizer=optimizer)
+    teach(learner, seed=0)
+    learner.costs[0, int(np.flatnonzero(env.cost_cells)[0])] = np.nan
+    with pytest.raises(FloatingPointError, match="not finite"):
+        learner.update()

@@ -59,7 +59,8 @@ class Settings(BaseSettings):
         ge=1,
         le=64,
         description="Planner threads for learner updates (one per task at most): an update "
-        "running alone uses them all, updates running together share them. Default: the number "
+        "running alone, with none waiting for a process, uses them all; updates running together, "
+        "or one with others waiting, share them. Default: the number "
         "of cores.",
     )
     update_scheduler: str = Field(

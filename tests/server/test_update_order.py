@@ -339,12 +339,14 @@ class HeldPool(Executor):
 
     def __init__(self) -> None:
         self.jobs: list[tuple[int, Future[Any]]] = []  # (session, its future), as submitted
+        self.threads: list[int] = []  # the planner threads each job was given
         self.submitted = threading.Condition()
 
     def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> Future[Any]:
         future: Future[Any] = Future()
         with self.submitted:
             self.jobs.append((args[0]["session"], future))
+            self.threads.append(args[0]["threads"])
             self.submitted.notify_all()
         return future
 
@@ -386,6 +388,72 @@ def test_a_freed_update_process_takes_the_next_prepared_update_while_the_event_l
     assert all(seconds >= 0 for _, _, seconds in outcomes)
 
 
+@pytest.mark.parametrize(
+    ("queued", "threads"),
+    [(0, [2, 1]), (1, [1, 1])],
+    ids=["nothing-queued", "a-session-queued"],
+)
+def test_an_update_has_the_spare_cores_only_while_no_other_update_waits(
+    monkeypatch: pytest.MonkeyPatch, queued: int, threads: list[int]
+) -> None:
+    """Two update processes on two cores, two planner threads: an update that starts alone
+    takes both, unless another update waits for a slot (it would take the other core within
+    moments, and the first one's spare thread would spin against it); the next update, with
+    the first still running, takes its share, one."""
+    from server.app.updates import runners
+
+    monkeypatch.setattr(runners, "available_cores", lambda: 2)
+    pool = HeldPool()
+    runner = runners.LocalUpdates(
+        workers=2, niceness=0, threads=2, executor=pool, queued=lambda: queued
+    )
+
+    async def scenario() -> None:
+        gate = ProcessGate(2, lambda session_id: (1, 0.0))
+        first = asyncio.ensure_future(runner.run({"session": 1}, "a", gate, 1))
+        while len(pool.jobs) < 1:
+            await asyncio.sleep(0)
+        second = asyncio.ensure_future(runner.run({"session": 2}, "b", gate, 2))
+        while len(pool.jobs) < 2:
+            await asyncio.sleep(0)
+        for _, future in pool.jobs:
+            future.set_result({"done": True})
+        await asyncio.gather(first, second)
+
+    run_apart(scenario)
+    assert pool.threads == threads
+
+
+def test_an_update_handed_a_process_while_another_waits_for_one_takes_its_share(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Two prepared updates wait for the gate's processes; when one frees, the update it goes
+    to plans on one thread, not both: the other prepared update takes the next process."""
+    from server.app.updates import runners
+
+    monkeypatch.setattr(runners, "available_cores", lambda: 2)
+    pool = HeldPool()
+    runner = runners.LocalUpdates(workers=2, niceness=0, threads=2, executor=pool)
+
+    async def scenario() -> None:
+        gate = ProcessGate(0, lambda session_id: (1, float(session_id)))
+        runs = [asyncio.ensure_future(runner.run({"session": s}, str(s), gate, s)) for s in (1, 2)]
+        while gate.waiting < 2:
+            await asyncio.sleep(0)
+        gate.resize(1)  # one process frees: session 1's update takes it, session 2's waits
+        while len(pool.jobs) < 1:
+            await asyncio.sleep(0)
+        pool.jobs[0][1].set_result({"done": True})  # its process goes to session 2's
+        while len(pool.jobs) < 2:
+            await asyncio.sleep(0)
+        pool.jobs[1][1].set_result({"done": True})
+        await asyncio.gather(*runs)
+
+    run_apart(scenario)
+    assert [session for session, _ in pool.jobs] == [1, 2]
+    assert pool.threads == [1, 2]
+
+
 def test_an_update_whose_process_died_reports_it_and_the_pool_is_replaced(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -420,3 +488,24 @@ def test_an_update_whose_process_died_reports_it_and_the_pool_is_replaced(
     assert isinstance(died, WorkerDied)
     assert runner.executor is fresh
     assert outcome == {"done": 2}
+
+
+def test_the_update_processes_count_the_sessions_queued_for_a_slot() -> None:
+    """The manager's local processes read how many sessions wait for a slot from its queue
+    (the planner threads an update gets depend on it)."""
+    from server.app.updates.manager import UpdateManager
+    from server.app.updates.policies import PolicyCache
+    from server.app.updates.runners import LocalUpdates
+
+    db: Database = None  # type: ignore[assignment]
+    manager = UpdateManager(db, PolicyCache(), lambda name: {}, workers=2)
+    runner = manager.runner
+    assert isinstance(runner, LocalUpdates)
+
+    async def scenario() -> tuple[int, int]:
+        manager.order.start()
+        before = runner.queued()
+        manager.order.enqueue_many([4, 7, 4])
+        return before, runner.queued()
+
+    assert run_apart(scenario) == (0, 2)

@@ -3,8 +3,9 @@
 An episode end commits its events and a pending ``learner_updates`` row, then hands the session
 to the ``UpdateManager``. The manager runs each session's pending updates in order, one at a time
 per session, in a pool of processes (``BAM_UPDATE_WORKERS``, at a lower CPU priority than the
-server so that moves stay fast; an update running alone splits its planner's tasks over
-``BAM_UPDATE_THREADS`` threads, updates side by side share them): the worker restores the
+server so that moves stay fast; an update running alone, with none waiting for a process,
+splits its planner's tasks over ``BAM_UPDATE_THREADS`` threads, updates side by side share
+them): the worker restores the
 learner from the latest saved state (or builds a new one), replays the events since, updates
 it, stores its greedy policies and scores them (exact normalised return). The server then
 commits the new learner state with the evaluation, and an agent step waiting for that
@@ -108,7 +109,7 @@ class UpdateManager:
         self.runner: Runner = (
             ClusterUpdates(cluster, workers, self._resize)
             if cluster is not None
-            else LocalUpdates(workers, niceness, threads, executor)
+            else LocalUpdates(workers, niceness, threads, executor, lambda: self.order.queued)
         )
         self._capacity = workers  # updates run at once: the slots
         # Updates under way: running on a slot, or read from the database and waiting for one,

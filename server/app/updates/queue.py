@@ -199,6 +199,12 @@ class UpdateQueue:
         self._wake.set()
 
     @property
+    def queued(self) -> int:
+        """Sessions waiting for a slot (read from any thread: the process pool's hands out
+        planner threads by it)."""
+        return len(self._ready)
+
+    @property
     def backlog(self) -> int:
         """Sessions waiting for a slot or being updated."""
         return len(self._ready) + len(self._running)

@@ -104,31 +104,44 @@ def test_an_unknown_precision_is_refused() -> None:
         make("bam", env, planner_precision="half")
 
 
+SEEDS = range(6)
+
+
 @pytest.mark.parametrize("learner", ["bam", "model-based"])
 def test_a_float32_update_reaches_the_float64_update_s_objective(learner: str) -> None:
     """One update from the same data: not the same parameters (400 clipped momentum steps
     of a non-convex fit carry float32's rounding into every later step), but as good a fit:
-    the objective (equation (5), in float64 passes) at the parameters each reaches within 5%
-    of the other's (doorway: BAM -69.11 against -68.90, model-based IRL -72.93 against
-    -73.99). Not the value the update reports, that of its last step before the step, which
-    for model-based IRL adds the dynamics fit's last value to it."""
+    the objective (equation (5), in float64 passes) at the parameters each reaches, over six
+    teachers' data, no worse with float32 passes by more than 4% on average, nor by more than
+    10% for any one. One teacher's pair differs by up to 6% either way, and by machine, the
+    fits' last bits following the CPU's exp and log (doorway, seed 0, BAM, on an AVX-512 AMD
+    EPYC: the float64 fit -73.03, the float32 fit -69.11, 5.4% better). There, seeds 0-5: BAM
+    +0.9% on average, model-based IRL -1.6%, the worst -6.2%.
+    Not the value the update reports, that of its last step before the step, which for
+    model-based IRL adds the dynamics fit's last value to it."""
     from server.teacher import Teacher
 
     env = domains.make("doorway")
-    learners = {
-        precision: make(learner, env, seed=0, planner_precision=precision)
-        for precision in ("float64", "float32")
-    }
-    teacher = Teacher(env, seed=0)
-    rng = np.random.default_rng(0)
-    for _ in range(2):
-        for task in range(len(env.tasks)):
-            for step in teacher.demonstration(task, env.sample_start(task, rng)):
-                for each in learners.values():
-                    each.record_demonstration(task, *step)
-    for each in learners.values():
-        each.update()
-    assert not np.array_equal(learners["float32"].costs, learners["float64"].costs)
-    learners["float32"].settings["planner_precision"] = "float64"
-    reference, single = (learners[precision].objective()[0] for precision in ("float64", "float32"))
-    assert abs(single - reference) < 0.05 * abs(reference)
+    relative = []
+    for seed in SEEDS:
+        learners = {
+            precision: make(learner, env, seed=seed, planner_precision=precision)
+            for precision in ("float64", "float32")
+        }
+        teacher = Teacher(env, seed=seed)
+        rng = np.random.default_rng(seed)
+        for _ in range(2):
+            for task in range(len(env.tasks)):
+                for step in teacher.demonstration(task, env.sample_start(task, rng)):
+                    for each in learners.values():
+                        each.record_demonstration(task, *step)
+        for each in learners.values():
+            each.update()
+        assert not np.array_equal(learners["float32"].costs, learners["float64"].costs)
+        learners["float32"].settings["planner_precision"] = "float64"
+        reference, single = (
+            learners[precision].objective()[0] for precision in ("float64", "float32")
+        )
+        relative.append((single - reference) / abs(reference))
+    assert np.mean(relative) > -0.04, relative
+    assert min(relative) > -0.10, relative

@@ -60,8 +60,7 @@ class Settings(BaseSettings):
         le=64,
         description="Planner threads for learner updates (one per task at most): an update "
         "running alone, with none waiting for a process, uses them all; updates running together, "
-        "or one with others waiting, share them. Default: the number "
-        "of cores.",
+        "or one with others waiting, share them. Default: the number of cores.",
     )
     update_scheduler: str = Field(
         "",

@@ -116,10 +116,11 @@ def test_a_float32_update_reaches_the_float64_update_s_objective(learner: str) -
     10% for any one. One teacher's pair differs by up to 6% either way, and by machine, the
     fits' last bits following the CPU's exp and log (doorway, seed 0, BAM, on an AVX-512 AMD
     EPYC: the float64 fit -73.03, the float32 fit -69.11, 5.4% better). There, seeds 0-5: BAM
-    +0.9% on average, model-based IRL -1.6%, the worst -6.2%.
-    Not the value the update reports, that of its last step before the step, which for
-    model-based IRL adds the dynamics fit's last value to it."""
+    +0.9% on average, model-based IRL -1.6%, the worst -6.2%. Not the value the update
+    reports, that of its last step before the step, which for model-based IRL adds the
+    dynamics fit's last value to it."""
     from server.teacher import Teacher
+    from tests.learners._support import demonstrate_round
 
     env = domains.make("doorway")
     relative = []
@@ -131,10 +132,8 @@ def test_a_float32_update_reaches_the_float64_update_s_objective(learner: str) -
         teacher = Teacher(env, seed=seed)
         rng = np.random.default_rng(seed)
         for _ in range(2):
-            for task in range(len(env.tasks)):
-                for step in teacher.demonstration(task, env.sample_start(task, rng)):
-                    for each in learners.values():
-                        each.record_demonstration(task, *step)
+            for row in demonstrate_round(learners["float64"], env, teacher, rng):
+                learners["float32"].record_demonstration(*row)
         for each in learners.values():
             each.update()
         assert not np.array_equal(learners["float32"].costs, learners["float64"].costs)

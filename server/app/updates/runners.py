@@ -143,9 +143,7 @@ class LocalUpdates:
             raise WorkerDied() from None
         return outcome, 0, seconds
 
-    def _submit(
-        self, payload: dict[str, Any], used: list[Executor], waiting: int = 0
-    ) -> Future[Any]:
+    def _submit(self, payload: dict[str, Any], used: list[Executor], waiting: int) -> Future[Any]:
         """``run_update`` submitted to the pool (noted in ``used``), with the planner threads
         its share: the updates in flight, this one included, share them, and every slot's
         update does while ``waiting`` other updates wait for one. An update given the spare

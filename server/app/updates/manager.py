@@ -7,8 +7,8 @@ server so that moves stay fast; an update running alone, with none waiting for a
 splits its planner's tasks over ``BAM_UPDATE_THREADS`` threads, updates side by side share
 them): the worker restores the learner from the latest saved state (or builds a new one),
 replays the events since, updates it, stores its greedy policies and scores them (exact
-normalised return). The server then commits the new learner state with the evaluation, and an agent step waiting for that
-session's update goes on.
+normalised return). The server then commits the new learner state with the evaluation, and an
+agent step waiting for that session's update goes on.
 
 The order minimises what participants wait for. A session's updates are awaited from the moment
 its agent's turn is next (the participant lets the agent try: ``expect``) or an agent step or the

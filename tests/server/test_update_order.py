@@ -509,3 +509,42 @@ def test_the_update_processes_count_the_sessions_queued_for_a_slot() -> None:
         return before, runner.queued()
 
     assert run_apart(scenario) == (0, 2)
+
+
+def test_the_update_processes_count_a_session_being_read_from_the_database_as_waiting() -> None:
+    """A session taken for a slot is read from the database before it claims a process; an
+    update that starts meanwhile would otherwise count no other waiting, take the spare cores,
+    and have the read update take the other core from it within moments. While the read is
+    under way the session counts as waiting, and not once it is read."""
+    from server.app.updates.manager import UpdateManager
+    from server.app.updates.policies import PolicyCache
+    from server.app.updates.runners import LocalUpdates
+
+    db: Database = None  # type: ignore[assignment]
+    manager = UpdateManager(db, PolicyCache(), lambda name: {}, workers=2)
+    runner = manager.runner
+    assert isinstance(runner, LocalUpdates)
+    reading, release = threading.Event(), threading.Event()
+
+    def load(session_id: int) -> None:
+        reading.set()
+        release.wait(BOUND)
+        return None  # nothing pending after all: the session's turn ends here
+
+    manager.store.load = load  # type: ignore[method-assign]
+
+    async def scenario() -> tuple[int, int, int]:
+        manager.order.start()
+        manager._slots = asyncio.Semaphore(4)
+        await manager._slots.acquire()  # as the dispatcher does before it takes a session
+        manager.order.enqueue_many([9])
+        session_id = await manager.order.take()
+        before = runner.queued()
+        processing = asyncio.ensure_future(manager._process(session_id))
+        assert await asyncio.to_thread(reading.wait, BOUND)
+        during = runner.queued()
+        release.set()
+        await processing
+        return before, during, runner.queued()
+
+    assert run_apart(scenario) == (0, 1, 0)

@@ -108,9 +108,12 @@ class UpdateManager:
         self.runner: Runner = (
             ClusterUpdates(cluster, workers, self._resize)
             if cluster is not None
-            else LocalUpdates(workers, niceness, threads, executor, lambda: self.order.queued)
+            else LocalUpdates(workers, niceness, threads, executor, self._waiting_for_a_slot)
         )
         self._capacity = workers  # updates run at once: the slots
+        # Sessions whose next update is being read from the database: it claims a process
+        # the moment it is read (read from the process pool's thread too, an int).
+        self._reading = 0
         # Updates under way: running on a slot, or read from the database and waiting for one,
         # or being stored (PREPARED_PER_SLOT per slot beyond the running one).
         self._slots: asyncio.Semaphore | None = None
@@ -162,6 +165,11 @@ class UpdateManager:
     def queue(self) -> QueueState:
         """What the dashboard shows of the live queue."""
         return self.order.state(self._capacity, self.completed, self.failed)
+
+    def _waiting_for_a_slot(self) -> int:
+        """Sessions whose updates wait for a slot or are being read from the database to
+        take one (an update that starts meanwhile shares the cores with theirs)."""
+        return self.order.queued + self._reading
 
     def submit(self, session_ids: list[int]) -> None:
         """Thread-safe: these sessions have new pending updates."""
@@ -220,7 +228,13 @@ class UpdateManager:
     async def _process(self, session_id: int) -> None:
         more = False
         try:
-            job = await asyncio.to_thread(self.store.load, session_id)
+            self._reading += 1
+            try:
+                job = await asyncio.to_thread(self.store.load, session_id)
+            finally:
+                # No await between here and the gate's claim (``runner.run``): the update
+                # is counted as reading or as waiting for a process, never as neither.
+                self._reading -= 1
             if job is None:
                 return
             try:

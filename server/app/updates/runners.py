@@ -67,7 +67,7 @@ class LocalUpdates:
         self.niceness = niceness
         self.threads = threads
         self.executor = executor
-        self.queued = queued  # sessions whose updates wait for a slot
+        self.queued = queued  # sessions whose updates wait for a slot (or are being read)
         self._own_executor = executor is None
         self._in_flight = 0  # updates submitted to the processes and not yet returned
         self._lock = threading.Lock()  # guards _in_flight: updates start in the pool's thread

@@ -36,14 +36,15 @@ from server.teacher import Teacher
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# Run by each version with its own tree first on sys.path: restore each saved learner, one
-# warm-up update (compilation), then the timed ones.
+# Run by each version with its own tree first on sys.path: restore each saved learner (without
+# the settings that version does not have yet: it does what it did before them), one warm-up
+# update (compilation), then the timed ones.
 TIMER = """
 import json, sys, time
 from pathlib import Path
 import server
 from server import domains
-from server.learners import loads, restore
+from server.learners import learner_class, loads, restore
 if not Path(server.__file__).resolve().is_relative_to(Path.cwd().resolve()):
     sys.exit(f"imported {server.__file__}, not the version in {Path.cwd()}")
 states, repeats = Path(sys.argv[1]), int(sys.argv[2])
@@ -51,6 +52,8 @@ out = {}
 for path in sorted(states.glob("*.npz")):
     env = domains.make(path.stem.split("--")[0])
     state = loads(path.read_bytes())
+    known = learner_class(str(state["learner"])).default_settings
+    state["settings"] = {k: v for k, v in state["settings"].items() if k in known}
     restore(env, state).update()
     seconds = []
     for _ in range(repeats):

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import inspect
 import statistics
 import sys
 import time
@@ -46,6 +47,10 @@ from server.simulation.config import ConfigError, parse_learner_settings
 from server.teacher import Teacher
 
 CHECKPOINTS = (1, 5, 10)
+# Where compiled cost steps (_kernels.cost_steps_tasks) are told how many steps to take.
+COST_STEPS_ARGUMENT = list(inspect.signature(_kernels.cost_steps_tasks.py_func).parameters).index(
+    "steps"
+)
 PLANNER_REPEATS = 50
 CLOCKS = {"wall": time.perf_counter, "cpu": time.process_time}
 clock = time.perf_counter
@@ -108,7 +113,12 @@ def pass_breakdown(env, learner, repeats: int) -> tuple[int, int, float, float]:
     in_passes = [0.0]
 
     def counted(chunks, kernel, kernel_chunks, arguments):  # type: ignore[no-untyped-def]
-        counts["forward" if kernel is _kernels.soft_forward_tasks else "reverse"] += 1
+        if kernel is _kernels.cost_steps_tasks:  # compiled cost steps: a pass of each a step
+            steps = arguments[COST_STEPS_ARGUMENT]
+            counts["forward"] += steps
+            counts["reverse"] += steps
+        else:
+            counts["forward" if kernel is _kernels.soft_forward_tasks else "reverse"] += 1
         started = clock()
         real(chunks, kernel, kernel_chunks, arguments)
         in_passes[0] += clock() - started

@@ -48,6 +48,13 @@ there (flip's and choices' next states carry many entries off the common offsets
 one). Float32 passes scatter through the forward pass's layout instead (``_scatter_levels``):
 each shifted row's terms added at its offset as one SIMD loop, the same terms in another
 order, so other last bits. Flip's reverse pass without the table's gradient, float32, on the Zen 5 AMD EPYC: 205 us before, 171 after; two-fields 179 us, 118.
+
+A learner's cost steps run here too, whole (``cost_steps_tasks``): a task's steps, each its
+forward pass, its teacher data's likelihood, its reverse pass and its clipped momentum step, in
+one call (a NumPy call per operation had made a step's few microseconds of arithmetic about a
+hundred). They call the passes above, so an edit here recompiles them; they also compile in
+the likelihood of ``likelihoods.py`` (``_data_log_likelihood``), as the cloning steps do, and
+numba's cache does not see an edit there: clear ``__pycache__`` after one.
 """
 
 from __future__ import annotations
@@ -58,6 +65,8 @@ import numpy as np
 from llvmlite import ir
 from numba import njit, prange, types
 from numba.extending import intrinsic, overload
+
+from server.learners.likelihoods import _data_log_likelihood, _step_advantages
 
 # exp(x) = 2^k exp(r) with k = round(x / ln 2) and r = x - k ln 2 (ln 2 split in two parts so
 # that r is exact to double precision; the constants are fdlibm's).
@@ -1203,3 +1212,247 @@ def soft_backward_chunks(
             width, values, jacobians, d_q, horizon, gradient_entries, entry_runs, entry_slots,
             d_reward, d_probs, terms, kept_from, task_sums, firsts[c], lasts[c],
         )  # fmt: skip
+
+
+# -- a learner's cost steps, compiled whole ------------------------------------------------
+
+# ``cost_steps_tasks``' error codes beside the likelihood's (``likelihoods._refuse``).
+GRADIENT_NOT_FINITE = 9
+LIKELIHOOD_NOT_FINITE = 10
+
+
+@njit(inline="always", fastmath=False, error_model="numpy")
+def norm_in_fours(x: np.ndarray, first: int, last: int) -> float:
+    """The Euclidean norm of ``x[first:last]``, its squares summed in four running sums (one
+    chain of dependent additions was the slowest part of a momentum step), then paired."""
+    sums = np.zeros(4, x.dtype)
+    stop = last - (last - first) % 4
+    for i in range(first, stop, 4):
+        for j in range(4):
+            sums[j] += x[i + j] * x[i + j]
+    for i in range(stop, last):
+        sums[0] += x[i] * x[i]
+    return np.sqrt((sums[0] + sums[1]) + (sums[2] + sums[3]))
+
+
+@njit(inline="always", fastmath=False, error_model="numpy")
+def clipped_momentum_step(
+    parameters: np.ndarray,
+    velocity: np.ndarray,
+    gradient: np.ndarray,
+    learning_rate: float,
+    momentum: float,
+    max_step: float,
+    clip_step: bool,
+    bound: float,
+) -> bool:
+    """``MomentumAscent.step`` of one row of parameters (and its velocity) in place, the
+    parameters then clipped to +-``bound``; False where the velocity's norm is not finite
+    (a gradient that is not)."""
+    size = parameters.shape[0]
+    for i in range(size):
+        velocity[i] = momentum * velocity[i] + learning_rate * gradient[i]
+    norm = norm_in_fours(velocity, 0, size)
+    if not np.isfinite(norm):
+        return False
+    scale = max_step / max(norm, 1e-300) if norm > max_step else 1.0
+    for i in range(size):
+        change = velocity[i] * scale
+        if not clip_step:
+            velocity[i] = change
+        parameters[i] = min(max(parameters[i] + change, -bound), bound)
+    return True
+
+
+@njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
+def cost_steps_tasks(
+    shifts: np.ndarray,
+    shifted_probability: np.ndarray,
+    shift_start: np.ndarray,
+    flat_rows: np.ndarray,
+    flat_next: np.ndarray,
+    flat_probability: np.ndarray,
+    flat_start: np.ndarray,
+    dense_sources: np.ndarray,
+    dense_probabilities: np.ndarray,
+    targets: np.ndarray,
+    sources: np.ndarray,
+    probabilities: np.ndarray,
+    scatter: bool,
+    next_flat: np.ndarray,
+    width: int,
+    no_entries: np.ndarray,
+    no_runs: np.ndarray,
+    no_probabilities: np.ndarray,
+    no_terms: np.ndarray,
+    no_sums: np.ndarray,
+    pass_beta: float,
+    horizon: int,
+    costs: np.ndarray,
+    velocity: np.ndarray,
+    before: np.ndarray,
+    data_row: np.ndarray,
+    plan_states: np.ndarray,
+    state_cells: np.ndarray,
+    num_features: int,
+    cost_mask: np.ndarray,
+    demo_rows: np.ndarray,
+    demo_start: np.ndarray,
+    demo_states: np.ndarray,
+    demo_actions: np.ndarray,
+    step_rows: np.ndarray,
+    step_start: np.ndarray,
+    step_states: np.ndarray,
+    step_actions: np.ndarray,
+    step_feedback: np.ndarray,
+    beta: float,
+    normalized: bool,
+    variance_floor: float,
+    epsilon: float,
+    alpha: float,
+    mu_plus: float,
+    mu_minus: float,
+    steps: int,
+    prior_variance: float,
+    learning_rate: float,
+    momentum: float,
+    max_step: float,
+    clip_step: bool,
+    bound: float,
+    q: np.ndarray,
+    values: np.ndarray,
+    jacobians: np.ndarray,
+    rewards: np.ndarray,
+    d_reward: np.ndarray,
+    d_q: np.ndarray,
+    demo_values: np.ndarray,
+    step_values: np.ndarray,
+    codes: np.ndarray,
+    first: int,
+    last: int,
+) -> None:
+    """``steps`` cost steps of the tasks ``first .. last - 1`` (the environment's), each task's
+    costs (``costs[task]``, per cell) with an optimiser of its own (``velocity[task]``): what
+    ``PlannerLearner.cost_step`` does, element by element in the same order, but for the
+    norm that clips a step (``norm_in_fours``) and a feedback step's sigmoid (the C library's
+    tanh). A task with data (``data_row[task]``, its row in the passes' arrays) plans on
+    rewards from its costs over ``plan_states`` (a forward pass), takes its demonstrations'
+    and agent steps' log-likelihood (``demo_rows[demo_start[row]:demo_start[row + 1]]`` and
+    the like, in the data's order) and dL/dQ, and the reverse pass's dL/drewards summed to
+    its cells; every task adds its costs' prior. Tasks are independent: any split of them
+    over threads computes the same bits. At the last step's start each task's costs go to
+    ``before`` and its records' log-likelihoods to ``demo_values`` and ``step_values`` (at
+    their places in the data), for the objective; an error stops the task with its code in
+    ``codes[task]`` (the likelihood's, ``GRADIENT_NOT_FINITE``, ``LIKELIHOOD_NOT_FINITE``)."""
+    num_cells = costs.shape[1]
+    num_plan = plan_states.shape[0]
+    num_actions = q.shape[2]
+    any_steps = step_rows.shape[0] > 0
+    data_tasks = q.shape[0]
+    gradient = np.empty(num_cells)
+    d_full = np.zeros(state_cells.shape[0])
+    q_row = np.empty((1, num_plan, num_actions))
+    no_sigmoids = np.empty(0)
+    for task in range(first, last):
+        row = data_row[task]
+        parameters = costs[task]
+        demos = demo_start[row + 1] - demo_start[row] if row >= 0 else 0
+        agent_steps = step_start[row + 1] - step_start[row] if row >= 0 else 0
+        local_demos = np.zeros(demos, dtype=np.int64)  # the task's rows of q_row: row 0
+        local_steps = np.zeros(agent_steps, dtype=np.int64)
+        for step in range(steps):
+            last_step = step == steps - 1
+            if last_step:
+                before[task, :] = parameters
+            if row >= 0:
+                for j in range(num_plan):
+                    rewards[row, j] = parameters[state_cells[plan_states[j]]]
+                soft_forward_tasks(
+                    shifts, shifted_probability, shift_start, flat_rows, flat_next,
+                    flat_probability, flat_start, rewards,
+                    pass_beta, horizon, True, q, values, jacobians, row, row + 1,
+                )  # fmt: skip
+                for s in range(num_plan):
+                    for a in range(num_actions):
+                        q_row[0, s, a] = q[row, s, a]
+                d0, d1 = demo_start[row], demo_start[row + 1]
+                s0, s1 = step_start[row], step_start[row + 1]
+                sigmoids = no_sigmoids
+                if agent_steps:
+                    advantages, code = _step_advantages(
+                        q_row, local_steps, step_states[s0:s1], step_actions[s0:s1],
+                        step_feedback[s0:s1],
+                    )  # fmt: skip
+                    if code:
+                        codes[task] = code
+                        break
+                    sigmoids = 0.5 * (1.0 + np.tanh(0.5 * (alpha * advantages)))
+                demo_row_values, d_q_demos, step_row_values, d_q_steps, code = (
+                    _data_log_likelihood(
+                        q_row, local_demos, demo_states[d0:d1], demo_actions[d0:d1],
+                        beta, normalized, variance_floor,
+                        local_steps, step_states[s0:s1], step_actions[s0:s1],
+                        step_feedback[s0:s1], sigmoids, epsilon, alpha, mu_plus, mu_minus,
+                    )
+                )  # fmt: skip
+                if code:
+                    codes[task] = code
+                    break
+                finite = True
+                for n in range(demos):
+                    finite = finite and np.isfinite(demo_row_values[n])
+                for n in range(agent_steps):
+                    finite = finite and np.isfinite(step_row_values[n])
+                if not finite:
+                    codes[task] = LIKELIHOOD_NOT_FINITE
+                    break
+                if last_step:
+                    for n in range(demos):
+                        demo_values[demo_rows[d0 + n]] = demo_row_values[n]
+                    for n in range(agent_steps):
+                        step_values[step_rows[s0 + n]] = step_row_values[n]
+                # dL/dQ in the passes' precision (the steps' terms added where any task has
+                # agent steps, as data_log_likelihood adds them).
+                for s in range(num_plan):
+                    for a in range(num_actions):
+                        g = d_q_demos[0, s, a]
+                        if any_steps:
+                            g = g + d_q_steps[0, s, a]
+                        d_q[row, s, a] = g
+                for s in range(num_plan):
+                    d_reward[row, s] = 0.0
+                soft_backward_tasks(
+                    dense_sources, dense_probabilities, targets, sources, probabilities,
+                    scatter, shifts, shifted_probability, shift_start, flat_rows, flat_next,
+                    flat_probability, flat_start, next_flat,
+                    width, values, jacobians, d_q, horizon, no_entries, no_runs, no_entries,
+                    d_reward, no_probabilities, no_terms, data_tasks, no_sums, row, row + 1,
+                )  # fmt: skip
+                # dL/dcost of a cell: its states' dL/dreward (0 out of the data's reach) in
+                # feature order, as NumPy's sum over the features adds them.
+                for j in range(num_plan):
+                    d_full[plan_states[j]] = d_reward[row, j]
+                for c in range(num_cells):
+                    total = d_full[c * num_features]
+                    for f in range(1, num_features):
+                        total = total + d_full[c * num_features + f]
+                    gradient[c] = total * cost_mask[c]
+            else:
+                gradient[:] = 0.0
+            for c in range(num_cells):
+                gradient[c] = gradient[c] + -(parameters[c] - 0.0) / prior_variance
+            if not clipped_momentum_step(
+                parameters, velocity[task], gradient, learning_rate, momentum, max_step,
+                clip_step, bound,
+            ):  # fmt: skip
+                codes[task] = GRADIENT_NOT_FINITE
+                break
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def cost_steps_chunks(*arguments):  # type: ignore[no-untyped-def]
+    """``cost_steps_tasks`` on the task ranges ``firsts[c] .. lasts[c] - 1``, in parallel:
+    its arguments, then ``firsts`` and ``lasts`` in place of its ``first`` and ``last``."""
+    firsts, lasts = arguments[-2], arguments[-1]
+    for c in prange(firsts.shape[0]):
+        cost_steps_tasks(*arguments[:-2], firsts[c], lasts[c])  # type: ignore[call-arg]

@@ -60,10 +60,9 @@ class BAM(PlannerLearner):
         objective = float("nan")
         for _ in range(alternations):
             if not data.empty:
-                operator = self.operator(data)
-                for _ in range(int(self.settings["cost_steps"])):
-                    self.cost_step(operator, data)
-                    steps += 1
+                cost_steps = int(self.settings["cost_steps"])
+                self.cost_steps(self.operator(data), data, cost_steps)
+                steps += cost_steps
             # The dynamics steps leave the costs as they are, and their prior with them.
             cost_prior, _ = self.cost_prior(self.costs)
             for _ in range(int(self.settings["dynamics_steps"])):

@@ -14,6 +14,7 @@ import numpy as np
 from numba import njit
 
 from server.domains.base import Environment, check_finite
+from server.learners._kernels import norm_in_fours
 from server.learners.base import Learner
 from server.learners.likelihoods import (
     VARIANCE_FLOOR,
@@ -263,7 +264,6 @@ def _ascend(
     data_row = np.full(num_tasks, -1, dtype=np.int64)  # a task's row in q (-1: no data)
     for t in range(tasks.shape[0]):
         data_row[tasks[t]] = t
-    sums = np.zeros(4)
     for step in range(steps):
         for t in range(tasks.shape[0]):
             q[t] = table[tasks[t]]
@@ -310,15 +310,7 @@ def _ascend(
                 velocity[i] = momentum * velocity[i] + learning_rate * grad[i]
         for r in range(rows):
             first, last = r * per_row, (r + 1) * per_row
-            # Four running sums (not one): a chain of dependent additions was the step's
-            # slowest part.
-            sums[:] = 0.0
-            for i in range(first, last - (last - first) % 4, 4):
-                for j in range(4):
-                    sums[j] += velocity[i + j] * velocity[i + j]
-            for i in range(last - (last - first) % 4, last):
-                sums[0] += velocity[i] * velocity[i]
-            norm = np.sqrt((sums[0] + sums[1]) + (sums[2] + sums[3]))
+            norm = norm_in_fours(velocity, first, last)
             if not np.isfinite(norm):  # a gradient that is not finite makes its row's so
                 return table, velocity, before, demo_values, step_values, NOT_FINITE
             scale = max_step / max(norm, 1e-300) if norm > max_step else 1.0

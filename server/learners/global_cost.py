@@ -20,8 +20,13 @@ class GlobalCostIRL(ModelBasedIRL):
 
     name = "global-cost"
     # The authors' schedule on every update: the global-cost experiment has not been run with
-    # shorter warm updates.
-    default_settings = {**ModelBasedIRL.default_settings, "global_prior_sd": 1.0, "warm_share": 1.0}
+    # shorter warm updates. Its cost steps are NumPy's (the global cost ties the tasks' steps
+    # together): no ``compiled_steps``.
+    default_settings = {
+        **{k: v for k, v in ModelBasedIRL.default_settings.items() if k != "compiled_steps"},
+        "global_prior_sd": 1.0,
+        "warm_share": 1.0,
+    }
 
     def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
         super().__init__(env, seed, **settings)
@@ -42,6 +47,12 @@ class GlobalCostIRL(ModelBasedIRL):
 
     def task_rewards(self, data: TeacherData, costs: np.ndarray) -> np.ndarray:
         return cell_rewards(self.env, costs[data.tasks]) + self.global_costs[None, :]
+
+    def cost_steps(self, operator: TransitionOperator, data: TeacherData, steps: int) -> float:
+        value = float("nan")
+        for _ in range(steps):
+            value = self.cost_step(operator, data)
+        return value
 
     def cost_step(self, operator: TransitionOperator, data: TeacherData) -> float:
         value, d_rewards, _ = self.teacher_objective(operator, data, need_transitions=False)

@@ -47,7 +47,7 @@ class ModelBasedIRL(PlannerLearner):
         if not data.empty:
             operator = self.operator(data)
             cost_steps = self.momentum_steps(int(self.settings["cost_steps"]), data)
-            for _ in range(cost_steps):
-                teacher_objective = self.cost_step(operator, data)
+            if cost_steps:
+                teacher_objective = self.cost_steps(operator, data, cost_steps)
         steps = int(self.settings["dynamics_steps"]) + cost_steps
         return dynamics_objective + teacher_objective, steps

@@ -78,6 +78,13 @@ COST_SETTINGS: dict[str, Any] = {
     # docs/reproduction.md, "Float32 passes"), an update 0-33% cheaper; "float64" in double
     # precision, as the published reproduction runs were made.
     "planner_precision": "float32",
+    # True: an update's momentum cost steps, each task's (with per-task optimisers), in one
+    # compiled call, the agents as the NumPy steps' (the demonstrations and feedback
+    # experiments rerun with them: docs/reproduction.md, "Compiled cost steps"), not to the
+    # last bit (a step's norm is summed in another order, a feedback step's sigmoid takes the
+    # C library's tanh); False: step by step in NumPy, as the published reproduction runs were
+    # made.
+    "compiled_steps": True,
     "max_evaluations": 40,
     "warm_evaluations": 20,
     # With optimizer "momentum": the share of the planning steps (BAM's alternations,

@@ -14,8 +14,9 @@ from server.domains.base import (
     check_finite,
     check_gradient_rule,
 )
+from server.learners import _kernels, planning
 from server.learners.base import Learner
-from server.learners.likelihoods import gaussian_log_prior
+from server.learners.likelihoods import _refuse, gaussian_log_prior
 from server.learners.objective import (
     COMMON_SETTINGS,
     COST_SETTINGS,
@@ -23,15 +24,26 @@ from server.learners.objective import (
     OPTIMIZERS,
     MomentumAscent,
     TeacherData,
+    action_model,
     cell_gradient,
     cell_rewards,
     check_choice,
     check_positive_or_none,
+    feedback_model,
     maximize_lbfgs,
     planned_teacher_log_likelihood,
     taught_tasks,
 )
-from server.learners.planning import PRECISIONS, TransitionOperator, soft_plan
+from server.learners.planning import (
+    NO_ENTRIES,
+    NO_INCOMING_32,
+    NO_RUNS,
+    PRECISIONS,
+    TransitionOperator,
+    check_horizon,
+    soft_plan,
+    task_chunks,
+)
 
 THETA_BOUND = 15.0
 COST_CELLS = ("domain", "every")
@@ -259,6 +271,126 @@ class PlannerLearner(Learner):
         self.costs = np.clip(updated.reshape(self.costs.shape), -bound, bound)
         return value + prior
 
+    def cost_steps(self, operator: TransitionOperator, data: TeacherData, steps: int) -> float:
+        """``steps`` momentum steps on the costs (tasks with data), in one compiled call with
+        the setting ``compiled_steps`` where each task's costs have an optimiser of their own
+        (``_compiled_cost_steps``), else step by step; returns the objective before the last."""
+        if steps <= 0:
+            return float("nan")
+        if self.settings["compiled_steps"] and self.cost_optimizer.rows == len(self.env.tasks):
+            return self._compiled_cost_steps(operator, data, steps)
+        value = float("nan")
+        for _ in range(steps):
+            value = self.cost_step(operator, data)
+        return value
+
+    def _compiled_cost_steps(
+        self, operator: TransitionOperator, data: TeacherData, steps: int
+    ) -> float:
+        """``cost_step`` ``steps`` times, the tasks' steps in one compiled call each
+        (``_kernels.cost_steps_tasks``, the tasks split over the planner's threads as a pass's
+        are): a step's arithmetic outside its two passes is a few microseconds, which a NumPy
+        call per operation made about a hundred (wall: over half of an update)."""
+        env, settings = self.env, self.settings
+        dtype = PRECISIONS[settings["planner_precision"]]
+        actions, feedback = action_model(settings), feedback_model(settings)
+        horizon = check_horizon(env.horizon)
+        optimizer = self.cost_optimizer
+        num_data = len(data.tasks)
+        plan_states = (
+            np.arange(env.num_states, dtype=np.int64)
+            if data.plan_states is None
+            else data.plan_states.astype(np.int64)
+        )
+        num_plan = plan_states.shape[0]
+        data_row = np.full(len(env.tasks), -1, dtype=np.int64)
+        data_row[data.tasks] = np.arange(num_data)
+        demo_rows, demo_start = _rows_by_task(data.demo_tasks, num_data)
+        step_rows, step_start = _rows_by_task(data.step_tasks, num_data)
+        costs = np.array(self.costs, dtype=np.float64)  # copies: kept only if every step ends
+        velocity = np.array(optimizer.velocity, dtype=np.float64).reshape(costs.shape)
+        before = np.empty_like(costs)
+        demo_values = np.zeros(data.demo_tasks.shape[0])
+        step_values = np.zeros(data.step_tasks.shape[0])
+        codes = np.zeros(len(env.tasks), dtype=np.int64)
+        scatter = dtype == np.float32
+        bound = float(settings["cost_bound"])
+        prior_sd = float(settings["cost_prior_sd"])
+        planning.run_pass(  # by the module, as the passes' are: a benchmark counts them there
+            task_chunks(len(env.tasks)),
+            _kernels.cost_steps_tasks,
+            _kernels.cost_steps_chunks,
+            (
+                *operator.rows_in(dtype),
+                *(NO_INCOMING_32 if scatter else operator.incoming_in(dtype)),
+                scatter,
+                operator.next_flat,
+                operator.width,
+                NO_ENTRIES,
+                NO_RUNS,
+                np.empty(0, dtype),
+                np.empty((0, horizon - 1, 0), dtype),
+                np.empty((0, 0, 0), dtype),
+                dtype(actions.beta),
+                horizon,
+                costs,
+                velocity,
+                before,
+                data_row,
+                plan_states,
+                env.state_cells.astype(np.int64),
+                int(env.num_features),
+                self.cost_mask.astype(np.float64),
+                demo_rows,
+                demo_start,
+                data.demo_states[demo_rows],
+                data.demo_actions[demo_rows],
+                step_rows,
+                step_start,
+                data.step_states[step_rows],
+                data.step_actions[step_rows],
+                data.step_feedback[step_rows],
+                float(actions.beta),
+                bool(actions.normalized),
+                float(actions.variance_floor),
+                float(feedback.epsilon),
+                float(feedback.alpha),
+                float(feedback.mu_plus),
+                float(feedback.mu_minus),
+                int(steps),
+                prior_sd**2,
+                optimizer.learning_rate,
+                optimizer.momentum,
+                optimizer.max_step,
+                optimizer.clip == "step",
+                bound,
+                np.empty((num_data, num_plan, env.num_actions), dtype),
+                np.empty((horizon - 1, num_data, num_plan), dtype),
+                np.empty((horizon - 1, num_data, env.num_actions, num_plan), dtype),
+                np.empty((num_data, num_plan), dtype),
+                np.empty((num_data, num_plan), dtype),
+                np.empty((num_data, num_plan, env.num_actions), dtype),
+                demo_values,
+                step_values,
+                codes,
+            ),
+        )
+        for code in codes[codes != 0]:
+            if code == _kernels.GRADIENT_NOT_FINITE:
+                raise FloatingPointError("the objective's gradient is not finite")
+            if code == _kernels.LIKELIHOOD_NOT_FINITE:
+                raise FloatingPointError(
+                    "the teacher data's log-likelihood is not finite (Q is not)"
+                )
+            _refuse(int(code), (num_data, num_plan, env.num_actions))
+        self.costs, optimizer.velocity = costs, velocity.reshape(-1)
+        # The objective at the last step's start, summed as the NumPy steps sum it.
+        value = float(demo_values.sum()) + (
+            float(step_values.sum()) if step_values.shape[0] else 0.0
+        )
+        prior = float(-0.5 * ((before - 0.0) ** 2).sum() / prior_sd**2)
+        return value + prior
+
     # -- L-BFGS-B fitting over packed parameter vectors ------------------------------------
     def cost_vector(self, data: TeacherData) -> np.ndarray:
         """The cost parameters that the teacher data informs, packed into one vector."""
@@ -383,3 +515,11 @@ class PlannerLearner(Learner):
         result = super().update()
         self.fitted_tasks[taught_tasks(self.data)] = True
         return result
+
+
+def _rows_by_task(tasks: np.ndarray, num_tasks: int) -> tuple[np.ndarray, np.ndarray]:
+    """The records' places grouped by task, each task's in the data's order, and where each
+    task's begin (``num_tasks + 1`` bounds)."""
+    rows = np.argsort(tasks, kind="stable").astype(np.int64)
+    start = np.searchsorted(tasks[rows], np.arange(num_tasks + 1)).astype(np.int64)
+    return rows, start

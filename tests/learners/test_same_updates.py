@@ -1,10 +1,10 @@
 """The planner learners' updates on the authors' schedule learn what they learned before: two
 updates of BAM and of model-based IRL, in every environment, from two rounds of the simulated
 teacher's demonstrations, with the settings that reproduce the published runs
-(``planner_precision = "float64"``, ``warm_share = 1``), end at the parameters (theta and the
-costs) and optimiser velocities recorded in ``update_reference.npz`` at commit 7463029. A change
-that makes updates cheaper (docs/benchmarks.md, "Where an update's time goes") must keep them,
-or be a named setting.
+(``planner_precision = "float64"``, ``warm_share = 1``, ``compiled_steps = false``), end at the
+parameters (theta and the costs) and optimiser velocities recorded in ``update_reference.npz``
+at commit 7463029. A change that makes updates cheaper (docs/benchmarks.md, "Where an
+update's time goes") must keep them, or be a named setting.
 
 Tolerance: 1e-12 relative plus 1e-12 absolute. The updates meet the reference to the last bit
 (the compiled passes do the same operations in the same order); a change of the arithmetic an
@@ -48,7 +48,14 @@ SLOW = {"flip", "choices", "two-fields", "three-fields"}
 def updated_parameters(env_name: str, learner_name: str) -> dict[str, np.ndarray]:
     """A learner's parameters after ``ROUNDS`` rounds of demonstrations, updated after each."""
     env = domains.make(env_name)
-    learner = make(learner_name, env, seed=0, planner_precision="float64", warm_share=1.0)
+    learner = make(
+        learner_name,
+        env,
+        seed=0,
+        planner_precision="float64",
+        warm_share=1.0,
+        compiled_steps=False,
+    )
     teacher = Teacher(env, seed=0)
     rng = np.random.default_rng(0)
     for _ in range(ROUNDS):

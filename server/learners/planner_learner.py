@@ -316,6 +316,8 @@ class PlannerLearner(Learner):
         scatter = dtype == np.float32
         bound = float(settings["cost_bound"])
         prior_sd = float(settings["cost_prior_sd"])
+        if not np.isfinite(prior_sd) or prior_sd <= 0:  # as gaussian_log_prior refuses it
+            raise ValueError(f"prior standard deviation must be positive, got {prior_sd!r}")
         planning.run_pass(  # by the module, as the passes' are: a benchmark counts them there
             task_chunks(len(env.tasks)),
             _kernels.cost_steps_tasks,

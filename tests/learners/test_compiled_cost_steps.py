@@ -154,6 +154,21 @@ def test_a_gradient_that_is_not_finite_is_refused_and_the_costs_stay() -> None:
             np.testing.assert_array_equal(copy.cost_optimizer.velocity, velocity)
 
 
+@pytest.mark.parametrize("sd", [0.0, -1.0, float("nan")])
+def test_a_prior_deviation_that_is_not_positive_is_refused_both_ways(sd: float) -> None:
+    learner = taught("wall", "bam", feedback=False)
+    state = learner.state_dict()
+    for compiled in (False, True):
+        copy = restore(learner.env, state)
+        assert isinstance(copy, PlannerLearner)
+        copy.settings.update(compiled_steps=compiled, cost_prior_sd=sd)
+        costs = copy.costs.copy()
+        data = copy.teacher_data()
+        with pytest.raises(ValueError, match="prior standard deviation must be positive"):
+            copy.cost_steps(copy.operator(data), data, STEPS)
+        np.testing.assert_array_equal(copy.costs, costs)
+
+
 def test_the_global_cost_learner_has_no_compiled_cost_steps() -> None:
     """Its global cost ties the tasks' steps together: it steps in NumPy, and says so."""
     env = domains.make("wall")

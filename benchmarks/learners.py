@@ -10,7 +10,8 @@ update; the planner passes are timed at least 50 times each. ``--clock cpu`` tim
 process's CPU time instead of the wall clock (on a machine shared with other work, the wall
 clock counts their turns too). ``--breakdown`` adds, per environment and learner, where the
 update after 10 rounds spends its time: the planner passes it runs (forward and reverse) and
-their time, the rest (the likelihoods, the optimiser steps, the model's table and its
+their time (compiled cost steps, ``compiled_steps``, count whole there: their passes and the
+rest of their steps), the rest (the likelihoods, the optimiser steps, the model's table and its
 pull-back), a forward pass's nanoseconds per backup and what NumPy's vectorised exp costs per
 number on the same CPU, all in the passes' precision (``--setting planner_precision=float64``:
 double). ``--versus NAME=VALUE`` adds the update after 10 rounds timed alternately at the

@@ -14,7 +14,7 @@ import numpy as np
 from numba import njit
 
 from server.domains.base import Environment, check_finite
-from server.learners._kernels import norm_in_fours
+from server.learners._kernels import clipped_momentum_step
 from server.learners.base import Learner
 from server.learners.likelihoods import (
     VARIANCE_FLOOR,
@@ -306,17 +306,12 @@ def _ascend(
             if t >= 0:
                 for i in range(size):
                     grad[origin + i] += demos_flat[t * size + i] + steps_flat[t * size + i]
-            for i in range(origin, origin + size):
-                velocity[i] = momentum * velocity[i] + learning_rate * grad[i]
         for r in range(rows):
             first, last = r * per_row, (r + 1) * per_row
-            norm = norm_in_fours(velocity, first, last)
-            if not np.isfinite(norm):  # a gradient that is not finite makes its row's so
+            # A gradient that is not finite makes its row's norm so.
+            if not clipped_momentum_step(
+                flat[first:last], velocity[first:last], grad[first:last], learning_rate,
+                momentum, max_step, clip_step, bound,
+            ):  # fmt: skip
                 return table, velocity, before, demo_values, step_values, NOT_FINITE
-            scale = max_step / max(norm, 1e-300) if norm > max_step else 1.0
-            for i in range(first, last):
-                change = velocity[i] * scale
-                if not clip_step:
-                    velocity[i] = change
-                flat[i] = min(max(flat[i] + change, -bound), bound)
     return table, velocity, before, demo_values, step_values, 0

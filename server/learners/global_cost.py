@@ -48,11 +48,8 @@ class GlobalCostIRL(ModelBasedIRL):
     def task_rewards(self, data: TeacherData, costs: np.ndarray) -> np.ndarray:
         return cell_rewards(self.env, costs[data.tasks]) + self.global_costs[None, :]
 
-    def cost_steps(self, operator: TransitionOperator, data: TeacherData, steps: int) -> float:
-        value = float("nan")
-        for _ in range(steps):
-            value = self.cost_step(operator, data)
-        return value
+    def compiles_cost_steps(self) -> bool:
+        return False  # the global cost's step joins the tasks' (``cost_step`` below)
 
     def cost_step(self, operator: TransitionOperator, data: TeacherData) -> float:
         value, d_rewards, _ = self.teacher_objective(operator, data, need_transitions=False)

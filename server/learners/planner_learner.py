@@ -272,17 +272,24 @@ class PlannerLearner(Learner):
         return value + prior
 
     def cost_steps(self, operator: TransitionOperator, data: TeacherData, steps: int) -> float:
-        """``steps`` momentum steps on the costs (tasks with data), in one compiled call with
-        the setting ``compiled_steps`` where each task's costs have an optimiser of their own
-        (``_compiled_cost_steps``), else step by step; returns the objective before the last."""
+        """``steps`` momentum steps on the costs (tasks with data), in one compiled call where
+        ``compiles_cost_steps`` (``_compiled_cost_steps``), else step by step; returns the
+        objective before the last."""
         if steps <= 0:
             return float("nan")
-        if self.settings["compiled_steps"] and self.cost_optimizer.rows == len(self.env.tasks):
+        if self.compiles_cost_steps():
             return self._compiled_cost_steps(operator, data, steps)
         value = float("nan")
         for _ in range(steps):
             value = self.cost_step(operator, data)
         return value
+
+    def compiles_cost_steps(self) -> bool:
+        """Whether ``cost_steps`` runs compiled: the setting ``compiled_steps``, where each
+        task's costs have an optimiser of their own."""
+        return bool(self.settings["compiled_steps"]) and self.cost_optimizer.rows == len(
+            self.env.tasks
+        )
 
     def _compiled_cost_steps(
         self, operator: TransitionOperator, data: TeacherData, steps: int

@@ -21,32 +21,26 @@ from tests.learners._support import agent_episode, demonstrate_round
 STEPS = 3
 
 
-def taught(name: str, learner_name: str, feedback: bool, **settings: Any) -> PlannerLearner:
-    """A learner after three rounds of demonstrations, with random agent episodes and the
-    teacher's feedback if asked, updated after each round by the NumPy steps."""
+def taught(
+    name: str, learner_name: str, feedback: bool, skip_last_task: bool = False, **settings: Any
+) -> PlannerLearner:
+    """A learner after three rounds of demonstrations (of every task, or all but the last),
+    with random agent episodes and the teacher's feedback if asked, updated after each round by
+    the NumPy steps."""
     env = domains.make(name)
     learner = make(learner_name, env, seed=0, compiled_steps=False, **settings)
     assert isinstance(learner, PlannerLearner)
     teacher = Teacher(env, seed=0)
     rng = np.random.default_rng(5)
     for _ in range(3):
-        demonstrate_round(learner, env, teacher, rng)
+        if skip_last_task:
+            for task in range(len(env.tasks) - 1):
+                for step in teacher.demonstration(task, env.sample_start(task, rng)):
+                    learner.record_demonstration(task, *step)
+        else:
+            demonstrate_round(learner, env, teacher, rng)
         if feedback:
             agent_episode(learner, env, teacher, rng, task=0, steps=15)
-        learner.update()
-    return learner
-
-
-def doorway_without_its_last_task(learner_name: str, precision: str) -> PlannerLearner:
-    env = domains.make("doorway")
-    learner = make(learner_name, env, seed=0, compiled_steps=False, planner_precision=precision)
-    assert isinstance(learner, PlannerLearner)
-    teacher = Teacher(env, seed=0)
-    rng = np.random.default_rng(5)
-    for _ in range(3):
-        for task in range(len(env.tasks) - 1):
-            for step in teacher.demonstration(task, env.sample_start(task, rng)):
-                learner.record_demonstration(task, *step)
         learner.update()
     return learner
 
@@ -101,7 +95,9 @@ def test_compiled_cost_steps_take_the_numpy_steps(
 def test_a_task_without_data_takes_its_prior_s_steps(learner_name: str, precision: str) -> None:
     """Doorway's last task untaught: its costs move by the prior's pull alone, as in the NumPy
     steps, beside the taught tasks'."""
-    learner = doorway_without_its_last_task(learner_name, precision)
+    learner = taught(
+        "doorway", learner_name, feedback=False, skip_last_task=True, planner_precision=precision
+    )
     assert learner.teacher_data().tasks.tolist() == [0, 1, 2]
     learner.costs[3] = np.linspace(-1.0, 1.0, learner.costs.shape[1])  # a prior to pull
     numpy_steps, value, compiled, compiled_value = steps_both_ways(learner)

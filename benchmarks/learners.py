@@ -10,8 +10,9 @@ update; the planner passes are timed at least 50 times each. ``--clock cpu`` tim
 process's CPU time instead of the wall clock (on a machine shared with other work, the wall
 clock counts their turns too). ``--breakdown`` adds, per environment and learner, where the
 update after 10 rounds spends its time: the planner passes it runs (forward and reverse) and
-their time (compiled cost steps, ``compiled_steps``, count whole there: their passes and the
-rest of their steps), the rest (the likelihoods, the optimiser steps, the model's table and its
+their time (compiled cost steps, ``compiled_steps``, and a compiled dynamics step's teacher
+gradient, ``compiled_dynamics_steps``, count whole there: their passes and the likelihood and
+steps between them), the rest (the likelihoods, the optimiser steps, the model's table and its
 pull-back), a forward pass's nanoseconds per backup and what NumPy's vectorised exp costs per
 number on the same CPU, all in the passes' precision (``--setting planner_precision=float64``:
 double). ``--versus NAME=VALUE`` adds the update after 10 rounds timed alternately at the
@@ -124,9 +125,22 @@ def pass_breakdown(env, learner, repeats: int) -> tuple[int, int, float, float]:
         real(chunks, kernel, kernel_chunks, arguments)
         in_passes[0] += clock() - started
 
+    real_gradient = _kernels.teacher_gradient
+
+    def counted_gradient(*arguments):  # type: ignore[no-untyped-def]
+        # A compiled dynamics step's teacher gradient: a forward and a reverse pass, counted
+        # whole with the likelihood between them.
+        counts["forward"] += 1
+        counts["reverse"] += 1
+        started = clock()
+        result = real_gradient(*arguments)
+        in_passes[0] += clock() - started
+        return result
+
     state = learner.state_dict()
     passes, whole = [], []
     planning.run_pass = counted
+    _kernels.teacher_gradient = counted_gradient
     try:
         for _ in range(repeats):
             counts.update(forward=0, reverse=0)
@@ -138,6 +152,7 @@ def pass_breakdown(env, learner, repeats: int) -> tuple[int, int, float, float]:
             passes.append(in_passes[0])
     finally:
         planning.run_pass = real
+        _kernels.teacher_gradient = real_gradient
     return counts["forward"], counts["reverse"], statistics.median(passes), statistics.median(whole)
 
 

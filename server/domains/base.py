@@ -170,6 +170,16 @@ class TransitionModel:
         self._index_flat = self.index.reshape(-1)
         self._parametric_coef = self._coef_flat[self.flat_parametric_entries]
         self._parametric_index = self._index_flat[self.flat_parametric_entries]
+        self.moved_entries = MovedEntries(
+            self._const_flat[self.flat_parametric_entries],
+            self._parametric_coef,
+            self._parametric_index,
+            (
+                np.zeros(self.flat_parametric_entries.size, dtype=np.int64)
+                if self.outcomes is None
+                else self.outcomes.reshape(-1)[self.flat_parametric_entries]
+            ),
+        )
         # Each entry's place among the entries theta moves, -1 for the others.
         self._moved_place = np.full(self._const_flat.size, -1, dtype=np.int64)
         self._moved_place[self.flat_parametric_entries] = np.arange(
@@ -460,6 +470,19 @@ def _outcome_factors(outcomes: np.ndarray, t: np.ndarray, pk: np.ndarray) -> np.
     over_p = np.divide(t, pk, out=ones.copy(), where=pk > 0.0)
     over_q = np.divide(t, 1.0 - pk, out=ones, where=pk < 1.0)
     return np.where(outcomes > 0, 2.0 * over_p, -over_q - over_p)
+
+
+@dataclass(frozen=True)
+class MovedEntries:
+    """The entries of a model's table that theta moves (``flat_parametric_entries``, in table
+    order): each one's probability is ``const + coef * p[index]`` at primitives p, and its
+    ``outcome`` is the authors' farming rule's (+1 a success, -1 a failure; 0 without the rule).
+    What a compiled step on theta reads of the model."""
+
+    const: np.ndarray
+    coef: np.ndarray
+    index: np.ndarray
+    outcomes: np.ndarray
 
 
 @dataclass(frozen=True)

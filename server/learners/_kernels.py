@@ -66,6 +66,7 @@ from llvmlite import ir
 from numba import njit, prange, types
 from numba.extending import intrinsic, overload
 
+from server.domains.base import LEAST_PROBABILITY
 from server.learners.likelihoods import _data_log_likelihood, _step_advantages
 
 # exp(x) = 2^k exp(r) with k = round(x / ln 2) and r = x - k ln 2 (ln 2 split in two parts so
@@ -1456,3 +1457,279 @@ def cost_steps_chunks(*arguments):  # type: ignore[no-untyped-def]
     firsts, lasts = arguments[-2], arguments[-1]
     for c in prange(firsts.shape[0]):
         cost_steps_tasks(*arguments[:-2], firsts[c], lasts[c])  # type: ignore[call-arg]
+
+
+# The model spaces whose steps on theta compile (``theta_steps``), by their primitives:
+# sigmoid(theta) per parameter (navigation), a softmax over each row of ``choices`` (gravity,
+# farming).
+SIGMOID_PRIMITIVES = 0
+SOFTMAX_ROWS_PRIMITIVES = 1
+# ``theta_steps``' error: an observed transition no theta of the model space gives.
+IMPOSSIBLE_TRANSITION = 11
+
+
+@njit(inline="always", fastmath=False, error_model="numpy")
+def _primitives(family: int, choices: int, theta: np.ndarray, p: np.ndarray) -> None:
+    """The model space's primitive probabilities at ``theta`` into ``p`` (its ``primitives``)."""
+    if family == SIGMOID_PRIMITIVES:
+        for i in range(theta.shape[0]):
+            p[i] = 0.5 * (1.0 + np.tanh(0.5 * theta[i]))
+        return
+    for g in range(0, theta.shape[0], choices):
+        top = theta[g]
+        for j in range(1, choices):
+            top = max(top, theta[g + j])
+        total = 0.0
+        for j in range(choices):
+            p[g + j] = np.exp(theta[g + j] - top)
+            total += p[g + j]
+        for j in range(choices):
+            p[g + j] = p[g + j] / total
+
+
+@njit(inline="always", fastmath=False, error_model="numpy")
+def _add_primitives_pullback(
+    family: int, choices: int, p: np.ndarray, d_p: np.ndarray, gradient: np.ndarray
+) -> None:
+    """dL/dtheta from dL/dp (``primitives_pullback``) added into ``gradient``."""
+    if family == SIGMOID_PRIMITIVES:
+        for i in range(p.shape[0]):
+            gradient[i] = gradient[i] + d_p[i] * p[i] * (1.0 - p[i])
+        return
+    for g in range(0, p.shape[0], choices):
+        dot = 0.0
+        for j in range(choices):
+            dot += d_p[g + j] * p[g + j]
+        for j in range(choices):
+            gradient[g + j] = gradient[g + j] + p[g + j] * (d_p[g + j] - dot)
+
+
+@njit(inline="always", fastmath=False, error_model="numpy")
+def _outcome_factor(outcome: int, t: float, pk: float) -> float:
+    """``domains.base._outcome_factors`` of one entry."""
+    over_p = t / pk if pk > 0.0 else 1.0
+    over_q = t / (1.0 - pk) if pk < 1.0 else 1.0
+    return 2.0 * over_p if outcome > 0 else -over_q - over_p
+
+
+@njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
+def theta_steps(
+    theta: np.ndarray,
+    velocity: np.ndarray,
+    family: int,
+    choices: int,
+    observed_const: np.ndarray,
+    observed_coef: np.ndarray,
+    observed_index: np.ndarray,
+    observed_rows: np.ndarray,
+    num_observed: int,
+    moved_places: np.ndarray,
+    moved_rows: np.ndarray,
+    first_outcomes: np.ndarray,
+    first_index: np.ndarray,
+    authors_observed: bool,
+    moved_coef: np.ndarray,
+    moved_index: np.ndarray,
+    d_teacher: np.ndarray,
+    teacher_const: np.ndarray,
+    teacher_coef: np.ndarray,
+    teacher_index: np.ndarray,
+    teacher_outcomes: np.ndarray,
+    authors_teacher: bool,
+    prior_mean: float,
+    prior_variance: float,
+    learning_rate: float,
+    momentum: float,
+    max_step: float,
+    clip_step: bool,
+    bound: float,
+    steps: int,
+) -> tuple[float, int, int]:
+    """``steps`` momentum steps on ``theta`` (and ``velocity``, in place) for the observed
+    transitions' log-likelihood, the dynamics prior and, if ``d_teacher`` is not empty, the
+    teacher data's gradient on the entries theta moves of the table it was planned on (the same
+    at every step: one step of BAM): ``PlannerLearner.transition_objective``, ``pullback`` and
+    ``theta_step`` element by element in their order, but for sums NumPy takes pairwise (the
+    log-likelihood's value), the norm that clips a step (``norm_in_fours``) and the C library's
+    tanh and exp. The observed transitions as ``TransitionModel.observe`` matched them
+    (``observed_rows``: each entry's observed row; ``moved_places``/``moved_rows``: the
+    entries theta moves; ``first_*``: the authors' farming rule), the model's moved entries'
+    coefficients and primitives ``moved_coef``/``moved_index``; the teacher's moved entries
+    read as ``teacher_const + teacher_coef * p[teacher_index]``, with their ``teacher_outcomes``
+    (the authors' rule). ``prior_variance`` 0: no prior; ``bound`` inf: no clip.
+
+    Returns the objective (likelihood plus prior) at the last step's start, an error code (0,
+    ``IMPOSSIBLE_TRANSITION`` with the observed row, ``GRADIENT_NOT_FINITE``) and the row."""
+    num_parameters = theta.shape[0]
+    p = np.empty(num_parameters)
+    gradient = np.empty(num_parameters)
+    d_p = np.empty(num_parameters)
+    row_probability = np.empty(num_observed)
+    d_moved = np.empty(moved_coef.shape[0])
+    value = 0.0
+    for _ in range(steps):
+        _primitives(family, choices, theta, p)
+        gradient[:] = 0.0
+        value = 0.0
+        if num_observed > 0:
+            row_probability[:] = 0.0
+            for e in range(observed_rows.shape[0]):
+                row = observed_rows[e]
+                row_probability[row] += observed_const[e] + observed_coef[e] * p[observed_index[e]]
+            for n in range(num_observed):
+                if row_probability[n] <= 0.0:
+                    # Rounded to 0 at this theta (a saturated logit): the least probability
+                    # where the model space can give the row some, else impossible.
+                    possible = False
+                    for e in range(observed_rows.shape[0]):
+                        if observed_rows[e] == n and (
+                            observed_coef[e] != 0.0 or observed_const[e] > 0.0
+                        ):
+                            possible = True
+                    if not possible:
+                        return value, IMPOSSIBLE_TRANSITION, n
+                    value += np.log(LEAST_PROBABILITY)
+                else:
+                    value += np.log(row_probability[n])
+            d_p[:] = 0.0
+            if authors_observed:
+                for n in range(first_index.shape[0]):
+                    k = first_index[n]
+                    d_p[k] += _outcome_factor(first_outcomes[n], 1.0, p[k])
+            else:
+                d_moved[:] = 0.0
+                for n in range(moved_places.shape[0]):
+                    row = moved_rows[n]
+                    if row_probability[row] > 0.0:
+                        d_moved[moved_places[n]] += 1.0 / row_probability[row]
+                for e in range(moved_coef.shape[0]):
+                    d_p[moved_index[e]] += moved_coef[e] * d_moved[e]
+            _add_primitives_pullback(family, choices, p, d_p, gradient)
+        if prior_variance > 0.0:
+            squares = 0.0
+            for i in range(num_parameters):
+                deviation = theta[i] - prior_mean
+                squares += deviation * deviation
+                gradient[i] = gradient[i] + -deviation / prior_variance
+            value += -0.5 * squares / prior_variance
+        if d_teacher.shape[0] > 0:
+            teacher = np.zeros(num_parameters)
+            d_p[:] = 0.0
+            for e in range(d_teacher.shape[0]):
+                k = teacher_index[e]
+                if authors_teacher:
+                    t = teacher_const[e] + teacher_coef[e] * p[k]
+                    d_p[k] += d_teacher[e] * _outcome_factor(teacher_outcomes[e], t, p[k])
+                else:
+                    d_p[k] += teacher_coef[e] * d_teacher[e]
+            _add_primitives_pullback(family, choices, p, d_p, teacher)
+            for i in range(num_parameters):
+                gradient[i] = gradient[i] + teacher[i]
+        if not clipped_momentum_step(
+            theta, velocity, gradient, learning_rate, momentum, max_step, clip_step, bound
+        ):
+            return value, GRADIENT_NOT_FINITE, -1
+    return value, 0, -1
+
+
+@njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
+def teacher_gradient(
+    dense_sources: np.ndarray,
+    dense_probabilities: np.ndarray,
+    targets: np.ndarray,
+    sources: np.ndarray,
+    probabilities: np.ndarray,
+    scatter: bool,
+    shifts: np.ndarray,
+    shifted_probability: np.ndarray,
+    shift_start: np.ndarray,
+    flat_rows: np.ndarray,
+    flat_next: np.ndarray,
+    flat_probability: np.ndarray,
+    flat_start: np.ndarray,
+    next_flat: np.ndarray,
+    width: int,
+    rewards: np.ndarray,
+    pass_beta: float,
+    horizon: int,
+    q: np.ndarray,
+    values: np.ndarray,
+    jacobians: np.ndarray,
+    demo_tasks: np.ndarray,
+    demo_states: np.ndarray,
+    demo_actions: np.ndarray,
+    beta: float,
+    normalized: bool,
+    variance_floor: float,
+    step_tasks: np.ndarray,
+    step_states: np.ndarray,
+    step_actions: np.ndarray,
+    step_feedback: np.ndarray,
+    epsilon: float,
+    alpha: float,
+    mu_plus: float,
+    mu_minus: float,
+    gradient_entries: np.ndarray,
+    entry_runs: np.ndarray,
+    entry_slots: np.ndarray,
+    d_reward: np.ndarray,
+    d_probs: np.ndarray,
+    no_terms: np.ndarray,
+    no_sums: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """The teacher data's log-likelihood under a table and the learner's rewards, and its
+    gradient on the table's ``gradient_entries`` (into ``d_probs``) and on the rewards (into
+    ``d_reward``), every task in this thread: what ``planned_teacher_log_likelihood`` with the
+    transition gradient does on one planner thread (a forward pass of every task, the data's
+    likelihood and dL/dQ from ``_data_log_likelihood``, the reverse pass), the same operations
+    in the same order but for a feedback step's sigmoid (the C library's tanh). Returns the
+    demonstrations' and agent steps' log-likelihoods (for the caller to sum as NumPy sums them)
+    and an error code (the likelihood's, ``LIKELIHOOD_NOT_FINITE``), the gradients left
+    unwritten on an error."""
+    num_tasks = q.shape[0]
+    soft_forward_tasks(
+        shifts, shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
+        flat_start, rewards, pass_beta, horizon, True, q, values, jacobians, 0, num_tasks,
+    )  # fmt: skip
+    q_data = q.astype(np.float64)
+    no_values = np.empty(0)
+    if step_tasks.shape[0] > 0:
+        advantages, code = _step_advantages(
+            q_data, step_tasks, step_states, step_actions, step_feedback
+        )
+        if code:
+            return no_values, no_values, code
+        sigmoids = 0.5 * (1.0 + np.tanh(0.5 * (alpha * advantages)))
+    else:
+        sigmoids = np.empty(0)
+    demo_values, d_q, step_values, d_q_steps, code = _data_log_likelihood(
+        q_data, demo_tasks, demo_states, demo_actions, beta, normalized, variance_floor,
+        step_tasks, step_states, step_actions, step_feedback, sigmoids, epsilon, alpha,
+        mu_plus, mu_minus,
+    )  # fmt: skip
+    if code:
+        return no_values, no_values, code
+    for n in range(demo_values.shape[0]):
+        if not np.isfinite(demo_values[n]):
+            return demo_values, step_values, LIKELIHOOD_NOT_FINITE
+    for n in range(step_values.shape[0]):
+        if not np.isfinite(step_values[n]):
+            return demo_values, step_values, LIKELIHOOD_NOT_FINITE
+    # dL/dQ rounded to the passes' precision (the agent steps' terms added where there are
+    # any, as data_log_likelihood adds them).
+    g_q = np.empty_like(q)
+    any_steps = step_tasks.shape[0] > 0
+    for k in range(num_tasks):
+        for s in range(q.shape[1]):
+            for a in range(q.shape[2]):
+                g = d_q[k, s, a]
+                if any_steps:
+                    g = g + d_q_steps[k, s, a]
+                g_q[k, s, a] = g
+    soft_backward_tasks(
+        dense_sources, dense_probabilities, targets, sources, probabilities, scatter, shifts,
+        shifted_probability, shift_start, flat_rows, flat_next, flat_probability, flat_start,
+        next_flat, width, values, jacobians, g_q, horizon, gradient_entries, entry_runs,
+        entry_slots, d_reward, d_probs, no_terms, num_tasks, no_sums, 0, num_tasks,
+    )  # fmt: skip
+    return demo_values, step_values, 0

@@ -102,13 +102,8 @@ class BAM(PlannerLearner):
     ) -> float:
         """One momentum step on theta for the whole of equation (5), whose costs' prior is
         ``cost_prior``; returns the objective before the step."""
-        value, grad = self.transition_objective(self.theta, observed, exact=False)
-        if not data.empty:
-            teacher, _, d_transitions = self.teacher_objective(
-                self.operator(data), data, need_transitions=True
-            )
-            assert d_transitions is not None
-            value += teacher
-            grad = grad + self.pullback(data, d_transitions, exact=False)
-        self.theta_step(grad)
-        return value + cost_prior
+        if data.empty:
+            return self.theta_steps(observed, 1) + cost_prior
+        teacher, d_transitions = self.teacher_gradient(data)
+        value = self.theta_steps(observed, 1, data, d_transitions)
+        return value + teacher + cost_prior

@@ -143,6 +143,8 @@ SETTINGS_BEFORE_THEY_EXISTED: dict[str, Any] = {
     "planner_precision": "float64",
     "warm_share": 1.0,
     "compiled_steps": False,
+    # 2026-11-29: NumPy steps on the dynamics parameters.
+    "compiled_dynamics_steps": False,
 }
 
 

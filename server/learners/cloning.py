@@ -32,6 +32,7 @@ from server.learners.objective import (
     check_choice,
     check_positive_or_none,
     feedback_model,
+    likelihood_arguments,
     teacher_log_likelihood,
 )
 
@@ -135,7 +136,6 @@ class BehavioralCloning(Learner):
     def ascent_arguments(self, data: TeacherData, steps: int) -> tuple[Any, ...]:
         """``_ascend``'s arguments for ``steps`` steps of this learner's table and optimiser on
         ``data``, as its settings have them."""
-        actions, feedback = action_model(self.settings), feedback_model(self.settings)
         prior_sd = float(self.settings["q_prior_sd"])
         sds = self.settings["q_bound_sds"]
         optimizer = self.optimizer
@@ -143,20 +143,7 @@ class BehavioralCloning(Learner):
             np.ascontiguousarray(self.table, dtype=np.float64),
             np.ascontiguousarray(optimizer.velocity, dtype=np.float64),
             data.tasks.astype(np.int64),
-            data.demo_tasks,
-            data.demo_states,
-            data.demo_actions,
-            float(actions.beta),
-            bool(actions.normalized),
-            float(actions.variance_floor),
-            data.step_tasks,
-            data.step_states,
-            data.step_actions,
-            data.step_feedback,
-            float(feedback.epsilon),
-            float(feedback.alpha),
-            float(feedback.mu_plus),
-            float(feedback.mu_minus),
+            *likelihood_arguments(data, self.settings),
             steps,
             prior_sd**2,
             optimizer.learning_rate,

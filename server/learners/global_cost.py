@@ -21,9 +21,14 @@ class GlobalCostIRL(ModelBasedIRL):
     name = "global-cost"
     # The authors' schedule on every update: the global-cost experiment has not been run with
     # shorter warm updates. Its cost steps are NumPy's (the global cost ties the tasks' steps
-    # together): no ``compiled_steps``.
+    # together): no ``compiled_steps``; nor, for the same agents as its published runs,
+    # ``compiled_dynamics_steps``.
     default_settings = {
-        **{k: v for k, v in ModelBasedIRL.default_settings.items() if k != "compiled_steps"},
+        **{
+            k: v
+            for k, v in ModelBasedIRL.default_settings.items()
+            if k not in ("compiled_steps", "compiled_dynamics_steps")
+        },
         "global_prior_sd": 1.0,
         "warm_share": 1.0,
     }
@@ -50,6 +55,9 @@ class GlobalCostIRL(ModelBasedIRL):
 
     def compiles_cost_steps(self) -> bool:
         return False  # the global cost's step joins the tasks' (``cost_step`` below)
+
+    def compiles_theta_steps(self) -> bool:
+        return False  # its published runs' NumPy steps
 
     def cost_step(self, operator: TransitionOperator, data: TeacherData) -> float:
         value, d_rewards, _ = self.teacher_objective(operator, data, need_transitions=False)

@@ -28,12 +28,7 @@ class ModelBasedIRL(PlannerLearner):
             dynamics_objective, dynamics_evaluations = self.fit_theta_lbfgs(observed, evaluations)
         else:
             # The dynamics fit never runs the planner: the momentum schedule costs little.
-            dynamics_objective = 0.0
-            for _ in range(int(self.settings["dynamics_steps"])):
-                dynamics_objective, grad = self.transition_objective(
-                    self.theta, observed, exact=False
-                )
-                self.theta_step(grad)
+            dynamics_objective = self.theta_steps(observed, int(self.settings["dynamics_steps"]))
             dynamics_evaluations = int(self.settings["dynamics_steps"])
         if optimizer == "lbfgs":
             if data.empty:

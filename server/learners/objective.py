@@ -85,6 +85,12 @@ COST_SETTINGS: dict[str, Any] = {
     # C library's tanh); False: step by step in NumPy, as the published reproduction runs were
     # made.
     "compiled_steps": True,
+    # True: an update's momentum steps on the dynamics parameters (BAM's dynamics steps
+    # outside their planner passes; model-based IRL's whole dynamics fit) in compiled calls,
+    # the agents as the NumPy steps' (docs/reproduction.md, "Compiled dynamics steps"), not to
+    # the last bit (the C library's tanh, exp and log, sums in order); False: in NumPy, as the
+    # runs before them were made.
+    "compiled_dynamics_steps": True,
     "max_evaluations": 40,
     "warm_evaluations": 20,
     # With optimizer "momentum": the share of the planning steps (BAM's alternations,
@@ -238,6 +244,29 @@ def _action_model(beta: float, normalized: bool, variance_floor: float) -> Actio
 @functools.lru_cache(maxsize=64)
 def _feedback_model(epsilon: float, alpha: float, mu_plus: float, mu_minus: float) -> FeedbackModel:
     return FeedbackModel(epsilon=epsilon, alpha=alpha, mu_plus=mu_plus, mu_minus=mu_minus)
+
+
+def likelihood_arguments(data: TeacherData, settings: dict[str, Any]) -> tuple[Any, ...]:
+    """The teacher data and the action and feedback models as the compiled likelihood
+    (``likelihoods._data_log_likelihood``, but for its Q and sigmoids) takes them: the
+    demonstrations, the action model, the agent steps, the feedback model."""
+    actions, feedback = action_model(settings), feedback_model(settings)
+    return (
+        data.demo_tasks,
+        data.demo_states,
+        data.demo_actions,
+        float(actions.beta),
+        bool(actions.normalized),
+        float(actions.variance_floor),
+        data.step_tasks,
+        data.step_states,
+        data.step_actions,
+        data.step_feedback,
+        float(feedback.epsilon),
+        float(feedback.alpha),
+        float(feedback.mu_plus),
+        float(feedback.mu_minus),
+    )
 
 
 def teacher_log_likelihood(

@@ -10,6 +10,8 @@ import numpy as np
 from server.domains.base import (
     Environment,
     ObservedTransitions,
+    SigmoidModel,
+    SoftmaxRowsModel,
     TransitionModel,
     check_finite,
     check_gradient_rule,
@@ -30,6 +32,7 @@ from server.learners.objective import (
     check_choice,
     check_positive_or_none,
     feedback_model,
+    likelihood_arguments,
     maximize_lbfgs,
     planned_teacher_log_likelihood,
     taught_tasks,
@@ -229,6 +232,168 @@ class PlannerLearner(Learner):
         theta = self.theta_optimizer.step(self.theta, grad)
         bound = self.env.model.parameter_bound
         self.theta = theta if bound is None else np.clip(theta, -bound, bound)
+
+    def teacher_gradient(self, data: TeacherData) -> tuple[float, np.ndarray]:
+        """``teacher_objective`` of the table at theta with the transition gradient: the
+        teacher data's log-likelihood and dL/dT on the table of ``operator(data)``. In one
+        compiled call where ``compiles_theta_steps`` (``_kernels.teacher_gradient``, every task
+        in this thread), else by ``teacher_objective``'s passes."""
+        operator = self.operator(data)
+        if not self.compiles_theta_steps():
+            value, _, d_transitions = self.teacher_objective(operator, data, need_transitions=True)
+            assert d_transitions is not None
+            return value, d_transitions
+        settings = self.settings
+        dtype = PRECISIONS[settings["planner_precision"]]
+        beta = action_model(settings).beta
+        horizon = check_horizon(self.env.horizon)
+        rewards = self.task_rewards(data, self.costs)
+        if data.plan_states is not None:
+            rewards = rewards[:, data.plan_states]
+        shape = (rewards.shape[0], operator.num_states, operator.num_actions)
+        entries, copies, originals, runs, slots = operator.reverse_entries()
+        scatter = dtype == np.float32
+        d_probs: np.ndarray = np.zeros(operator.next_flat.shape[0], dtype)
+        no_terms: np.ndarray = np.empty((0, 0, 0), dtype)
+        arguments = (
+            *(NO_INCOMING_32 if scatter else operator.incoming_in(dtype)),
+            scatter,
+            *operator.rows_in(dtype),
+            operator.next_flat,
+            operator.width,
+            np.ascontiguousarray(rewards, dtype),
+            dtype(beta),
+            horizon,
+            np.empty(shape, dtype),
+            np.empty((horizon - 1, shape[0], shape[1]), dtype),
+            np.empty((horizon - 1, shape[0], shape[2], shape[1]), dtype),
+            *likelihood_arguments(data, settings),
+            entries,
+            runs,
+            slots,
+            np.zeros(shape[:2], dtype),
+            d_probs,
+            no_terms,
+            no_terms,
+        )
+        demo_values, step_values, code = _kernels.teacher_gradient(*arguments)
+        if code == _kernels.LIKELIHOOD_NOT_FINITE:
+            raise FloatingPointError("the teacher data's log-likelihood is not finite (Q is not)")
+        _refuse(int(code), shape)
+        # Summed as data_log_likelihood sums them.
+        value = float(demo_values.sum()) + (
+            float(step_values.sum()) if step_values.shape[0] else 0.0
+        )
+        if not np.isfinite(value):
+            raise FloatingPointError("the teacher data's log-likelihood is not finite (Q is not)")
+        d_probs[copies] = d_probs[originals]
+        return value, d_probs.astype(np.float64).reshape(
+            operator.num_states, operator.num_actions, operator.width
+        )
+
+    def theta_steps(
+        self,
+        observed: ObservedTransitions,
+        steps: int,
+        data: TeacherData | None = None,
+        d_transitions: np.ndarray | None = None,
+    ) -> float:
+        """``steps`` momentum steps on theta for the observed transitions' likelihood and the
+        dynamics prior, plus (BAM's step) the teacher data's gradient ``d_transitions`` on the
+        table of ``operator(data)`` pulled back to theta; by the setting's gradient rule. In one
+        compiled call where ``compiles_theta_steps`` (``_compiled_theta_steps``), else step by
+        step. Returns the likelihood plus prior at the last step's start (0 without steps)."""
+        if steps <= 0:
+            return 0.0
+        if self.compiles_theta_steps():
+            return self._compiled_theta_steps(observed, steps, data, d_transitions)
+        value = 0.0
+        for _ in range(steps):
+            value, grad = self.transition_objective(self.theta, observed, exact=False)
+            if data is not None and d_transitions is not None:
+                grad = grad + self.pullback(data, d_transitions, exact=False)
+            self.theta_step(grad)
+        return value
+
+    def compiles_theta_steps(self) -> bool:
+        """Whether ``theta_steps`` runs compiled: the setting ``compiled_dynamics_steps``,
+        where the model space's primitives are one the kernel knows."""
+        return (
+            bool(self.settings["compiled_dynamics_steps"])
+            and _primitive_family(self.env.model) is not None
+        )
+
+    def _compiled_theta_steps(
+        self,
+        observed: ObservedTransitions,
+        steps: int,
+        data: TeacherData | None,
+        d_transitions: np.ndarray | None,
+    ) -> float:
+        """``theta_steps`` in one call of ``_kernels.theta_steps``: a step's arithmetic is a
+        few microseconds, which the NumPy calls of the likelihood, the pull-back and the
+        momentum step made about 50 (wall's BAM update: 140 such steps; model-based IRL's:
+        200)."""
+        model = self.env.model
+        family = _primitive_family(model)
+        assert family is not None
+        authors = self.gradient_rule(exact=False) == "authors"
+        teacher = self.plan_model(data)
+        if d_transitions is None:
+            d_teacher = np.empty(0)
+        else:
+            flat = np.ascontiguousarray(d_transitions, dtype=np.float64).reshape(-1)
+            d_teacher = flat[teacher.flat_parametric_entries]
+        sd = self.settings["dynamics_prior_sd"]
+        if sd is None:
+            sd = model.prior_sd
+        if sd is not None and (not np.isfinite(sd) or sd <= 0):  # as gaussian_log_prior refuses it
+            raise ValueError(f"prior standard deviation must be positive, got {sd!r}")
+        bound = model.parameter_bound
+        optimizer = self.theta_optimizer
+        theta = np.array(self.theta, dtype=np.float64)  # copies: kept only if every step ends
+        velocity = np.array(optimizer.velocity, dtype=np.float64)
+        moved, taught = model.moved_entries, teacher.moved_entries
+        value, code, row = _kernels.theta_steps(
+            theta,
+            velocity,
+            *family,
+            observed.const,
+            observed.coef,
+            observed.index,
+            observed.entry_rows,
+            len(observed.rows),
+            observed.moved_places,
+            observed.moved_rows,
+            observed.first_outcomes,
+            observed.first_index,
+            authors and model.outcomes is not None,
+            moved.coef,
+            moved.index,
+            d_teacher,
+            taught.const,
+            taught.coef,
+            taught.index,
+            taught.outcomes,
+            authors and teacher.outcomes is not None,
+            model.initial_value,
+            0.0 if sd is None else float(sd) ** 2,
+            optimizer.learning_rate,
+            optimizer.momentum,
+            optimizer.max_step,
+            optimizer.clip == "step",
+            np.inf if bound is None else float(bound),
+            int(steps),
+        )
+        if code == _kernels.IMPOSSIBLE_TRANSITION:
+            raise ValueError(
+                f"observed transition {tuple(int(x) for x in observed.rows[row])} is "
+                "impossible under the model space"
+            )
+        if code == _kernels.GRADIENT_NOT_FINITE:
+            raise FloatingPointError("the objective's gradient is not finite")
+        self.theta, optimizer.velocity = theta, velocity
+        return float(value)
 
     def cost_gradient(self, d_rewards: np.ndarray) -> np.ndarray:
         """dL/d(per-cell costs) of tasks with data from dL/d(per-state rewards): 0 on the cells
@@ -524,6 +689,16 @@ class PlannerLearner(Learner):
         result = super().update()
         self.fitted_tasks[taught_tasks(self.data)] = True
         return result
+
+
+def _primitive_family(model: TransitionModel) -> tuple[int, int] | None:
+    """The model space's primitives as ``_kernels.theta_steps`` takes them (the family and
+    a softmax row's length), or None for a model space it does not know."""
+    if type(model) is SigmoidModel:
+        return _kernels.SIGMOID_PRIMITIVES, 1
+    if type(model) is SoftmaxRowsModel:
+        return _kernels.SOFTMAX_ROWS_PRIMITIVES, model.choices
+    return None
 
 
 def _rows_by_task(tasks: np.ndarray, num_tasks: int) -> tuple[np.ndarray, np.ndarray]:

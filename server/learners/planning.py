@@ -490,6 +490,15 @@ class TransitionOperator:
             self._distinct = self._sort_out_entries()
         return self._distinct[1], self._distinct[2][0], self._distinct[2][1]
 
+    def reverse_entries(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """What a reverse pass's transition gradient reads: ``distinct_entries`` and the runs
+        of them it sums side by side with each one's place in them (``_entry_runs``; none
+        where the table has no model's layout)."""
+        entries, copies, originals = self.distinct_entries
+        if self._layout is not None and entries is self._layout.distinct[1]:
+            return entries, copies, originals, self._layout.entry_runs, self._layout.entry_slots
+        return entries, copies, originals, NO_RUNS, NO_ENTRIES
+
     def _sort_out_entries(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(gradient entries, the distinct ones, [copies; their originals])."""
         entries = self.gradient_entries
@@ -644,13 +653,11 @@ class SoftPlan:
         op = self.operator
         dtype = self.q_all.dtype.type  # the forward pass's precision
         num_tasks = g_q.shape[0]
-        runs, slots = NO_RUNS, NO_ENTRIES
         if need_transitions:
-            entries, copies, originals = op.distinct_entries
-            if op._layout is not None and entries is op._layout.distinct[1]:
-                runs, slots = op._layout.entry_runs, op._layout.entry_slots
+            entries, copies, originals, runs, slots = op.reverse_entries()
         else:
-            entries = copies = originals = NO_ENTRIES
+            entries = copies = originals = slots = NO_ENTRIES
+            runs = NO_RUNS
         d_reward = np.zeros((num_tasks, op.num_states), dtype)
         d_probs = np.zeros(op.next_flat.shape[0] if need_transitions else 0, dtype)
         # Split over threads, the first chunk's tasks add their transition gradient terms at

@@ -1,7 +1,8 @@
 """The planner learners' updates on the authors' schedule learn what they learned before: two
 updates of BAM and of model-based IRL, in every environment, from two rounds of the simulated
 teacher's demonstrations, with the settings that reproduce the published runs
-(``planner_precision = "float64"``, ``warm_share = 1``, ``compiled_steps = false``), end at the
+(``planner_precision = "float64"``, ``warm_share = 1``, ``compiled_steps = false``,
+``compiled_dynamics_steps = false``), end at the
 parameters (theta and the costs) and optimiser velocities recorded in ``update_reference.npz``
 at commit 7463029. A change that makes updates cheaper (docs/benchmarks.md, "Where an
 update's time goes") must keep them, or be a named setting.
@@ -55,6 +56,7 @@ def updated_parameters(env_name: str, learner_name: str) -> dict[str, np.ndarray
         planner_precision="float64",
         warm_share=1.0,
         compiled_steps=False,
+        compiled_dynamics_steps=False,
     )
     teacher = Teacher(env, seed=0)
     rng = np.random.default_rng(0)

@@ -10,9 +10,9 @@ update; the planner passes are timed at least 50 times each. ``--clock cpu`` tim
 process's CPU time instead of the wall clock (on a machine shared with other work, the wall
 clock counts their turns too). ``--breakdown`` adds, per environment and learner, where the
 update after 10 rounds spends its time: the planner passes it runs (forward and reverse) and
-their time (compiled cost steps, ``compiled_steps``, and a compiled dynamics step's teacher
-gradient, ``compiled_dynamics_steps``, count whole there: their passes and the likelihood and
-steps between them), the rest (the likelihoods, the optimiser steps, the model's table and its
+their time (compiled cost steps, ``compiled_steps``, and compiled dynamics steps,
+``compiled_dynamics_steps``, count whole there: their passes and the likelihood and steps
+between them), the rest (the likelihoods, the optimiser steps, the model's table and its
 pull-back), a forward pass's nanoseconds per backup and what NumPy's vectorised exp costs per
 number on the same CPU, all in the passes' precision (``--setting planner_precision=float64``:
 double). ``--versus NAME=VALUE`` adds the update after 10 rounds timed alternately at the
@@ -125,22 +125,31 @@ def pass_breakdown(env, learner, repeats: int) -> tuple[int, int, float, float]:
         real(chunks, kernel, kernel_chunks, arguments)
         in_passes[0] += clock() - started
 
-    real_gradient = _kernels.teacher_gradient
+    # Compiled dynamics steps: a teacher gradient is a forward and a reverse pass, the loop
+    # of them one of each a step it took; counted whole with the likelihood and steps between.
+    real_kernels = {
+        "teacher_gradient": (_kernels.teacher_gradient, lambda result: 1),
+        "dynamics_steps": (_kernels.dynamics_steps, lambda result: int(result[4])),
+    }
 
-    def counted_gradient(*arguments):  # type: ignore[no-untyped-def]
-        # A compiled dynamics step's teacher gradient: a forward and a reverse pass, counted
-        # whole with the likelihood between them.
-        counts["forward"] += 1
-        counts["reverse"] += 1
-        started = clock()
-        result = real_gradient(*arguments)
-        in_passes[0] += clock() - started
-        return result
+    def counted_kernel(name):  # type: ignore[no-untyped-def]
+        kernel, passes_of = real_kernels[name]
+
+        def run(*arguments):  # type: ignore[no-untyped-def]
+            started = clock()
+            result = kernel(*arguments)
+            in_passes[0] += clock() - started
+            counts["forward"] += passes_of(result)
+            counts["reverse"] += passes_of(result)
+            return result
+
+        return run
 
     state = learner.state_dict()
     passes, whole = [], []
     planning.run_pass = counted
-    _kernels.teacher_gradient = counted_gradient
+    for name in real_kernels:
+        setattr(_kernels, name, counted_kernel(name))
     try:
         for _ in range(repeats):
             counts.update(forward=0, reverse=0)
@@ -152,7 +161,8 @@ def pass_breakdown(env, learner, repeats: int) -> tuple[int, int, float, float]:
             passes.append(in_passes[0])
     finally:
         planning.run_pass = real
-        _kernels.teacher_gradient = real_gradient
+        for name, (kernel, _) in real_kernels.items():
+            setattr(_kernels, name, kernel)
     return counts["forward"], counts["reverse"], statistics.median(passes), statistics.median(whole)
 
 

@@ -1512,37 +1512,104 @@ def _outcome_factor(outcome: int, t: float, pk: float) -> float:
     return 2.0 * over_p if outcome > 0 else -over_q - over_p
 
 
+@njit(inline="always", fastmath=False, error_model="numpy")
+def _theta_gradient(
+    theta: np.ndarray,
+    p: np.ndarray,
+    family: int,
+    choices: int,
+    observed: tuple,  # type: ignore[type-arg]
+    num_observed: int,
+    authors_observed: bool,
+    moved_coef: np.ndarray,
+    moved_index: np.ndarray,
+    d_teacher: np.ndarray,
+    taught: tuple,  # type: ignore[type-arg]
+    authors_teacher: bool,
+    prior_mean: float,
+    prior_variance: float,
+    gradient: np.ndarray,
+) -> tuple[float, int, int]:
+    """The observed transitions' log-likelihood plus the dynamics prior at ``theta`` (whose
+    primitives are ``p``), and into ``gradient`` its gradient plus, if ``d_teacher`` is not
+    empty, the teacher data's gradient on the moved entries of the table it was planned on
+    pulled back to theta (``theta_steps``); an error code and the observed row it is about."""
+    const, coef, index, rows, moved_places, moved_rows, first_outcomes, first_index = observed
+    taught_const, taught_coef, taught_index, taught_outcomes = taught
+    num_parameters = theta.shape[0]
+    d_p = np.zeros(num_parameters)
+    gradient[:] = 0.0
+    value = 0.0
+    if num_observed > 0:
+        row_probability = np.zeros(num_observed)
+        for e in range(rows.shape[0]):
+            row_probability[rows[e]] += const[e] + coef[e] * p[index[e]]
+        for n in range(num_observed):
+            if row_probability[n] <= 0.0:
+                # Rounded to 0 at this theta (a saturated logit): the least probability where
+                # the model space can give the row some, else impossible.
+                possible = False
+                for e in range(rows.shape[0]):
+                    if rows[e] == n and (coef[e] != 0.0 or const[e] > 0.0):
+                        possible = True
+                if not possible:
+                    return value, IMPOSSIBLE_TRANSITION, n
+                value += np.log(LEAST_PROBABILITY)
+            else:
+                value += np.log(row_probability[n])
+        if authors_observed:
+            for n in range(first_index.shape[0]):
+                k = first_index[n]
+                d_p[k] += _outcome_factor(first_outcomes[n], 1.0, p[k])
+        else:
+            d_moved = np.zeros(moved_coef.shape[0])
+            for n in range(moved_places.shape[0]):
+                row = moved_rows[n]
+                if row_probability[row] > 0.0:
+                    d_moved[moved_places[n]] += 1.0 / row_probability[row]
+            for e in range(moved_coef.shape[0]):
+                d_p[moved_index[e]] += moved_coef[e] * d_moved[e]
+        _add_primitives_pullback(family, choices, p, d_p, gradient)
+    if prior_variance > 0.0:
+        squares = 0.0
+        for i in range(num_parameters):
+            deviation = theta[i] - prior_mean
+            squares += deviation * deviation
+            gradient[i] = gradient[i] + -deviation / prior_variance
+        value += -0.5 * squares / prior_variance
+    if d_teacher.shape[0] > 0:
+        teacher = np.zeros(num_parameters)
+        d_p[:] = 0.0
+        for e in range(d_teacher.shape[0]):
+            k = taught_index[e]
+            if authors_teacher:
+                t = taught_const[e] + taught_coef[e] * p[k]
+                d_p[k] += d_teacher[e] * _outcome_factor(taught_outcomes[e], t, p[k])
+            else:
+                d_p[k] += taught_coef[e] * d_teacher[e]
+        _add_primitives_pullback(family, choices, p, d_p, teacher)
+        for i in range(num_parameters):
+            gradient[i] = gradient[i] + teacher[i]
+    return value, 0, -1
+
+
 @njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def theta_steps(
     theta: np.ndarray,
     velocity: np.ndarray,
     family: int,
     choices: int,
-    observed_const: np.ndarray,
-    observed_coef: np.ndarray,
-    observed_index: np.ndarray,
-    observed_rows: np.ndarray,
+    observed: tuple,  # type: ignore[type-arg]
     num_observed: int,
-    moved_places: np.ndarray,
-    moved_rows: np.ndarray,
-    first_outcomes: np.ndarray,
-    first_index: np.ndarray,
     authors_observed: bool,
     moved_coef: np.ndarray,
     moved_index: np.ndarray,
     d_teacher: np.ndarray,
-    teacher_const: np.ndarray,
-    teacher_coef: np.ndarray,
-    teacher_index: np.ndarray,
-    teacher_outcomes: np.ndarray,
+    taught: tuple,  # type: ignore[type-arg]
     authors_teacher: bool,
     prior_mean: float,
     prior_variance: float,
-    learning_rate: float,
-    momentum: float,
-    max_step: float,
-    clip_step: bool,
-    bound: float,
+    optimizer: tuple,  # type: ignore[type-arg]
     steps: int,
 ) -> tuple[float, int, int]:
     """``steps`` momentum steps on ``theta`` (and ``velocity``, in place) for the observed
@@ -1551,80 +1618,28 @@ def theta_steps(
     at every step: one step of BAM): ``PlannerLearner.transition_objective``, ``pullback`` and
     ``theta_step`` element by element in their order, but for sums NumPy takes pairwise (the
     log-likelihood's value), the norm that clips a step (``norm_in_fours``) and the C library's
-    tanh and exp. The observed transitions as ``TransitionModel.observe`` matched them
-    (``observed_rows``: each entry's observed row; ``moved_places``/``moved_rows``: the
-    entries theta moves; ``first_*``: the authors' farming rule), the model's moved entries'
-    coefficients and primitives ``moved_coef``/``moved_index``; the teacher's moved entries
-    read as ``teacher_const + teacher_coef * p[teacher_index]``, with their ``teacher_outcomes``
-    (the authors' rule). ``prior_variance`` 0: no prior; ``bound`` inf: no clip.
+    tanh and exp. ``observed``: the observed transitions as ``TransitionModel.observe`` matched
+    them (each entry's const, coef, primitive and observed row; the entries theta moves, their
+    places and rows; the authors' farming rule's first outcomes and primitives); the model's
+    moved entries' coefficients and primitives ``moved_coef``/``moved_index``; ``taught``: the
+    teacher's table's moved entries (const, coef, primitive, outcome). ``prior_variance`` 0:
+    no prior. ``optimizer``: learning rate, momentum, largest step, whether the step (not the
+    velocity) is clipped, and the bound on theta (inf: none).
 
     Returns the objective (likelihood plus prior) at the last step's start, an error code (0,
     ``IMPOSSIBLE_TRANSITION`` with the observed row, ``GRADIENT_NOT_FINITE``) and the row."""
-    num_parameters = theta.shape[0]
-    p = np.empty(num_parameters)
-    gradient = np.empty(num_parameters)
-    d_p = np.empty(num_parameters)
-    row_probability = np.empty(num_observed)
-    d_moved = np.empty(moved_coef.shape[0])
+    learning_rate, momentum, max_step, clip_step, bound = optimizer
+    p = np.empty(theta.shape[0])
+    gradient = np.empty(theta.shape[0])
     value = 0.0
     for _ in range(steps):
         _primitives(family, choices, theta, p)
-        gradient[:] = 0.0
-        value = 0.0
-        if num_observed > 0:
-            row_probability[:] = 0.0
-            for e in range(observed_rows.shape[0]):
-                row = observed_rows[e]
-                row_probability[row] += observed_const[e] + observed_coef[e] * p[observed_index[e]]
-            for n in range(num_observed):
-                if row_probability[n] <= 0.0:
-                    # Rounded to 0 at this theta (a saturated logit): the least probability
-                    # where the model space can give the row some, else impossible.
-                    possible = False
-                    for e in range(observed_rows.shape[0]):
-                        if observed_rows[e] == n and (
-                            observed_coef[e] != 0.0 or observed_const[e] > 0.0
-                        ):
-                            possible = True
-                    if not possible:
-                        return value, IMPOSSIBLE_TRANSITION, n
-                    value += np.log(LEAST_PROBABILITY)
-                else:
-                    value += np.log(row_probability[n])
-            d_p[:] = 0.0
-            if authors_observed:
-                for n in range(first_index.shape[0]):
-                    k = first_index[n]
-                    d_p[k] += _outcome_factor(first_outcomes[n], 1.0, p[k])
-            else:
-                d_moved[:] = 0.0
-                for n in range(moved_places.shape[0]):
-                    row = moved_rows[n]
-                    if row_probability[row] > 0.0:
-                        d_moved[moved_places[n]] += 1.0 / row_probability[row]
-                for e in range(moved_coef.shape[0]):
-                    d_p[moved_index[e]] += moved_coef[e] * d_moved[e]
-            _add_primitives_pullback(family, choices, p, d_p, gradient)
-        if prior_variance > 0.0:
-            squares = 0.0
-            for i in range(num_parameters):
-                deviation = theta[i] - prior_mean
-                squares += deviation * deviation
-                gradient[i] = gradient[i] + -deviation / prior_variance
-            value += -0.5 * squares / prior_variance
-        if d_teacher.shape[0] > 0:
-            teacher = np.zeros(num_parameters)
-            d_p[:] = 0.0
-            for e in range(d_teacher.shape[0]):
-                k = teacher_index[e]
-                if authors_teacher:
-                    t = teacher_const[e] + teacher_coef[e] * p[k]
-                    d_p[k] += d_teacher[e] * _outcome_factor(teacher_outcomes[e], t, p[k])
-                else:
-                    d_p[k] += teacher_coef[e] * d_teacher[e]
-            _add_primitives_pullback(family, choices, p, d_p, teacher)
-            for i in range(num_parameters):
-                gradient[i] = gradient[i] + teacher[i]
+        value, code, row = _theta_gradient(
+            theta, p, family, choices, observed, num_observed, authors_observed, moved_coef,
+            moved_index, d_teacher, taught, authors_teacher, prior_mean, prior_variance, gradient,
+        )  # fmt: skip
+        if code:
+            return value, code, row
         if not clipped_momentum_step(
             theta, velocity, gradient, learning_rate, momentum, max_step, clip_step, bound
         ):
@@ -1632,60 +1647,34 @@ def theta_steps(
     return value, 0, -1
 
 
-@njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
-def teacher_gradient(
-    dense_sources: np.ndarray,
-    dense_probabilities: np.ndarray,
-    targets: np.ndarray,
-    sources: np.ndarray,
-    probabilities: np.ndarray,
+@njit(inline="always", fastmath=False, error_model="numpy")
+def _teacher_gradient(
+    incoming: tuple,  # type: ignore[type-arg]
     scatter: bool,
-    shifts: np.ndarray,
-    shifted_probability: np.ndarray,
-    shift_start: np.ndarray,
-    flat_rows: np.ndarray,
-    flat_next: np.ndarray,
-    flat_probability: np.ndarray,
-    flat_start: np.ndarray,
+    rows: tuple,  # type: ignore[type-arg]
     next_flat: np.ndarray,
     width: int,
     rewards: np.ndarray,
     pass_beta: float,
     horizon: int,
-    q: np.ndarray,
-    values: np.ndarray,
-    jacobians: np.ndarray,
-    demo_tasks: np.ndarray,
-    demo_states: np.ndarray,
-    demo_actions: np.ndarray,
-    beta: float,
-    normalized: bool,
-    variance_floor: float,
-    step_tasks: np.ndarray,
-    step_states: np.ndarray,
-    step_actions: np.ndarray,
-    step_feedback: np.ndarray,
-    epsilon: float,
-    alpha: float,
-    mu_plus: float,
-    mu_minus: float,
-    gradient_entries: np.ndarray,
-    entry_runs: np.ndarray,
-    entry_slots: np.ndarray,
-    d_reward: np.ndarray,
-    d_probs: np.ndarray,
-    no_terms: np.ndarray,
-    no_sums: np.ndarray,
+    trace: tuple,  # type: ignore[type-arg]
+    likelihood: tuple,  # type: ignore[type-arg]
+    reverse: tuple,  # type: ignore[type-arg]
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    """The teacher data's log-likelihood under a table and the learner's rewards, and its
-    gradient on the table's ``gradient_entries`` (into ``d_probs``) and on the rewards (into
-    ``d_reward``), every task in this thread: what ``planned_teacher_log_likelihood`` with the
-    transition gradient does on one planner thread (a forward pass of every task, the data's
-    likelihood and dL/dQ from ``_data_log_likelihood``, the reverse pass), the same operations
-    in the same order but for a feedback step's sigmoid (the C library's tanh). Returns the
-    demonstrations' and agent steps' log-likelihoods (for the caller to sum as NumPy sums them)
-    and an error code (the likelihood's, ``LIKELIHOOD_NOT_FINITE``), the gradients left
-    unwritten on an error."""
+    """``teacher_gradient`` (its arguments grouped as it describes them)."""
+    dense_sources, dense_probabilities, targets, sources, probabilities = incoming
+    shifts, shifted_probability, shift_start, flat_rows, flat_next, flat_probability, flat_start = (
+        rows
+    )
+    q, values, jacobians = trace
+    (
+        demo_tasks, demo_states, demo_actions, beta, normalized, variance_floor, step_tasks,
+        step_states, step_actions, step_feedback, epsilon, alpha, mu_plus, mu_minus,
+    ) = likelihood  # fmt: skip
+    (
+        gradient_entries, entry_runs, entry_slots, d_reward, d_probs, no_terms, no_sums, copies,
+        originals,
+    ) = reverse  # fmt: skip
     num_tasks = q.shape[0]
     soft_forward_tasks(
         shifts, shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
@@ -1726,10 +1715,170 @@ def teacher_gradient(
                 if any_steps:
                     g = g + d_q_steps[k, s, a]
                 g_q[k, s, a] = g
+    for k in range(num_tasks):
+        for s in range(d_reward.shape[1]):
+            d_reward[k, s] = 0.0
+    for j in range(d_probs.shape[0]):
+        d_probs[j] = 0.0
     soft_backward_tasks(
         dense_sources, dense_probabilities, targets, sources, probabilities, scatter, shifts,
         shifted_probability, shift_start, flat_rows, flat_next, flat_probability, flat_start,
         next_flat, width, values, jacobians, g_q, horizon, gradient_entries, entry_runs,
         entry_slots, d_reward, d_probs, no_terms, num_tasks, no_sums, 0, num_tasks,
     )  # fmt: skip
+    # Entries of a row that lead to one next state have one gradient (``distinct_entries``).
+    for j in range(copies.shape[0]):
+        d_probs[copies[j]] = d_probs[originals[j]]
     return demo_values, step_values, 0
+
+
+@njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
+def teacher_gradient(
+    incoming: tuple,  # type: ignore[type-arg]
+    scatter: bool,
+    rows: tuple,  # type: ignore[type-arg]
+    next_flat: np.ndarray,
+    width: int,
+    rewards: np.ndarray,
+    pass_beta: float,
+    horizon: int,
+    trace: tuple,  # type: ignore[type-arg]
+    likelihood: tuple,  # type: ignore[type-arg]
+    reverse: tuple,  # type: ignore[type-arg]
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """The teacher data's log-likelihood under a table and the learner's rewards, and its
+    gradient on the table's entries and on the rewards, every task in this thread: what
+    ``planned_teacher_log_likelihood`` with the transition gradient does on one planner thread
+    (a forward pass of every task, the data's likelihood and dL/dQ from
+    ``_data_log_likelihood``, the reverse pass), the same operations in the same order but for
+    a feedback step's sigmoid (the C library's tanh). The table by next state (``incoming``,
+    empty where the reverse pass ``scatter``s through the forward layout) and for forward
+    passes (``rows``), as ``soft_backward_tasks`` takes them; ``trace``: Q and the trace for
+    the passes to write; ``likelihood``: the data and models as ``_data_log_likelihood`` takes
+    them; ``reverse``: the distinct gradient entries, their runs and places, dL/drewards and
+    dL/dT to write (zeroed here), empty kept terms and task sums, and the entries that copy
+    another's gradient and the ones they copy (``TransitionOperator.reverse_entries``). Returns the demonstrations' and
+    agent steps' log-likelihoods (for the caller to sum as NumPy sums them) and an error code
+    (the likelihood's, ``LIKELIHOOD_NOT_FINITE``), the gradients unwritten on an error."""
+    return _teacher_gradient(
+        incoming, scatter, rows, next_flat, width, rewards, pass_beta, horizon, trace,
+        likelihood, reverse,
+    )  # fmt: skip
+
+
+# ``dynamics_steps`` stopped where a step's table has an entry theta moves at zero where the
+# passes' layouts have it not (or the reverse): the caller takes the rest of the steps.
+LAYOUT_CHANGED = 12
+
+
+@njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
+def dynamics_steps(
+    theta: np.ndarray,
+    velocity: np.ndarray,
+    family: int,
+    choices: int,
+    observed: tuple,  # type: ignore[type-arg]
+    num_observed: int,
+    authors_observed: bool,
+    moved_coef: np.ndarray,
+    moved_index: np.ndarray,
+    taught: tuple,  # type: ignore[type-arg]
+    authors_teacher: bool,
+    prior_mean: float,
+    prior_variance: float,
+    optimizer: tuple,  # type: ignore[type-arg]
+    steps: int,
+    table: np.ndarray,
+    taught_entries: np.ndarray,
+    nonzero: np.ndarray,
+    layout_sources: tuple,  # type: ignore[type-arg]
+    incoming: tuple,  # type: ignore[type-arg]
+    scatter: bool,
+    rows: tuple,  # type: ignore[type-arg]
+    next_flat: np.ndarray,
+    width: int,
+    rewards: np.ndarray,
+    pass_beta: float,
+    horizon: int,
+    trace: tuple,  # type: ignore[type-arg]
+    likelihood: tuple,  # type: ignore[type-arg]
+    reverse: tuple,  # type: ignore[type-arg]
+) -> tuple[float, np.ndarray, np.ndarray, int, int, int]:
+    """``steps`` of BAM's dynamics steps: at each, the teacher's table at theta (``table``,
+    the model's flat table with its moved entries ``taught_entries`` set from theta's
+    primitives, and gathered into the passes' layouts by ``layout_sources``: the shifted rows'
+    and flat triples' entries, the dense levels' and the scattered entries', -1 for a
+    probability 0), ``teacher_gradient``'s passes and likelihood on it, and ``theta_steps``'
+    step with its gradient. Where a step's table has a moved entry zero that ``nonzero`` says
+    is not, or the reverse, the layouts no longer fit: the steps stop before it
+    (``LAYOUT_CHANGED``) for the caller to take the rest. Returns the objective besides the
+    teacher's (likelihood plus prior) at the last step's start, the teacher data's
+    log-likelihoods there, an error code, the steps done and the observed row of an error."""
+    learning_rate, momentum, max_step, clip_step, bound = optimizer
+    shifted_source, flat_source, dense_source, target_source = layout_sources
+    d_probs = reverse[4]
+    p = np.empty(theta.shape[0])
+    gradient = np.empty(theta.shape[0])
+    d_teacher = np.empty(taught_entries.shape[0])
+    value = 0.0
+    demo_values = np.empty(0)
+    step_values = np.empty(0)
+    taught_const, taught_coef, taught_index, _ = taught
+    for step in range(steps):
+        _primitives(family, choices, theta, p)
+        for e in range(taught_entries.shape[0]):
+            probability = taught_const[e] + taught_coef[e] * p[taught_index[e]]
+            if (probability != 0.0) != nonzero[e]:
+                return value, demo_values, step_values, LAYOUT_CHANGED, step, -1
+            table[taught_entries[e]] = probability
+        _fill_layouts(table, shifted_source, flat_source, dense_source, target_source, rows,
+                      incoming, scatter)  # fmt: skip
+        demo_values, step_values, code = _teacher_gradient(
+            incoming, scatter, rows, next_flat, width, rewards, pass_beta, horizon, trace,
+            likelihood, reverse,
+        )  # fmt: skip
+        if code:
+            return value, demo_values, step_values, code, step, -1
+        for e in range(taught_entries.shape[0]):
+            d_teacher[e] = np.float64(d_probs[taught_entries[e]])
+        value, code, row = _theta_gradient(
+            theta, p, family, choices, observed, num_observed, authors_observed, moved_coef,
+            moved_index, d_teacher, taught, authors_teacher, prior_mean, prior_variance, gradient,
+        )  # fmt: skip
+        if code:
+            return value, demo_values, step_values, code, step, row
+        if not clipped_momentum_step(
+            theta, velocity, gradient, learning_rate, momentum, max_step, clip_step, bound
+        ):
+            return value, demo_values, step_values, GRADIENT_NOT_FINITE, step, -1
+    return value, demo_values, step_values, 0, steps, -1
+
+
+@njit(inline="always", fastmath=False, error_model="numpy")
+def _fill_layouts(
+    table: np.ndarray,
+    shifted_source: np.ndarray,
+    flat_source: np.ndarray,
+    dense_source: np.ndarray,
+    target_source: np.ndarray,
+    rows: tuple,  # type: ignore[type-arg]
+    incoming: tuple,  # type: ignore[type-arg]
+    scatter: bool,
+) -> None:
+    """The table's probabilities into the passes' layouts in their precision (rounded from
+    float64, as ``planning._PassLayout`` gathers them; source -1: 0)."""
+    shifted_probability, flat_probability = rows[1], rows[5]
+    for g in range(shifted_source.shape[0]):
+        for s in range(shifted_source.shape[1]):
+            j = shifted_source[g, s]
+            shifted_probability[g, s] = table[j] if j >= 0 else 0.0
+    for e in range(flat_source.shape[0]):
+        flat_probability[e] = table[flat_source[e]]
+    if not scatter:
+        dense_probabilities, probabilities = incoming[1], incoming[4]
+        for level in range(dense_source.shape[0]):
+            for s in range(dense_source.shape[1]):
+                j = dense_source[level, s]
+                dense_probabilities[level, s] = table[j] if j >= 0 else 0.0
+        for e in range(target_source.shape[0]):
+            probabilities[e] = table[target_source[e]]

@@ -65,7 +65,18 @@ class BAM(PlannerLearner):
                 steps += cost_steps
             # The dynamics steps leave the costs as they are, and their prior with them.
             cost_prior, _ = self.cost_prior(self.costs)
-            for _ in range(int(self.settings["dynamics_steps"])):
+            remaining = int(self.settings["dynamics_steps"])
+            while remaining > 0 and not data.empty and self.compiles_theta_steps():
+                value, done = self.dynamics_steps_in_one_call(data, observed, remaining)
+                if done:
+                    objective = value + cost_prior
+                    remaining -= done
+                    steps += done
+                if remaining:  # a table's zeros left the passes' layouts: one step here
+                    objective = self._dynamics_step(data, observed, cost_prior)
+                    remaining -= 1
+                    steps += 1
+            for _ in range(remaining):
                 objective = self._dynamics_step(data, observed, cost_prior)
                 steps += 1
         return objective, steps

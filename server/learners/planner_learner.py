@@ -243,9 +243,21 @@ class PlannerLearner(Learner):
             value, _, d_transitions = self.teacher_objective(operator, data, need_transitions=True)
             assert d_transitions is not None
             return value, d_transitions
+        arguments, d_probs = self._teacher_pass_arguments(operator, data, fresh_rows=False)
+        demo_values, step_values, code = _kernels.teacher_gradient(*arguments)
+        value = self._teacher_value(demo_values, step_values, code, self._q_shape(operator, data))
+        return value, d_probs.astype(np.float64).reshape(
+            operator.num_states, operator.num_actions, operator.width
+        )
+
+    def _teacher_pass_arguments(
+        self, operator: TransitionOperator, data: TeacherData, fresh_rows: bool
+    ) -> tuple[tuple[Any, ...], np.ndarray]:
+        """``_kernels.teacher_gradient``'s arguments for the learner's rewards on ``operator``
+        (with ``fresh_rows``, the passes' probabilities in arrays of their own, for a kernel to
+        fill), and the dL/dT it writes."""
         settings = self.settings
         dtype = PRECISIONS[settings["planner_precision"]]
-        beta = action_model(settings).beta
         horizon = check_horizon(self.env.horizon)
         rewards = self.task_rewards(data, self.costs)
         if data.plan_states is not None:
@@ -253,43 +265,52 @@ class PlannerLearner(Learner):
         shape = (rewards.shape[0], operator.num_states, operator.num_actions)
         entries, copies, originals, runs, slots = operator.reverse_entries()
         scatter = dtype == np.float32
+        incoming = NO_INCOMING_32 if scatter else operator.incoming_in(dtype)
+        rows = operator.rows_in(dtype)
+        if fresh_rows:
+            rows = tuple(a.copy() if a.dtype == dtype else a for a in rows)  # type: ignore[assignment]
+            incoming = tuple(a.copy() if a.dtype == dtype else a for a in incoming)  # type: ignore[assignment]
         d_probs: np.ndarray = np.zeros(operator.next_flat.shape[0], dtype)
         no_terms: np.ndarray = np.empty((0, 0, 0), dtype)
-        arguments = (
-            *(NO_INCOMING_32 if scatter else operator.incoming_in(dtype)),
-            scatter,
-            *operator.rows_in(dtype),
-            operator.next_flat,
-            operator.width,
-            np.ascontiguousarray(rewards, dtype),
-            dtype(beta),
-            horizon,
+        trace: tuple[np.ndarray, ...] = (
             np.empty(shape, dtype),
             np.empty((horizon - 1, shape[0], shape[1]), dtype),
             np.empty((horizon - 1, shape[0], shape[2], shape[1]), dtype),
-            *likelihood_arguments(data, settings),
-            entries,
-            runs,
-            slots,
-            np.zeros(shape[:2], dtype),
-            d_probs,
-            no_terms,
-            no_terms,
         )
-        demo_values, step_values, code = _kernels.teacher_gradient(*arguments)
+        reverse = (
+            entries, runs, slots, np.zeros(shape[:2], dtype), d_probs, no_terms, no_terms,
+            copies, originals,
+        )  # fmt: skip
+        arguments: tuple[Any, ...] = (
+            incoming,
+            scatter,
+            rows,
+            operator.next_flat,
+            operator.width,
+            np.ascontiguousarray(rewards, dtype),
+            dtype(action_model(settings).beta),
+            horizon,
+            trace,
+            likelihood_arguments(data, settings),
+            reverse,
+        )
+        return arguments, d_probs
+
+    @staticmethod
+    def _teacher_value(
+        demo_values: np.ndarray, step_values: np.ndarray, code: int, shape: tuple[int, ...]
+    ) -> float:
+        """The teacher data's log-likelihood from a compiled gradient's records' values,
+        summed as data_log_likelihood sums them; its error raised."""
         if code == _kernels.LIKELIHOOD_NOT_FINITE:
             raise FloatingPointError("the teacher data's log-likelihood is not finite (Q is not)")
         _refuse(int(code), shape)
-        # Summed as data_log_likelihood sums them.
         value = float(demo_values.sum()) + (
             float(step_values.sum()) if step_values.shape[0] else 0.0
         )
         if not np.isfinite(value):
             raise FloatingPointError("the teacher data's log-likelihood is not finite (Q is not)")
-        d_probs[copies] = d_probs[originals]
-        return value, d_probs.astype(np.float64).reshape(
-            operator.num_states, operator.num_actions, operator.width
-        )
+        return value
 
     def theta_steps(
         self,
@@ -301,49 +322,53 @@ class PlannerLearner(Learner):
         """``steps`` momentum steps on theta for the observed transitions' likelihood and the
         dynamics prior, plus (BAM's step) the teacher data's gradient ``d_transitions`` on the
         table of ``operator(data)`` pulled back to theta; by the setting's gradient rule. In one
-        compiled call where ``compiles_theta_steps`` (``_compiled_theta_steps``), else step by
+        compiled call where ``compiles_theta_steps`` (``_kernels.theta_steps``), else step by
         step. Returns the likelihood plus prior at the last step's start (0 without steps)."""
         if steps <= 0:
             return 0.0
-        if self.compiles_theta_steps():
-            return self._compiled_theta_steps(observed, steps, data, d_transitions)
-        value = 0.0
-        for _ in range(steps):
-            value, grad = self.transition_objective(self.theta, observed, exact=False)
-            if data is not None and d_transitions is not None:
-                grad = grad + self.pullback(data, d_transitions, exact=False)
-            self.theta_step(grad)
-        return value
+        if not self.compiles_theta_steps():
+            value = 0.0
+            for _ in range(steps):
+                value, grad = self.transition_objective(self.theta, observed, exact=False)
+                if data is not None and d_transitions is not None:
+                    grad = grad + self.pullback(data, d_transitions, exact=False)
+                self.theta_step(grad)
+            return value
+        # A step's arithmetic is a few microseconds, which the NumPy calls of the likelihood,
+        # the pull-back and the momentum step made about 50 (wall's BAM update: 140 steps).
+        head, tail = self._theta_arguments(observed, data)
+        if d_transitions is None:
+            d_teacher = np.empty(0)
+        else:
+            flat = np.ascontiguousarray(d_transitions, dtype=np.float64).reshape(-1)
+            d_teacher = flat[self.plan_model(data).flat_parametric_entries]
+        theta = np.array(self.theta, dtype=np.float64)  # copies: kept only if every step ends
+        velocity = np.array(self.theta_optimizer.velocity, dtype=np.float64)
+        kernel_arguments = (theta, velocity, *head, d_teacher, *tail, int(steps))
+        value, code, row = _kernels.theta_steps(*kernel_arguments)
+        self._raise_theta_error(code, observed, row)
+        self.theta, self.theta_optimizer.velocity = theta, velocity
+        return float(value)
 
     def compiles_theta_steps(self) -> bool:
-        """Whether ``theta_steps`` runs compiled: the setting ``compiled_dynamics_steps``,
-        where the model space's primitives are one the kernel knows."""
+        """Whether ``theta_steps`` and ``teacher_gradient`` run compiled: the setting
+        ``compiled_dynamics_steps``, where the model space's primitives are one the kernels
+        know."""
         return (
             bool(self.settings["compiled_dynamics_steps"])
             and _primitive_family(self.env.model) is not None
         )
 
-    def _compiled_theta_steps(
-        self,
-        observed: ObservedTransitions,
-        steps: int,
-        data: TeacherData | None,
-        d_transitions: np.ndarray | None,
-    ) -> float:
-        """``theta_steps`` in one call of ``_kernels.theta_steps``: a step's arithmetic is a
-        few microseconds, which the NumPy calls of the likelihood, the pull-back and the
-        momentum step made about 50 (wall's BAM update: 140 such steps; model-based IRL's:
-        200)."""
+    def _theta_arguments(
+        self, observed: ObservedTransitions, data: TeacherData | None
+    ) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
+        """``_kernels.theta_steps``' arguments from its primitives' family to the model's
+        moved entries, and from the teacher's table's entries to its optimiser."""
         model = self.env.model
         family = _primitive_family(model)
         assert family is not None
         authors = self.gradient_rule(exact=False) == "authors"
         teacher = self.plan_model(data)
-        if d_transitions is None:
-            d_teacher = np.empty(0)
-        else:
-            flat = np.ascontiguousarray(d_transitions, dtype=np.float64).reshape(-1)
-            d_teacher = flat[teacher.flat_parametric_entries]
         sd = self.settings["dynamics_prior_sd"]
         if sd is None:
             sd = model.prior_sd
@@ -351,40 +376,37 @@ class PlannerLearner(Learner):
             raise ValueError(f"prior standard deviation must be positive, got {sd!r}")
         bound = model.parameter_bound
         optimizer = self.theta_optimizer
-        theta = np.array(self.theta, dtype=np.float64)  # copies: kept only if every step ends
-        velocity = np.array(optimizer.velocity, dtype=np.float64)
         moved, taught = model.moved_entries, teacher.moved_entries
-        value, code, row = _kernels.theta_steps(
-            theta,
-            velocity,
+        head = (
             *family,
-            observed.const,
-            observed.coef,
-            observed.index,
-            observed.entry_rows,
+            (
+                observed.const, observed.coef, observed.index, observed.entry_rows,
+                observed.moved_places, observed.moved_rows, observed.first_outcomes,
+                observed.first_index,
+            ),
             len(observed.rows),
-            observed.moved_places,
-            observed.moved_rows,
-            observed.first_outcomes,
-            observed.first_index,
             authors and model.outcomes is not None,
             moved.coef,
             moved.index,
-            d_teacher,
-            taught.const,
-            taught.coef,
-            taught.index,
-            taught.outcomes,
+        )  # fmt: skip
+        tail = (
+            (taught.const, taught.coef, taught.index, taught.outcomes),
             authors and teacher.outcomes is not None,
             model.initial_value,
             0.0 if sd is None else float(sd) ** 2,
-            optimizer.learning_rate,
-            optimizer.momentum,
-            optimizer.max_step,
-            optimizer.clip == "step",
-            np.inf if bound is None else float(bound),
-            int(steps),
-        )
+            (
+                optimizer.learning_rate, optimizer.momentum, optimizer.max_step,
+                optimizer.clip == "step", np.inf if bound is None else float(bound),
+            ),
+        )  # fmt: skip
+        return head, tail
+
+    @staticmethod
+    def _q_shape(operator: TransitionOperator, data: TeacherData) -> tuple[int, ...]:
+        return (len(data.tasks), operator.num_states, operator.num_actions)
+
+    @staticmethod
+    def _raise_theta_error(code: int, observed: ObservedTransitions, row: int) -> None:
         if code == _kernels.IMPOSSIBLE_TRANSITION:
             raise ValueError(
                 f"observed transition {tuple(int(x) for x in observed.rows[row])} is "
@@ -392,8 +414,47 @@ class PlannerLearner(Learner):
             )
         if code == _kernels.GRADIENT_NOT_FINITE:
             raise FloatingPointError("the objective's gradient is not finite")
-        self.theta, optimizer.velocity = theta, velocity
-        return float(value)
+
+    def dynamics_steps_in_one_call(
+        self, data: TeacherData, observed: ObservedTransitions, steps: int
+    ) -> tuple[float, int]:
+        """Up to ``steps`` of BAM's dynamics steps (the teacher's gradient and the step on
+        theta) in one call of ``_kernels.dynamics_steps``, the table at each theta made and
+        laid out for the passes in it (where ``_dynamics_step`` made them in NumPy: about 50
+        microseconds a step); every task planned in this thread. Returns the objective besides
+        the costs' prior at the last step's start and the steps taken: fewer where a table's
+        zeros left the passes' layouts, for the caller to take the rest."""
+        operator = self.operator(data)
+        layout = operator.layout
+        assert layout is not None
+        teacher = self.plan_model(data)
+        head, tail = self._theta_arguments(observed, data)
+        arguments, _ = self._teacher_pass_arguments(operator, data, fresh_rows=True)
+        theta = np.array(self.theta, dtype=np.float64)
+        velocity = np.array(self.theta_optimizer.velocity, dtype=np.float64)
+        kernel_arguments = (
+            theta,
+            velocity,
+            *head,
+            *tail,
+            int(steps),
+            operator.probs_flat.copy(),
+            teacher.flat_parametric_entries,
+            layout.nonzero,
+            (layout.shifted_source, layout.flat_source, layout.dense_source, layout.target_source),
+            *arguments,
+        )
+        value, demo_values, step_values, code, done, row = _kernels.dynamics_steps(
+            *kernel_arguments
+        )
+        if code not in (0, _kernels.LAYOUT_CHANGED):
+            self._raise_theta_error(code, observed, row)
+            self._teacher_value(demo_values, step_values, code, self._q_shape(operator, data))
+        self.theta, self.theta_optimizer.velocity = theta, velocity
+        if done == 0:
+            return float("nan"), 0
+        teacher_value = self._teacher_value(demo_values, step_values, 0, ())
+        return float(value) + teacher_value, int(done)
 
     def cost_gradient(self, d_rewards: np.ndarray) -> np.ndarray:
         """dL/d(per-cell costs) of tasks with data from dL/d(per-state rewards): 0 on the cells

@@ -490,6 +490,12 @@ class TransitionOperator:
             self._distinct = self._sort_out_entries()
         return self._distinct[1], self._distinct[2][0], self._distinct[2][1]
 
+    @property
+    def layout(self) -> _PassLayout | None:
+        """Where a model's table entries go in the passes' layouts (``of_model``'s tables; None
+        for others)."""
+        return self._layout
+
     def reverse_entries(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """What a reverse pass's transition gradient reads: ``distinct_entries`` and the runs
         of them it sums side by side with each one's place in them (``_entry_runs``; none

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from server import domains
-from server.learners import make, restore
+from server.learners import make, planning, restore
 from server.learners.bam import BAM
 from server.learners.planner_learner import PlannerLearner
 from server.teacher import Teacher
@@ -145,6 +145,77 @@ def test_the_compiled_teacher_gradient_refuses_what_the_passes_refuse() -> None:
         copy = both_ways(learner, compiled)
         with pytest.raises(ValueError, match="index is out of range"):
             copy.teacher_gradient(broken)
+
+
+LOOP_CASES = [
+    ("wall", "float32"),  # the moved entries summed in runs
+    ("flip", "float64"),  # the table by next state filled too
+    ("two-fields", "float32"),  # the authors' farming rule
+    ("three-fields", "float32"),  # planned over the states the data reaches
+]
+
+
+@pytest.mark.parametrize(("name", "precision"), LOOP_CASES)
+def test_bam_s_dynamics_steps_in_one_call_take_its_steps_one_by_one(
+    name: str, precision: str
+) -> None:
+    """The table at each theta made and laid out in the kernel: the same theta, velocity and
+    objective as the steps that make it in NumPy, to rounding (its primitives' tanh and exp
+    are the C library's)."""
+    learner = taught(name, "bam", planner_precision=precision)
+    learner.theta = learner.theta + np.random.default_rng(4).normal(0.0, 0.5, learner.theta.shape)
+    assert isinstance(learner, BAM)
+    results = []
+    for whole in (False, True):
+        copy = both_ways(learner, compiled=True)
+        assert isinstance(copy, BAM)
+        observed, data = observed_of(copy), copy.teacher_data()
+        cost_prior, _ = copy.cost_prior(copy.costs)
+        if whole:
+            value, done = copy.dynamics_steps_in_one_call(data, observed, STEPS)
+            assert done == STEPS
+            value += cost_prior
+        else:
+            for _ in range(STEPS):
+                value = copy._dynamics_step(data, observed, cost_prior)
+        results.append((copy.theta.copy(), copy.theta_optimizer.velocity.copy(), value))
+    (theta, velocity, value), (whole_theta, whole_velocity, whole_value) = results
+    assert np.max(np.abs(theta - learner.theta)) > 1e-3
+    np.testing.assert_allclose(whole_theta, theta, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(whole_velocity, velocity, rtol=0, atol=1e-10)
+    assert whole_value == pytest.approx(value, rel=1e-10)
+
+
+def test_a_table_whose_zeros_leave_the_layouts_is_stepped_outside(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Where a step's table has a moved entry at zero that the passes' layouts hold non-zero
+    (or the reverse), the kernel stops before it with theta as it was, and an update takes
+    those steps the other way and learns what the kernel would have."""
+    learner = taught("doorway", "bam")
+    assert isinstance(learner, BAM)
+    learner.settings["warm_share"] = 0.2  # two alternations: rounding has no time to grow
+    reference = both_ways(learner, compiled=True)
+    reference.update()
+    real = planning.TransitionOperator.layout
+
+    def moved_zeros(operator: planning.TransitionOperator) -> Any:
+        layout = real.fget(operator)  # type: ignore[attr-defined]
+        flipped = layout.nonzero.copy()
+        flipped[0] = not flipped[0]  # as if theta had moved the table's zeros
+        return dataclasses.replace(layout, nonzero=flipped)
+
+    monkeypatch.setattr(planning.TransitionOperator, "layout", property(moved_zeros))
+    theta = learner.theta.copy()
+    value, done = learner.dynamics_steps_in_one_call(
+        learner.teacher_data(), observed_of(learner), STEPS
+    )
+    assert done == 0 and np.isnan(value)
+    np.testing.assert_array_equal(learner.theta, theta)
+    learner.update()
+    assert learner.updates == reference.updates
+    np.testing.assert_allclose(learner.theta, reference.theta, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(learner.costs, reference.costs, rtol=0, atol=1e-9)
 
 
 def test_a_whole_update_learns_the_same_both_ways() -> None:

@@ -198,8 +198,8 @@ class LocalUpdates:
         began = time.monotonic()
         log.info(
             "waiting for %d update process(es) to load the learners' compiled kernels (where "
-            "numba's cache lacks them, as on a first start, they are compiled: about half a "
-            "minute on two free cores); "
+            "numba's cache lacks them, as on a first start, they are compiled: about two "
+            "minutes, each process on a free core); "
             "/api/health answers 503 until then",
             self.workers,
         )

@@ -3,8 +3,9 @@
 numba compiles the planner's and the likelihoods' kernels on their first call and keeps them in
 its on-disk cache: a process loads them on its first update (about 0.3 s), and on a machine
 whose cache is missing or was made for another CPU (a new container, a new checkout) compiles
-them (about 30 s on a 2-core machine). A study server's update processes run ``warm_up`` when they start, so that
-neither lands on a participant's first update."""
+them (about two minutes of a core: 127 s on an AVX-512 AMD EPYC, 2026-11-29). A study
+server's update processes run ``warm_up`` when they start, so that neither lands on a
+participant's first update."""
 
 from __future__ import annotations
 

@@ -57,8 +57,8 @@ def worker_init(
     threading.Thread(target=leave_with_parent, name="leave-with-server", daemon=True).start()
     from server.app.updates.warmup import warm_up
 
-    # The kernels loaded (or compiled, about 30 s, where numba's cache lacks them) now, not on
-    # a participant's first update.
+    # The kernels loaded (or compiled, about two minutes, where numba's cache lacks them) now,
+    # not on a participant's first update.
     try:
         seconds = warm_up()
     except Exception:  # an update would meet the same error, and report it for its session

@@ -117,9 +117,12 @@ def slow_client(db: Database, settings: Settings, executor: ProcessPoolExecutor)
 def test_an_agent_step_waits_for_its_own_update_only(
     db: Database, settings: Settings, executor: ProcessPoolExecutor
 ) -> None:
-    # Four times the reference alternations: the first update (one task's data) otherwise
-    # took 0.65 s on a slow machine, less than the other participant's twelve moves there.
-    study = study_config(**{**SLOW_STUDY, "learner_settings": {"bam": {"alternations": 40}}})
+    # An update slower than the other participant's twelve moves (0.45 s on a loaded machine):
+    # sixteen times the reference alternations, in NumPy steps (compiled, 40 alternations of
+    # the first update (one task's data) took about a tenth of a second on an AVX-512 AMD
+    # EPYC, less than the moves).
+    slow = {"alternations": 160, "compiled_steps": False, "compiled_dynamics_steps": False}
+    study = study_config(**{**SLOW_STUDY, "learner_settings": {"bam": slow}})
     with TestClient(create_app(settings, study, db=db, executor=executor)) as client:
         participant, session_id = teaching_participant(client)
         other, other_session = teaching_participant(TestClient(client.app), "W2", "A2")

@@ -1516,24 +1516,19 @@ def _outcome_factor(outcome: int, t: float, pk: float) -> float:
 def _theta_gradient(
     theta: np.ndarray,
     p: np.ndarray,
-    family: int,
-    choices: int,
-    observed: tuple,  # type: ignore[type-arg]
-    num_observed: int,
-    authors_observed: bool,
-    moved_coef: np.ndarray,
-    moved_index: np.ndarray,
+    model: tuple,  # type: ignore[type-arg]
     d_teacher: np.ndarray,
-    taught: tuple,  # type: ignore[type-arg]
-    authors_teacher: bool,
-    prior_mean: float,
-    prior_variance: float,
     gradient: np.ndarray,
 ) -> tuple[float, int, int]:
     """The observed transitions' log-likelihood plus the dynamics prior at ``theta`` (whose
     primitives are ``p``), and into ``gradient`` its gradient plus, if ``d_teacher`` is not
     empty, the teacher data's gradient on the moved entries of the table it was planned on
-    pulled back to theta (``theta_steps``); an error code and the observed row it is about."""
+    pulled back to theta; an error code and the observed row it is about. ``model``: what
+    ``theta_steps`` describes."""
+    (
+        family, choices, observed, num_observed, authors_observed, moved_coef, moved_index,
+        taught, authors_teacher, prior_mean, prior_variance, _,
+    ) = model  # fmt: skip
     const, coef, index, rows, moved_places, moved_rows, first_outcomes, first_index = observed
     taught_const, taught_coef, taught_index, taught_outcomes = taught
     num_parameters = theta.shape[0]
@@ -1597,20 +1592,9 @@ def _theta_gradient(
 def theta_steps(
     theta: np.ndarray,
     velocity: np.ndarray,
-    family: int,
-    choices: int,
-    observed: tuple,  # type: ignore[type-arg]
-    num_observed: int,
-    authors_observed: bool,
-    moved_coef: np.ndarray,
-    moved_index: np.ndarray,
-    d_teacher: np.ndarray,
-    taught: tuple,  # type: ignore[type-arg]
-    authors_teacher: bool,
-    prior_mean: float,
-    prior_variance: float,
-    optimizer: tuple,  # type: ignore[type-arg]
+    model: tuple,  # type: ignore[type-arg]
     steps: int,
+    d_teacher: np.ndarray,
 ) -> tuple[float, int, int]:
     """``steps`` momentum steps on ``theta`` (and ``velocity``, in place) for the observed
     transitions' log-likelihood, the dynamics prior and, if ``d_teacher`` is not empty, the
@@ -1618,26 +1602,26 @@ def theta_steps(
     at every step: one step of BAM): ``PlannerLearner.transition_objective``, ``pullback`` and
     ``theta_step`` element by element in their order, but for sums NumPy takes pairwise (the
     log-likelihood's value), the norm that clips a step (``norm_in_fours``) and the C library's
-    tanh and exp. ``observed``: the observed transitions as ``TransitionModel.observe`` matched
-    them (each entry's const, coef, primitive and observed row; the entries theta moves, their
-    places and rows; the authors' farming rule's first outcomes and primitives); the model's
-    moved entries' coefficients and primitives ``moved_coef``/``moved_index``; ``taught``: the
-    teacher's table's moved entries (const, coef, primitive, outcome). ``prior_variance`` 0:
-    no prior. ``optimizer``: learning rate, momentum, largest step, whether the step (not the
-    velocity) is clipped, and the bound on theta (inf: none).
+    tanh and exp. ``model``: the primitives' family and a softmax row's length; the observed
+    transitions as ``TransitionModel.observe`` matched them (each entry's const, coef, primitive
+    and observed row; the entries theta moves, their places and rows; the authors' farming
+    rule's first outcomes and primitives), their count and whether the authors' rule applies;
+    the model's moved entries' coefficients and primitives; the teacher's table's moved
+    entries (const, coef, primitive, outcome) and whether the authors' rule applies to them;
+    the prior's mean and variance (0: no prior); and the optimiser: learning rate, momentum,
+    largest step, whether the step (not the velocity) is clipped, and the bound on theta
+    (inf: none).
 
     Returns the objective (likelihood plus prior) at the last step's start, an error code (0,
     ``IMPOSSIBLE_TRANSITION`` with the observed row, ``GRADIENT_NOT_FINITE``) and the row."""
-    learning_rate, momentum, max_step, clip_step, bound = optimizer
+    family, choices = model[0], model[1]
+    learning_rate, momentum, max_step, clip_step, bound = model[11]
     p = np.empty(theta.shape[0])
     gradient = np.empty(theta.shape[0])
     value = 0.0
     for _ in range(steps):
         _primitives(family, choices, theta, p)
-        value, code, row = _theta_gradient(
-            theta, p, family, choices, observed, num_observed, authors_observed, moved_coef,
-            moved_index, d_teacher, taught, authors_teacher, prior_mean, prior_variance, gradient,
-        )  # fmt: skip
+        value, code, row = _theta_gradient(theta, p, model, d_teacher, gradient)
         if code:
             return value, code, row
         if not clipped_momentum_step(
@@ -1757,9 +1741,10 @@ def teacher_gradient(
     the passes to write; ``likelihood``: the data and models as ``_data_log_likelihood`` takes
     them; ``reverse``: the distinct gradient entries, their runs and places, dL/drewards and
     dL/dT to write (zeroed here), empty kept terms and task sums, and the entries that copy
-    another's gradient and the ones they copy (``TransitionOperator.reverse_entries``). Returns the demonstrations' and
-    agent steps' log-likelihoods (for the caller to sum as NumPy sums them) and an error code
-    (the likelihood's, ``LIKELIHOOD_NOT_FINITE``), the gradients unwritten on an error."""
+    another's gradient and the ones they copy (``TransitionOperator.reverse_entries``).
+    Returns the demonstrations' and agent steps' log-likelihoods (for the caller to sum as
+    NumPy sums them) and an error code (the likelihood's, ``LIKELIHOOD_NOT_FINITE``), the
+    gradients unwritten on an error."""
     return _teacher_gradient(
         incoming, scatter, rows, next_flat, width, rewards, pass_beta, horizon, trace,
         likelihood, reverse,
@@ -1775,18 +1760,7 @@ LAYOUT_CHANGED = 12
 def dynamics_steps(
     theta: np.ndarray,
     velocity: np.ndarray,
-    family: int,
-    choices: int,
-    observed: tuple,  # type: ignore[type-arg]
-    num_observed: int,
-    authors_observed: bool,
-    moved_coef: np.ndarray,
-    moved_index: np.ndarray,
-    taught: tuple,  # type: ignore[type-arg]
-    authors_teacher: bool,
-    prior_mean: float,
-    prior_variance: float,
-    optimizer: tuple,  # type: ignore[type-arg]
+    model: tuple,  # type: ignore[type-arg]
     steps: int,
     table: np.ndarray,
     taught_entries: np.ndarray,
@@ -1813,8 +1787,10 @@ def dynamics_steps(
     is not, or the reverse, the layouts no longer fit: the steps stop before it
     (``LAYOUT_CHANGED``) for the caller to take the rest. Returns the objective besides the
     teacher's (likelihood plus prior) at the last step's start, the teacher data's
-    log-likelihoods there, an error code, the steps done and the observed row of an error."""
-    learning_rate, momentum, max_step, clip_step, bound = optimizer
+    log-likelihoods there, an error code, the steps done and the observed row of an error.
+    ``model`` as ``theta_steps`` takes it."""
+    family, choices, taught = model[0], model[1], model[7]
+    learning_rate, momentum, max_step, clip_step, bound = model[11]
     shifted_source, flat_source, dense_source, target_source = layout_sources
     d_probs = reverse[4]
     p = np.empty(theta.shape[0])
@@ -1841,10 +1817,7 @@ def dynamics_steps(
             return value, demo_values, step_values, code, step, -1
         for e in range(taught_entries.shape[0]):
             d_teacher[e] = np.float64(d_probs[taught_entries[e]])
-        value, code, row = _theta_gradient(
-            theta, p, family, choices, observed, num_observed, authors_observed, moved_coef,
-            moved_index, d_teacher, taught, authors_teacher, prior_mean, prior_variance, gradient,
-        )  # fmt: skip
+        value, code, row = _theta_gradient(theta, p, model, d_teacher, gradient)
         if code:
             return value, demo_values, step_values, code, step, row
         if not clipped_momentum_step(

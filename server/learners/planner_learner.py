@@ -336,7 +336,7 @@ class PlannerLearner(Learner):
             return value
         # A step's arithmetic is a few microseconds, which the NumPy calls of the likelihood,
         # the pull-back and the momentum step made about 50 (wall's BAM update: 140 steps).
-        head, tail = self._theta_arguments(observed, data)
+        model = self._theta_model(observed, data)
         if d_transitions is None:
             d_teacher = np.empty(0)
         else:
@@ -344,8 +344,7 @@ class PlannerLearner(Learner):
             d_teacher = flat[self.plan_model(data).flat_parametric_entries]
         theta = np.array(self.theta, dtype=np.float64)  # copies: kept only if every step ends
         velocity = np.array(self.theta_optimizer.velocity, dtype=np.float64)
-        kernel_arguments = (theta, velocity, *head, d_teacher, *tail, int(steps))
-        value, code, row = _kernels.theta_steps(*kernel_arguments)
+        value, code, row = _kernels.theta_steps(theta, velocity, model, int(steps), d_teacher)
         self._raise_theta_error(code, observed, row)
         self.theta, self.theta_optimizer.velocity = theta, velocity
         return float(value)
@@ -359,11 +358,12 @@ class PlannerLearner(Learner):
             and _primitive_family(self.env.model) is not None
         )
 
-    def _theta_arguments(
+    def _theta_model(
         self, observed: ObservedTransitions, data: TeacherData | None
-    ) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
-        """``_kernels.theta_steps``' arguments from its primitives' family to the model's
-        moved entries, and from the teacher's table's entries to its optimiser."""
+    ) -> tuple[Any, ...]:
+        """What ``_kernels.theta_steps`` and ``_kernels.dynamics_steps`` read of the model space,
+        the observed transitions, the teacher's table, the prior and the optimiser (``model``,
+        as ``theta_steps`` describes it)."""
         model = self.env.model
         family = _primitive_family(model)
         assert family is not None
@@ -377,7 +377,7 @@ class PlannerLearner(Learner):
         bound = model.parameter_bound
         optimizer = self.theta_optimizer
         moved, taught = model.moved_entries, teacher.moved_entries
-        head = (
+        return (
             *family,
             (
                 observed.const, observed.coef, observed.index, observed.entry_rows,
@@ -388,8 +388,6 @@ class PlannerLearner(Learner):
             authors and model.outcomes is not None,
             moved.coef,
             moved.index,
-        )  # fmt: skip
-        tail = (
             (taught.const, taught.coef, taught.index, taught.outcomes),
             authors and teacher.outcomes is not None,
             model.initial_value,
@@ -399,7 +397,6 @@ class PlannerLearner(Learner):
                 optimizer.clip == "step", np.inf if bound is None else float(bound),
             ),
         )  # fmt: skip
-        return head, tail
 
     @staticmethod
     def _q_shape(operator: TransitionOperator, data: TeacherData) -> tuple[int, ...]:
@@ -428,15 +425,14 @@ class PlannerLearner(Learner):
         layout = operator.layout
         assert layout is not None
         teacher = self.plan_model(data)
-        head, tail = self._theta_arguments(observed, data)
+        model = self._theta_model(observed, data)
         arguments, _ = self._teacher_pass_arguments(operator, data, fresh_rows=True)
         theta = np.array(self.theta, dtype=np.float64)
         velocity = np.array(self.theta_optimizer.velocity, dtype=np.float64)
         kernel_arguments = (
             theta,
             velocity,
-            *head,
-            *tail,
+            model,
             int(steps),
             operator.probs_flat.copy(),
             teacher.flat_parametric_entries,

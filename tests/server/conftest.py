@@ -8,8 +8,8 @@ import os
 import threading
 import time
 import uuid
-from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Callable, Iterator
+from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Any
 
@@ -28,6 +28,7 @@ from server.app.settings import Settings
 from server.app.storage.db import Database, upgrade
 from server.app.storage.models import Event, LearnerUpdate
 from server.app.updates.pool import new_executor
+from server.app.updates.worker import run_update
 from server.commands.live import free_port
 from server.commands.serve import server_config
 
@@ -35,6 +36,7 @@ POSTGRES_URL = os.environ.get(
     "BAM_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 )
 ADMIN_TOKEN = "test-admin-token"
+BOUND = 60.0  # seconds: a generous bound on anything that should happen at once
 MTURK = "https://workersandbox.mturk.com"
 
 # Learner settings that keep updates to a fraction of a second (the real learners, fewer steps).
@@ -103,6 +105,41 @@ def db(database_url: str) -> Iterator[Database]:
     upgrade(database.engine)
     yield database
     database.dispose()
+
+
+class Gated(Executor):
+    """Runs ``run_update`` in a thread, but only once the gate is open (an update held as long
+    as a test needs, whatever the machine's speed); records each job's learner seed (which
+    names its session) in the order the updates were started."""
+
+    def __init__(self) -> None:
+        self.gate = threading.Event()
+        self.gate.set()
+        self.started: list[int] = []
+        self.lock = threading.Lock()
+        self.pool = ThreadPoolExecutor(1)
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future[Any]:
+        def held() -> Any:
+            if fn is run_update:
+                self.gate.wait(BOUND)
+                with self.lock:
+                    self.started.append(int(args[0]["seed"]))
+            return fn(*args, **kwargs)
+
+        return self.pool.submit(held)
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        self.gate.set()
+        self.pool.shutdown(wait=wait, cancel_futures=cancel_futures)
+
+
+def gated_app(db: Database, settings: Settings, study: StudyConfig) -> tuple[FastAPI, Gated]:
+    """The app with one update process (the gated pool's one thread) to warm up and run the
+    updates, and an agent step that waits as long as the tests' bound."""
+    gated = Gated()
+    one = settings.model_copy(update={"update_workers": 1, "agent_wait_seconds": BOUND})
+    return create_app(one, study, db=db, executor=gated), gated
 
 
 def make_settings(database_url: str, **changes: Any) -> Settings:
@@ -219,6 +256,14 @@ def wait_until_ready(client: httpx.Client, timeout: float = 120.0) -> dict[str, 
         time.sleep(0.05)
     assert response.status_code == 200, response.text
     return dict(response.json())
+
+
+def wait_until(condition: Callable[[], bool], what: str, timeout: float = 120.0) -> None:
+    """Until ``condition()`` holds (an AssertionError naming ``what`` after ``timeout`` s)."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.02)
 
 
 def count_events(db: Database) -> int:

@@ -7,7 +7,6 @@ per bonus, and the export says the same."""
 
 from __future__ import annotations
 
-import time
 from collections import Counter
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
@@ -33,6 +32,7 @@ from tests.server.conftest import (
     demonstrate_each_task,
     live,
     study_config,
+    wait_until,
 )
 from tests.server.test_prolific import REASON, Crash, CrashesAroundPay, draft
 
@@ -129,13 +129,6 @@ def ours(db: Database) -> dict[int, tuple[str, str | None, str | None]]:
         return {
             p.id: (p.status, p.prolific_status, p.domain) for p in s.scalars(select(ParticipantRow))
         }
-
-
-def wait_until(condition: Any, what: str, timeout: float = 120.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, what
-        time.sleep(0.1)
 
 
 def test_a_paid_study_rehearsed_on_the_replica(server: tuple[str, Any], db: Database) -> None:

@@ -15,18 +15,21 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from server.app.main import create_app
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import LearnerUpdate, LearningSession
 from server.app.updates.queue import ProcessGate, UpdateQueue
-from server.app.updates.worker import run_update
 from server.domains import make
 from server.domains.base import ACTIONS
-from tests.server.conftest import study_config, teaching_participant, wait_for_updates
+from tests.server.conftest import (
+    BOUND,
+    Gated,
+    gated_app,
+    study_config,
+    teaching_participant,
+    wait_for_updates,
+)
 from tests.server.test_updates import demonstrate
-
-BOUND = 60.0  # seconds: a generous bound on anything that should happen at once
 
 
 class Scripted:
@@ -189,32 +192,6 @@ def test_a_session_awaited_for_a_later_update_stays_first_until_that_one_is_done
     assert run_apart(scenario) == [1, 2, 2, 2, 3]
 
 
-class Gated(Executor):
-    """Runs ``run_update`` in a thread, but only once the gate is open; records each job's
-    learner seed (which names its session) in the order the updates were started."""
-
-    def __init__(self) -> None:
-        self.gate = threading.Event()
-        self.gate.set()
-        self.started: list[int] = []
-        self.lock = threading.Lock()
-        self.pool = ThreadPoolExecutor(1)
-
-    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future[Any]:
-        def held() -> Any:
-            if fn is run_update:
-                self.gate.wait(BOUND)
-                with self.lock:
-                    self.started.append(int(args[0]["seed"]))
-            return fn(*args, **kwargs)
-
-        return self.pool.submit(held)
-
-    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
-        self.gate.set()
-        self.pool.shutdown(wait=wait, cancel_futures=cancel_futures)
-
-
 ONE_AGENT = {
     "domains": [{"name": "navigation", "environments": ["wall"]}],
     "learners": ["bam"],
@@ -224,11 +201,7 @@ ONE_AGENT = {
 
 
 def one_slot_app(db: Database, settings: Settings) -> tuple[Any, Gated]:
-    """The app with one update process (the gated pool's one thread) to warm up and run the
-    updates, and an agent step that waits as long as the test's bound."""
-    gated = Gated()
-    one = settings.model_copy(update={"update_workers": 1, "agent_wait_seconds": BOUND})
-    return create_app(one, study_config(**ONE_AGENT), db=db, executor=gated), gated
+    return gated_app(db, settings, study_config(**ONE_AGENT))
 
 
 def sessions_by_seed(db: Database, *session_ids: int) -> dict[int, int]:

@@ -28,13 +28,17 @@ from server.domains.base import ACTIONS
 from server.learners.records import DemonstrationStep
 from server.teacher import Teacher
 from tests.server.conftest import (
+    BOUND,
     Participant,
+    gated_app,
     study_config,
     teaching_participant,
     wait_for_updates,
+    wait_until,
 )
 
-# One environment, one BAM agent with its reference settings: updates take about two seconds.
+# One environment, one BAM agent with its reference settings (where a test needs an update to
+# last, it holds it: ``gated_app``).
 SLOW_STUDY = {
     "domains": [{"name": "navigation", "environments": ["two-rooms"]}],
     "learners": ["bam"],
@@ -107,62 +111,57 @@ def test_one_evaluation_per_update_in_order(client: TestClient, db: Database) ->
     assert policy.min() >= 0 and policy.max() < len(ACTIONS)
 
 
-@pytest.fixture
-def slow_client(db: Database, settings: Settings, executor: ProcessPoolExecutor) -> Any:
-    app = create_app(settings, study_config(**SLOW_STUDY), db=db, executor=executor)
+def test_an_agent_step_waits_for_its_own_update_only(db: Database, settings: Settings) -> None:
+    app, gated = gated_app(db, settings, study_config(**SLOW_STUDY))
     with TestClient(app) as client:
-        yield client
-
-
-def test_an_agent_step_waits_for_its_own_update_only(
-    db: Database, settings: Settings, executor: ProcessPoolExecutor
-) -> None:
-    # An update slower than the other participant's twelve moves (0.45 s on a loaded machine):
-    # sixteen times the reference alternations, in NumPy steps (compiled, 40 alternations of
-    # the first update (one task's data) took about a tenth of a second on an AVX-512 AMD
-    # EPYC, less than the moves).
-    slow = {"alternations": 160, "compiled_steps": False, "compiled_dynamics_steps": False}
-    study = study_config(**{**SLOW_STUDY, "learner_settings": {"bam": slow}})
-    with TestClient(create_app(settings, study, db=db, executor=executor)) as client:
         participant, session_id = teaching_participant(client)
         other, other_session = teaching_participant(TestClient(client.app), "W2", "A2")
         wait_for_updates(db)
+        gated.gate.clear()  # from now on no update runs until the gate opens
         base = participant.session(session_id)
         ended = demonstrate(participant, session_id, 0)
         assert ended["session"]["learning"]["pending"] == 1
         participant.act(f"{base}/reset")  # away from the goal the demonstration ended on
         participant.act(f"{base}/mode", mode="agent")
+        updates = app.state.server.updates
         with ThreadPoolExecutor(1) as pool:
             waiting = pool.submit(participant.act, f"{base}/agent-step")
+            wait_until(lambda: updates.queue().sessions_awaited == 1, "the agent step waits")
             # While the agent waits for its update, the other participant's moves go on.
-            started = time.perf_counter()
+            other_base = other.session(other_session)
             for name in ["UP", "DOWN", "LEFT", "RIGHT"] * 3:
-                other.act(f"{other.session(other_session)}/move", action=name)
-            moves = time.perf_counter() - started
-            step = waiting.result()
-        rows = updates_of(db, session_id)
-        assert rows[1].status == "done"
-        assert step["outcome"]["learning_wait_seconds"] > 0
-        assert step["session"]["learning"] == {"pending": 0, "updates": 1}
-        assert moves < step["outcome"]["learning_wait_seconds"]
-        env = make("two-rooms")
-        policy = np.frombuffer(rows[1].greedy_policy, dtype=np.int8).reshape(
-            len(env.tasks), env.num_states
-        )
-        assert ACTIONS.index(step["outcome"]["action"]) == policy[0, step["outcome"]["state"]]
+                other.act(f"{other_base}/move", action=name)
+            assert not waiting.done()
+            assert updates.queue().sessions_awaited == 1
+            gated.gate.set()
+            step = waiting.result(BOUND)
+    gated.shutdown()
+    rows = updates_of(db, session_id)
+    assert rows[1].status == "done"
+    assert step["outcome"]["learning_wait_seconds"] > 0
+    assert step["session"]["learning"] == {"pending": 0, "updates": 1}
+    env = make("two-rooms")
+    policy = np.frombuffer(rows[1].greedy_policy, dtype=np.int8).reshape(
+        len(env.tasks), env.num_states
+    )
+    assert ACTIONS.index(step["outcome"]["action"]) == policy[0, step["outcome"]["state"]]
 
 
 def test_pending_updates_survive_a_restart(
     db: Database, settings: Settings, executor: ProcessPoolExecutor
 ) -> None:
     study = study_config(**SLOW_STUDY)
-    with TestClient(create_app(settings, study, db=db, executor=executor)) as client:
+    app, gated = gated_app(db, settings, study)
+    with TestClient(app) as client:
         participant, session_id = teaching_participant(client)
+        wait_for_updates(db)
+        gated.gate.clear()  # the three episodes' updates are held: the server stops first
         for task in range(3):
             demonstrate(participant, session_id, task)
         token, seq = participant.token, participant.seq
+    gated.shutdown()  # the held update runs now, for nobody: its server has stopped
     rows = updates_of(db, session_id)
-    assert any(row.status == "pending" for row in rows), "the updates finished before the stop"
+    assert [row.status for row in rows] == ["done", "pending", "pending", "pending"]
     with TestClient(create_app(settings, study, db=db, executor=executor)) as client:
         wait_for_updates(db)
         participant = Participant(client, token, seq)
@@ -237,20 +236,31 @@ def test_a_learner_is_rebuilt_from_the_events_when_no_state_is_saved(
     ) + sum(e.stay_state is not None for e in events)
 
 
-def test_the_learning_state_can_be_awaited(slow_client: TestClient, db: Database) -> None:
-    participant, session_id = teaching_participant(slow_client)
-    demonstrate(participant, session_id, 0)
-    learning = participant.get(f"{participant.session(session_id)}/learning")
-    assert learning["pending"] >= 1
-    learning = participant.get(f"{participant.session(session_id)}/learning?wait=30")
-    assert learning == {"pending": 0, "updates": 1}
-    with db.read() as s:
-        session = s.get(LearningSession, session_id)
-        assert session.policy_update == 1
-    response = slow_client.get(
-        f"{participant.session(session_id)}/learning?wait=99", headers=participant.headers
-    )
-    assert response.status_code == 422
+def test_the_learning_state_can_be_awaited(db: Database, settings: Settings) -> None:
+    app, gated = gated_app(db, settings, study_config(**SLOW_STUDY))
+    with TestClient(app) as client:
+        participant, session_id = teaching_participant(client)
+        wait_for_updates(db)
+        gated.gate.clear()
+        demonstrate(participant, session_id, 0)
+        learning = f"{participant.session(session_id)}/learning"
+        assert participant.get(learning) == {"pending": 1, "updates": 0}
+        with ThreadPoolExecutor(1) as pool:
+            awaited = pool.submit(participant.get, f"{learning}?wait=30")
+            # Nobody is counted as waiting (the agent's turn is not next): the request's wait
+            # is seen among the queue's waiters.
+            order = app.state.server.updates.order
+            wait_until(lambda: session_id in order._waiters, "the request waits")
+            assert not awaited.done()
+            gated.gate.set()
+            assert awaited.result(BOUND) == {"pending": 0, "updates": 1}
+        with db.read() as s:
+            session = s.get(LearningSession, session_id)
+            assert session is not None and session.policy_update == 1
+        response = client.get(f"{learning}?wait=99", headers=participant.headers)
+        assert response.status_code == 422
+        assert "wait" in response.text
+    gated.shutdown()
 
 
 # A server process that makes its update pool, starts its workers, then dies without shutting

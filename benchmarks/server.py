@@ -217,15 +217,21 @@ def pending_updates(db: Database) -> int:
         )
 
 
+def queue_view(url: str, token: str) -> dict[str, object]:
+    """The server's queue view (``/api/admin/queue``)."""
+    answer = httpx.get(
+        f"{url}/api/admin/queue", headers={"Authorization": f"Bearer {token}"}, timeout=10
+    )
+    answer.raise_for_status()
+    queue: dict[str, object] = answer.json()
+    return queue
+
+
 def wait_for_capacity(url: str, token: str, timeout: float) -> dict[str, object]:
-    """The server's queue view once it has measured its capacity (``/api/admin/queue``)."""
+    """The server's queue view once it has measured its capacity."""
     deadline = time.monotonic() + timeout
     while True:
-        answer = httpx.get(
-            f"{url}/api/admin/queue", headers={"Authorization": f"Bearer {token}"}, timeout=10
-        )
-        answer.raise_for_status()
-        queue: dict[str, object] = answer.json()
+        queue = queue_view(url, token)
         if queue["capacity"] is not None:
             return queue
         if time.monotonic() > deadline:
@@ -233,9 +239,10 @@ def wait_for_capacity(url: str, token: str, timeout: float) -> dict[str, object]
         time.sleep(1.0)
 
 
-def capacity_line(queue: dict[str, object]) -> str:
-    """The capacity the server stated at start, as its queue view gives it; the server's own
-    work per update is timed only where the updates share its cores (not on a Dask cluster)."""
+def capacity_line(queue: dict[str, object], when: str = "") -> str:
+    """The capacity the server states (``when``: at start unless said), as its queue view
+    gives it; the server's own work per update is timed only where the updates share its cores
+    (not on a Dask cluster)."""
     server = queue["server_seconds_per_update"]
     own = (
         "its own work per update not counted (the updates run on the cluster's cores)"
@@ -243,7 +250,7 @@ def capacity_line(queue: dict[str, object]) -> str:
         else f"the server's own work {server} s a core per update"
     )
     return (
-        f"the server's capacity: {queue['capacity']} participants at once (an update "
+        f"the server's capacity{when}: {queue['capacity']} participants at once (an update "
         f"{queue['update_seconds']} s on {queue['measured_on']}, {own}, {queue['slots']} slot(s))"
     )
 
@@ -431,6 +438,9 @@ def main(argv: list[str] | None = None) -> int:
         stop.set()
         stopped, stopped_at = time.perf_counter(), datetime.now(UTC)
         cpu_after = cpu_by_group(server.process.pid, cluster_pids)
+        # From the latest updates and, where they share its cores, the server's CPU time (with
+        # a PostgreSQL server's on this machine) over them.
+        live = queue_view(server.url, admin_token)
         drained = drain_watch(db, stopped)
         thread.join()
         elapsed = time.perf_counter() - started
@@ -497,6 +507,7 @@ def main(argv: list[str] | None = None) -> int:
     tries = sum(len(p.latencies.get("agent_step", [])) for p in run.participants)
     print(f"agent steps that waited    {len(run.update_waits)} of {tries + len(run.update_waits)}")
     print(f"capacity stated at start   {measured['capacity']} participants")
+    print(capacity_line(live, " at the stop"))
     queued = sum(updates.values()) - updates_before
     # Each participant teaches from its arrival (spread over the ramp) until the stop.
     teaching = args.participants * max(1.0, stopped - started - args.ramp_seconds / 2)

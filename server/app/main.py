@@ -38,6 +38,7 @@ from server.app.routers import (
 from server.app.schemas import ERROR_RESPONSES
 from server.app.settings import Settings, get_settings
 from server.app.state import ServerState
+from server.app.storage.database_cpu import postgres_cpu_reader
 from server.app.storage.db import Database, SchemaError, current_revision, head_revision
 from server.app.updates.capacity import reference_jobs
 from server.app.updates.manager import UpdateManager
@@ -188,6 +189,11 @@ def create_app(
                 else None
             ),
             server_share=server_share if measure_capacity else None,
+            database_cpu=(
+                await asyncio.to_thread(postgres_cpu_reader, db.engine)
+                if updates_cluster is None
+                else None
+            ),
         )
         state.updates = manager
         await manager.start()

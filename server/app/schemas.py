@@ -414,8 +414,9 @@ class QueueView(BaseModel):
     measured_on: str | None = Field(description="What the update time was measured on.")
     server_seconds_per_update: float | None = Field(
         description="The server process's own CPU seconds per update (a participant's requests "
-        "between two updates, the update's reading and storing), which the capacity counts "
-        "where the update processes share the server's cores (none: not counted)."
+        "between two updates, the update's reading and storing; once live, with a PostgreSQL "
+        "server's on the same machine), which the capacity counts where the update processes "
+        "share the server's cores (none: not counted)."
     )
     longest_update_seconds: float | None = Field(
         description="The longest update timed at start: an agent that follows one is ready "

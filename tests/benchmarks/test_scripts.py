@@ -250,3 +250,8 @@ def test_the_server_benchmark_says_when_the_server_s_own_work_is_not_counted() -
     cluster = module.capacity_line({**queue, "server_seconds_per_update": None})
     assert "None" not in cluster
     assert "its own work per update not counted" in cluster and cluster.endswith("2 slot(s))")
+    live = {**queue, "measured_on": "the latest 200 updates", "server_seconds_per_update": 0.05}
+    assert module.capacity_line(live, " at the stop") == (
+        "the server's capacity at the stop: 181 participants at once (an update 0.0828 s on "
+        "the latest 200 updates, the server's own work 0.05 s a core per update, 2 slot(s))"
+    )

@@ -18,7 +18,8 @@ and storing, CPU seconds of the server's process per update), and the capacity i
 The costs are measured at start on the study's own learners and environments
 (``reference_jobs``, ``measure_updates``, in an update process; the server's own work on a
 scratch copy of the study, ``server.commands.server_share``), then from the updates the server
-runs and its process's CPU time meanwhile.
+runs and its process's CPU time meanwhile, with that of a PostgreSQL server on the same machine
+(``server.app.storage.database_cpu``).
 
 The capacity bounds the queue, not one update's own time: an agent step that follows an update
 waits for it however few participants teach. The longest reference update is said beside the
@@ -74,8 +75,9 @@ class Capacity:
     update_interval_seconds: float  # how often an active participant queues an update
     measured_on: str  # what the update cost was measured on
     longest_update: LongestUpdate | None = None  # of the reference sessions, once timed
-    # The server process's CPU seconds per update, where the slots share its cores (None:
-    # not counted: the slots are a cluster's, or it could not be timed).
+    # The server process's CPU seconds per update (live: with a PostgreSQL server's on this
+    # machine), where the slots share its cores (None: not counted: the slots are a
+    # cluster's, or it could not be timed).
     server_seconds: float | None = None
 
 

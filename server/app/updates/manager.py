@@ -100,6 +100,7 @@ class UpdateManager:
         update_interval_seconds: float = 10.0,
         reference_jobs: list[dict[str, Any]] | None = None,
         server_share: Callable[[threading.Event], float] | None = None,
+        database_cpu: Callable[[], float] | None = None,
     ) -> None:
         self.policies = policies
         self.store = UpdateStore(db, learner_settings)
@@ -133,7 +134,10 @@ class UpdateManager:
         # The server's own work per update (capacity.py), where the update processes share
         # its cores: timed at start by ``server_share`` once the reference updates are, then
         # from this process's CPU time at the end of each of the latest updates.
+        # A PostgreSQL server on this machine works for the requests too: its CPU time is
+        # added to the marks (``database_cpu``, server.app.storage.database_cpu).
         self.server_share = server_share if cluster is None else None
+        self.database_cpu = database_cpu
         self.reference_server_seconds: float | None = None
         self._cpu_marks: deque[float] = deque(maxlen=LIVE_UPDATES + 1)
 
@@ -296,7 +300,8 @@ class UpdateManager:
             job.payload, name, self._processes, job.session_id
         )
         self._costs.append(seconds)
-        self._cpu_marks.append(time.process_time())
+        database = self.database_cpu() if self.database_cpu is not None else 0.0
+        self._cpu_marks.append(time.process_time() + database)
         return outcome, deaths
 
     async def _rescan_forever(self) -> None:

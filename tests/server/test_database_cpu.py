@@ -1,0 +1,167 @@
+"""The CPU time of a PostgreSQL server on the study server's machine, which the capacity
+counts with the server's own work per update (server.app.storage.database_cpu)."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from sqlalchemy import create_engine, text
+from sqlalchemy.pool import NullPool
+
+from server.app.storage.database_cpu import backend_cpu_reader, postgres_cpu_reader
+from server.app.storage.db import Database
+from server.app.updates.capacity import LIVE_MINIMUM
+from server.app.updates.queue import ProcessGate
+from tests.server.conftest import POSTGRES_URL, wait_until
+
+TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def busy(connection: Any, seconds: float) -> None:
+    """The backend of ``connection`` computes for ``seconds`` of wall time."""
+    connection.execute(
+        text(
+            "DO $$ DECLARE until timestamptz := clock_timestamp() + make_interval(secs => "
+            f"{seconds}); BEGIN WHILE clock_timestamp() < until LOOP END LOOP; END $$"
+        )
+    )
+
+
+@pytest.fixture
+def postgres() -> Any:
+    engine = create_engine(POSTGRES_URL, poolclass=NullPool)
+    yield engine
+    engine.dispose()
+
+
+def test_a_local_postgresql_servers_cpu_time_counts_its_backends_live_and_ended(
+    postgres: Any,
+) -> None:
+    read = postgres_cpu_reader(postgres)
+    assert read is not None, "PostgreSQL on 127.0.0.1 runs on this machine"
+    before = read()
+    # A backend that computes for a second and stays connected (a pooled connection)...
+    with postgres.connect() as connection:
+        busy(connection, 1.0)
+        during = read()
+        # (A second of a backend's wall time is at least half a second of CPU on a machine
+        # where the test waits for it.)
+        assert during - before >= 0.5
+    # ... then one that computes and ends: its time stays counted, in the postmaster's
+    # ended children's.
+    with postgres.connect() as connection:
+        busy(connection, 1.0)
+    wait_until(lambda: read() - during >= 0.5, "the ended backend's CPU time counted")
+    assert read() >= during
+
+
+def test_a_sqlite_database_has_no_processes_of_its_own(tmp_path: Path) -> None:
+    database = Database.from_url(f"sqlite:///{tmp_path / 'study.db'}")
+    assert postgres_cpu_reader(database.engine) is None
+    database.dispose()
+
+
+def write_process(proc: Path, pid: int, name: str, parent: int, times: tuple[int, ...]) -> None:
+    folder = proc / str(pid)
+    (folder / "task" / str(pid)).mkdir(parents=True, exist_ok=True)
+    (folder / "comm").write_text(f"{name}\n")
+    # pid (name) state ppid pgrp session tty tpgid flags minflt cminflt majflt cmajflt utime
+    # stime cutime cstime ... (a name with spaces and parentheses, as proc(5) allows)
+    fields = ["S", str(parent), *["0"] * 9, *map(str, times), "20", "0"]
+    (folder / "stat").write_text(f"{pid} ({name}) {' '.join(fields)}\n")
+
+
+def set_children(proc: Path, pid: int, children: list[int]) -> None:
+    (proc / str(pid) / "task" / str(pid) / "children").write_text(
+        "".join(f"{child} " for child in children)
+    )
+
+
+def test_the_time_is_the_postmasters_own_its_ended_childrens_and_its_live_childrens(
+    tmp_path: Path,
+) -> None:
+    proc = tmp_path / "proc"
+    write_process(proc, 10, "postgres", 1, (100, 50, 400, 30))
+    write_process(proc, 11, "postgres", 10, (7, 3, 0, 0))  # the backend asked
+    write_process(proc, 12, "postgres", 10, (20, 20, 5, 5))  # its writer
+    set_children(proc, 10, [11, 12])
+    read = backend_cpu_reader(11, proc)
+    assert read is not None
+    # own 150, ended children 430, live children 10 + 40 (not their own ended children's)
+    assert read() == pytest.approx((150 + 430 + 10 + 40) / TICKS)
+    # The backend ends: its ticks move into the postmaster's ended children's...
+    write_process(proc, 10, "postgres", 1, (100, 50, 410, 30))
+    set_children(proc, 10, [12])
+    assert read() == pytest.approx((150 + 440 + 40) / TICKS)
+    # ... and read between the two (listed, but gone), the total does not go back.
+    set_children(proc, 10, [11, 12])
+    write_process(proc, 10, "postgres", 1, (100, 50, 400, 30))
+    (proc / "11" / "stat").unlink()
+    assert read() == pytest.approx((150 + 440 + 40) / TICKS)
+
+
+def test_no_reader_where_the_backend_is_not_this_machines_postgres(tmp_path: Path) -> None:
+    proc = tmp_path / "proc"
+    # The pid a database in a container of its own answers: another process here, or none.
+    write_process(proc, 20, "python3", 1, (1, 1, 0, 0))
+    assert backend_cpu_reader(20, proc) is None
+    assert backend_cpu_reader(21, proc) is None
+    # A postgres process whose parent is not the postmaster (or lists no children).
+    write_process(proc, 30, "postgres", 29, (1, 1, 0, 0))
+    write_process(proc, 29, "bash", 1, (1, 1, 0, 0))
+    set_children(proc, 29, [30])
+    assert backend_cpu_reader(30, proc) is None
+    write_process(proc, 40, "postgres", 41, (1, 1, 0, 0))
+    write_process(proc, 41, "postgres", 1, (1, 1, 0, 0))
+    assert backend_cpu_reader(40, proc) is None
+
+
+class Instant:
+    """A runner of one slot whose updates end at once, 0.05 s of wall time each."""
+
+    slots = 1
+
+    async def run(self, payload: Any, name: str, gate: Any, session_id: int) -> Any:
+        return {}, 0, 0.05
+
+
+def test_the_live_capacity_adds_the_databases_cpu_time_to_the_servers(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from server.app.updates import manager as manager_module
+    from server.app.updates.manager import UpdateManager
+    from server.app.updates.policies import PolicyCache
+    from server.app.updates.store import Job
+
+    monkeypatch.setattr(manager_module, "available_cores", lambda: 1)
+    database = [0.0]
+
+    def database_cpu() -> float:
+        database[0] += 0.25  # the database's work during each update
+        return database[0]
+
+    db: Database = None  # type: ignore[assignment]
+    manager = UpdateManager(
+        db, PolicyCache(), lambda name: {}, workers=1, database_cpu=database_cpu
+    )
+    manager.runner = Instant()  # type: ignore[assignment]
+    manager._processes = ProcessGate(1, lambda session_id: (0, 0.0))
+    job = Job(update_id=1, session_id=1, update_index=1, environment="wall", payload={})
+
+    async def run_updates() -> float:
+        started = time.process_time()
+        for _ in range(LIVE_MINIMUM + 1):
+            await manager._run(job)
+        return time.process_time() - started
+
+    own = asyncio.run(run_updates())
+    capacity = manager.capacity()
+    assert capacity is not None and capacity.update_seconds == pytest.approx(0.05)
+    # The database's 0.25 s an update, and this process's own (a share of what it spent).
+    assert capacity.server_seconds is not None
+    assert 0.25 <= capacity.server_seconds <= 0.25 + own / LIVE_MINIMUM

@@ -410,7 +410,10 @@ class QueueView(BaseModel):
     capacity: int | None = Field(
         description="Participants who can teach at once without waiting (none: not measured yet)."
     )
-    update_seconds: float | None = Field(description="The measured wall time of one update.")
+    update_seconds: float | None = Field(
+        description="The measured wall time of one update (live, where the update processes "
+        "share the server's cores: its CPU time)."
+    )
     measured_on: str | None = Field(description="What the update time was measured on.")
     server_seconds_per_update: float | None = Field(
         description="The server process's own CPU seconds per update (a participant's requests "

@@ -122,12 +122,33 @@ def test_no_reader_where_the_backend_is_not_this_machines_postgres(tmp_path: Pat
 
 
 class Instant:
-    """A runner of one slot whose updates end at once, 0.05 s of wall time each."""
+    """A runner of one slot whose updates end at once, 0.05 s of wall time each (and, with
+    ``cpu``, that much of their process's CPU time)."""
 
     slots = 1
 
+    def __init__(self, cpu: float | None = None) -> None:
+        self.outcome = {} if cpu is None else {"cpu_seconds": cpu}
+
     async def run(self, payload: Any, name: str, gate: Any, session_id: int) -> Any:
-        return {}, 0, 0.05
+        return self.outcome, 0, 0.05
+
+
+def run_live_updates(manager: Any) -> float:
+    """``LIVE_MINIMUM + 1`` updates through the manager's ``_run``; this process's CPU time
+    meanwhile."""
+    from server.app.updates.store import Job
+
+    manager._processes = ProcessGate(1, lambda session_id: (0, 0.0))
+    job = Job(update_id=1, session_id=1, update_index=1, environment="wall", payload={})
+
+    async def run_updates() -> float:
+        started = time.process_time()
+        for _ in range(LIVE_MINIMUM + 1):
+            await manager._run(job)
+        return time.process_time() - started
+
+    return asyncio.run(run_updates())
 
 
 def test_the_live_capacity_adds_the_databases_cpu_time_to_the_servers(
@@ -136,7 +157,6 @@ def test_the_live_capacity_adds_the_databases_cpu_time_to_the_servers(
     from server.app.updates import manager as manager_module
     from server.app.updates.manager import UpdateManager
     from server.app.updates.policies import PolicyCache
-    from server.app.updates.store import Job
 
     monkeypatch.setattr(manager_module, "available_cores", lambda: 1)
     database = [0.0]
@@ -150,18 +170,29 @@ def test_the_live_capacity_adds_the_databases_cpu_time_to_the_servers(
         db, PolicyCache(), lambda name: {}, workers=1, database_cpu=database_cpu
     )
     manager.runner = Instant()  # type: ignore[assignment]
-    manager._processes = ProcessGate(1, lambda session_id: (0, 0.0))
-    job = Job(update_id=1, session_id=1, update_index=1, environment="wall", payload={})
-
-    async def run_updates() -> float:
-        started = time.process_time()
-        for _ in range(LIVE_MINIMUM + 1):
-            await manager._run(job)
-        return time.process_time() - started
-
-    own = asyncio.run(run_updates())
+    own = run_live_updates(manager)
     capacity = manager.capacity()
     assert capacity is not None and capacity.update_seconds == pytest.approx(0.05)
     # The database's 0.25 s an update, and this process's own (a share of what it spent).
     assert capacity.server_seconds is not None
     assert 0.25 <= capacity.server_seconds <= 0.25 + own / LIVE_MINIMUM
+
+
+@pytest.mark.parametrize("on_a_cluster", [False, True])
+def test_a_live_updates_cost_is_its_cpu_time_where_it_shares_the_servers_cores(
+    on_a_cluster: bool,
+) -> None:
+    """Under load an update's wall time counts the moments the server's work held its core,
+    which the capacity counts apart; on a cluster's cores of their own, its wall time."""
+    from server.app.updates.manager import UpdateManager
+    from server.app.updates.policies import PolicyCache
+
+    db: Database = None  # type: ignore[assignment]
+    manager = UpdateManager(db, PolicyCache(), lambda name: {}, workers=1)
+    manager.runner = Instant(cpu=0.02)  # type: ignore[assignment]
+    if on_a_cluster:
+        manager.cluster = object()  # type: ignore[assignment]
+    run_live_updates(manager)
+    capacity = manager.capacity()
+    assert capacity is not None
+    assert capacity.update_seconds == pytest.approx(0.05 if on_a_cluster else 0.02)

@@ -352,6 +352,36 @@ def test_an_update_gives_its_planner_the_threads_its_job_names(tmp_path: Path) -
         assert results[0][key] == results[1][key]
 
 
+def test_an_update_reports_its_own_cpu_time(executor: ProcessPoolExecutor) -> None:
+    """The CPU time an update's process spent on it (what the capacity counts where the update
+    processes share the server's cores): some, and no more than the update's own wall time
+    on one thread (not the process's since it started)."""
+    from server.app.updates.worker import run_update
+
+    env = make("wall")
+    teacher = Teacher(env, seed=0)
+    records = [
+        DemonstrationStep(0, *step)
+        for step in teacher.demonstration(0, env.sample_start(0, np.random.default_rng(0)))
+    ]
+    job = {
+        "environment": "wall",
+        "learner": "bam",
+        "seed": 0,
+        "settings": {},
+        "base_state": None,
+        "records": records,
+        "fit": True,
+        "threads": 1,
+    }
+    # In an update process (nothing else runs in it): the first loads what it has not loaded.
+    executor.submit(run_update, job).result()
+    started = time.perf_counter()
+    outcome = executor.submit(run_update, job).result()
+    wall = time.perf_counter() - started
+    assert 0 < outcome["cpu_seconds"] <= wall
+
+
 _LATE_WORKER = """
 import os, sys, time
 from server.app.updates.worker import worker_init

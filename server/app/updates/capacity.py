@@ -19,7 +19,11 @@ The costs are measured at start on the study's own learners and environments
 (``reference_jobs``, ``measure_updates``, in an update process; the server's own work on a
 scratch copy of the study, ``server.commands.server_share``), then from the updates the server
 runs and its process's CPU time meanwhile, with that of a PostgreSQL server on the same machine
-(``server.app.storage.database_cpu``).
+(``server.app.storage.database_cpu``). Where the slots share the server's cores, a live update's
+cost is its CPU time, not its wall time: under load its wall time also counts the moments the
+server's or the database's work held its core, which ``server_seconds`` counts already (on
+PostgreSQL on the same machine at 100 participants an update's wall time was more than twice
+its CPU time, and the capacity read 59 with it while 100 participants waited under 1 s).
 
 The capacity bounds the queue, not one update's own time: an agent step that follows an update
 waits for it however few participants teach. The longest reference update is said beside the
@@ -70,7 +74,8 @@ class UpdateCost:
 @dataclass(frozen=True)
 class Capacity:
     participants: int  # teaching at once without waiting
-    update_seconds: float  # wall time of one update
+    # Wall time of one update (live, where the slots share the server's cores: its CPU time)
+    update_seconds: float
     slots: int  # updates run at once
     update_interval_seconds: float  # how often an active participant queues an update
     measured_on: str  # what the update cost was measured on

@@ -299,7 +299,11 @@ class UpdateManager:
         outcome, deaths, seconds = await self.runner.run(
             job.payload, name, self._processes, job.session_id
         )
-        self._costs.append(seconds)
+        # Where the update processes share the server's cores, an update's CPU time: its wall
+        # time there counts the moments the server's work (or a database's) held its core,
+        # which the capacity counts apart (``server_seconds``).
+        shared = self.cluster is None and "cpu_seconds" in outcome
+        self._costs.append(float(outcome["cpu_seconds"]) if shared else seconds)
         database = self.database_cpu() if self.database_cpu is not None else 0.0
         self._cpu_marks.append(time.process_time() + database)
         return outcome, deaths

@@ -88,6 +88,7 @@ def run_update(job: dict[str, Any]) -> dict[str, Any]:
     from server.learners.evaluation import normalized_return
     from server.learners.planning import set_planner_threads
 
+    cpu_started = time.process_time()  # this process's, its planner threads' included
     set_planner_threads(job.get("threads", 1))
     spec = job.get("environment_spec")
     if spec is not None and domains.definition(spec.name) != spec:
@@ -114,6 +115,7 @@ def run_update(job: dict[str, Any]) -> dict[str, Any]:
         "steps": result.steps if result else 0,
         "normalized_return": float(score),
         "evaluation_seconds": time.perf_counter() - started,
+        "cpu_seconds": time.process_time() - cpu_started,
     }
 
 

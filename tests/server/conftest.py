@@ -4,6 +4,7 @@ client that keeps the participant's sequence number."""
 
 from __future__ import annotations
 
+import asyncio
 import os
 import threading
 import time
@@ -264,6 +265,13 @@ def wait_until(condition: Callable[[], bool], what: str, timeout: float = 120.0)
     while not condition():
         assert time.monotonic() < deadline, what
         time.sleep(0.02)
+
+
+def run_apart(scenario: Callable[[], Any]) -> Any:
+    """``asyncio.run(scenario())`` in a thread of its own: after the browser tests, this
+    thread may run an event loop, where ``asyncio.run`` refuses."""
+    with ThreadPoolExecutor(1) as pool:
+        return pool.submit(asyncio.run, scenario()).result()
 
 
 def count_events(db: Database) -> int:

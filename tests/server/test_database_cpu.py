@@ -3,10 +3,8 @@ counts with the server's own work per update (server.app.storage.database_cpu)."
 
 from __future__ import annotations
 
-import asyncio
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +16,7 @@ from server.app.storage.database_cpu import backend_cpu_reader, postgres_cpu_rea
 from server.app.storage.db import Database
 from server.app.updates.capacity import LIVE_MINIMUM
 from server.app.updates.queue import ProcessGate
-from tests.server.conftest import POSTGRES_URL, wait_until
+from tests.server.conftest import POSTGRES_URL, run_apart, wait_until
 
 TICKS = os.sysconf("SC_CLK_TCK")
 
@@ -149,9 +147,7 @@ def run_live_updates(manager: Any) -> float:
             await manager._run(job)
         return time.process_time() - started
 
-    # In a thread of its own: after the browser tests, this thread may run an event loop.
-    with ThreadPoolExecutor(1) as pool:
-        return pool.submit(asyncio.run, run_updates()).result()
+    return float(run_apart(run_updates))
 
 
 def test_the_live_capacity_adds_the_databases_cpu_time_to_the_servers(

@@ -319,7 +319,7 @@ def test_the_reference_updates_are_timed_a_session_at_a_time_and_averaged_per_up
     from server.app.updates.manager import UpdateManager
     from server.app.updates.policies import PolicyCache
     from server.app.updates.queue import ProcessGate
-    from tests.server.test_update_order import run_apart
+    from tests.server.conftest import run_apart
 
     sessions = [
         {"episodes": [[]] * 3, "mean": 1.0, "longest": 3.0, "environment": "flip"},

@@ -6,8 +6,7 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
-from collections.abc import Callable
-from concurrent.futures import Executor, Future, ThreadPoolExecutor
+from concurrent.futures import Executor, Future
 from typing import Any
 
 import numpy as np
@@ -25,6 +24,7 @@ from tests.server.conftest import (
     BOUND,
     Gated,
     gated_app,
+    run_apart,
     study_config,
     teaching_participant,
     wait_for_updates,
@@ -70,12 +70,6 @@ class Scripted:
         """Let the running update finish, and wait until the next one starts."""
         self.release.set()
         await self.next_started()
-
-
-def run_apart(scenario: Callable[[], Any]) -> Any:
-    # In a thread of its own: after the browser tests, this thread may run an event loop.
-    with ThreadPoolExecutor(1) as pool:
-        return pool.submit(asyncio.run, scenario()).result()
 
 
 def test_an_update_someone_waits_for_goes_before_one_nobody_waits_for() -> None:

@@ -7,22 +7,32 @@ update processes share the cores with it, that work takes from the updates' core
 capacity counts it (``server.app.updates.capacity``).
 
 ``measure_server_share`` runs, in a process of its own, a scratch copy of the study: the same
-study file and learners, on a new SQLite database in a temporary folder, served by uvicorn on a
-free port of 127.0.0.1 with one update process, and a few simulated participants teaching it
-as fast as they can over HTTP. After a few seconds untimed, the server's share is that
-process's CPU time less the participants' own (their threads' CPU time), over the updates
-queued meanwhile. The study's database is never touched. On PostgreSQL a request costs more
-than on SQLite; the capacity the server shows once participants teach counts the live figure.
+study file and learners, on a new database of the study's kind, served by uvicorn on a free port
+of 127.0.0.1 with one update process, and a few simulated participants teaching it as fast as
+they can over HTTP. After a few seconds untimed, the server's share is that process's CPU time
+less the participants' own (their threads' CPU time), with that of a PostgreSQL server on this
+machine (``server.app.storage.database_cpu``), over the updates queued meanwhile.
+
+The scratch database of a SQLite study is a new file in a temporary folder; that of a
+PostgreSQL study is a new schema (``bam_server_share_...``) in the study's database, dropped
+at the end (a request on PostgreSQL costs more than on SQLite, and its database's processes
+take cores too). Where the study's database user may not create a schema, the scratch copy runs
+on SQLite, and the capacity the server shows once participants teach (the live figure) counts
+PostgreSQL's work. The study's own tables are never touched.
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import multiprocessing
 import signal
 import tempfile
 import threading
 import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -36,13 +46,43 @@ PARTICIPANTS = 6  # teaching the scratch study at once
 WARM_SECONDS = 5.0  # untimed: what the server does once only (its first requests, imports)
 SECONDS = 20.0  # timed
 READY_SECONDS = 600.0  # the scratch server's update process may compile the learners first
+SCRATCH_SCHEMA = "bam_server_share_"  # a PostgreSQL study's scratch schemas: this and 12 hex digits
+
+log = logging.getLogger(__name__)
 
 
 class Stopped(Exception):
     """The timing was stopped (the server that asked for it is stopping)."""
 
 
+@dataclass(frozen=True)
+class ServerShare:
+    """What ``time_server_share`` measured: CPU seconds per update queued, the server process's
+    and a local PostgreSQL server's together (``seconds``) and the database's alone, and the
+    kind of database the scratch copy ran on."""
+
+    seconds: float
+    database_seconds: float
+    database: str  # "sqlite" or "postgresql"
+
+
 def measure_server_share(
+    settings: Settings, study: StudyConfig, stop: threading.Event | None = None, **timing: Any
+) -> float:
+    """The server's CPU seconds per update queued (module docstring): ``time_server_share``'s
+    ``seconds`` (``timing``: its keyword arguments), said in the log."""
+    share = time_server_share(settings, study, stop, **timing)
+    log.info(
+        "the server's own work per update: %.4f s of CPU (the database's %.4f s), timed on a "
+        "scratch %s copy of the study",
+        share.seconds,
+        share.database_seconds,
+        "PostgreSQL" if share.database == "postgresql" else "SQLite",
+    )
+    return share.seconds
+
+
+def time_server_share(
     settings: Settings,
     study: StudyConfig,
     stop: threading.Event | None = None,
@@ -50,10 +90,10 @@ def measure_server_share(
     participants: int = PARTICIPANTS,
     seconds: float = SECONDS,
     warm_seconds: float = WARM_SECONDS,
-) -> float:
-    """The server process's CPU seconds per update queued (module docstring), timed in a
-    process of its own so that the calling server's own work is not counted. ``stop``, once
-    set, ends the scratch study within a second or two and raises ``Stopped``."""
+) -> ServerShare:
+    """The server's own work per update queued (module docstring), timed in a process of its
+    own so that the calling server's own work is not counted. ``stop``, once set, ends the
+    scratch study within a second or two and raises ``Stopped``."""
     context = multiprocessing.get_context("spawn")
     # A pipe both ways (the answer; the word to stop), not a queue or an event: those hold
     # named semaphores, which a server stopped meanwhile would leave behind.
@@ -83,7 +123,8 @@ def measure_server_share(
         ours.close()
     if problem is not None:
         raise Stopped(problem) if problem == STOPPED else RuntimeError(problem)
-    return float(share)
+    assert share is not None
+    return share
 
 
 STOPPED = "stopped"
@@ -103,7 +144,7 @@ def _answer(connection: Connection, *args: Any) -> None:
     for number in (signal.SIGINT, signal.SIGTERM):
         signal.signal(number, lambda *_: stopping.set())
     try:
-        answer: tuple[float | None, str | None] = (_scratch_study(stopping, *args), None)
+        answer: tuple[ServerShare | None, str | None] = (_scratch_study(stopping, *args), None)
     except Stopped:
         answer = (None, STOPPED)
     except BaseException as error:
@@ -119,18 +160,18 @@ def _scratch_study(
     participants: int,
     seconds: float,
     warm_seconds: float,
-) -> float:
+) -> ServerShare:
     import uvicorn
     from sqlalchemy import func, select
 
     from server.app.main import create_app
-    from server.app.storage.db import Database, prepare_schema
+    from server.app.storage.database_cpu import postgres_cpu_reader
+    from server.app.storage.db import Database, upgrade
     from server.app.storage.models import LearnerUpdate
     from server.commands.live import free_port
     from server.commands.simulated import STUDY_PLAN, SimulatedParticipant
 
-    with tempfile.TemporaryDirectory(prefix="bam-server-share-") as folder:
-        url = f"sqlite:///{Path(folder) / 'scratch.db'}"
+    with scratch_database(settings.database_url) as url:
         scratch = settings.model_copy(
             update={"database_url": url, "update_workers": 1, "update_scheduler": None}
         )
@@ -139,7 +180,8 @@ def _scratch_study(
             busy_timeout_ms=settings.sqlite_busy_timeout_ms,
             synchronous=settings.sqlite_synchronous,
         )
-        prepare_schema(db.engine)
+        upgrade(db.engine)
+        database_cpu = postgres_cpu_reader(db.engine)
         # The simulated participants arrive as from MTurk's replica, whatever the platform:
         # an arrival and a completion are a few of a participant's hundreds of requests.
         copy = study.model_copy(
@@ -186,13 +228,16 @@ def _scratch_study(
                 with db.read() as s:
                     return s.scalar(select(func.count()).select_from(LearnerUpdate)) or 0
 
+            def database() -> float:
+                return database_cpu() if database_cpu is not None else 0.0
+
             threads = [threading.Thread(target=teach, args=(i,)) for i in range(participants)]
             for thread in threads:
                 thread.start()
             try:
                 if stopping.wait(warm_seconds):
                     raise Stopped
-                before, cpu = updates(), time.process_time()
+                before, cpu, database_before = updates(), time.process_time(), database()
                 timing.set()
                 if stopping.wait(seconds):
                     raise Stopped
@@ -200,14 +245,68 @@ def _scratch_study(
                 stop.set()
                 for thread in threads:
                     thread.join()
+            # Read before the participants' last requests' effects settle: at most a few
+            # requests of the database's work after the stop, against thousands timed.
+            database_seconds = database() - database_before
             cpu = time.process_time() - cpu - sum(own)
             queued = updates() - before
             if errors:
                 raise RuntimeError(f"a participant of the scratch study failed: {errors[0]}")
             if queued < 1:
                 raise RuntimeError("the scratch study's participants queued no update")
-            return cpu / queued
+            return ServerShare(
+                (cpu + database_seconds) / queued,
+                database_seconds / queued,
+                db.engine.dialect.name,
+            )
         finally:
             server.should_exit = True
             serving.join(timeout=30)
             db.dispose()
+
+
+@contextlib.contextmanager
+def scratch_database(study_url: str) -> Iterator[str]:
+    """The address of a new, empty database of the study's kind, removed at the end (the
+    module docstring): a SQLite file in a temporary folder, or a PostgreSQL schema of the
+    study's database, or a SQLite file where that schema cannot be made."""
+    from sqlalchemy import create_engine, text
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import SQLAlchemyError
+    from sqlalchemy.pool import NullPool
+
+    url = make_url(study_url)
+    if url.get_backend_name() == "postgresql":
+        schema = f"{SCRATCH_SCHEMA}{uuid.uuid4().hex[:12]}"
+        admin = create_engine(url, poolclass=NullPool)
+        try:
+            with admin.begin() as connection:
+                connection.execute(text(f'CREATE SCHEMA "{schema}"'))
+        except SQLAlchemyError as error:
+            admin.dispose()
+            log.warning(
+                "could not make a scratch schema in the study's PostgreSQL database (%s); "
+                "the server's own work is timed on SQLite, and counted on PostgreSQL once "
+                "participants teach",
+                str(error).splitlines()[0],
+            )
+        else:
+            try:
+                # The schema first in the search path: the scratch study's tables, its Alembic
+                # version among them, go there, and nothing of the study's is seen.
+                given = url.query.get("options", ())
+                options = " ".join(
+                    [*((given,) if isinstance(given, str) else given), f"-csearch_path={schema}"]
+                )
+                yield url.update_query_dict({"options": options}).render_as_string(
+                    hide_password=False
+                )
+            finally:
+                try:
+                    with admin.begin() as connection:
+                        connection.execute(text(f'DROP SCHEMA "{schema}" CASCADE'))
+                finally:
+                    admin.dispose()
+            return
+    with tempfile.TemporaryDirectory(prefix="bam-server-share-") as folder:
+        yield f"sqlite:///{Path(folder) / 'scratch.db'}"

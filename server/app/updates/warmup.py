@@ -17,6 +17,7 @@ from server import domains
 from server.domains.base import STAY, Environment
 from server.learners import NAMES, make, restore
 from server.learners.evaluation import normalized_return
+from server.learners.planner_learner import PlannerLearner
 from server.learners.planning import using_planner_threads
 from server.teacher import Teacher
 
@@ -61,6 +62,10 @@ def warm_up(thread_counts: tuple[int, ...] = (1, 2)) -> float:
                             learner.record_agent_step(task, state, action, next_state, feedback)
                             state = next_state
                     learner.update()
+                    if isinstance(learner, PlannerLearner) and learner.compiles_theta_steps():
+                        # BAM's single dynamics step (where a step left the passes' layouts,
+                        # which these short fits do not meet): its compiled teacher gradient.
+                        learner.teacher_gradient(learner.teacher_data())
                     normalized_return(env, learner)
     return time.perf_counter() - started
 

@@ -10,8 +10,9 @@ capacity counts it (``server.app.updates.capacity``).
 study file and learners, on a new database of the study's kind, served by uvicorn on a free port
 of 127.0.0.1 with one update process, and a few simulated participants teaching it as fast as
 they can over HTTP. After a few seconds untimed, the server's share is that process's CPU time
-less the participants' own (their threads' CPU time), with that of a PostgreSQL server on this
-machine (``server.app.storage.database_cpu``), over the updates queued meanwhile.
+less the participants' own (their threads' CPU time), with that of the scratch study's backends
+of a PostgreSQL server on this machine (``server.app.storage.database_cpu``; not those of other
+clients, a study already under way among them), over the updates queued meanwhile.
 
 The scratch database of a SQLite study is a new file in a temporary folder; that of a
 PostgreSQL study is a new schema (``bam_server_share_...``) in the study's database, dropped
@@ -163,9 +164,10 @@ def _scratch_study(
 ) -> ServerShare:
     import uvicorn
     from sqlalchemy import func, select
+    from sqlalchemy.engine import make_url
 
     from server.app.main import create_app
-    from server.app.storage.database_cpu import postgres_cpu_reader
+    from server.app.storage.database_cpu import application_cpu_reader
     from server.app.storage.db import Database, upgrade
     from server.app.storage.models import LearnerUpdate
     from server.commands.live import free_port
@@ -181,7 +183,12 @@ def _scratch_study(
             synchronous=settings.sqlite_synchronous,
         )
         upgrade(db.engine)
-        database_cpu = postgres_cpu_reader(db.engine)
+        # The scratch study's own backends (a scratch schema's connections are named after it):
+        # not those of a study already under way on the same database server.
+        application = make_url(url).query.get("application_name")
+        database_cpu = (
+            application_cpu_reader(db.engine, application) if isinstance(application, str) else None
+        )
         # The simulated participants arrive as from MTurk's replica, whatever the platform:
         # an arrival and a completion are a few of a participant's hundreds of requests.
         copy = study.model_copy(
@@ -298,9 +305,10 @@ def scratch_database(study_url: str) -> Iterator[str]:
                 options = " ".join(
                     [*((given,) if isinstance(given, str) else given), f"-csearch_path={schema}"]
                 )
-                yield url.update_query_dict({"options": options}).render_as_string(
-                    hide_password=False
-                )
+                # Its connections named after it: their backends' CPU time is the scratch
+                # study's (``application_cpu_reader``).
+                query = {"options": options, "application_name": schema}
+                yield url.update_query_dict(query).render_as_string(hide_password=False)
             finally:
                 try:
                     with admin.begin() as connection:

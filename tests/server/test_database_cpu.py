@@ -10,9 +10,14 @@ from typing import Any
 
 import pytest
 from sqlalchemy import create_engine, text
+from sqlalchemy.engine import make_url
 from sqlalchemy.pool import NullPool
 
-from server.app.storage.database_cpu import backend_cpu_reader, postgres_cpu_reader
+from server.app.storage.database_cpu import (
+    application_cpu_reader,
+    backend_cpu_reader,
+    postgres_cpu_reader,
+)
 from server.app.storage.db import Database
 from server.app.updates.capacity import LIVE_MINIMUM
 from server.app.updates.queue import ProcessGate
@@ -59,9 +64,51 @@ def test_a_local_postgresql_servers_cpu_time_counts_its_backends_live_and_ended(
     assert read() >= during
 
 
+def named(application: str) -> Any:
+    url = make_url(POSTGRES_URL).update_query_dict({"application_name": application})
+    return create_engine(url)
+
+
+def test_an_applications_backends_are_counted_and_no_other_clients() -> None:
+    """The scratch study's backends, not those of another client of the same database server
+    (a study under way): a second of another backend's work adds nothing, a second of one of
+    its own adds at least half a second, and an ended one keeps its time."""
+    own, other = named("bam_test_own"), named("bam_test_other")
+    try:
+        read = application_cpu_reader(own, "bam_test_own")
+        assert read is not None, "PostgreSQL on 127.0.0.1 runs on this machine"
+        before = read()
+        with other.connect() as connection:
+            busy(connection, 1.0)
+        assert read() - before < 0.1
+        with own.connect() as connection:
+            read()  # the backend found while it lives
+            busy(connection, 1.0)
+            during = read()
+            assert during - before >= 0.5
+        own.dispose()  # its backends end
+        wait_until(lambda: not application_backends("bam_test_own"), "the backends ended")
+        # (The read's own connection is the application's too: a new backend, a few ms.)
+        assert during <= read() < during + 0.1
+    finally:
+        own.dispose()
+        other.dispose()
+
+
+def application_backends(application: str) -> list[int]:
+    engine = create_engine(POSTGRES_URL, poolclass=NullPool)
+    try:
+        with engine.connect() as connection:
+            query = text("SELECT pid FROM pg_stat_activity WHERE application_name = :a")
+            return list(connection.scalars(query, {"a": application}).all())
+    finally:
+        engine.dispose()
+
+
 def test_a_sqlite_database_has_no_processes_of_its_own(tmp_path: Path) -> None:
     database = Database.from_url(f"sqlite:///{tmp_path / 'study.db'}")
     assert postgres_cpu_reader(database.engine) is None
+    assert application_cpu_reader(database.engine, "any") is None
     database.dispose()
 
 

@@ -88,6 +88,8 @@ def test_a_postgresql_studys_scratch_copy_is_a_new_schema_dropped_after() -> Non
         try:
             with scratch.connect() as connection:
                 assert connection.scalar(text("SELECT current_schema()")) == schema
+                # Its connections named after it (their backends' CPU time is the share's).
+                assert connection.scalar(text("SHOW application_name")) == schema
                 tables = text("SELECT count(*) FROM pg_tables WHERE schemaname = :s")
                 assert connection.scalar(tables, {"s": schema}) == 0
         finally:

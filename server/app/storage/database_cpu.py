@@ -9,7 +9,9 @@ Read from Linux's ``/proc``: the postmaster is the parent of the backend that an
 ``pg_backend_pid()``; its CPU time so far is its own, its ended children's (``cutime`` and
 ``cstime``: a backend whose connection closed is counted there once reaped) and its live
 children's (listed in ``/proc/<pid>/task/<pid>/children``). Every client's backends are counted:
-on a study server's machine the database's work is the study's. Where the database runs on
+on a study server's machine the database's work is the study's. ``application_cpu_reader``
+counts those of one application's connections only (the scratch study that times the server's
+own work at start, ``server.commands.server_share``). Where the database runs on
 another machine, or in a container of its own (its process ids are not this machine's), or
 ``/proc`` lacks what is read, there is nothing to count here and the reader is None. SQLite runs
 in the server's own process, whose CPU time the capacity counts already.
@@ -66,6 +68,34 @@ def backend_cpu_reader(backend: int, proc: Path = PROC) -> Callable[[], float] |
         # let the total go back.
         last[0] = max(last[0], total / ticks)
         return last[0]
+
+    return read
+
+
+def application_cpu_reader(
+    engine: Engine, application: str, proc: Path = PROC
+) -> Callable[[], float] | None:
+    """A function giving the CPU seconds that the backends of the connections named
+    ``application`` (their ``application_name``) have used so far, on a PostgreSQL server on
+    this machine; None where ``postgres_cpu_reader`` finds none. Other clients' backends are not
+    counted (a study already under way on the same database server, say), nor the server's
+    writers. A backend is counted from the first read that finds it, with the time it has used
+    since it started; one that ended keeps the time last read."""
+    if postgres_cpu_reader(engine, proc) is None:
+        return None
+    ticks = float(os.sysconf("SC_CLK_TCK"))
+    used: dict[int, float] = {}  # a backend's CPU seconds at the last read that found it
+    backends = text("SELECT pid FROM pg_stat_activity WHERE application_name = :application")
+
+    def read() -> float:
+        with engine.connect() as connection:
+            found = connection.scalars(backends, {"application": application}).all()
+        for pid in found:
+            stat = _stat(proc, int(pid))
+            if stat is not None:  # (else it ended meanwhile)
+                seconds = (int(stat[11]) + int(stat[12])) / ticks  # utime, stime
+                used[int(pid)] = max(used.get(int(pid), 0.0), seconds)
+        return sum(used.values())
 
     return read
 

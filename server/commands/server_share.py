@@ -59,8 +59,8 @@ class Stopped(Exception):
 @dataclass(frozen=True)
 class ServerShare:
     """What ``time_server_share`` measured: CPU seconds per update queued, the server process's
-    and a local PostgreSQL server's together (``seconds``) and the database's alone, and the
-    kind of database the scratch copy ran on."""
+    and its scratch study's backends' on a local PostgreSQL server together (``seconds``) and
+    the backends' alone, and the kind of database the scratch copy ran on."""
 
     seconds: float
     database_seconds: float

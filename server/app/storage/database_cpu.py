@@ -63,7 +63,7 @@ def backend_cpu_reader(backend: int, proc: Path = PROC) -> Callable[[], float] |
         for child in children:
             child_stat = _stat(proc, child)
             if child_stat is not None:  # (else it ended meanwhile)
-                total += int(child_stat[11]) + int(child_stat[12])
+                total += _own_ticks(child_stat)
         # A child that ended between the two reads moves from one sum to the other: never
         # let the total go back.
         last[0] = max(last[0], total / ticks)
@@ -93,11 +93,16 @@ def application_cpu_reader(
         for pid in found:
             stat = _stat(proc, int(pid))
             if stat is not None:  # (else it ended meanwhile)
-                seconds = (int(stat[11]) + int(stat[12])) / ticks  # utime, stime
+                seconds = _own_ticks(stat) / ticks
                 used[int(pid)] = max(used.get(int(pid), 0.0), seconds)
         return sum(used.values())
 
     return read
+
+
+def _own_ticks(stat: list[str]) -> int:
+    """A process's own CPU time in clock ticks (``utime`` and ``stime`` of ``_stat``'s fields)."""
+    return int(stat[11]) + int(stat[12])
 
 
 def _stat(proc: Path, pid: int) -> list[str] | None:

@@ -4,6 +4,7 @@ the script's folder comes first on sys.path, where benchmarks/server.py would sh
 
 from __future__ import annotations
 
+import re
 import subprocess
 import time
 from pathlib import Path
@@ -20,7 +21,9 @@ def run_benchmark(script: str, *arguments: str, cwd: Path) -> subprocess.Complet
     return run_script(BENCHMARKS / script, *arguments, cwd=cwd)
 
 
-@pytest.mark.parametrize("script", ["learners.py", "simulate.py", "server.py", "compare.py"])
+@pytest.mark.parametrize(
+    "script", ["learners.py", "simulate.py", "server.py", "compare.py", "authors.py"]
+)
 def test_a_benchmark_script_starts_as_the_readme_runs_it(script: str, tmp_path: Path) -> None:
     result = run_benchmark(script, "--help", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
@@ -35,6 +38,9 @@ def test_a_benchmark_script_starts_as_the_readme_runs_it(script: str, tmp_path: 
         ("compare.py", ["--against", "no-such-revision"], "'no-such-revision' is not a commit"),
         ("compare.py", ["--against", "HEAD", "--cycles", "0"], "--cycles must be at least 1"),
         ("server.py", ["--warm-alternations", "2"], "--warm-alternations needs --optimizer"),
+        ("authors.py", [], "the following arguments are required: --source"),
+        ("authors.py", ["--source", "/no/such/folder"], "--source /no/such/folder is not a folder"),
+        ("authors.py", ["--source", ".", "--repeats", "0"], "--repeats must be at least 1"),
         (
             "server.py",
             ["--optimizer", "warm-lbfgs", "--warm-alternations", "-1"],
@@ -255,3 +261,62 @@ def test_the_server_benchmark_says_when_the_server_s_own_work_is_not_counted() -
         "the server's capacity at the stop: 181 participants at once (an update 0.0828 s on "
         "the latest 200 updates, the server's own work 0.05 s a core per update, 2 slot(s))"
     )
+
+
+def test_the_authors_benchmark_says_when_a_folder_holds_not_their_source(tmp_path: Path) -> None:
+    result = run_benchmark("authors.py", "--source", str(tmp_path), cwd=tmp_path)
+    assert result.returncode == 1
+    assert "holds neither src/main/java/bam/algorithms" in result.stderr
+    assert "rtloftin/discrete_bam" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_the_authors_benchmark_reads_their_enums_without_get_enum() -> None:
+    """Their loaders read enums with org.json's ``getEnum``, which Debian's jar lacks: the
+    rewrite reads the same name from the same array, and leaves other lines alone."""
+    module = load_script(BENCHMARKS / "authors.py", "authors_benchmark")
+    java = (
+        "colors[row][column] = columns.getEnum(Colors.class, column);\n"
+        "gravity[color] = mapping.getEnum(Gravity.class, color);\n"
+        'int depth = json.getInt("depth");\n'
+    )
+    assert module.without_get_enum(java) == (
+        "colors[row][column] = Enum.valueOf(Colors.class, columns.getString(column));\n"
+        "gravity[color] = Enum.valueOf(Gravity.class, mapping.getString(color));\n"
+        'int depth = json.getInt("depth");\n'
+    )
+
+
+def test_the_authors_benchmark_sets_their_median_beside_ours_and_judges_round_10() -> None:
+    module = load_script(BENCHMARKS / "authors.py", "authors_benchmark")
+    # Two agents a learner, the second 100 ms slower, each update 1 ms slower a round.
+    lines = [
+        f"wall {learner} {agent} {round_} {base + 100 * agent + round_}"
+        for learner, base in (("bam", 300.0), ("model-based", 150.0))
+        for agent in (0, 1)
+        for round_ in range(1, 11)
+    ]
+    theirs = module.parse_their_times("\n".join(lines) + "\n")
+    assert theirs[("wall", "bam", 10)] == [310.0, 410.0]
+    ours = module.parse_our_times(
+        "planner threads: 1, clock: wall\n"
+        "environment   learner  upd@1 med/p95 ms ...\n"
+        "wall          bam                 18/86               14/15               15/15  "
+        "0.02 0.07 3.3 6.6\n"
+        "wall          model-based          8/15                5/5                 10/12  "
+        "0.02 0.07 3.3 5.8\n"
+    )
+    assert ours[("wall", "bam", 1)] == 18.0 and ours[("wall", "model-based", 10)] == 10.0
+    text, short = module.table(theirs, ours)
+    # BAM: median of 310 and 410 is 360, over 15 ms: 24 times; model-based 210 / 10: 21.
+    bam = next(line for line in text.splitlines() if line.startswith("wall          bam"))
+    assert bam.split()[-2:] == ["360/15", "24"]
+    assert short == []
+    slower = {**ours, ("wall", "model-based", 10): 20.0}
+    assert module.table(theirs, slower)[1] == ["wall model-based (10 times)"]
+
+
+def test_the_authors_harness_runs_the_environments_the_benchmark_names() -> None:
+    """The Java harness maps each of our environment names to one of their layouts."""
+    module = load_script(BENCHMARKS / "authors.py", "authors_benchmark")
+    harness = module.HARNESS.read_text(encoding="utf-8")
+    assert tuple(re.findall(r'ENVIRONMENTS\.put\("([a-z-]+)"', harness)) == module.ENVIRONMENTS

@@ -97,17 +97,17 @@ def their_times(
     source: Path, json_jar: Path, environments: list[str], repeats: int
 ) -> dict[tuple[str, str, int], list[float]]:
     """Their update times in ms, by (environment, learner, round), one per agent."""
-    for tool in ("javac", "java"):
-        if shutil.which(tool) is None:
-            raise SourceError(f"{tool} not found: install a JDK (Debian: default-jdk-headless)")
-    if not json_jar.is_file():
-        raise SourceError(
-            f"{json_jar} not found: give an org.json jar with --json-jar "
-            "(Debian: apt-get install libandroid-json-java)"
-        )
     with tempfile.TemporaryDirectory(prefix="bam-authors-") as folder:
         root = Path(folder)
         copy_source(source, root)
+        for tool in ("javac", "java"):
+            if shutil.which(tool) is None:
+                raise SourceError(f"{tool} not found: install a JDK (Debian: default-jdk-headless)")
+        if not json_jar.is_file():
+            raise SourceError(
+                f"{json_jar} not found: give an org.json jar with --json-jar "
+                "(Debian: apt-get install libandroid-json-java)"
+            )
         classes = root / "classes"
         sources = [str(p) for p in sorted(root.rglob("*.java"))]
         javac = ["javac", "-nowarn", "-encoding", "UTF-8", "-cp", str(json_jar)]

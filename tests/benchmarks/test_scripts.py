@@ -270,6 +270,18 @@ def test_the_authors_benchmark_says_when_a_folder_holds_not_their_source(tmp_pat
     assert "rtloftin/discrete_bam" in result.stderr and "Traceback" not in result.stderr
 
 
+def test_the_authors_benchmark_names_the_org_json_jar_it_lacks(tmp_path: Path) -> None:
+    for package in ("algorithms", "domains"):
+        (tmp_path / "src/main/java/bam" / package).mkdir(parents=True)
+    missing = tmp_path / "no-json.jar"
+    result = run_benchmark(
+        "authors.py", "--source", str(tmp_path), "--json-jar", str(missing), cwd=tmp_path
+    )
+    assert result.returncode == 1
+    assert f"{missing} not found: give an org.json jar with --json-jar" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
 def test_the_authors_benchmark_reads_their_enums_without_get_enum() -> None:
     """Their loaders read enums with org.json's ``getEnum``, which Debian's jar lacks: the
     rewrite reads the same name from the same array, and leaves other lines alone."""

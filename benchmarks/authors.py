@@ -10,8 +10,8 @@ a bare git directory. Their learners and environments (``src/main/java/bam/algor
 model-based IRL as their demonstrations experiment does (``SimulationMain.java``), feeds them
 their expert's goal-terminated demonstrations with the final no-op, and times every update
 (``Agent.integrate``). Our side is ``benchmarks/learners.py --threads 1`` on the same
-environments. Both run on one core: the last one, with ``taskset`` where it exists, and
-theirs told it has one processor.
+environments. Both run on one core, the last this process may use, with ``taskset`` where it
+exists, and theirs told it has one processor.
 
 Needs a JDK (``javac``, ``java``) and an ``org.json`` jar: by default Debian's
 ``libandroid-json-java`` (``/usr/share/java/com.android.json.jar``). That one lacks
@@ -88,9 +88,12 @@ def copy_source(source: Path, into: Path) -> None:
 
 
 def pinned(command: list[str]) -> list[str]:
-    """The command on the machine's last core, where ``taskset`` exists."""
+    """The command on the last core this process may run on (its CPU affinity: a container's
+    cpuset narrows it, and ``os.cpu_count()`` counts the host's), where ``taskset`` exists."""
     taskset = shutil.which("taskset")
-    return [taskset, "-c", str((os.cpu_count() or 1) - 1), *command] if taskset else command
+    if taskset is None or not hasattr(os, "sched_getaffinity"):
+        return command
+    return [taskset, "-c", str(max(os.sched_getaffinity(0))), *command]
 
 
 def their_times(

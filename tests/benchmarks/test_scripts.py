@@ -327,6 +327,17 @@ def test_the_authors_benchmark_sets_their_median_beside_ours_and_judges_round_10
     assert module.table(theirs, slower)[1] == ["wall model-based (10 times)"]
 
 
+def test_the_authors_benchmark_pins_both_sides_to_a_core_it_may_use(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """A container's cpuset may leave out the host's last core: taskset onto it would fail."""
+    module = load_script(BENCHMARKS / "authors.py", "authors_benchmark")
+    monkeypatch.setattr(module.shutil, "which", lambda name: f"/usr/bin/{name}")
+    monkeypatch.setattr(module.os, "sched_getaffinity", lambda pid: {2, 5}, raising=False)
+    monkeypatch.setattr(module.os, "cpu_count", lambda: 16)
+    assert module.pinned(["java", "X"]) == ["/usr/bin/taskset", "-c", "5", "java", "X"]
+    monkeypatch.setattr(module.shutil, "which", lambda name: None)
+    assert module.pinned(["java", "X"]) == ["java", "X"]
+
+
 def test_the_authors_harness_runs_the_environments_the_benchmark_names() -> None:
     """The Java harness maps each of our environment names to one of their layouts."""
     module = load_script(BENCHMARKS / "authors.py", "authors_benchmark")

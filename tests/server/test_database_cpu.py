@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from sqlalchemy import create_engine, text
+from sqlalchemy import create_engine, event, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.pool import NullPool
 
@@ -62,6 +62,25 @@ def test_a_local_postgresql_servers_cpu_time_counts_its_backends_live_and_ended(
         busy(connection, 1.0)
     wait_until(lambda: read() - during >= 0.5, "the ended backend's CPU time counted")
     assert read() >= during
+
+
+def test_the_backend_is_found_while_its_connection_is_open(postgres: Any, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Without a pool the connection closes when the block ends and its backend exits soon
+    after: read from /proc after that, it may be gone, and the reader None (seen on a loaded
+    machine). The backend's process is read before its connection closes."""
+    from server.app.storage import database_cpu
+
+    order: list[str] = []
+    event.listen(postgres, "close", lambda *_: order.append("closed"))
+    found = database_cpu.backend_cpu_reader
+
+    def reading(backend: int, proc: Path = database_cpu.PROC) -> Any:
+        order.append("read")
+        return found(backend, proc)
+
+    monkeypatch.setattr(database_cpu, "backend_cpu_reader", reading)
+    assert database_cpu.postgres_cpu_reader(postgres) is not None
+    assert order == ["read", "closed"]
 
 
 def named(application: str) -> Any:

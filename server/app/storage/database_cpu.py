@@ -37,9 +37,11 @@ def postgres_cpu_reader(engine: Engine, proc: Path = PROC) -> Callable[[], float
     try:
         with engine.connect() as connection:
             backend = int(connection.scalar(text("SELECT pg_backend_pid()")) or 0)
+            # Found while the connection is open: once closed (an engine without a pool, or a
+            # pool that drops it), its backend may exit before ``proc`` is read.
+            return backend_cpu_reader(backend, proc)
     except Exception:
         return None
-    return backend_cpu_reader(backend, proc)
 
 
 def backend_cpu_reader(backend: int, proc: Path = PROC) -> Callable[[], float] | None:

@@ -193,12 +193,12 @@ def test_the_dashboard_command_points_to_the_token_without_showing_it(tmp_path: 
 def test_waiting_for_the_learners_says_what_it_waits_for(tmp_path: Path) -> None:
     """After the participants, the updates still queued are explained before their progress
     bar, and the bar says what it counts."""
-    from server.app.storage.db import Database, upgrade
+    from server.app.storage.db import Database
     from server.app.storage.models import LearnerUpdate, LearningSession, Participant
     from server.commands.demo import wait_for_learners
+    from tests.support.databases import migrated_sqlite
 
-    db = Database.from_url(f"sqlite:///{tmp_path / 'study.sqlite'}")
-    upgrade(db.engine)
+    db = Database.from_url(migrated_sqlite(tmp_path / "study.sqlite"))
     with db.write() as s:
         participant = Participant(token_hash="0" * 64, platform="lab", status="submitted")
         s.add(participant)

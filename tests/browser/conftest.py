@@ -28,9 +28,9 @@ from sqlalchemy import create_engine, text
 from server import domains
 from server.app.main import create_app
 from server.app.settings import Settings
-from server.app.storage.db import create_db_engine, upgrade
 from server.domains.base import ACTIONS
 from tests.server.conftest import live
+from tests.support.databases import migrated_sqlite
 
 ADMIN_TOKEN = "browser-test-admin-token"
 CHROMIUM = "/usr/bin/chromium"
@@ -174,15 +174,12 @@ def run_live_server(
     server_share: Callable[[threading.Event], float] | None = None,
 ) -> Iterator[LiveServer]:
     """A study server on a free port: settings from the BAM_* environment variables, a fresh
-    SQLite database migrated by ``server.app.storage.db.upgrade``, learner updates in a process (or in
+    SQLite database at the migrations' head (``tests.support.databases``), learner updates in a process (or in
     ``executor``); with ``measure_capacity`` it times the study's reference updates, as
     ``serve`` does, and the server's own work per update with ``server_share``."""
     config_path = tmp / "study.toml"
     config_path.write_text(config, encoding="utf-8")
-    database_url = f"sqlite:///{tmp / 'study.db'}"
-    engine = create_db_engine(database_url)
-    upgrade(engine)
-    engine.dispose()
+    database_url = migrated_sqlite(tmp / "study.db")
     known = set(domains.names())
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("BAM_DATABASE_URL", database_url)

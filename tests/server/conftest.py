@@ -1,5 +1,5 @@
 """Fixtures of the study server's tests: a fresh database per test on SQLite and on PostgreSQL
-(built by the Alembic migrations), the app with a shared pool of update processes, and a small
+(a copy of one the Alembic migrations built once, tests/support/databases.py), the app with a shared pool of update processes, and a small
 client that keeps the participant's sequence number."""
 
 from __future__ import annotations
@@ -20,18 +20,18 @@ import uvicorn
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, func, select, text
-from sqlalchemy.engine import make_url
 
 from server.app.config import DEFAULT_STUDY_CONFIG, StudyConfig, parse_study_config
 from server.app.main import create_app
 from server.app.participants.tokens import TOKEN_HEADER
 from server.app.settings import Settings
-from server.app.storage.db import Database, upgrade
+from server.app.storage.db import Database
 from server.app.storage.models import Event, LearnerUpdate
 from server.app.updates.pool import new_executor
 from server.app.updates.worker import run_update
 from server.commands.live import free_port
 from server.commands.serve import server_config
+from tests.support.databases import migrated_postgresql_schema, migrated_sqlite, schema_url
 
 POSTGRES_URL = os.environ.get(
     "BAM_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test"
@@ -69,22 +69,23 @@ def executor() -> Iterator[ProcessPoolExecutor]:
     pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _postgres_schema_url(schema: str) -> str:
-    url = make_url(POSTGRES_URL).update_query_dict({"options": f"-csearch_path={schema}"})
-    return url.render_as_string(hide_password=False)
-
-
 @pytest.fixture(params=["sqlite", "postgresql"])
-def database_url(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[str]:
-    """An empty database: a SQLite file, or a new PostgreSQL schema dropped afterwards."""
-    if request.param == "sqlite":
-        yield f"sqlite:///{tmp_path / 'study.db'}"
-        return
+def backend(request: pytest.FixtureRequest) -> str:
+    """The database a test runs on: every database test runs on SQLite and on PostgreSQL."""
+    return str(request.param)
+
+
+@contextmanager
+def _postgresql_schema(migrated: bool) -> Iterator[str]:
+    """A new PostgreSQL schema (empty, or at the migrations' head), dropped afterwards."""
     schema = f"test_{uuid.uuid4().hex[:12]}"
     admin = create_engine(POSTGRES_URL)
     try:
-        with admin.begin() as connection:
-            connection.execute(text(f'CREATE SCHEMA "{schema}"'))
+        if migrated:
+            migrated_postgresql_schema(POSTGRES_URL, schema)
+        else:
+            with admin.begin() as connection:
+                connection.execute(text(f'CREATE SCHEMA "{schema}"'))
     except Exception as error:  # pragma: no cover - the environment is broken
         admin.dispose()
         pytest.fail(
@@ -92,7 +93,7 @@ def database_url(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[str]
             "pg_ctlcluster --skip-systemctl-redirect $(ls /etc/postgresql) main start"
         )
     try:
-        yield _postgres_schema_url(schema)
+        yield schema_url(POSTGRES_URL, schema)
     finally:
         with admin.begin() as connection:
             connection.execute(text(f'DROP SCHEMA "{schema}" CASCADE'))
@@ -100,12 +101,27 @@ def database_url(request: pytest.FixtureRequest, tmp_path: Any) -> Iterator[str]
 
 
 @pytest.fixture
-def db(database_url: str) -> Iterator[Database]:
-    """The fresh database, migrated to the latest schema."""
-    database = Database.from_url(database_url)
-    upgrade(database.engine)
-    yield database
-    database.dispose()
+def database_url(backend: str, tmp_path: Any) -> Iterator[str]:
+    """An empty database: a SQLite file, or a new PostgreSQL schema dropped afterwards."""
+    if backend == "sqlite":
+        yield f"sqlite:///{tmp_path / 'study.db'}"
+        return
+    with _postgresql_schema(migrated=False) as url:
+        yield url
+
+
+@pytest.fixture
+def db(backend: str, tmp_path: Any) -> Iterator[Database]:
+    """A fresh database at the latest schema (a copy of one the migrations built once)."""
+    if backend == "sqlite":
+        database = Database.from_url(migrated_sqlite(tmp_path / "study.db"))
+        yield database
+        database.dispose()
+        return
+    with _postgresql_schema(migrated=True) as url:
+        database = Database.from_url(url)
+        yield database
+        database.dispose()
 
 
 class Gated(Executor):

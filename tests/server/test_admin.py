@@ -269,7 +269,7 @@ def test_the_dashboard_excludes_and_includes_again_with_the_reasons(
     assert not_excluded.status_code == 409 and "not excluded" in not_excluded.text
 
 
-@pytest.mark.parametrize("database_url", ["sqlite"], indirect=True)
+@pytest.mark.parametrize("backend", ["sqlite"], indirect=True)
 @pytest.mark.parametrize(("proxies", "limited"), [("", True), ("127.0.0.1", False)])
 def test_the_sign_in_limit_trusts_forwarded_addresses_only_from_named_proxies(
     db: Database, executor: ProcessPoolExecutor, proxies: str, limited: bool

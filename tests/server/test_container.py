@@ -108,7 +108,7 @@ def test_the_build_context_keeps_data_out_and_the_server_in() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("database_url", ["postgresql"], indirect=True)
+@pytest.mark.parametrize("backend", ["postgresql"], indirect=True)
 def test_the_containers_commands_run_a_server_on_postgresql(
     database_url: str, tmp_path: Path
 ) -> None:

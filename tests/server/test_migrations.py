@@ -3,13 +3,15 @@ an out-of-date PostgreSQL schema with a clear message."""
 
 from __future__ import annotations
 
+import uuid
 from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
 import pytest
 from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
 from fastapi.testclient import TestClient
-from sqlalchemy import inspect, select
+from sqlalchemy import func, inspect, select, text
 
 from server.app.main import create_app
 from server.app.storage.db import (
@@ -21,9 +23,10 @@ from server.app.storage.db import (
     prepare_schema,
     upgrade,
 )
-from server.app.storage.models import Base, Installation
+from server.app.storage.models import Base, Installation, Participant
 from server.commands.main import main
-from tests.server.conftest import make_settings, study_config
+from tests.server.conftest import POSTGRES_URL, make_settings, study_config
+from tests.support.databases import migrated_postgresql_schema, migrated_sqlite, schema_url
 
 
 def test_the_migrations_build_exactly_the_models(database_url: str) -> None:
@@ -44,6 +47,41 @@ def test_the_migrations_build_exactly_the_models(database_url: str) -> None:
         assert current_revision(db.engine) == head_revision()
     finally:
         db.dispose()
+
+
+def test_the_tests_copied_databases_are_what_the_migrations_build(db: Database) -> None:
+    """The other tests' databases are copies of one the migrations built once
+    (tests/support/databases.py): each is at the head, matches the models exactly, and has an
+    installation secret of its own, as a database the migrations built would."""
+    assert current_revision(db.engine) == head_revision()
+    with db.engine.connect() as connection:
+        context = MigrationContext.configure(connection, opts={"compare_type": True})
+        assert compare_metadata(context, Base.metadata) == []
+    with db.read() as s:
+        secret = s.scalar(select(Installation.secret))
+    assert secret is not None and len(secret) == 64
+    with db.write() as s:
+        s.add(Participant(token_hash="0" * 64, platform="lab", status="consenting"))
+    # A second copy: a secret of its own and none of the first copy's rows.
+    if db.is_sqlite:
+        other = Database.from_url(
+            migrated_sqlite(Path(db.engine.url.database or "").with_name("b.db"))
+        )
+    else:
+        schema = f"test_{uuid.uuid4().hex[:12]}"
+        migrated_postgresql_schema(POSTGRES_URL, schema)
+        other = Database.from_url(schema_url(POSTGRES_URL, schema))
+    try:
+        with other.read() as s:
+            assert s.scalar(select(Installation.secret)) not in (None, secret)
+            assert s.scalar(select(func.count()).select_from(Participant)) == 0
+        with db.read() as s:
+            assert s.scalar(select(func.count()).select_from(Participant)) == 1
+    finally:
+        other.dispose()
+        if not db.is_sqlite:
+            with other.engine.begin() as connection:
+                connection.execute(text(f'DROP SCHEMA "{schema}" CASCADE'))
 
 
 def test_prepare_schema_migrates_sqlite_and_refuses_postgresql(database_url: str) -> None:

@@ -141,7 +141,7 @@ def test_the_questionnaire_comes_before_the_completion_code(
     assert set(rows.columns) <= set(described["column"])
 
 
-@pytest.mark.parametrize("database_url", ["sqlite"], indirect=True)
+@pytest.mark.parametrize("backend", ["sqlite"], indirect=True)
 def test_simulated_participants_answer_the_questionnaire(db: Database, executor: Any) -> None:
     from server.app.main import create_app
     from server.commands.simulated import SimulatedParticipant, TeachingPlan
@@ -164,7 +164,7 @@ def test_simulated_participants_answer_the_questionnaire(db: Database, executor:
     assert rows["answer"].iloc[1] in mturk.questionnaire.questions[1].choices  # type: ignore[union-attr]
 
 
-@pytest.mark.parametrize("database_url", ["sqlite"], indirect=True)
+@pytest.mark.parametrize("backend", ["sqlite"], indirect=True)
 def test_the_papers_study_has_no_questionnaire(db: Database, executor: Any) -> None:
     """The default study file asks nothing after teaching: the page is told of no
     questionnaire (``/api/study``, the page's study data), and its last agent completes the study (the whole run, status by status,
@@ -180,7 +180,7 @@ def test_the_papers_study_has_no_questionnaire(db: Database, executor: Any) -> N
         assert client.get("/api/study").json()["questionnaire"] is None
 
 
-@pytest.mark.parametrize("database_url", ["sqlite"], indirect=True)
+@pytest.mark.parametrize("backend", ["sqlite"], indirect=True)
 def test_a_study_without_questions_completes_after_the_last_agent(
     db: Database, executor: Any
 ) -> None:

@@ -28,7 +28,7 @@ from server.app.export.tables import export_tables
 from server.app.main import create_app
 from server.app.participants import tokens
 from server.app.settings import Settings
-from server.app.storage.db import Database, upgrade
+from server.app.storage.db import Database
 from server.app.storage.models import LearnerUpdate, LearningSession
 from server.domains import make
 from server.domains.base import ACTIONS
@@ -43,6 +43,7 @@ from tests.server.conftest import (
     wait_until_ready,
 )
 from tests.server.test_updates import SLOW_STUDY, demonstrate
+from tests.support.databases import migrated_sqlite
 
 distributed = pytest.importorskip("distributed")
 
@@ -59,9 +60,7 @@ def cluster() -> Iterator[Any]:
 
 
 def fresh_database(path: Path) -> Database:
-    database = Database.from_url(f"sqlite:///{path}")
-    upgrade(database.engine)
-    return database
+    return Database.from_url(migrated_sqlite(path))
 
 
 def agent_try(participant: Participant, session_id: int, task: int, steps: int) -> None:

@@ -483,12 +483,11 @@ def test_update_processes_start_with_the_server_and_load_their_kernels_first(
     warmup; tests/learners/test_warmup.py checks that it loads all an update uses)."""
     import asyncio
 
-    from server.app.storage.db import upgrade
     from server.app.updates.manager import UpdateManager
     from server.app.updates.policies import PolicyCache
+    from tests.support.databases import migrated_sqlite
 
-    database = Database.from_url(f"sqlite:///{tmp_path / 'study.db'}")
-    upgrade(database.engine)
+    database = Database.from_url(migrated_sqlite(tmp_path / "study.db"))
 
     async def scenario() -> tuple[int, list[tuple[int, int]]]:
         manager = UpdateManager(database, PolicyCache(), lambda name: {}, workers=2, niceness=0)

@@ -63,10 +63,12 @@ def warm_this_process() -> None:
     global _warm
     if _warm:
         return
+    from server.app.updates.compiling import one_warm_up_at_a_time
     from server.app.updates.warmup import warm_up
 
     try:
-        seconds = warm_up()
+        with one_warm_up_at_a_time():
+            seconds = warm_up()
     except Exception:
         import traceback
 

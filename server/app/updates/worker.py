@@ -55,12 +55,15 @@ def worker_init(
         os._exit(0)
 
     threading.Thread(target=leave_with_parent, name="leave-with-server", daemon=True).start()
+    from server.app.updates.compiling import one_warm_up_at_a_time
     from server.app.updates.warmup import warm_up
 
-    # The kernels loaded (or compiled, about two minutes, where numba's cache lacks them) now,
-    # not on a participant's first update.
+    # The kernels loaded (or compiled, about two minutes, where numba's cache lacks them: by one
+    # process of the machine at a time, the others then load them) now, not on a participant's
+    # first update.
     try:
-        seconds = warm_up()
+        with one_warm_up_at_a_time():
+            seconds = warm_up()
     except Exception:  # an update would meet the same error, and report it for its session
         traceback.print_exc()
     else:

@@ -1,0 +1,1 @@
+"""What several test packages share: databases built once by the migrations and copied."""

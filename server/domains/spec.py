@@ -199,8 +199,8 @@ def _check(spec: EnvironmentSpec, max_states: int) -> tuple[Environment | None, 
         problems.append(
             Problem(
                 *grid_map.where((0, 0)),
-                f"the map has {states} states ({grid_map.height} x {grid_map.width} cells x "
-                f"{features}), more than the {max_states} the study allows",
+                f"the map has {states} states ({grid_map.width} x {grid_map.height} cells, width "
+                f"x height, {features} states each), more than the {max_states} the study allows",
             )
         )
         blocked = True

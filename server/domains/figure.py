@@ -21,6 +21,7 @@ from server.domains.base import Environment
 from server.domains.drawing import COLOURS, label
 
 if TYPE_CHECKING:
+    from matplotlib.artist import Artist
     from matplotlib.figure import Figure
 
 CELL_PIXELS = 32
@@ -111,6 +112,33 @@ def environment_figure(env: Environment) -> Figure:
             colours[item["machine"]],
             letter_of.get(item["machine"], ""),
         )
+    _mark_goals_and_starts(env, axes)
+    _label(env, axes)
+    handles: list[Artist] = [
+        Patch(
+            facecolor=GOAL, edgecolor=OUTLINE, linewidth=2, label=f"{number}: goal of {task.name}"
+        )
+        for number, task in enumerate(env.tasks, start=1)
+    ]
+    handles += _kind_handles(env, colours, letter_of)
+    handles.append(
+        Line2D([], [], marker="o", markersize=3, linestyle="", color=START, label="a start cell")
+    )
+    axes.legend(
+        handles=handles,
+        loc="upper left",
+        bbox_to_anchor=(0.0, -0.02),
+        fontsize=8,
+        ncol=max(1, min(3, env.width // 5)),
+        frameon=False,
+    )
+    return figure
+
+
+def _mark_goals_and_starts(env: Environment, axes: Any) -> None:
+    """Each goal cell outlined with its tasks' numbers; a dot on each start cell."""
+    from matplotlib.patches import Rectangle
+
     for (row, column), numbers in _goal_numbers(env).items():
         # The cell keeps its terrain: an outline, and the task's number on a white label.
         axes.add_patch(
@@ -139,6 +167,10 @@ def environment_figure(env: Environment) -> Figure:
     for flat in np.flatnonzero(starts.reshape(-1, env.num_features).any(axis=1)):
         row, column = divmod(int(flat), env.width)
         axes.plot(column + 0.3, row + 0.3, "o", markersize=2.5, color=START)
+
+
+def _label(env: Environment, axes: Any) -> None:
+    """Rows and columns numbered, and the title with the size (width x height)."""
     axes.set_xticks(range(env.width))
     axes.set_yticks(range(env.height))
     axes.tick_params(
@@ -152,33 +184,16 @@ def environment_figure(env: Environment) -> Figure:
         fontsize=10,
         pad=24,
     )
-    handles = [
-        Patch(
-            facecolor=GOAL, edgecolor=OUTLINE, linewidth=2, label=f"{number}: goal of {task.name}"
-        )
-        for number, task in enumerate(env.tasks, start=1)
-    ]
-    handles += _kind_handles(env, colours, letter_of)
-    handles.append(
-        Line2D([], [], marker="o", markersize=3, linestyle="", color=START, label="a start cell")
-    )
-    axes.legend(
-        handles=handles,
-        loc="upper left",
-        bbox_to_anchor=(0.0, -0.02),
-        fontsize=8,
-        ncol=max(1, min(3, env.width // 5)),
-        frameon=False,
-    )
-    return figure
 
 
-def _kind_handles(env: Environment, colours: dict[str, str], letter_of: dict[str, str]) -> list:
+def _kind_handles(
+    env: Environment, colours: dict[str, str], letter_of: dict[str, str]
+) -> list[Artist]:
     """Legend entries for the walls, terrains, gravity colours and machines on the map."""
     from matplotlib.patches import Patch
 
     layout = env.layout
-    handles = []
+    handles: list[Artist] = []
     if layout["walls"]:
         handles.append(Patch(facecolor=COLOURS["wall"], label="wall"))
     terrains = sorted({terrain for line in layout["terrain"] for terrain in line})

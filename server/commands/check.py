@@ -2,12 +2,14 @@
 
     bam-study check server/examples/office-study.toml --out /tmp/office-check
 
-Prints every problem of the study file (its maps' with their line and column) and stops there
-(exit status 1) if it has any; else, for each environment the study teaches, a drawing in the
-map's letters (and a PNG in ``--out``), each task's optimal return, and each learner's expected
-update time on this machine, estimated from the environment's size (states x actions x horizon
-x tasks) and the processor time of one update per learner on the paper's doorway, with a
-warning where it exceeds ``UPDATE_SECONDS_CAPACITY``.
+Prints every problem of the study file (its maps' with their line and column, trapped starts
+among them: ``server.domains.reachability``) and stops there (exit status 1) if it has any;
+else, for each environment the study teaches, its size (width x height), a drawing in the map's
+letters (and a PNG in ``--out``: ``server.domains.figure``), each task's optimal return, its
+traps (starts and reachable states from which its goal can never be reached; a warning for
+reachable ones), and each learner's expected update time on this machine, estimated from the
+environment's size (states x actions x horizon x tasks) and the processor time of one update
+per learner on the paper's doorway, with a warning where it exceeds ``UPDATE_SECONDS_CAPACITY``.
 """
 
 from __future__ import annotations
@@ -63,15 +65,6 @@ def text_drawing(env: Environment) -> list[str]:
     return [header, *(f"{row:>3} {''.join(cells)}" for row, cells in enumerate(rows))]
 
 
-def picture(env: Environment) -> np.ndarray:
-    """The environment drawn in the page's colours (``server.rl``'s picture, no agent)."""
-    from server.rl.environments import BAMStudyEnv
-
-    gym_env = BAMStudyEnv(env)
-    gym_env.reset(seed=0, options={"task": 0})
-    return gym_env.picture(show_agent=False)
-
-
 def calibrate(learner_names: tuple[str, ...]) -> dict[str, float]:
     """Seconds of one update per unit of size, per learner, timed here on the doorway with a
     demonstration per task (after an untimed first update, which compiles the planner)."""
@@ -100,6 +93,7 @@ def calibrate(learner_names: tuple[str, ...]) -> dict[str, float]:
 def run(args: argparse.Namespace) -> int:
     from server import domains
     from server.app.config import StudyConfigError, load_study_config
+    from server.domains.figure import environment_figure
     from server.learners.evaluation import optimal_returns
 
     try:
@@ -118,13 +112,14 @@ def run(args: argparse.Namespace) -> int:
         env = domains.make(name)
         own = "the study's own" if name in study.environments else "built in"
         print(
-            f"\n== {name} ({env.domain}, {own}): {env.height} x {env.width} cells, "
-            f"{env.num_states} states, horizon {env.horizon}, {len(env.tasks)} task(s)"
+            f"\n== {name} ({env.domain}, {own}): {env.width} x {env.height} cells (width x "
+            f"height), {env.num_states} states, horizon {env.horizon}, {len(env.tasks)} task(s)"
         )
         print("\n".join(text_drawing(env)))
         print("tasks (number in the drawing: name, optimal return over the horizon):")
         for number, (task, best) in enumerate(zip(env.tasks, optimal_returns(env), strict=True)):
             print(f"  {number + 1}: {task.name}, {best:.1f}")
+        warnings += print_traps(env)
         print(f"expected update time (size {size(env)}: states x actions x horizon x tasks):")
         for learner, rate in rates.items():
             seconds = rate * size(env)
@@ -134,17 +129,40 @@ def run(args: argparse.Namespace) -> int:
                 flag = f"  WARNING: above the {UPDATE_SECONDS_CAPACITY:.1f} s the server can serve"
             print(f"  {learner}: {seconds:.2f} s{flag}")
         image = out / f"{name}.png"
-        _write_png(image, picture(env))
+        environment_figure(env).savefig(image, bbox_inches="tight", pad_inches=0.1)
         print(f"drawing: {image}")
     if warnings:
-        print(f"\n{warnings} warning(s): a smaller map, fewer tasks or a shorter horizon helps")
+        print(f"\n{warnings} warning(s): see each WARNING above")
     return 0
 
 
-def _write_png(path: Path, image: np.ndarray) -> None:
-    import matplotlib
+def print_traps(env: Environment) -> int:
+    """Print each task's traps (``server.domains.reachability``); the number of warnings: a
+    task with trapped reachable states, which a demonstration or an agent's try may enter and
+    never leave. Trapped starts are refused when the study is loaded, unless the study
+    accepts them (``max_trapped_start_share``); the paper's gravity environments start their
+    simulations in every gravity, a few trapped starts included, as the authors' do."""
+    from server.domains.reachability import trapped_states
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    plt.imsave(path, image)
+    print(
+        "traps (states from which the task's goal can never be reached, whatever the agent does):"
+    )
+    warnings = 0
+    for number, task in enumerate(env.tasks):
+        traps = trapped_states(env, number)
+        line = f"  {number + 1}: {task.name}: {len(traps.starts)} of {traps.start_states} starts"
+        if len(traps.starts):
+            line += (
+                f" ({traps.start_share:.1%} of the simulations' start probability, "
+                f"{traps.study_start_share:.1%} of the user study's: "
+                f"{traps.named(env, traps.starts)})"
+            )
+        line += f"; {len(traps.reachable)} of the {traps.reachable_states} reachable states"
+        print(line)
+        if len(traps.reachable):
+            warnings += 1
+            print(
+                "     WARNING: a demonstration or an agent's try that enters one never reaches "
+                f"the goal: {traps.named(env, traps.reachable)}"
+            )
+    return warnings

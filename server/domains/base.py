@@ -603,7 +603,8 @@ class Environment:
     def state_of(self, row: int, column: int, feature: int = 0) -> int:
         if not (0 <= row < self.height and 0 <= column < self.width):
             raise ValueError(
-                f"cell ({row}, {column}) is outside the {self.height}x{self.width} grid"
+                f"cell ({row}, {column}) is outside the grid of {self.width} x {self.height} "
+                "cells (width x height)"
             )
         if not 0 <= feature < self.num_features:
             raise ValueError(f"feature {feature} out of range 0..{self.num_features - 1}")

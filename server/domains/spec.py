@@ -15,12 +15,15 @@ machines (a capital letter) and the terrain each machine works on.
 
 The checks (``problems``): a letter the family does not know; a goal that is a wall, a colour,
 dirt or a mix of fields; a task whose goal no start can reach within the horizon; a start
-region with no start cell, or with start cells cut off from a goal; a machine no start can ever
-reach; more states than ``max_states``; and whatever the map's text itself gets wrong.
+region with no start cell, or with start cells cut off from a goal; trapped starts (states of a
+task's start distribution from which its goal can never be reached) above the share the
+specification accepts (none unless it says); a machine no start can ever reach; more states
+than ``max_states``; and whatever the map's text itself gets wrong.
 """
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -30,6 +33,7 @@ import numpy as np
 from server.domains import farming, gravity, navigation
 from server.domains.base import Environment
 from server.domains.grid import GridMap, MapProblems, Problem, can_reach, reachable_from, read_map
+from server.domains.reachability import trapped_states
 
 FAMILIES: tuple[str, ...] = ("navigation", "gravity", "farming")
 # The most states a study's environment may have unless the study says otherwise: about the
@@ -52,7 +56,10 @@ class EnvironmentSpec:
     lines give it too); ``terrains``: {lower-case letter: terrain} added to soil (s), grass (i)
     and crops (c); ``machines``: {capital letter: machine} added to the plow (P), sprinkler (W)
     and harvester (H); ``works_on``: {machine: terrain}, the terrain each machine enters
-    (required for a new machine; the paper's machines keep theirs unless given)."""
+    (required for a new machine; the paper's machines keep theirs unless given);
+    ``max_trapped_start_share``: the share of a task's start probability (in the simulations
+    or in the user study) that may lie on trapped starts, states from which its goal can never
+    be reached (``reachability.py``); above it the map is refused."""
 
     name: str
     family: str
@@ -64,6 +71,7 @@ class EnvironmentSpec:
     terrains: dict[str, str] = field(default_factory=dict)
     machines: dict[str, str] = field(default_factory=dict)
     works_on: dict[str, str] = field(default_factory=dict)
+    max_trapped_start_share: float = 0.0
 
     # -- the checks -----------------------------------------------------------------------
     def problems(self, max_states: int = DEFAULT_MAX_STATES) -> list[Problem]:
@@ -172,6 +180,9 @@ def _check(spec: EnvironmentSpec, max_states: int) -> tuple[Environment | None, 
         isinstance(spec.horizon, bool) or not isinstance(spec.horizon, int) or spec.horizon < 1
     ):
         say(f"horizon {spec.horizon!r} is not a whole number of steps above 0")
+    share = spec.max_trapped_start_share
+    if isinstance(share, bool) or not isinstance(share, int | float) or not 0 <= share <= 1:
+        say(f"max_trapped_start_share {share!r} is not a share from 0 to 1")
     options = spec._options(problems)
     grid_map, map_problems = read_map(spec.name, spec.map)
     problems += map_problems
@@ -188,8 +199,8 @@ def _check(spec: EnvironmentSpec, max_states: int) -> tuple[Environment | None, 
         problems.append(
             Problem(
                 *grid_map.where((0, 0)),
-                f"the map has {states} states ({grid_map.height} x {grid_map.width} cells x "
-                f"{features}), more than the {max_states} the study allows",
+                f"the map has {states} states ({grid_map.width} x {grid_map.height} cells, width "
+                f"x height, {features} states each), more than the {max_states} the study allows",
             )
         )
         blocked = True
@@ -205,7 +216,7 @@ def _check(spec: EnvironmentSpec, max_states: int) -> tuple[Environment | None, 
         environment = family.build(spec.name, grid_map, spec.horizon, **options)
     except ValueError as error:  # a rule the checks above missed: still one clear problem
         return None, [Problem(1, 1, str(error))]
-    _check_reach(environment, grid_map, problems)
+    _check_reach(environment, grid_map, spec.max_trapped_start_share, problems)
     return (None if problems else environment), sorted(problems)
 
 
@@ -347,12 +358,15 @@ def _check_gravity_rule(
     return len(problems) > count
 
 
-def _check_reach(environment: Environment, grid_map: GridMap, problems: list[Problem]) -> None:
-    """Starts that cannot reach a goal within the horizon, and machines no start reaches."""
+def _check_reach(
+    environment: Environment, grid_map: GridMap, max_trapped: float, problems: list[Problem]
+) -> None:
+    """Starts that cannot reach a goal within the horizon, trapped starts above the share the
+    study accepts (``max_trapped``), and machines no start reaches."""
     true = environment.true_transitions
     features = environment.num_features
     starts_all = np.zeros(environment.num_states, dtype=bool)
-    for task in environment.tasks:
+    for number, task in enumerate(environment.tasks):
         start_place = grid_map.place(
             f"study-start {task.name}" if task.name in grid_map.study_starts else "start"
         )
@@ -376,7 +390,11 @@ def _check_reach(environment: Environment, grid_map: GridMap, problems: list[Pro
                     f"within the horizon of {environment.horizon} steps",
                 )
             )
-        elif len(cut_off):
+            continue
+        trapped = _check_traps(environment, grid_map, number, max_trapped, problems)
+        # A cell whose every start is trapped is named by the trap's problem already.
+        cut_off = np.array([cell for cell in cut_off if cell not in trapped], dtype=np.int64)
+        if len(cut_off):
             first = divmod(int(cut_off[0]), environment.width)
             problems.append(
                 Problem(
@@ -400,3 +418,42 @@ def _check_reach(environment: Environment, grid_map: GridMap, problems: list[Pro
                     "reached from the start region",
                 )
             )
+
+
+def _check_traps(
+    environment: Environment,
+    grid_map: GridMap,
+    task: int,
+    max_trapped: float,
+    problems: list[Problem],
+) -> set[int]:
+    """The task's trapped starts, a problem when the simulations' or the user study's start
+    distribution puts more than ``max_trapped`` of its probability on them; the cells (row x
+    width + column) whose every start is trapped, if the problem is reported."""
+    traps = trapped_states(environment, task)
+    share = max(traps.start_share, traps.study_start_share)
+    if share <= max_trapped or not len(traps.starts):
+        return set()
+    chosen = environment.tasks[task]
+    starts = (chosen.start > 0) | (chosen.study_start_distribution > 0)
+    trapped = np.zeros(environment.num_states, dtype=bool)
+    trapped[traps.starts] = True
+    features = environment.num_features
+    # Cells whose every start is trapped: no share accepted lets a start cell be cut off.
+    cell_starts = starts.reshape(-1, features).any(axis=1)
+    whole = cell_starts & ~(starts & ~trapped).reshape(-1, features).any(axis=1)
+    shares = f"{traps.start_share:.1%} of the simulations' start probability"
+    if traps.study_start_share > 0:
+        shares += f", {traps.study_start_share:.1%} of the user study's"
+    remedy = "give them a way out (in gravity, a colour they can reach) or start elsewhere"
+    if not whole.any():
+        remedy += f", or accept them: max_trapped_start_share = {math.ceil(share * 100) / 100:g}"
+    problems.append(
+        Problem(
+            *grid_map.where(environment.cell_of(int(traps.starts[0]))),
+            f"task {traps.task!r}: {len(traps.starts)} of its {traps.start_states} start states "
+            f"({shares}) can never reach its goal, whatever the agent does "
+            f"({traps.named(environment, traps.starts)}): {remedy}",
+        )
+    )
+    return {int(cell) for cell in np.flatnonzero(whole)}

@@ -226,7 +226,7 @@ gravity_colours = { r = "sky blue" }
 colours = { "sky blue" = "#56B4E9" }
 map = '''
 task: Corner = A
-start: rows 3
+start: rows 0, columns 1-4
 gravity of orange: north
 gravity of sky blue: west
     012345

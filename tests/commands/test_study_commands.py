@@ -16,7 +16,9 @@ import pytest
 from server import domains
 from server.commands import check
 from server.commands.main import main
+from server.domains.figure import environment_figure
 from server.learners.evaluation import optimal_returns
+from tests.domains.test_reachability import NEWCOMER
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "server" / "examples"
 STUDIES = {"office-study": "office-floor", "vineyard-study": "vineyard"}
@@ -48,8 +50,12 @@ def test_check_draws_each_environment_with_its_optimal_returns(
         assert f"  {number + 1}: {task.name}, {best:.1f}" in printed
     for learner in ("bam", "cloning"):
         assert re.search(rf"^  {learner}: \d+\.\d\d s", printed, re.MULTILINE)
+    assert f"{env.width} x {env.height} cells (width x height)" in printed
+    for number, task in enumerate(env.tasks, start=1):
+        assert re.search(rf"^  {number}: {task.name}: 0 of \d+ starts;", printed, re.MULTILINE)
+    # The picture: 32 px a cell at least, with its title and legend below.
     image = matplotlib.image.imread(tmp_path / f"{name}.png")
-    assert image.shape[:2] == (env.height * 16, env.width * 16)
+    assert image.shape[0] > env.height * 32 and image.shape[1] >= env.width * 32
 
 
 def test_check_warns_above_the_capacity(
@@ -80,6 +86,53 @@ def test_check_lists_every_problem_and_fails(
     assert "environments.vineyard: works_on: say which terrain the trellis works on" in error
     assert "line 16, column 16: unknown character 'X'" in error
     assert not (tmp_path / "out").exists()
+
+
+def test_check_refuses_a_gravity_map_with_trapped_starts_and_names_them(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The map of the issue: every start on the bottom row, no colour on it."""
+    study = tmp_path / "newcomer-study.toml"
+    text = (EXAMPLES / "office-study.toml").read_text()
+    text = text.replace('family = "navigation"\nmap_file = "office-floor.txt"', f"""family = "gravity"
+map = '''
+{NEWCOMER}'''""").replace('name = "navigation"\nenvironments = ["office-floor"]',
+        'name = "gravity"\nenvironments = ["office-floor"]')  # fmt: skip
+    study.write_text(text)
+    assert main(["check", str(study), "--out", str(tmp_path / "out")]) == 1
+    error = capsys.readouterr().err
+    assert (
+        "line 13, column 5: task 'Well': 11 of its 36 start states (30.6% of the simulations' "
+        "start probability) can never reach its goal, whatever the agent does (gravity south at "
+        "row 6, columns 0-8; gravity east at row 6, column 8; gravity west at row 6, column 0)"
+    ) in error
+    assert "task 'Tower': 13 of its 36 start states" in error
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_picture_has_every_goal_with_its_task_number_and_a_legend() -> None:
+    env = domains.make("doorway")
+    figure = environment_figure(env)
+    (axes,) = figure.axes
+    texts = [text.get_text() for text in axes.texts]
+    for number, task in enumerate(env.tasks, start=1):
+        assert texts.count(str(number)) == len(task.goal_cells)
+    legend = [text.get_text() for text in axes.get_legend().get_texts()]
+    assert legend[:4] == ["1: goal of A", "2: goal of B", "3: goal of C", "4: goal of D"]
+    assert "wall" in legend and "a start cell" in legend
+    assert axes.get_title() == "doorway (navigation): 11 x 11 cells (width x height)"
+    assert figure.dpi * figure.get_figwidth() / env.width >= 32
+
+
+def test_check_prints_the_traps_of_the_papers_gravity_maps(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert check.print_traps(domains.make("choices")) == 0
+    printed = capsys.readouterr().out
+    assert (
+        "  1: A: 4 of 240 starts (1.7% of the simulations' start probability, 0.0% of the user "
+        "study's: gravity east at column 14, rows 0-3); 0 of the 240 reachable states"
+    ) in printed
 
 
 @pytest.mark.parametrize("study", sorted(STUDIES))

@@ -27,8 +27,9 @@ start: rows 3-4
   3 .......
   4 T.P.Q..
 """
+# Starts in row 0 short of the last column: none trapped (gravity south in row 2 would be).
 GRAVITY = """task: A
-start: rows 2
+start: rows 0, columns 1-3
 gravity of orange: north
 gravity of yellow: west
     01234

@@ -111,6 +111,14 @@ class EnvironmentDefinition(_Strict):
         description="Farming only: the terrain each machine enters (required for a new "
         'machine; the others keep theirs unless given), e.g. { trellis = "vines" }.',
     )
+    max_trapped_start_share: float = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="The share of a task's start probability (the simulations' or the user "
+        "study's) that may lie on starts from which its goal can never be reached, whatever "
+        "the agent does; 0: none (bam-study check names them).",
+    )
 
     @model_validator(mode="before")
     @classmethod
@@ -153,6 +161,7 @@ class EnvironmentDefinition(_Strict):
             terrains=dict(self.terrains),
             machines=dict(self.machines),
             works_on=dict(self.works_on),
+            max_trapped_start_share=self.max_trapped_start_share,
         )
 
 

@@ -50,7 +50,8 @@ def plot_curves(config: RunConfig, summary: Sequence[SummaryRow], stem: Path) ->
     figure, axes = plt.subplots(
         rows,
         columns,
-        figsize=(3.4 * columns, 2.9 * rows + 0.9),
+        # One environment alone gets the width its title and legend need.
+        figsize=(max(3.4 * columns, 6.0), 2.9 * rows + 0.9),
         squeeze=False,
         sharex=True,
         sharey=True,

@@ -110,6 +110,24 @@ map = '''
     assert not (tmp_path / "out").exists()
 
 
+def test_a_study_file_may_accept_trapped_starts_up_to_its_share(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``max_trapped_start_share`` in the environment's table: the share the message offers
+    (0.37 covers both tasks) is accepted; one below the larger share still refuses."""
+    text = (EXAMPLES / "office-study.toml").read_text()
+    navigation = 'family = "navigation"\nmap_file = "office-floor.txt"'
+    domain = 'name = "navigation"\nenvironments = ["office-floor"]'
+    study = tmp_path / "newcomer-study.toml"
+    for share, code in ((0.36, 1), (0.37, 0)):
+        gravity = f'family = "gravity"\nmax_trapped_start_share = {share}\nmap = """\n{NEWCOMER}"""'
+        gravity_domain = domain.replace("navigation", "gravity")
+        study.write_text(text.replace(navigation, gravity).replace(domain, gravity_domain))
+        assert main(["check", str(study), "--out", str(tmp_path / f"out-{share}")]) == code
+        error = capsys.readouterr().err
+        assert ("task 'Tower': 13 of its 36 start states" in error) == (code == 1), error
+
+
 def test_the_picture_has_every_goal_with_its_task_number_and_a_legend() -> None:
     env = domains.make("doorway")
     figure = environment_figure(env)

@@ -168,3 +168,54 @@ def bearer_is_admin(request: Request, token: str, guard: SignInGuard) -> bool:
         return True
     guard.failed(address)
     return False
+
+
+SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+
+
+def own_origin(request: Request) -> str:
+    """This server's origin as the browser addressed it (scheme, host and port: behind a
+    proxy named in BAM_FORWARDED_ALLOW_IPS, its forwarded scheme); also the replica's
+    ``turkSubmitTo``."""
+    return f"{request.url.scheme}://{request.url.netloc}"
+
+
+def request_origin(request: Request) -> str | None:
+    """Where the browser says the request comes from: its ``Origin`` (sent by every current
+    browser with a POST, PUT, PATCH or DELETE), or where it left that out, its ``Referer``'s
+    origin; None from a client that sends neither (a script)."""
+    origin = request.headers.get("origin")
+    if origin is None:
+        referer = request.headers.get("referer")
+        if referer is None:
+            return None
+        scheme, _, rest = referer.partition("://")
+        origin = f"{scheme}://{rest.split('/', 1)[0]}"
+    return origin.lower()
+
+
+def from_own_pages(request: Request) -> bool:
+    """The request comes from this server's own pages, as the browser says."""
+    return request_origin(request) == own_origin(request).lower()
+
+
+def from_another_site(request: Request) -> bool:
+    """The browser says the request comes from another site's page (a script that names no
+    origin does not)."""
+    origin = request_origin(request)
+    return origin is not None and origin != own_origin(request).lower()
+
+
+def cross_site_refusal() -> ApiError:
+    return ApiError(
+        403,
+        "a signed-in dashboard's changes are accepted only from this server's own pages (the "
+        "request's Origin names another site, or none): reload the dashboard, or send the "
+        "admin token as a bearer header from a script",
+    )
+
+
+def cookie_is_secure(request: Request, settings: Settings) -> bool:
+    """Cookies are sent over HTTPS only where BAM_COOKIE_SECURE says so or the server is
+    reached over HTTPS (directly, or behind a named proxy that forwards the scheme)."""
+    return settings.cookie_secure or request.url.scheme == "https"

@@ -7,7 +7,14 @@ from typing import Annotated
 
 from fastapi import Depends, Header, Path, Request
 
-from server.app.admin_auth import ADMIN_COOKIE, admin_token, bearer_is_admin
+from server.app.admin_auth import (
+    ADMIN_COOKIE,
+    SAFE_METHODS,
+    admin_token,
+    bearer_is_admin,
+    cross_site_refusal,
+    from_own_pages,
+)
 from server.app.errors import ApiError
 from server.app.participants.tokens import TOKEN_HEADER
 from server.app.state import ServerState
@@ -40,14 +47,20 @@ TokenDep = Annotated[str | None, Depends(participant_token)]
 
 def is_admin(request: Request, state: ServerState) -> bool:
     """The request carries the admin token (bearer header) or a dashboard session's cookie
-    (SameSite=Strict, so another site's page cannot send it)."""
+    (SameSite=Strict, so another site's page cannot send it). A change made with the cookie
+    must also come from this server's own pages (its Origin): a 403 otherwise, whatever a
+    browser's SameSite rules or a proxy's headers let through."""
     expected = admin_token(state.settings)
     if expected is None:
         return False
     if bearer_is_admin(request, expected, state.sign_ins):
         return True
     cookie = request.cookies.get(ADMIN_COOKIE)
-    return cookie is not None and state.admin_sessions.valid(expected, cookie)
+    if cookie is None or not state.admin_sessions.valid(expected, cookie):
+        return False
+    if request.method not in SAFE_METHODS and not from_own_pages(request):
+        raise cross_site_refusal()
+    return True
 
 
 async def require_admin(request: Request, state: StateDep) -> None:

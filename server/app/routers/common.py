@@ -12,6 +12,7 @@ from fastapi import Request, Response
 from fastapi.responses import RedirectResponse
 from fastapi.templating import Jinja2Templates
 
+from server.app.admin_auth import own_origin
 from server.app.participants import arrival, places, transaction, views
 from server.app.schemas import ArrivalRequest, ArrivalResponse
 from server.app.state import ServerState
@@ -65,11 +66,6 @@ def set_participant_cookie(response: Response, state: ServerState, token: str) -
         secure=settings.cookie_secure,
         partitioned=settings.cookie_samesite == "none",
     )
-
-
-def own_origin(request: Request) -> str:
-    """This server's origin as the browser addressed it (the replica's ``turkSubmitTo``)."""
-    return f"{request.url.scheme}://{request.url.netloc}"
 
 
 def arrive(

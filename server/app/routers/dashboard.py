@@ -14,7 +14,15 @@ from typing import Annotated
 from fastapi import APIRouter, Form, Query, Request, Response
 from fastapi.responses import HTMLResponse, RedirectResponse
 
-from server.app.admin_auth import ADMIN_COOKIE, SESSION_SECONDS, admin_token, client_address
+from server.app.admin_auth import (
+    ADMIN_COOKIE,
+    SESSION_SECONDS,
+    admin_token,
+    client_address,
+    cookie_is_secure,
+    cross_site_refusal,
+    from_another_site,
+)
 from server.app.deps import StateDep, is_admin
 from server.app.errors import ApiError
 from server.app.routers.common import login_redirect, templates
@@ -80,6 +88,8 @@ def dashboard_login(
     expected = admin_token(state.settings)
     if expected is None:
         return login_page(request, state, next, None)
+    if from_another_site(request):  # another site signing the browser in to a session
+        raise cross_site_refusal()
     address = client_address(request)
     try:
         state.sign_ins.check(address)
@@ -95,7 +105,7 @@ def dashboard_login(
         max_age=SESSION_SECONDS,
         httponly=True,
         samesite="strict",
-        secure=state.settings.cookie_secure,
+        secure=cookie_is_secure(request, state.settings),
     )
     return response
 

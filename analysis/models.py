@@ -26,7 +26,7 @@ import numpy as np
 import pandas as pd
 
 from analysis.design import Z95
-from analysis.names import learner_display
+from analysis.names import learner_display, order_environments
 from analysis.stats import reached_column
 
 METHOD = (
@@ -107,28 +107,30 @@ def _none(note: str) -> OddsRatio:
 
 def _fit(data: pd.DataFrame, baseline: str, alternative: str, pooled: bool, note: str) -> OddsRatio:
     import statsmodels.api as sm
-    import statsmodels.formula.api as smf
     from scipy.stats import norm
 
-    terms = [f"C(learner, Treatment({baseline!r}))"]
-    if pooled and data["environment"].nunique() > 1:
-        terms.append("C(environment)")
+    # The design matrix, built by hand (a formula's parsing costs more than the fit): an
+    # intercept, the alternative's indicator, then the environments' (the first in the
+    # paper's order is the reference) and the position.
+    columns = [np.ones(len(data)), (data["learner"] == alternative).to_numpy(float)]
+    if pooled:
+        for environment in order_environments(data["environment"])[1:]:
+            columns.append((data["environment"] == environment).to_numpy(float))
     if data["position"].nunique() > 1:
-        terms.append("position")
+        columns.append(data["position"].to_numpy(float))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
-            fit = smf.gee(
-                "reached ~ " + " + ".join(terms),
-                groups="participant",
-                data=data.reset_index(drop=True),
+            fit = sm.GEE(
+                data["reached"].to_numpy(float),
+                np.column_stack(columns),
+                groups=data["participant"].to_numpy(),
                 family=sm.families.Binomial(),
                 cov_struct=sm.cov_struct.Exchangeable(),
             ).fit(cov_type="bias_reduced", maxiter=100)
         except (np.linalg.LinAlgError, ValueError) as error:
             return _none(f"the model failed: {error}")
-    key = f"C(learner, Treatment({baseline!r}))[T.{alternative}]"
-    coefficient, se = float(fit.params[key]), float(fit.bse[key])
+    coefficient, se = float(fit.params[1]), float(fit.bse[1])
     if not (math.isfinite(coefficient) and math.isfinite(se) and se > 0):
         return _none("the model did not converge")
     return OddsRatio(

@@ -133,8 +133,10 @@ def cox_stratified(frame: pd.DataFrame, baseline: str, alternative: str) -> Haza
     )
     if np.ptp(exog[:, 1]) == 0:
         exog = exog[:, :1]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    from statsmodels.tools.sm_exceptions import ConvergenceWarning
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         try:
             fit = PHReg(
                 pair["time"].to_numpy(float),
@@ -146,7 +148,7 @@ def cox_stratified(frame: pd.DataFrame, baseline: str, alternative: str) -> Haza
         except (np.linalg.LinAlgError, ValueError) as error:
             return HazardRatio(None, None, None, None, blocks, f"the model failed: {error}")
     coefficient, se = float(fit.params[0]), float(fit.bse[0])
-    converged = bool(fit.mle_retvals.get("converged", True))
+    converged = not any(issubclass(w.category, ConvergenceWarning) for w in caught)
     if not (converged and math.isfinite(coefficient) and math.isfinite(se)) or se > MAX_SE:
         return HazardRatio(
             None,

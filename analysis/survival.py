@@ -77,8 +77,9 @@ def kaplan_meier(frame: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
 
 
 def median_time(frame: pd.DataFrame) -> Median:
-    """The median count to the threshold (the first count at which the Kaplan-Meier estimate
-    is at or below 1/2) and its 95% interval (statsmodels' ``quantile_ci``, complementary
+    """The median count to the threshold (statsmodels' ``quantile``: the first count at which
+    the Kaplan-Meier estimate falls below 1/2; where it equals 1/2 over an interval, R's
+    ``survfit`` takes the interval's midpoint instead) and its 95% interval (statsmodels' ``quantile_ci``, complementary
     log-log)."""
     from statsmodels.duration.survfunc import SurvfuncRight
 
@@ -128,6 +129,16 @@ def cox_stratified(frame: pd.DataFrame, baseline: str, alternative: str) -> Haza
                 f"no {learner_display(name)} session reached it in a "
                 "block with both learners: the hazard ratio cannot be estimated",
             )
+    if _one_sided(pair, strata, alternative):
+        return HazardRatio(
+            None,
+            None,
+            None,
+            None,
+            blocks,
+            "in every block one learner's session reached it first (or alone): the hazard "
+            "ratio is 0 or infinite, not estimable",
+        )
     exog = np.column_stack(
         [(pair["learner"] == alternative).to_numpy(float), pair["position"].to_numpy(float)]
     )
@@ -169,3 +180,23 @@ def cox_stratified(frame: pd.DataFrame, baseline: str, alternative: str) -> Haza
         p_value,
         blocks,
     )
+
+
+def _one_sided(pair: pd.DataFrame, strata: pd.Series, alternative: str) -> bool:
+    """Whether only one learner ever reached the threshold while a session of the other was
+    still going in its block: then the partial likelihood grows without bound as the
+    learner's coefficient does, whatever the other covariates, and has no maximum."""
+    wins = set()
+    for _, block in pair.groupby(strata.to_numpy()):
+        time = block["time"].to_numpy(float)
+        event = block["event"].to_numpy(bool)
+        is_alternative = (block["learner"] == alternative).to_numpy()
+        for i in np.flatnonzero(event):
+            other = is_alternative != is_alternative[i]
+            # Still going: later, or censored at the same count (a tie of events is neither).
+            going = other & ((time > time[i]) | ((time == time[i]) & ~event))
+            if going.any():
+                wins.add(bool(is_alternative[i]))
+        if len(wins) == 2:
+            return False
+    return True

@@ -22,9 +22,9 @@ from .simulate import LEARNERS, THRESHOLD, simulate_study
 
 ALPHA = 0.05
 PARTICIPANTS = 16  # 32 blocks, 96 sessions a study
-NULL_STUDIES = 300  # the fast tests (McNemar, Cochran's Q, permutation, Fisher)
-MODEL_NULL_STUDIES = 100  # the models (GEE, Cox), which take longer to fit
-POWER_STUDIES = 60
+NULL_STUDIES = 240  # the fast tests (McNemar, Cochran's Q, permutation, Fisher)
+MODEL_NULL_STUDIES = 80  # the models (GEE, Cox), which take longer to fit
+POWER_STUDIES = 50
 EFFECT = 1.0  # Behavioral Cloning's lower log odds per episode under the alternative
 SHUFFLES = 400
 

@@ -120,21 +120,13 @@ def cox_stratified(frame: pd.DataFrame, baseline: str, alternative: str) -> Haza
     blocks = int(strata.nunique())
     for name in (baseline, alternative):
         if not pair.loc[pair["learner"] == name, "event"].any():
-            return HazardRatio(
-                None,
-                None,
-                None,
-                None,
+            return _not_estimated(
                 blocks,
                 f"no {learner_display(name)} session reached it in a "
                 "block with both learners: the hazard ratio cannot be estimated",
             )
     if _one_sided(pair, strata, alternative):
-        return HazardRatio(
-            None,
-            None,
-            None,
-            None,
+        return _not_estimated(
             blocks,
             "in every block one learner's session reached it first (or alone): the hazard "
             "ratio is 0 or infinite, not estimable",
@@ -157,15 +149,11 @@ def cox_stratified(frame: pd.DataFrame, baseline: str, alternative: str) -> Haza
                 ties="efron",
             ).fit(maxiter=MAX_ITERATIONS)
         except (np.linalg.LinAlgError, ValueError) as error:
-            return HazardRatio(None, None, None, None, blocks, f"the model failed: {error}")
+            return _not_estimated(blocks, f"the model failed: {error}")
     coefficient, se = float(fit.params[0]), float(fit.bse[0])
     converged = not any(issubclass(w.category, ConvergenceWarning) for w in caught)
     if not (converged and math.isfinite(coefficient) and math.isfinite(se)) or se > MAX_SE:
-        return HazardRatio(
-            None,
-            None,
-            None,
-            None,
+        return _not_estimated(
             blocks,
             "the estimate does not converge: the hazard ratio runs off to 0 or infinity, as "
             "when one learner's session reaches it first in every block where either did",
@@ -180,6 +168,10 @@ def cox_stratified(frame: pd.DataFrame, baseline: str, alternative: str) -> Haza
         p_value,
         blocks,
     )
+
+
+def _not_estimated(blocks: int, note: str) -> HazardRatio:
+    return HazardRatio(None, None, None, None, blocks, note)
 
 
 def _one_sided(pair: pd.DataFrame, strata: pd.Series, alternative: str) -> bool:

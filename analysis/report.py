@@ -8,6 +8,7 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
+from analysis.design_report import describe_design_files, readme_section, write_design_outputs
 from analysis.names import threshold_label
 from analysis.options import InputError
 from analysis.plots import save_learning_curves
@@ -38,7 +39,7 @@ def describe_outputs(analysis: Analysis) -> str:
     return f"""# Results of `bam-study analyze`
 
 {describe_files(analysis.baseline, analysis.thresholds, analysis.fdr)}
-## Notes on this study's data
+{readme_section(analysis) if analysis.design is not None else ""}## Notes on this study's data
 
 {notes}"""
 
@@ -88,7 +89,7 @@ how many sessions were left out and why (returned the task, timed out, still in 
 - `return_vs_episodes.png|svg`, `return_vs_actions.png|svg`: normalised return against the
   cumulative counts, mean and standard error per learner, one panel per environment; each
   session's latest evaluation is carried forward.
-"""
+{describe_design_files()}"""
 
 
 def write_outputs(analysis: Analysis, out: Path | str) -> list[str]:
@@ -121,6 +122,8 @@ def write_outputs(analysis: Analysis, out: Path | str) -> list[str]:
             staging / "comparisons.csv", index=False
         )
         save_learning_curves(analysis, staging)
+        if analysis.design is not None:
+            write_design_outputs(analysis, staging)
         names = sorted(path.name for path in staging.iterdir())
         if out.exists():
             for name in names:

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from analysis.design_results import DesignResults, design_analysis
 from analysis.names import LEARNERS, order_environments, order_learners
 from analysis.options import (
     DEFAULT_BASELINE,
@@ -32,6 +33,8 @@ class Analysis:
     comparisons: pd.DataFrame  # stats.compare
     table1: pd.DataFrame  # stats.table1_values
     notes: tuple[str, ...]  # remarks about the data, for the reader of the results
+    # The design-respecting comparisons beside the paper's (design_results.design_analysis).
+    design: DesignResults | None = None
 
     @property
     def alternatives(self) -> tuple[str, ...]:
@@ -122,4 +125,5 @@ def analyze(
         comparisons=compare(summary, thresholds, baseline, fdr),
         table1=table1_values(summary, thresholds, baseline),
         notes=tuple(notes),
+        design=design_analysis(summary, evaluations, thresholds, baseline, fdr),
     )

@@ -20,6 +20,8 @@ from analysis.stats import fisher_success, reached_column
 
 from .simulate import LEARNERS, THRESHOLD, simulate_study
 
+pytestmark = pytest.mark.slow  # a few minutes of simulated studies: CI runs it, the fast tier not
+
 ALPHA = 0.05
 PARTICIPANTS = 16  # 32 blocks, 96 sessions a study
 NULL_STUDIES = 240  # the fast tests (McNemar, Cochran's Q, permutation, Fisher)

@@ -69,6 +69,7 @@ def run(args: argparse.Namespace) -> int:
                 return 1
         with db.transaction() as c:
             erased = erase(c, int(row["id"]), "experimenter", installation_secret(c, configured))
+        db.forget_removed()
     except ApiError as error:
         return fail(error.message)
     except Exception as error:

@@ -165,6 +165,8 @@ def erase(
 def erase_participant(
     db: Database, participant_id: int, by: str, configured_secret: str | None = None
 ) -> Erased:
-    """``erase`` in a write transaction of its own."""
+    """``erase`` in a write transaction of its own, then what it deleted out of the files."""
     with db.transaction() as c:
-        return erase(c, participant_id, by, installation_secret(c, configured_secret))
+        erased = erase(c, participant_id, by, installation_secret(c, configured_secret))
+    db.forget_removed()
+    return erased

@@ -82,4 +82,6 @@ def scrub(
         participants = c.execute(query.order_by(p.id)).all()
         for participant in participants:
             scrub_participant(c, participant, secret, now)
+    if participants:
+        db.forget_removed()
     return len(participants)

@@ -40,6 +40,7 @@ def withdraw(db: Database, token: str | None, study: StudyConfig, secret: str | 
     with db.transaction() as c:
         participant = participant_for(c, token, lock=not db.is_sqlite)
         erase(c, participant.id, "participant", installation_secret(c, secret))
+    db.forget_removed()
     platform = participant.platform
     if platform == "mturk":
         return Withdrawal(platform="mturk", message=MTURK_RETURN)

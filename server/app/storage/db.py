@@ -72,6 +72,9 @@ def _configure_sqlite(engine: Engine, busy_timeout_ms: int, synchronous: str) ->
         cursor.execute(f"PRAGMA busy_timeout={int(busy_timeout_ms)}")
         cursor.execute("PRAGMA foreign_keys=ON")
         cursor.execute(f"PRAGMA synchronous={synchronous.upper()}")
+        # What is deleted is overwritten with zeros, not left in free pages: an erasure or a
+        # scrub leaves no raw id in the file (Debian's SQLite defaults to it; others do not).
+        cursor.execute("PRAGMA secure_delete=ON")
         cursor.close()
 
     @event.listens_for(engine, "begin")
@@ -138,13 +141,63 @@ class Database:
         with self.engine.connect() as connection:
             yield connection
 
+    def forget_removed(self) -> bool:
+        """After an erasure or a scrub, take what it deleted or overwrote out of the files as
+        well as the rows: on SQLite the write-ahead log, which still holds the pages as they
+        were, is checkpointed into the database (whose deleted content ``secure_delete``
+        zeroed) and truncated to nothing; on PostgreSQL the tables that hold platform ids are
+        rewritten with their indexes (``VACUUM FULL``: small tables, a row or a few per
+        participant), so no dead row or index entry keeps the id. Returns False where readers
+        kept SQLite's log busy past a quarter of a second (the study's requests are not held
+        longer): the next erasure, scrub or the server's stop truncates it."""
+        if self.is_sqlite:
+            return _truncate_wal(self.engine, busy_timeout_ms=250)
+        with self.engine.connect().execution_options(isolation_level="AUTOCOMMIT") as c:
+            for name in PLATFORM_ID_TABLES:
+                c.exec_driver_sql(f'VACUUM FULL "{name}"')
+        return True
+
     def dispose(self) -> None:
         if self._write_lock is not None:
             with self._write_lock:
                 if self._writing is not None:
                     self._writing.close()
                     self._writing = None
+            # Nothing of the log's past pages (an erased participant's, say) left beside the
+            # database after a stop.
+            _truncate_wal(self.engine, busy_timeout_ms=1000)
         self.engine.dispose()
+
+
+def _truncate_wal(engine: Engine, busy_timeout_ms: int) -> bool:
+    """Checkpoint SQLite's write-ahead log into the database and truncate it; False where
+    readers or a writer kept it busy for ``busy_timeout_ms``."""
+    try:
+        with engine.connect() as connection:
+            connection.exec_driver_sql(f"PRAGMA busy_timeout={int(busy_timeout_ms)}")
+            busy, _, _ = connection.exec_driver_sql("PRAGMA wal_checkpoint(TRUNCATE)").one()
+            connection.invalidate()  # closed, not pooled with the short timeout
+    except Exception:  # a database already gone (a test's folder removed): nothing to truncate
+        return False
+    return not busy
+
+
+# The tables whose rows may hold a platform's raw ids (a worker's, a submission's, a study's):
+# rewritten on PostgreSQL after an erasure or a scrub. Small: a row or a few per participant
+# (tests/server/test_forget_removed.py checks that every table with such a column is here).
+PLATFORM_ID_TABLES = (
+    "participants",
+    "assignment_reviews",
+    "bonuses",
+    "mturk_replica_hits",
+    "mturk_replica_assignments",
+    "mturk_replica_submissions",
+    "mturk_replica_bonuses",
+    "prolific_replica_studies",
+    "prolific_replica_submissions",
+    "prolific_replica_bonus_setups",
+    "prolific_replica_payments",
+)
 
 
 # -- migrations ------------------------------------------------------------------------------

@@ -301,7 +301,7 @@ def review_submission(
             s.execute(
                 update(Participant)
                 .where(Participant.id == participant_id)
-                .values(prolific_status="APPROVED" if decision == "approved" else "REJECTED")
+                .values(platform_status="APPROVED" if decision == "approved" else "REJECTED")
             )
 
 

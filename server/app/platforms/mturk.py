@@ -208,7 +208,7 @@ class MTurk(BasePlatform):
         "assignmentId": ID_PATTERN,
         "hitId": ID_PATTERN,
         "workerId": ID_PATTERN,
-        "turkSubmitTo": r"(?s).{0,512}",
+        "turkSubmitTo": r"^[\s\S]{0,512}$",
     }
     ids = {"worker_id": "workerId", "assignment_id": "assignmentId", "hit_id": "hitId"}
     exclusive_assignments = True

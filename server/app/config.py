@@ -32,6 +32,7 @@ from pydantic import (
     model_validator,
 )
 
+from server.app.platform_registry import PlatformName
 from server.domains.spec import DEFAULT_MAX_STATES
 
 if TYPE_CHECKING:
@@ -312,8 +313,9 @@ class AttentionChecks(_Strict):
 class Completion(_Strict):
     """How a participant finishes: MTurk's externalSubmit, Prolific's redirect, or a code page."""
 
-    mode: Literal["mturk", "prolific", "lab"] = Field(
-        description="mturk: the page submits to MTurk's externalSubmit (turkSubmitTo); "
+    mode: PlatformName = Field(
+        description="The platform the study runs on (one of server.app.platform_registry's): "
+        "mturk: the page submits to MTurk's externalSubmit (turkSubmitTo); "
         "prolific: the page sends the participant to prolific_url; lab: the page shows a "
         "completion code to hand to the experimenter."
     )

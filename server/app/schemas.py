@@ -10,16 +10,26 @@ schema is defined once (the routers import their bodies from here).
 
 from __future__ import annotations
 
+import re
 from datetime import datetime
 from decimal import Decimal
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    field_validator,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError
 
+from server.app.platform_registry import PlatformName, arrival_parameters
+from server.app.platforms.base import ID_PATTERN as ID_PATTERN
 from server.app.platforms.review import MAX_BONUS, RejectionCategory, message_text, parse_amount
 
 MAX_SEQ = 1_000_000_000
-ID_PATTERN = r"^[A-Za-z0-9_\-]{1,128}$"
 
 Mode = Literal["idle", "demonstrate", "agent"]
 Move = Literal["UP", "DOWN", "LEFT", "RIGHT"]
@@ -35,6 +45,14 @@ def plain_text(value: str) -> str:
     except UnicodeEncodeError:
         raise ValueError("text must be valid Unicode (no lone surrogate)") from None
     return value
+
+
+def _arrival_schema(schema: dict[str, Any], model: type) -> None:
+    schema["properties"] = {
+        name: {"type": "string", "pattern": pattern}
+        for name, pattern in arrival_parameters().items()
+    }
+    schema["additionalProperties"] = False
 
 
 class Body(BaseModel):
@@ -94,17 +112,39 @@ class FeedbackRequest(SeqRequest):
 
 
 class ArrivalRequest(Body):
-    """The parameters the platform appends to the study URL (none for a lab participant)."""
+    """The parameters the platform appends to the study URL (none for a lab participant): any
+    platform's ``parameters`` (``server.app.platform_registry``), each a string matching its
+    pattern."""
 
-    model_config = ConfigDict(extra="forbid", strict=True, populate_by_name=True)
+    model_config = ConfigDict(extra="allow", strict=True, json_schema_extra=_arrival_schema)
+    __pydantic_extra__: dict[str, str | None] = Field(init=False)
 
-    assignment_id: str | None = Field(None, alias="assignmentId", pattern=ID_PATTERN)
-    hit_id: str | None = Field(None, alias="hitId", pattern=ID_PATTERN)
-    worker_id: str | None = Field(None, alias="workerId", pattern=ID_PATTERN)
-    turk_submit_to: str | None = Field(None, alias="turkSubmitTo", max_length=512)
-    prolific_pid: str | None = Field(None, alias="PROLIFIC_PID", pattern=ID_PATTERN)
-    study_id: str | None = Field(None, alias="STUDY_ID", pattern=ID_PATTERN)
-    session_id: str | None = Field(None, alias="SESSION_ID", pattern=ID_PATTERN)
+    @model_validator(mode="after")
+    def _parameters(self) -> ArrivalRequest:
+        patterns = arrival_parameters()
+        for name, value in self.params().items():
+            where = {"parameter": name[:64]}
+            if name not in patterns:
+                raise PydanticCustomError(
+                    "extra_forbidden",
+                    "Extra inputs are not permitted: {parameter} is no platform's parameter",
+                    where,
+                )
+            try:
+                plain_text(value)
+            except ValueError as error:
+                raise PydanticCustomError("text", f"{{parameter}}: {error}", where) from None
+            if not re.fullmatch(patterns[name], value):
+                raise PydanticCustomError(
+                    "string_pattern_mismatch",
+                    "{parameter}: String should match pattern '{pattern}'",
+                    {**where, "pattern": patterns[name]},
+                )
+        return self
+
+    def params(self) -> dict[str, str]:
+        """The parameters given (a null is a parameter not given)."""
+        return {k: v for k, v in (self.__pydantic_extra__ or {}).items() if v is not None}
 
 
 # -- responses ------------------------------------------------------------------------------
@@ -150,7 +190,7 @@ class Completion(BaseModel):
     """How the participant finishes, issued once the completion is committed."""
 
     code: str
-    mode: Literal["mturk", "prolific", "lab"]
+    mode: PlatformName
     submit_url: str | None = Field(None, description="MTurk: POST the fields here, from the top.")
     submit_fields: dict[str, str] | None = None
     redirect_url: str | None = Field(None, description="Prolific: send the participant here.")
@@ -208,7 +248,7 @@ class AttentionOutcome(BaseModel):
 
 class ParticipantState(ParticipantBrief):
     participant_id: int
-    platform: Literal["mturk", "prolific", "lab"]
+    platform: PlatformName
     domain: str | None
     progress: Progress
     sessions: list[SessionSummary]

@@ -10,13 +10,14 @@ import ipaddress
 import re
 from functools import lru_cache
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import Field, SecretStr, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 from sqlalchemy.engine import make_url
 from sqlalchemy.exc import ArgumentError
 
+from server.app.platform_registry import platforms
 from server.cores import available_cores
 
 DEFAULT_DATABASE_URL = "sqlite:///bam-study.db"
@@ -105,8 +106,9 @@ class Settings(BaseSettings):
         description="Hosts accepted in turkSubmitTo (comma-separated; the server's own host is "
         "always accepted, for a local replica).",
     )
-    review_backend: Literal["replica", "mturk", "prolific"] = Field(
+    review_backend: str = Field(
         "replica",
+        json_schema_extra=lambda schema: _listed(schema, review_backends()),
         description="Where the dashboard's approvals, rejections and bonuses go: 'replica' (the "
         "local replica of each participant's platform: the MTurk replica at /mturk, the Prolific "
         "replica at /prolific), 'mturk' (Mechanical Turk through boto3's client, which must be "
@@ -195,6 +197,13 @@ class Settings(BaseSettings):
                 ) from None
         return value.strip()
 
+    @field_validator("review_backend")
+    @classmethod
+    def _review_backend(cls, value: str) -> str:
+        if value not in review_backends():
+            raise ValueError(f"must be one of {', '.join(map(repr, review_backends()))}")
+        return value
+
     @field_validator("update_scheduler")
     @classmethod
     def _scheduler_address(cls, value: str) -> str:
@@ -234,6 +243,15 @@ class Settings(BaseSettings):
         """The origins accepted in turkSubmitTo (HTTPS on the default port)."""
         hosts = (h.strip().lower() for h in self.mturk_submit_hosts.split(","))
         return frozenset(f"https://{host}" for host in hosts if host)
+
+
+def _listed(schema: dict[str, Any], values: list[str]) -> None:
+    schema["enum"] = values
+
+
+def review_backends() -> list[str]:
+    """BAM_REVIEW_BACKEND's choices: the replicas, or a platform that reviews."""
+    return ["replica", *(platform.name for platform in platforms() if platform.reviews)]
 
 
 def sqlite_folder(url: str) -> Path | None:

@@ -175,3 +175,34 @@ def test_0003_counts_sessions_started_before_it_as_opened(database_url: str) -> 
         assert step == 0
     finally:
         db.dispose()
+
+
+def test_0010_renames_prolific_status_and_keeps_it(database_url: str) -> None:
+    """0010 renames ``participants.prolific_status`` to ``platform_status``: the statuses stored
+    before stay, going up and coming back down."""
+    from sqlalchemy import text
+
+    db = Database.from_url(database_url)
+    try:
+        upgrade(db.engine, "0009")
+        with db.engine.begin() as c:
+            c.execute(
+                text(
+                    "INSERT INTO participants (id, token_hash, platform, status, next_seq, "
+                    "created_at, last_seen_at, prolific_status) VALUES (1, 'h', 'prolific', "
+                    "'submitted', 5, :at, :at, 'APPROVED'), (2, 'i', 'lab', 'arrived', 1, :at, "
+                    ":at, NULL)"
+                ),
+                {"at": "2026-01-01 10:00:00+00:00"},
+            )
+        upgrade(db.engine, "0010")
+        with db.engine.connect() as c:
+            rows = c.execute(text("SELECT id, platform_status FROM participants ORDER BY id"))
+            assert rows.all() == [(1, "APPROVED"), (2, None)]
+        downgrade(db.engine, "0009")
+        with db.engine.connect() as c:
+            rows = c.execute(text("SELECT id, prolific_status FROM participants ORDER BY id"))
+            assert rows.all() == [(1, "APPROVED"), (2, None)]
+        upgrade(db.engine)
+    finally:
+        db.dispose()

@@ -127,7 +127,7 @@ def ours(db: Database) -> dict[int, tuple[str, str | None, str | None]]:
     """Participant -> (status, Prolific status, domain)."""
     with db.read() as s:
         return {
-            p.id: (p.status, p.prolific_status, p.domain) for p in s.scalars(select(ParticipantRow))
+            p.id: (p.status, p.platform_status, p.domain) for p in s.scalars(select(ParticipantRow))
         }
 
 

@@ -66,7 +66,7 @@ def status_of(db: Database, participant: int) -> tuple[str, str | None]:
     with db.read() as s:
         p = s.get(Participant, participant)
         assert p is not None
-        return p.status, p.prolific_status
+        return p.status, p.platform_status
 
 
 def send(

@@ -11,7 +11,8 @@ from sqlalchemy import func, select
 
 from server.app.config import StudyConfig
 from server.app.export.tables import database_secret, pseudonym
-from server.app.rights.withdrawal import MTURK_RETURN, PROLIFIC_RETURN
+from server.app.platforms.mturk import MTURK
+from server.app.platforms.prolific_platform import PROLIFIC
 from server.app.storage.db import Database
 from server.app.storage.models import Erasure, Participant
 from server.commands.main import main
@@ -21,6 +22,8 @@ from tests.server.conftest import (
     new_participant,
     study_config,
 )
+
+MTURK_RETURN, PROLIFIC_RETURN = MTURK.done, PROLIFIC.done
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
 

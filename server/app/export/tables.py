@@ -531,7 +531,7 @@ def export_tables(
             "assignment_id": p.assignment_id,
             "hit_id": p.hit_id,
             "status": p.status,
-            "prolific_status": p.prolific_status,
+            "prolific_status": p.platform_status,
             "domain": p.domain,
             "excluded": p.excluded_at is not None,
             "exclusion_reason": p.exclusion_reason,

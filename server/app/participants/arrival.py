@@ -1,5 +1,5 @@
-"""Arrival from each platform (lab, Prolific, MTurk): who may start, who comes back, and the
-participant row and token made for a newcomer.
+"""Arrival from each platform (``server.app.platform_registry``: the lab, Prolific, MTurk): who
+may start, who comes back, and the participant row and token made for a newcomer.
 """
 
 from __future__ import annotations
@@ -11,13 +11,13 @@ from datetime import datetime
 from sqlalchemy import ColumnElement, Connection, func, select
 from sqlalchemy.exc import IntegrityError
 
+from server.app import platform_registry as registry
 from server.app.config import StudyConfig
 from server.app.errors import ApiError, TurnedAway
 from server.app.participants.tokens import (
     ADD_TOKEN,
     IN_PROGRESS,
     PARTICIPANTS,
-    PREVIEW_ASSIGNMENT,
     advisory_lock_key,
     new_token,
     participant_by_token,
@@ -25,7 +25,7 @@ from server.app.participants.tokens import (
     restore_status,
     set_status,
 )
-from server.app.platforms.prolific_replica import REPLICA_PATH, is_replica_study
+from server.app.platforms.base import ArrivalIds
 from server.app.schemas import (
     ArrivalRequest,
 )
@@ -37,86 +37,36 @@ from server.app.storage.models import (
 from server.app.storage.records import Record, add, load, load_all
 
 
-@dataclass(frozen=True)
-class Platform:
-    name: str  # mturk, prolific or lab
-    worker_id: str | None = None
-    assignment_id: str | None = None
-    hit_id: str | None = None
-    submit_to: str | None = None
-
-
 def classify_arrival(
     request: ArrivalRequest, study: StudyConfig, settings: Settings, own_origin: str | None
-) -> Platform | None:
-    """The arrival's platform and ids; None for an MTurk preview. Bad parameters get 400,
-    arrivals the study does not accept are turned away."""
-    if request.assignment_id == PREVIEW_ASSIGNMENT:
-        return None
-    mturk = [request.assignment_id, request.hit_id, request.worker_id, request.turk_submit_to]
-    prolific = [request.prolific_pid, request.study_id, request.session_id]
-    if any(v is not None for v in mturk) and any(v is not None for v in prolific):
-        raise ApiError(400, "the link has both Mechanical Turk and Prolific parameters")
-    if any(v is not None for v in mturk):
-        missing = [
-            name
-            for name, value in zip(
-                ("assignmentId", "hitId", "workerId", "turkSubmitTo"), mturk, strict=True
-            )
-            if value is None
-        ]
-        if missing:
-            raise ApiError(400, f"the Mechanical Turk link lacks {', '.join(missing)}")
-        submit_to = _check_submit_to(str(request.turk_submit_to), settings, own_origin)
-        platform = Platform(
-            "mturk", request.worker_id, request.assignment_id, request.hit_id, submit_to
+) -> ArrivalIds | None:
+    """The arrival's platform and ids (the platform whose link parameters it has; none: the
+    lab); None for a preview. Bad parameters get 400, arrivals the study does not accept are
+    turned away."""
+    params = request.params()
+    given = [p for p in registry.platforms() if any(name in params for name in p.parameters)]
+    if len(given) > 1:
+        raise ApiError(
+            400, f"the link has both {' and '.join(p.display_name for p in given)} parameters"
         )
-    elif any(v is not None for v in prolific):
-        missing = [
-            name
-            for name, value in zip(
-                ("PROLIFIC_PID", "STUDY_ID", "SESSION_ID"), prolific, strict=True
-            )
-            if value is None
-        ]
-        if missing:
-            raise ApiError(400, f"the Prolific link lacks {', '.join(missing)}")
-        platform = Platform("prolific", request.prolific_pid, request.session_id, request.study_id)
-    else:
-        platform = Platform("lab")
+    platform = given[0] if given else registry.platform("lab")
+    ids = platform.arrival(params, settings, own_origin)
+    if ids is None:
+        return None
     mode = study.completion.mode
-    if platform.name == "lab":
+    if ids.name == "lab":
         if mode != "lab" and not study.allow_anonymous:
-            where = "Mechanical Turk" if mode == "mturk" else "Prolific"
             raise TurnedAway(
                 "Please open the study from its link",
-                f"This study runs on {where}: please open it from the study's page there.",
+                f"This study runs on {registry.platform(mode).display_name}: please open it "
+                "from the study's page there.",
             )
-    elif platform.name != mode:
+    elif ids.name != mode:
         raise TurnedAway(
             "This link is for another platform",
-            f"This study does not run on {'Mechanical Turk' if platform.name == 'mturk' else 'Prolific'}.",
+            f"This study does not run on {platform.display_name}.",
         )
-    return platform
-
-
-def _check_submit_to(value: str, settings: Settings, own_origin: str | None) -> str:
-    """The origin the completion form posts to: exactly one of MTurk's (or this server's, for
-    the local replica), written as the accepted origin, never as the raw parameter. Matching
-    whole origins leaves nothing for browsers and URL parsers to read differently (a
-    backslash, user info, a port, a control character, a bracketed host)."""
-    allowed = {origin.lower(): origin for origin in settings.submit_origins}
-    if own_origin is not None and own_origin.isascii() and own_origin.isprintable():
-        allowed[own_origin.lower()] = own_origin
-    candidate = value[:-1] if value.endswith("/") else value
-    origin = allowed.get(candidate.lower())
-    if origin is None:
-        raise ApiError(
-            400,
-            f"turkSubmitTo must be one of {', '.join(sorted(settings.submit_origins))} "
-            f"(or this server, for its Mechanical Turk replica), got {value[:100]!a}",
-        )
-    return origin
+    return ids
 
 
 @dataclass
@@ -131,7 +81,7 @@ Room = Callable[[Connection, datetime], bool]  # may a new participant go in now
 
 def arrive(
     db: Database,
-    platform: Platform,
+    ids: ArrivalIds,
     cookie_token: str | None,
     study: StudyConfig,
     room: Room | None = None,
@@ -140,16 +90,16 @@ def arrive(
     participants by their (worker, assignment) ids, lab participants by their cookie. A new
     participant for whom ``room`` finds no place waits for one (``places``)."""
     try:
-        return _arrive(db, platform, cookie_token, study, room)
+        return _arrive(db, ids, cookie_token, study, room)
     except IntegrityError:
         # The same worker and assignment arrived twice at once (PostgreSQL): the other
         # arrival created the participant, this one resumes it.
-        return _arrive(db, platform, cookie_token, study, room)
+        return _arrive(db, ids, cookie_token, study, room)
 
 
 def _arrive(
     db: Database,
-    platform: Platform,
+    ids: ArrivalIds,
     cookie_token: str | None,
     study: StudyConfig,
     room: Room | None,
@@ -159,52 +109,53 @@ def _arrive(
         current = None
         if cookie_token and len(cookie_token) <= 128:
             current = participant_by_token(c, cookie_token)
-        if platform.name == "lab":
-            if current is not None and current.platform == "lab":
+        platform = registry.platform(ids.name)
+        if ids.worker_id is None:  # no platform ids (the lab): the cookie says who it is
+            if current is not None and current.platform == ids.name:
                 reactivate(c, current, now)
                 current.save(c)
                 return Arrival(current, None, True)
-            return Arrival(*_create(c, platform, now, room), False)
-        worker = (platform.worker_id or "").lower()
+            return Arrival(*_create(c, ids, now, room), False)
+        worker = (ids.worker_id or "").lower()
         if c.dialect.name == "postgresql" and not study.allow_repeat_workers:
             # One worker's arrivals one at a time, until this one commits (SQLite's writes are
             # one at a time already: BEGIN IMMEDIATE).
-            key = advisory_lock_key(f"bam-study worker {platform.name} {worker}")
+            key = advisory_lock_key(f"bam-study worker {ids.name} {worker}")
             c.execute(select(func.pg_advisory_xact_lock(key)))
-        if c.dialect.name == "postgresql" and platform.name == "mturk":
+        if c.dialect.name == "postgresql" and platform.exclusive_assignments:
             # And one assignment's (who holds it is decided below), always after the worker's.
-            key = advisory_lock_key(f"bam-study assignment {platform.assignment_id}")
+            key = advisory_lock_key(f"bam-study assignment {ids.assignment_id}")
             c.execute(select(func.pg_advisory_xact_lock(key)))
         # (Ids that differ in case only, stored before they were compared so, are one worker:
         # the participation with the id as given comes first, then the oldest.)
         candidates = load_all(
             c,
             PARTICIPANTS,
-            PARTICIPANTS.c.platform == platform.name,
+            PARTICIPANTS.c.platform == ids.name,
             same_worker(worker),
-            PARTICIPANTS.c.assignment_id == platform.assignment_id,
+            PARTICIPANTS.c.assignment_id == ids.assignment_id,
             order_by=PARTICIPANTS.c.id,
         )
-        existing = min(candidates, key=lambda p: p.worker_id != platform.worker_id, default=None)
+        existing = min(candidates, key=lambda p: p.worker_id != ids.worker_id, default=None)
         coming_back = existing is None or existing.status == "returned"
         if (
             coming_back
             and not study.allow_repeat_workers
-            and _took_part(c, platform, None if existing is None else existing.id)
+            and _took_part(c, ids, None if existing is None else existing.id)
         ):
             raise TurnedAway(
                 "You have already taken part",
                 "Our records show that you have already taken part in this study, which allows "
                 "each person only once. Please return this task; thank you for your interest.",
             )
-        if platform.name == "mturk":
+        if platform.exclusive_assignments:
             # MTurk gives a returned assignment to the next worker who accepts it, who holds it
             # from then on: the worker who returned it cannot take it back.
             others = load_all(
                 c,
                 PARTICIPANTS,
-                PARTICIPANTS.c.platform == "mturk",
-                PARTICIPANTS.c.assignment_id == platform.assignment_id,
+                PARTICIPANTS.c.platform == ids.name,
+                PARTICIPANTS.c.assignment_id == ids.assignment_id,
                 ~same_worker(worker),
                 PARTICIPANTS.c.status.not_in(("returned", "declined")),
             )
@@ -212,22 +163,17 @@ def _arrive(
                 raise TurnedAway(
                     "You returned this task",
                     "You returned this task, and its assignment went to another worker, who "
-                    "holds it now. To take part, accept the task again on Mechanical Turk: you "
-                    "will get an assignment of your own.",
+                    "holds it now. To take part, accept the task again on "
+                    f"{platform.display_name}: you will get an assignment of your own.",
                     409,
                 )
             in_progress = [p for p in others if p.status in (*IN_PROGRESS, "abandoned")]
             mark_returned(c, in_progress, now, "assignment taken by another worker")
         if existing is None:
-            return Arrival(*_create(c, platform, now, room), False)
-        if platform.name == "prolific" and existing.status == "returned":
-            # Released on Prolific's word (RETURNED or TIMED-OUT): the place went to another.
-            raise TurnedAway(
-                "This study has ended for you",
-                "Prolific shows that this study was returned or that its time ran out, so your "
-                "place has gone to another participant and it cannot be continued. What you did "
-                "is kept. Thank you for your interest.",
-            )
+            return Arrival(*_create(c, ids, now, room), False)
+        if platform.released is not None and existing.status == "returned":
+            # Released on the platform's word: the place went to another.
+            raise TurnedAway(platform.released.title, platform.released.message)
         if existing.status in ("abandoned", "returned"):
             restore_status(c, existing, now)
         token = None
@@ -244,7 +190,7 @@ def _arrive(
         return Arrival(existing, token, True)
 
 
-def _took_part(c: Connection, platform: Platform, other_than: int | None) -> bool:
+def _took_part(c: Connection, ids: ArrivalIds, other_than: int | None) -> bool:
     """The worker has another participation that still counts: any but one returned (the
     assignment went to another worker) or declined (no consent), whatever its status. The
     worker's arrivals are serialised (``_arrive``), so two arriving at once cannot both find
@@ -253,8 +199,8 @@ def _took_part(c: Connection, platform: Platform, other_than: int | None) -> boo
         select(func.count())
         .select_from(PARTICIPANTS)
         .where(
-            PARTICIPANTS.c.platform == platform.name,
-            same_worker(platform.worker_id or ""),
+            PARTICIPANTS.c.platform == ids.name,
+            same_worker(ids.worker_id or ""),
             PARTICIPANTS.c.status.not_in(("returned", "declined")),
         )
     )
@@ -289,23 +235,18 @@ def return_assignment(c: Connection, worker_id: str, assignment_id: str) -> None
     mark_returned(c, going_on, utcnow(), "returned the HIT")
 
 
-def _create(
-    c: Connection, platform: Platform, now: datetime, room: Room | None
-) -> tuple[Record, str]:
+def _create(c: Connection, ids: ArrivalIds, now: datetime, room: Room | None) -> tuple[Record, str]:
     status = "arrived" if room is None or room(c, now) else "waiting"
-    submit_to = platform.submit_to
-    if platform.name == "prolific" and platform.hit_id is not None:
-        # A study of this server's Prolific replica: the participant goes back to it.
-        submit_to = REPLICA_PATH if is_replica_study(c, platform.hit_id) else None
+    submit_to = registry.platform(ids.name).submit_to(c, ids)
     token, token_hash = new_token()
     participant_id = add(
         c,
         PARTICIPANTS,
         token_hash=token_hash,
-        platform=platform.name,
-        worker_id=platform.worker_id,
-        assignment_id=platform.assignment_id,
-        hit_id=platform.hit_id,
+        platform=ids.name,
+        worker_id=ids.worker_id,
+        assignment_id=ids.assignment_id,
+        hit_id=ids.hit_id,
         submit_to=submit_to,
         status=status,
         next_seq=1,

@@ -4,14 +4,15 @@ participant goes at the end.
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from typing import Any
 
+from server.app import platform_registry as registry
 from server.app.config import LikertQuestion, Question, StudyConfig, TextQuestion
 from server.app.errors import ApiError, InvalidInput
 from server.app.participants import tokens
 from server.app.participants.tokens import ANSWERS, CODE_ALPHABET, set_status
 from server.app.participants.transaction import Transaction
-from server.app.platforms.prolific_replica import REPLICA_PATH, completion_url
 from server.app.schemas import (
     Completion,
 )
@@ -81,13 +82,13 @@ def checked_answer(question: Question, value: int | str) -> dict[str, str | None
 
 
 def complete(transaction: Transaction) -> None:
+    """The participant has completed, with the study's code on their platform (Prolific's) or
+    a random one."""
     participant = transaction.participant
-    if transaction.study.completion.mode == "prolific" and participant.platform == "prolific":
-        participant.completion_code = transaction.study.completion.prolific_code
-    else:
-        participant.completion_code = "".join(
-            tokens.SYSTEM_RANDOM.choice(CODE_ALPHABET) for _ in range(10)
-        )
+    fixed = registry.platform(participant.platform).fixed_code(transaction.study)
+    participant.completion_code = fixed or "".join(
+        tokens.SYSTEM_RANDOM.choice(CODE_ALPHABET) for _ in range(10)
+    )
     set_status(transaction.c, participant, "completed", transaction.now)
 
 
@@ -110,39 +111,18 @@ def submission(transaction: Transaction) -> None:
     set_status(transaction.c, transaction.participant, "submitted", transaction.now)
 
 
-def prolific_exit(participant: Any, study: StudyConfig, code: str) -> str:
-    """Where a Prolific participant is sent with ``code``: the study's ``prolific_url``, or,
-    for a participant of this server's Prolific replica, the replica's completion URL."""
-    if participant.submit_to == REPLICA_PATH:
-        return completion_url(code)
-    return study.completion.prolific_redirect(code)
-
-
 def completion(participant: Any, study: StudyConfig) -> Completion | None:
-    """The completion code and how to hand it in; None until the completion is committed. A
-    Prolific participant who declined consent goes back with the NO_CONSENT code."""
-    no_consent = study.completion.prolific_no_consent_code
-    if participant.status == "declined" and participant.platform == "prolific" and no_consent:
-        return Completion(
-            code=no_consent,
-            mode="prolific",
-            redirect_url=prolific_exit(participant, study, no_consent),
-        )
-    if participant.status not in ("completed", "submitted") or participant.completion_code is None:
+    """The completion code and how to hand it in (the platform says: ``Platform.handing``); None
+    until the completion is committed. A participant who declined consent goes back with the
+    platform's no-consent code, if it has one (Prolific's NO_CONSENT)."""
+    platform = registry.platform(participant.platform)
+    code = platform.no_consent_code(study) if participant.status == "declined" else None
+    if code is None and participant.status in ("completed", "submitted"):
+        code = participant.completion_code
+    if code is None:
         return None
-    code = participant.completion_code
-    if participant.platform == "mturk":
-        return Completion(
-            code=code,
-            mode="mturk",
-            submit_url=f"{participant.submit_to}/mturk/externalSubmit",
-            submit_fields={"assignmentId": str(participant.assignment_id), "completionCode": code},
-        )
-    if participant.platform == "prolific":
-        return Completion(
-            code=code, mode="prolific", redirect_url=prolific_exit(participant, study, code)
-        )
-    return Completion(code=code, mode="lab")
+    handing = platform.handing(participant, study, code)
+    return Completion(code=code, mode=platform.name, **asdict(handing))
 
 
 # -- views ----------------------------------------------------------------------------------

@@ -26,7 +26,6 @@ from server.app.storage.models import (
 )
 from server.app.storage.records import Record, add, fetch_one, load_all, table_of
 
-PREVIEW_ASSIGNMENT = "ASSIGNMENT_ID_NOT_AVAILABLE"
 # Flow statuses, in order; "returned" (MTurk: the HIT was returned), "abandoned" (idle too long)
 # and "declined" (no consent) end the flow; exclusion is a separate mark.
 # "questionnaire": the post-study questionnaire is being answered (a study file with one).

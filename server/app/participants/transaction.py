@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from sqlalchemy import Connection
 
+from server.app import platform_registry as registry
 from server.app.config import StudyConfig
 from server.app.errors import ApiError
 from server.app.participants.tokens import (
@@ -156,12 +157,9 @@ def perform(
                 f"request out of order: sequence number {body.seq}, but the next is "
                 f"{participant.next_seq} (an earlier request has not arrived)",
             )
-        if participant.status == "returned" and participant.platform == "prolific":
-            raise ApiError(
-                409,
-                "Prolific shows that this study was returned or that its time ran out: your "
-                "place has gone to another participant, and this session has ended",
-            )
+        released = registry.platform(participant.platform).released
+        if participant.status == "returned" and released is not None:
+            raise ApiError(409, released.detail)
         if participant.status == "returned":
             raise ApiError(
                 409,

@@ -1,15 +1,18 @@
-"""Mechanical Turk behind ``ReviewBackend``: boto3's MTurk client (``BAM_REVIEW_BACKEND=mturk``;
+"""Mechanical Turk: the platform (``MTURK``: its link's parameters, the externalSubmit form, the
+replica's rows), and behind ``ReviewBackend`` boto3's MTurk client (``BAM_REVIEW_BACKEND=mturk``;
 boto3 is imported only then) and the local replica's side (``routers/mturk.py``)."""
 
 from __future__ import annotations
 
 import re
-from typing import Any
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
-from sqlalchemy import select
+from sqlalchemy import and_, select
 from sqlalchemy.exc import IntegrityError
 
 from server.app.errors import ApiError
+from server.app.platforms.base import ID_PATTERN, ArrivalIds, BasePlatform, Handing, Rows
 from server.app.platforms.review import (
     AlreadyDone,
     Decision,
@@ -20,7 +23,14 @@ from server.app.platforms.review import (
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import utcnow
-from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus
+from server.app.storage.records import table_of
+from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus, ReplicaSubmission
+
+if TYPE_CHECKING:
+    from server.app.config import StudyConfig
+
+# The assignmentId of a HIT's preview, before a worker accepts it.
+PREVIEW_ASSIGNMENT = "ASSIGNMENT_ID_NOT_AVAILABLE"
 
 # MTurk's answer to a SendBonus whose UniqueRequestToken it has already carried out (the docs:
 # "subsequent calls will return an error with a message containing the request ID").
@@ -180,3 +190,96 @@ def mturk_client(settings: Settings) -> Any:
     return boto3.client(
         "mturk", region_name=settings.mturk_region, endpoint_url=settings.mturk_endpoint_url
     )
+
+
+MTURK_ASSIGNMENTS = table_of(ReplicaAssignment)
+MTURK_SUBMISSIONS = table_of(ReplicaSubmission)
+MTURK_BONUSES = table_of(ReplicaBonus)
+
+
+class MTurk(BasePlatform):
+    """Workers arrive with assignmentId, hitId, workerId and turkSubmitTo (a preview with
+    assignmentId ``ASSIGNMENT_ID_NOT_AVAILABLE``), and submit their code to turkSubmitTo's
+    externalSubmit; an assignment returned goes to the next worker who accepts the HIT."""
+
+    name = "mturk"
+    display_name = "Mechanical Turk"
+    parameters = {
+        "assignmentId": ID_PATTERN,
+        "hitId": ID_PATTERN,
+        "workerId": ID_PATTERN,
+        "turkSubmitTo": r"^[\s\S]{0,512}$",
+    }
+    ids = {"worker_id": "workerId", "assignment_id": "assignmentId", "hit_id": "hitId"}
+    exclusive_assignments = True
+    reviews = True
+    done = (
+        "Your data has been deleted. To leave this HIT, press \u201cReturn\u201d on Mechanical "
+        "Turk\u2019s page (above this study, or in your list of HITs): returning a HIT does not "
+        "count against you."
+    )
+
+    def arrival(
+        self, params: Mapping[str, str], settings: Settings, own_origin: str | None
+    ) -> ArrivalIds | None:
+        if params.get("assignmentId") == PREVIEW_ASSIGNMENT:
+            return None
+        ids = super().arrival(params, settings, own_origin)
+        assert ids is not None
+        submit_to = check_submit_to(params["turkSubmitTo"], settings, own_origin)
+        return ArrivalIds(ids.name, ids.worker_id, ids.assignment_id, ids.hit_id, submit_to)
+
+    def handing(self, participant: Any, study: StudyConfig, code: str) -> Handing:
+        return Handing(
+            submit_url=f"{participant.submit_to}/mturk/externalSubmit",
+            submit_fields={"assignmentId": str(participant.assignment_id), "completionCode": code},
+        )
+
+    def review_backend(
+        self, settings: Settings, db: Database, replica: bool
+    ) -> MTurkReplicaBackend | MTurkClientBackend:
+        if replica:
+            return MTurkReplicaBackend(db)
+        return MTurkClientBackend(mturk_client(settings))
+
+    def own_replica_rows(self, participant: Any) -> Rows:
+        worker, assignment = participant.worker_id, participant.assignment_id
+        if not worker or not assignment:
+            return []
+        turn = and_(
+            MTURK_ASSIGNMENTS.c.worker_id == worker,
+            MTURK_ASSIGNMENTS.c.assignment_id == assignment,
+        )
+        bonuses = MTURK_BONUSES.c
+        return [
+            (
+                MTURK_SUBMISSIONS,
+                MTURK_SUBMISSIONS.c.assignment_row_id.in_(
+                    select(MTURK_ASSIGNMENTS.c.id).where(turn)
+                ),
+            ),
+            (MTURK_BONUSES, and_(bonuses.worker_id == worker, bonuses.assignment_id == assignment)),
+            (MTURK_ASSIGNMENTS, turn),
+        ]
+
+
+MTURK = MTurk()
+
+
+def check_submit_to(value: str, settings: Settings, own_origin: str | None) -> str:
+    """The origin the completion form posts to: exactly one of MTurk's (or this server's, for
+    the local replica), written as the accepted origin, never as the raw parameter. Matching
+    whole origins leaves nothing for browsers and URL parsers to read differently (a
+    backslash, user info, a port, a control character, a bracketed host)."""
+    allowed = {origin.lower(): origin for origin in settings.submit_origins}
+    if own_origin is not None and own_origin.isascii() and own_origin.isprintable():
+        allowed[own_origin.lower()] = own_origin
+    candidate = value[:-1] if value.endswith("/") else value
+    origin = allowed.get(candidate.lower())
+    if origin is None:
+        raise ApiError(
+            400,
+            f"turkSubmitTo must be one of {', '.join(sorted(settings.submit_origins))} "
+            f"(or this server, for its Mechanical Turk replica), got {value[:100]!a}",
+        )
+    return origin

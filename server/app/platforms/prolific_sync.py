@@ -81,7 +81,7 @@ def apply_status(db: Database, study_id: str | None, submission_id: str, status:
         p = s.scalar(query)
         if p is None:
             return False
-        p.prolific_status = status
+        p.platform_status = status
         if status in RELEASED and p.status not in ("returned", "declined"):
             now = utcnow()
             p.status = "returned"

@@ -33,6 +33,7 @@ from typing import Any, Literal, Protocol, get_args
 from sqlalchemy import delete, select, update
 from sqlalchemy.exc import IntegrityError
 
+from server.app import platform_registry as registry
 from server.app.errors import ApiError, InvalidInput
 from server.app.storage.db import Database
 from server.app.storage.models import AssignmentReview, Bonus, Participant, utcnow
@@ -203,19 +204,9 @@ def review_submission(
             ("body", "message"),
             "a rejection needs a message: the platform shows the participant why",
         )
-    if decision == "rejected" and backend.platform == "prolific":
-        # Prolific's own rules, checked here first (Prolific answers 400).
-        if len((message or "").strip()) < PROLIFIC_MIN_MESSAGE:
-            raise InvalidInput(
-                ("body", "message"),
-                f"a rejection on Prolific needs a message of at least {PROLIFIC_MIN_MESSAGE} "
-                "characters that tells the participant why",
-            )
-        if category is None:
-            raise InvalidInput(
-                ("body", "rejection_category"),
-                "a rejection on Prolific needs one of Prolific's rejection categories",
-            )
+    platform = registry.platform(backend.platform)
+    if decision == "rejected":
+        platform.check_rejection(message, category)
 
     def read(s: Any) -> AssignmentReview | None:
         return s.scalar(
@@ -296,12 +287,13 @@ def review_submission(
             )
             .values(state="done", decided_at=utcnow())
         )
-        if backend.platform == "prolific":
-            # Prolific's status of the submission is now ours (its webhook says it again).
+        status = platform.status_after(decision)
+        if status is not None:
+            # The platform's status of the submission is now ours (its sync says it again).
             s.execute(
                 update(Participant)
                 .where(Participant.id == participant_id)
-                .values(prolific_status="APPROVED" if decision == "approved" else "REJECTED")
+                .values(platform_status=status)
             )
 
 

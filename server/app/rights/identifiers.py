@@ -1,7 +1,8 @@
 """The rows that hold one participant's data, and the rewriting of raw ids in text cells, that
 erasure and scrubbing share: the study's own rows, found from the foreign keys that lead to the
 participant (``study_rows``), and the rows of the local platform replicas (MTurk's and
-Prolific's) that hold their turn.
+Prolific's) that hold their turn (each platform's ``own_replica_rows`` and
+``shared_replica_rows``).
 
 The replicas stand in for the platforms, which keep their own copies; on a server that uses a
 replica, its rows are this server's data, so erasure removes them and scrubbing replaces their
@@ -13,25 +14,12 @@ from __future__ import annotations
 import re
 from typing import Any
 
-from sqlalchemy import JSON, Connection, MetaData, String, Table, Text, and_, select, update
+from sqlalchemy import JSON, Connection, MetaData, String, Table, Text, select, update
 
+from server.app import platform_registry as registry
 from server.app.storage.models import Base, Participant
 from server.app.storage.records import table_of
-from server.app.storage.replica_models import (
-    ProlificReplicaBonusSetup,
-    ProlificReplicaPayment,
-    ProlificReplicaSubmission,
-    ReplicaAssignment,
-    ReplicaBonus,
-    ReplicaSubmission,
-)
 
-MTURK_ASSIGNMENTS = table_of(ReplicaAssignment)
-MTURK_SUBMISSIONS = table_of(ReplicaSubmission)
-MTURK_BONUSES = table_of(ReplicaBonus)
-PROLIFIC_SUBMISSIONS = table_of(ProlificReplicaSubmission)
-PROLIFIC_PAYMENTS = table_of(ProlificReplicaPayment)
-PROLIFIC_BONUS_SETUPS = table_of(ProlificReplicaBonusSetup)
 PARTICIPANTS = table_of(Participant)
 
 
@@ -65,63 +53,14 @@ def study_rows(participant_id: int, metadata: MetaData = Base.metadata) -> list[
 def own_replica_rows(participant: Any) -> list[tuple[Table, Any]]:
     """(table, condition) for the replica rows of the participant's turn alone, children before
     parents: erasure deletes them. ``participant`` is a participants row."""
-    worker, assignment = participant.worker_id, participant.assignment_id
-    if not worker or not assignment:
-        return []
-    if participant.platform == "mturk":
-        turn = and_(
-            MTURK_ASSIGNMENTS.c.worker_id == worker,
-            MTURK_ASSIGNMENTS.c.assignment_id == assignment,
-        )
-        return [
-            (
-                MTURK_SUBMISSIONS,
-                MTURK_SUBMISSIONS.c.assignment_row_id.in_(
-                    select(MTURK_ASSIGNMENTS.c.id).where(turn)
-                ),
-            ),
-            (
-                MTURK_BONUSES,
-                and_(
-                    MTURK_BONUSES.c.worker_id == worker,
-                    MTURK_BONUSES.c.assignment_id == assignment,
-                ),
-            ),
-            (MTURK_ASSIGNMENTS, turn),
-        ]
-    if participant.platform == "prolific":
-        return [
-            (
-                PROLIFIC_PAYMENTS,
-                and_(
-                    PROLIFIC_PAYMENTS.c.participant_id == worker,
-                    PROLIFIC_PAYMENTS.c.setup_id.in_(_setups_of(participant)),
-                ),
-            ),
-            (
-                PROLIFIC_SUBMISSIONS,
-                and_(
-                    PROLIFIC_SUBMISSIONS.c.id == assignment,
-                    PROLIFIC_SUBMISSIONS.c.participant_id == worker,
-                ),
-            ),
-        ]
-    return []
+    return registry.platform(participant.platform).own_replica_rows(participant)
 
 
 def shared_replica_rows(participant: Any) -> list[tuple[Table, Any]]:
     """(table, condition) for replica rows that name the participant among others (a Prolific
     bonus set-up's CSV, one line per participant): erasure and scrubbing replace the
     participant's ids in them, and keep the others'."""
-    if participant.platform == "prolific" and participant.worker_id and participant.hit_id:
-        return [(PROLIFIC_BONUS_SETUPS, PROLIFIC_BONUS_SETUPS.c.study_id == participant.hit_id)]
-    return []
-
-
-def _setups_of(participant: Any) -> Any:
-    return select(PROLIFIC_BONUS_SETUPS.c.id).where(
-        PROLIFIC_BONUS_SETUPS.c.study_id == participant.hit_id
-    )
+    return registry.platform(participant.platform).shared_replica_rows(participant)
 
 
 def id_pattern(raw_ids: dict[str, str]) -> re.Pattern[str]:

@@ -18,6 +18,7 @@ from typing import Any
 from sqlalchemy import Connection, select, update
 
 from server.app.export.tables import pseudonym
+from server.app.platform_registry import platforms
 from server.app.rights.erasure import installation_secret
 from server.app.rights.identifiers import (
     own_replica_rows,
@@ -30,7 +31,11 @@ from server.app.storage.models import Participant, utcnow
 from server.app.storage.records import table_of
 
 PARTICIPANTS = table_of(Participant)
-PLATFORMS = ("mturk", "prolific")
+
+
+def with_ids() -> list[str]:
+    """The platforms whose participants have ids there (all but the lab)."""
+    return [platform.name for platform in platforms() if platform.parameters]
 
 
 def replacements(participant: Any, secret: str) -> dict[str, str]:
@@ -73,7 +78,7 @@ def scrub(
     now = now or utcnow()
     p = PARTICIPANTS.c
     query = select(PARTICIPANTS).where(
-        p.identifiers_scrubbed_at.is_(None), p.platform.in_(PLATFORMS)
+        p.identifiers_scrubbed_at.is_(None), p.platform.in_(with_ids())
     )
     if older_than_days is not None:
         query = query.where(p.last_seen_at < now - timedelta(days=older_than_days))

@@ -27,7 +27,7 @@ from sqlalchemy.orm import Session
 
 from server.app.deps import RowId, StateDep, is_admin
 from server.app.participants.arrival import return_assignment
-from server.app.participants.tokens import PREVIEW_ASSIGNMENT
+from server.app.platforms.mturk import PREVIEW_ASSIGNMENT
 from server.app.routers.common import login_redirect, notice, own_origin, templates
 from server.app.schemas import ID_PATTERN
 from server.app.state import ServerState

@@ -15,23 +15,26 @@ from pydantic import ValidationError
 from server.app.deps import StateDep
 from server.app.errors import ApiError, TurnedAway
 from server.app.participants import places
+from server.app.platform_registry import arrival_parameters
 from server.app.routers.common import arrive, notice, templates
 from server.app.schemas import ArrivalRequest, ArrivalResponse
 from server.app.state import ServerState
 
 router = APIRouter(tags=["pages"])
 
-ARRIVAL_PARAMETERS = {field.alias or name for name, field in ArrivalRequest.model_fields.items()}
-
 
 @router.get("/study", response_class=HTMLResponse)
 def study_page(request: Request, state: StateDep) -> Response:
     # Platforms may append parameters of their own: only ours are read.
-    params = {k: v for k, v in request.query_params.items() if k in ARRIVAL_PARAMETERS}
+    ours = arrival_parameters()
+    params = {k: v for k, v in request.query_params.items() if k in ours}
     try:
         body = ArrivalRequest.model_validate(params)
     except ValidationError as error:
-        fields = ", ".join(str(e["loc"][0]) for e in error.errors())
+        fields = ", ".join(
+            str(e["loc"][0] if e["loc"] else e.get("ctx", {}).get("parameter"))
+            for e in error.errors()
+        )
         return notice(
             request, "This study link is not valid", f"Malformed parameter(s): {fields}.", 400
         )

@@ -116,8 +116,9 @@ class Participant(Base):
     identifiers_scrubbed_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     last_seen_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
-    # Prolific's status of the participant's submission (webhook or poll), e.g. RETURNED.
-    prolific_status: Mapped[str | None] = mapped_column(String(24))
+    # The platform's status of the participant's submission, as its status sync keeps it
+    # (Prolific's webhook or poll, e.g. RETURNED; None on a platform without one).
+    platform_status: Mapped[str | None] = mapped_column(String(24))
 
 
 class ParticipantToken(Base):

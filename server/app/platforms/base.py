@@ -1,0 +1,191 @@
+"""The seam between the study and a platform participants come from: the ``Platform`` protocol,
+and ``BasePlatform``, its defaults (a platform with no ids, no replica and no reviews: the lab).
+
+A platform says:
+
+- who arrives (``arrival``): its study link's URL parameters (``parameters``, each with the
+  pattern its value matches) mapped onto the participant's three ids (``ids``: worker,
+  assignment, study), checked, with where the submission goes (``submit_to``);
+- how a participant finishes (``fixed_code``, ``handing``) and how one who declines consent or
+  withdraws leaves (``no_consent_code``, ``withdrawal``);
+- where its reviews go (``review_backend``), its own rules for a rejection
+  (``check_rejection``) and its status of the submission after a decision (``status_after``,
+  kept in ``participants.platform_status``);
+- the rows of its local replica that hold a participant's turn (``own_replica_rows``) or name
+  them among others (``shared_replica_rows``), for erasure and scrubbing.
+
+The platforms are found by name in ``server.app.platform_registry.PLATFORMS``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
+
+from server.app.errors import ApiError
+
+if TYPE_CHECKING:
+    from sqlalchemy import Connection, Table
+
+    from server.app.config import StudyConfig
+    from server.app.platforms.review import Decision, ReviewBackend
+    from server.app.settings import Settings
+    from server.app.storage.db import Database
+
+ID_PATTERN = r"^[A-Za-z0-9_\-]{1,128}$"
+
+Rows = list[tuple["Table", Any]]  # (table, condition)
+
+
+@dataclass(frozen=True)
+class ArrivalIds:
+    """One arrival's platform and the participant's ids there (none in a lab)."""
+
+    name: str  # the platform's
+    worker_id: str | None = None  # MTurk's workerId, Prolific's PROLIFIC_PID
+    assignment_id: str | None = None  # MTurk's assignmentId, Prolific's SESSION_ID
+    hit_id: str | None = None  # MTurk's hitId, Prolific's STUDY_ID
+    submit_to: str | None = None  # where the completion is submitted, when the link says
+
+
+@dataclass(frozen=True)
+class Handing:
+    """How the completion code is handed in: a form posted (``submit_url`` with
+    ``submit_fields``), a redirect, or neither (the page shows the code)."""
+
+    submit_url: str | None = None
+    submit_fields: dict[str, str] | None = None
+    redirect_url: str | None = None
+
+
+@dataclass(frozen=True)
+class Leaving:
+    """What a participant who withdrew is told, and where they are sent (if anywhere)."""
+
+    message: str
+    redirect_url: str | None = None
+
+
+@dataclass(frozen=True)
+class Released:
+    """A participant whose turn the platform released (returned, timed out) and gave to
+    another: the page that turns them away on arrival, and the refusal of their requests."""
+
+    title: str
+    message: str
+    detail: str
+
+
+class Platform(Protocol):
+    """One platform participants come from (``BasePlatform`` gives the defaults)."""
+
+    name: str  # its key in PLATFORMS, stored in participants.platform
+    display_name: str  # in the participants' pages: "Mechanical Turk"
+    # The study link's URL parameters (empty: none, a lab), each with its value's pattern.
+    parameters: Mapping[str, str]
+    # An assignment is one worker's at a time, and a returned one goes to the next (MTurk).
+    exclusive_assignments: bool
+    reviews: bool  # it has a review backend of its own, which BAM_REVIEW_BACKEND may name
+    released: Released | None  # how a released participant is turned away (None: never)
+
+    def arrival(
+        self, params: Mapping[str, str], settings: Settings, own_origin: str | None
+    ) -> ArrivalIds | None:
+        """The participant's ids from the link's parameters of this platform (at least one is
+        given); None for a preview, which creates nothing. 400 for a bad link."""
+        ...
+
+    def submit_to(self, c: Connection, ids: ArrivalIds) -> str | None:
+        """Where a new participant's completion goes (``participants.submit_to``)."""
+        ...
+
+    def fixed_code(self, study: StudyConfig) -> str | None:
+        """The study's own completion code on this platform; None: a random code is drawn."""
+        ...
+
+    def handing(self, participant: Any, study: StudyConfig, code: str) -> Handing: ...
+
+    def no_consent_code(self, study: StudyConfig) -> str | None:
+        """The code a participant who declined consent goes back with (None: no code)."""
+        ...
+
+    def withdrawal(self, participant: Any, study: StudyConfig) -> Leaving: ...
+
+    def review_backend(
+        self, settings: Settings, db: Database, replica: bool
+    ) -> ReviewBackend | None:
+        """The backend that reviews this platform's participants: its local replica's, or the
+        platform's own; None: it has none."""
+        ...
+
+    def check_rejection(self, message: str | None, category: str | None) -> None:
+        """422 for a rejection the platform would refuse."""
+        ...
+
+    def status_after(self, decision: Decision) -> str | None:
+        """The platform's status of the submission once ``decision`` is taken (None: none)."""
+        ...
+
+    def own_replica_rows(self, participant: Any) -> Rows:
+        """The replica rows of the participant's turn alone, children before parents."""
+        ...
+
+    def shared_replica_rows(self, participant: Any) -> Rows:
+        """The replica rows that name the participant among others."""
+        ...
+
+
+class BasePlatform:
+    """A platform's defaults: arrival maps ``ids`` (an id's name -> its URL parameter) onto the
+    participant's ids and needs every one of ``parameters``; a random completion code shown on
+    the page; no replica, no reviews, no status."""
+
+    name: ClassVar[str]
+    display_name: ClassVar[str]
+    parameters: ClassVar[Mapping[str, str]] = {}
+    ids: ClassVar[Mapping[str, str]] = {}  # worker_id, assignment_id, hit_id -> parameter
+    exclusive_assignments: ClassVar[bool] = False
+    reviews: ClassVar[bool] = False
+    released: ClassVar[Released | None] = None
+    done: ClassVar[str] = "Your data has been deleted. You may close this page."
+
+    def arrival(
+        self, params: Mapping[str, str], settings: Settings, own_origin: str | None
+    ) -> ArrivalIds | None:
+        missing = [name for name in self.parameters if params.get(name) is None]
+        if missing:
+            raise ApiError(400, f"the {self.display_name} link lacks {', '.join(missing)}")
+        return ArrivalIds(self.name, **{id_: params[name] for id_, name in self.ids.items()})
+
+    def submit_to(self, c: Connection, ids: ArrivalIds) -> str | None:
+        return ids.submit_to
+
+    def fixed_code(self, study: StudyConfig) -> str | None:
+        return None
+
+    def handing(self, participant: Any, study: StudyConfig, code: str) -> Handing:
+        return Handing()
+
+    def no_consent_code(self, study: StudyConfig) -> str | None:
+        return None
+
+    def withdrawal(self, participant: Any, study: StudyConfig) -> Leaving:
+        return Leaving(self.done)
+
+    def review_backend(
+        self, settings: Settings, db: Database, replica: bool
+    ) -> ReviewBackend | None:
+        return None
+
+    def check_rejection(self, message: str | None, category: str | None) -> None:
+        return None
+
+    def status_after(self, decision: Decision) -> str | None:
+        return None
+
+    def own_replica_rows(self, participant: Any) -> Rows:
+        return []
+
+    def shared_replica_rows(self, participant: Any) -> Rows:
+        return []

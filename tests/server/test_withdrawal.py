@@ -10,7 +10,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
 from server.app.config import StudyConfig
-from server.app.export.tables import database_secret, pseudonym
+from server.app.rights.pseudonyms import database_secret, pseudonym
 from server.app.rights.withdrawal import MTURK_RETURN, PROLIFIC_RETURN
 from server.app.storage.db import Database
 from server.app.storage.models import Erasure, Participant

@@ -3,8 +3,8 @@
 ``open_study_database`` opens a study database for reading only (it never creates one);
 ``export_tables`` reads it (the analysis can use it directly); ``write_export`` writes the CSVs
 and ``data_dictionary.csv``. Worker and assignment ids are pseudonymised with a salted hash
-(HMAC-SHA256 with ``BAM_SECRET``, or the random secret created with the database) and
-completion codes left out, unless ``pseudonymize=False``.
+(``rights.pseudonyms``: HMAC-SHA256 with ``BAM_SECRET``, or the random secret created with the
+database) and completion codes left out, unless ``pseudonymize=False``.
 
 Over 500 lines: each exported column's description (``DESCRIPTIONS``, the data dictionary) sits
 in the same module as the code that fills it, so that a column is never written undescribed.
@@ -12,8 +12,6 @@ in the same module as the code that fills it, so that a column is never written 
 
 from __future__ import annotations
 
-import hashlib
-import hmac
 import io
 import zipfile
 from collections.abc import Iterable
@@ -26,6 +24,7 @@ from sqlalchemy.engine import make_url
 
 from server.app.export.quality import COLUMNS as QUALITY_COLUMNS
 from server.app.export.quality import quality_table
+from server.app.rights.pseudonyms import ASSIGNMENT, WORKER, database_secret, pseudonym
 from server.app.storage.db import Database
 from server.app.storage.figures import participant_figures, study_sessions_by_participant
 from server.app.storage.models import (
@@ -35,7 +34,6 @@ from server.app.storage.models import (
     Episode,
     Erasure,
     Event,
-    Installation,
     LearnerUpdate,
     LearningSession,
     Participant,
@@ -364,13 +362,6 @@ FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
 OTHER_LINE_BREAKS = "\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029"
 
 
-def pseudonym(secret: str, value: str | None, prefix: str) -> str | None:
-    if value is None:
-        return None
-    digest = hmac.new(secret.encode(), value.encode(), hashlib.sha256).hexdigest()
-    return f"{prefix}_{digest[:16]}"
-
-
 def open_study_database(url: str) -> Database:
     """The study database at ``url``, to read from (the export, the analysis).
 
@@ -396,14 +387,6 @@ def open_study_database(url: str) -> Database:
         raise FileNotFoundError(f"no database file {file}")
     path = quote(file.resolve().as_posix())
     return Database(create_engine(f"sqlite:///file:{path}?mode=ro&uri=true"))
-
-
-def database_secret(db: Database) -> str:
-    with db.read() as s:
-        secret = s.scalar(select(Installation.secret).where(Installation.id == 1))
-    if not secret:
-        raise RuntimeError("the database has no installation secret: run `bam-study db upgrade`")
-    return secret
 
 
 def _iso(value: Any) -> Any:
@@ -515,8 +498,8 @@ def export_tables(
             return {"worker_id": worker_id, "assignment_id": assignment_id}
         assert secret is not None
         return {
-            "worker_id": pseudonym(secret, worker_id, "w"),
-            "assignment_id": pseudonym(secret, assignment_id, "a"),
+            "worker_id": pseudonym(secret, worker_id, WORKER),
+            "assignment_id": pseudonym(secret, assignment_id, ASSIGNMENT),
         }
 
     study_sessions = study_sessions_by_participant(sessions)

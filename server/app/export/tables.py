@@ -1,7 +1,7 @@
 """The study's data as tables: CSV files with a data dictionary, a zip, or pandas DataFrames.
 
-``open_study_database`` opens a study database for reading only (it never creates one);
-``export_tables`` reads it (the analysis can use it directly); ``write_export`` writes the CSVs
+``export_tables`` reads a study database (``storage.db.open_study_database`` opens one for
+reading only) (the analysis can use it directly); ``write_export`` writes the CSVs
 and ``data_dictionary.csv``. Worker and assignment ids are pseudonymised with a salted hash
 (``rights.pseudonyms``: HMAC-SHA256 with ``BAM_SECRET``, or the random secret created with the
 database) and completion codes left out, unless ``pseudonymize=False``.
@@ -19,13 +19,12 @@ from pathlib import Path
 from typing import Any
 
 import pandas as pd
-from sqlalchemy import create_engine, select
-from sqlalchemy.engine import make_url
+from sqlalchemy import select
 
 from server.app.export.quality import COLUMNS as QUALITY_COLUMNS
 from server.app.export.quality import quality_table
 from server.app.rights.pseudonyms import ASSIGNMENT, WORKER, database_secret, pseudonym
-from server.app.storage.db import Database
+from server.app.storage.db import Database, open_study_database
 from server.app.storage.figures import participant_figures, study_sessions_by_participant
 from server.app.storage.models import (
     AssignmentReview,
@@ -360,33 +359,6 @@ DESCRIPTIONS = {
 FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
 # What str.splitlines splits on; "\n" ends the rows.
 OTHER_LINE_BREAKS = "\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029"
-
-
-def open_study_database(url: str) -> Database:
-    """The study database at ``url``, to read from (the export, the analysis).
-
-    A SQLite file is opened read-only: SQLite would create an empty database for a path that
-    does not exist, and a reader never writes to (or changes the journal mode of) a study.
-    Raises ``FileNotFoundError`` or ``ValueError`` (a bad URL) with a message that names no
-    password.
-    """
-    from urllib.parse import quote
-
-    from sqlalchemy.exc import ArgumentError
-
-    try:
-        parsed = make_url(url)
-    except ArgumentError as error:
-        raise ValueError(f"{url!r} is not a database URL: {error}") from None
-    if parsed.get_backend_name() != "sqlite":
-        return Database.from_url(url)
-    if not parsed.database or parsed.database == ":memory:":
-        raise ValueError("a SQLite URL needs the database file")
-    file = Path(parsed.database)
-    if not file.is_file():
-        raise FileNotFoundError(f"no database file {file}")
-    path = quote(file.resolve().as_posix())
-    return Database(create_engine(f"sqlite:///file:{path}?mode=ro&uri=true"))
 
 
 def _iso(value: Any) -> Any:

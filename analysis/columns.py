@@ -1,5 +1,5 @@
 """The export's files and the columns the analysis reads from them (``bam-study export``
-writes them; ``server.app.export.tables.DICTIONARY`` describes every column)."""
+writes them; ``server.app.export.columns.DICTIONARY`` describes every column)."""
 
 from __future__ import annotations
 

@@ -127,8 +127,7 @@ def load_database(
     from sqlalchemy.exc import ArgumentError, SQLAlchemyError
 
     from server.app.export.tables import export_tables as read_database
-    from server.app.export.tables import open_study_database
-    from server.app.storage.db import current_revision, head_revision
+    from server.app.storage.db import current_revision, head_revision, open_study_database
 
     try:
         shown = make_url(url).render_as_string(hide_password=True)

@@ -10,8 +10,9 @@ table in its place. NAME is one of ``GENERATORS``:
 - ``learner-settings``: every learner's settings and their defaults, from the learners'
   ``default_settings``;
 - ``deployment-settings``: every ``BAM_*`` variable, from ``server/app/settings.py``;
-- ``export-tables``: every exported file and column, from ``DICTIONARY`` and ``DESCRIPTIONS``
-  in ``server/app/export/tables.py`` (the definitions the export writes ``data_dictionary.csv`` from);
+- ``export-tables``: every exported file and column, from ``DICTIONARY`` and ``INTEGER_COLUMNS``
+  in ``server/app/export/columns.py`` and ``DESCRIPTIONS`` in ``server/app/export/files.py`` (the
+  definitions the export writes ``data_dictionary.csv`` from);
 - ``minari-infos``: the per-step ``infos`` of the Minari export, from ``INFOS`` in
   ``server/app/export/minari.py``;
 - ``analysis-outputs``: the files ``bam-study analyze`` writes, from the README it writes
@@ -347,7 +348,8 @@ def deployment_settings() -> str:
 
 
 def export_tables() -> str:
-    from server.app.export.tables import DESCRIPTIONS, DICTIONARY, INTEGER_COLUMNS
+    from server.app.export.columns import DICTIONARY, INTEGER_COLUMNS
+    from server.app.export.files import DESCRIPTIONS
 
     lines: list[str] = []
     for name, columns in DICTIONARY.items():
@@ -358,7 +360,7 @@ def export_tables() -> str:
             lines += [DESCRIPTIONS[name], ""]
         lines += ["| column | kind | meaning |", "| --- | --- | --- |"]
         for column, meaning in columns.items():
-            kind = "integer" if column in INTEGER_COLUMNS else ""
+            kind = "integer" if column in INTEGER_COLUMNS[name] else ""
             if not meaning:
                 log.warning("export column %s.%s has no description", name, column)
             lines.append(f"| `{column}` | {kind} | {cell(meaning)} |")

@@ -52,7 +52,8 @@ def sections(text: str) -> dict[str, str]:
 
 
 def test_every_exported_column_is_described_under_its_file(site: Path) -> None:
-    from server.app.export.tables import DESCRIPTIONS, DICTIONARY
+    from server.app.export.columns import DICTIONARY
+    from server.app.export.files import DESCRIPTIONS
 
     found = sections(page_text(site, "data"))
     for name, columns in DICTIONARY.items():

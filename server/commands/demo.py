@@ -228,7 +228,8 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
     from analysis.report import write_outputs
     from analysis.results import analyze
     from analysis.tables import table1_markdown
-    from server.app.export.tables import export_tables, write_export
+    from server.app.export.files import write_export
+    from server.app.export.tables import export_tables
     from server.app.storage.db import Database, upgrade
     from server.commands.live import ServerProcess
     from server.commands.simulated import TeachingPlan, run_participants

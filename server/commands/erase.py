@@ -20,13 +20,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from server.app.errors import ApiError
-    from server.app.rights.erasure import (
-        PARTICIPANTS,
-        erase,
-        find_participant,
-        installation_secret,
-        pseudonyms,
-    )
+    from server.app.rights.erasure import PARTICIPANTS, erase, find_participant
+    from server.app.rights.pseudonyms import installation_secret, participant_pseudonyms
     from server.app.settings import SettingsError, load_settings
     from server.app.storage import db as database
     from server.app.storage.records import Record
@@ -54,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
         with db.connect() as c:
             secret = installation_secret(c, configured)
             row = find_participant(c, args.who, secret)
-        worker, _ = pseudonyms(Record(PARTICIPANTS, row), secret)
+        worker, _ = participant_pseudonyms(Record(PARTICIPANTS, row), secret)
         described = (
             f"participant {row['id']} ({row['platform']}, status {row['status']}"
             + (f", worker {worker}" if worker else "")

@@ -47,7 +47,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from server.app.config import DEFAULT_STUDY_CONFIG
-    from server.app.export.tables import export_tables, open_study_database, write_export
+    from server.app.export.files import write_export
+    from server.app.export.tables import export_tables
     from server.app.settings import SettingsError, load_settings
     from server.app.storage import db as database
     from server.commands.studies import StudyEnvironmentsError, register_study
@@ -82,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"bam-study export: {error}", file=sys.stderr)
             return 1
     try:
-        db = open_study_database(settings.database_url)  # read-only: never creates a database
+        # Read-only: never creates a database.
+        db = database.open_study_database(settings.database_url)
     except (OSError, ValueError, ImportError) as error:
         print(f"bam-study export: {error}", file=sys.stderr)
         return 1

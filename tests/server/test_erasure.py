@@ -15,8 +15,9 @@ from sqlalchemy import select
 from server.app.config import StudyConfig
 from server.app.errors import ApiError
 from server.app.export.minari import StudyFile, study_datasets
-from server.app.export.tables import database_secret, export_tables, pseudonym
+from server.app.export.tables import export_tables
 from server.app.rights.erasure import erase_participant
+from server.app.rights.pseudonyms import database_secret, pseudonym
 from server.app.storage.db import Database
 from server.app.storage.models import Base, Erasure, LearningSession, Participant
 from tests.server.conftest import (

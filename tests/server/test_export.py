@@ -5,16 +5,22 @@ from __future__ import annotations
 
 import csv
 import io
+import re
 import sqlite3
 import zipfile
+from datetime import datetime
 from pathlib import Path
+from types import SimpleNamespace
 
 import pandas as pd
 import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
-from server.app.export.tables import DICTIONARY, export_files, export_tables
+from server.app.export.columns import BOOL, DICTIONARY, FILES, INT, NUMBER, TIME, Column
+from server.app.export.files import export_files
+from server.app.export.read import Context, Study
+from server.app.export.tables import export_tables, table_frame
 from server.app.storage.db import Database
 from server.app.storage.models import Event, LearnerUpdate, LearningSession
 from server.commands.main import main
@@ -71,7 +77,30 @@ def test_the_export_has_the_documented_columns(
     assert sorted(sessions["position"].unique()) == list(range(6))
     assert len(tables["tutorial_sessions"]) == 2
     assert (tables["participants"]["status"] == "submitted").all()
+    check_kinds(export_tables(db), tmp_path / "out")
     check_pseudonyms(study_run, url, tmp_path)
+
+
+def check_kinds(tables: dict[str, pd.DataFrame], out: Path) -> None:
+    """Each column's declared kind matches what the export holds and writes: an integer column
+    is written without a decimal point, and a column that holds only integers is declared one."""
+    cell_is = {
+        INT: lambda cell: re.fullmatch(r"-?[0-9]+", cell) is not None,
+        NUMBER: lambda cell: re.fullmatch(r"-?[0-9]+(\.[0-9]+)?(e-?[0-9]+)?", cell) is not None,
+        BOOL: lambda cell: cell in ("True", "False"),
+        TIME: lambda cell: datetime.fromisoformat(cell).utcoffset() is not None,
+    }
+    for name, columns in FILES.items():
+        with (out / f"{name}.csv").open(newline="") as file:
+            rows = list(csv.DictReader(file))
+        for column in columns:
+            held = tables[name][column.name]
+            if column.kind != INT:
+                assert not pd.api.types.is_integer_dtype(held.dtype), (name, column.name)
+            check = cell_is.get(column.kind)
+            if check is not None:
+                cells = [row[column.name] for row in rows if row[column.name] != ""]
+                assert all(check(cell) for cell in cells), (name, column.name, cells[:3])
 
 
 def test_one_evaluation_per_update(study_run: list, client: TestClient, db: Database) -> None:
@@ -240,3 +269,17 @@ def test_every_line_of_a_text_cell_is_guarded_and_its_line_breaks_quoted(brk: st
     for line in text.splitlines():
         assert not line.startswith(("=", "+", "-", "@", "\t")), repr(line)
     assert text.count('"') == 4  # the two answers with a break, quoted; nothing else
+
+
+def test_a_value_read_from_a_field_that_is_not_there_raises() -> None:
+    """A misspelt field fails the export instead of leaving its column empty."""
+    study = Study(*([()] * 11))
+    context = Context.of(study, pseudonymize=False, secret=None)
+    row = SimpleNamespace(participant_id=3, rows={"events": 2})
+    assert table_frame((Column("participant_id", "", INT),), [row], context).iloc[0, 0] == 3
+    with pytest.raises(AttributeError, match="participant_idd"):
+        table_frame((Column("participant_idd", "", INT),), [row], context)
+    with pytest.raises(KeyError, match="event"):
+        table_frame(
+            (Column("events_rows", "", INT, lambda e, ctx: e.rows["event"]),), [row], context
+        )

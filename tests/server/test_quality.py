@@ -13,8 +13,9 @@ from dataclasses import replace
 import pandas as pd
 from fastapi.testclient import TestClient
 
+from server.app.export.columns import DICTIONARY
 from server.app.export.quality import Thresholds, quality_table
-from server.app.export.tables import DICTIONARY, export_tables
+from server.app.export.tables import export_tables
 from server.app.main import create_app
 from server.app.storage.db import Database
 from server.commands.simulated import SimulatedParticipant, TeachingPlan

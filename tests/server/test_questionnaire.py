@@ -20,7 +20,8 @@ from server.app.config import (
     load_study_config,
     parse_study_config,
 )
-from server.app.export.tables import dictionary_frame, export_tables
+from server.app.export.files import dictionary_frame
+from server.app.export.tables import export_tables
 from server.app.storage.db import Database
 from server.app.storage.models import QuestionnaireAnswer, StatusChange
 from tests.server.conftest import FAST_LEARNERS, Participant, demonstrate_each_task

@@ -15,7 +15,8 @@ from sqlalchemy import func, select
 
 from server.app.config import StudyConfig
 from server.app.errors import ApiError
-from server.app.export.tables import dictionary_frame, export_tables
+from server.app.export.files import dictionary_frame
+from server.app.export.tables import export_tables
 from server.app.platforms.backends import make_backend
 from server.app.platforms.mturk import MTurkClientBackend, MTurkReplicaBackend
 from server.app.platforms.review import Reviewed, ReviewRefused, ReviewUnavailable

@@ -10,9 +10,9 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
 from server.app.config import StudyConfig
-from server.app.export.tables import database_secret, pseudonym
 from server.app.platforms.mturk import MTURK
 from server.app.platforms.prolific_platform import PROLIFIC
+from server.app.rights.pseudonyms import database_secret, pseudonym
 from server.app.storage.db import Database
 from server.app.storage.models import Erasure, Participant
 from server.commands.main import main

@@ -25,7 +25,7 @@ from typing import Any
 
 from sqlalchemy import select
 
-from server.app.export.tables import database_secret, pseudonym
+from server.app.rights.pseudonyms import database_secret, participant_pseudonyms
 from server.app.storage.db import Database
 from server.app.storage.models import Episode, Event, LearnerUpdate, LearningSession, Participant
 from server.domains.base import STAY
@@ -123,9 +123,9 @@ def study_datasets(
             continue
         participant = participants[session.participant_id]
         worker = participant.worker_id
-        if pseudonymize and worker is not None and participant.identifiers_scrubbed_at is None:
+        if pseudonymize:
             assert secret is not None
-            worker = pseudonym(secret, worker, "w")
+            worker, _ = participant_pseudonyms(participant, secret)
         acting = -1
         if episode.kind == "agent":
             # The agent acts on its latest done update; all of those up to the episode's

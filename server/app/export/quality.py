@@ -86,6 +86,14 @@ COLUMNS: dict[str, str] = {
     "poor demonstrations or feedback are not grounds: Prolific does not allow rejecting for "
     "performance.",
 }
+# Written as pandas' Int64 (no decimal point).
+INTEGER_COLUMNS = (
+    "participant_id",
+    "demonstrated_moves",
+    "feedback_signals",
+    "attention_checks",
+    "failed_attention_checks",
+)
 
 
 @cache
@@ -189,12 +197,6 @@ def quality_table(
         )
         rows.append(row)
     frame = pd.DataFrame(rows, columns=list(COLUMNS))
-    for name in (
-        "participant_id",
-        "demonstrated_moves",
-        "feedback_signals",
-        "attention_checks",
-        "failed_attention_checks",
-    ):
+    for name in INTEGER_COLUMNS:
         frame[name] = frame[name].astype("Int64")
     return frame

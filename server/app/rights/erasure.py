@@ -21,10 +21,15 @@ from server.app.rights.identifiers import (
     shared_replica_rows,
     study_rows,
 )
+from server.app.rights.pseudonyms import (
+    WORKER,
+    installation_secret,
+    participant_pseudonyms,
+    pseudonym,
+)
 from server.app.storage.db import Database
 from server.app.storage.models import (
     Erasure,
-    Installation,
     LearningSession,
     Participant,
     utcnow,
@@ -48,41 +53,16 @@ class Erased(BaseModel):
     rows: dict[str, int] = Field(description="Rows removed, per table.")
 
 
-def installation_secret(c: Connection, configured: str | None = None) -> str:
-    """The pseudonyms' key: ``BAM_SECRET`` when set, else the database's own secret."""
-    if configured:
-        return configured
-    secret = c.scalar(select(Installation.secret).where(Installation.id == 1))
-    if not secret:
-        raise RuntimeError("the database has no installation secret: run `bam-study db upgrade`")
-    return str(secret)
-
-
-def pseudonyms(participant: Any, secret: str) -> tuple[str | None, str | None]:
-    """The participant's worker and assignment pseudonyms, as the export writes them (a scrubbed
-    participant's ids are their pseudonyms already)."""
-    from server.app.export.tables import pseudonym
-
-    if participant.identifiers_scrubbed_at is not None:
-        return participant.worker_id, participant.assignment_id
-    return (
-        pseudonym(secret, participant.worker_id, "w"),
-        pseudonym(secret, participant.assignment_id, "a"),
-    )
-
-
 def find_participant(c: Connection, who: str, secret: str) -> Any:
     """The participant named by ``who``: a participant number, a worker id (MTurk workerId or
     Prolific PROLIFIC_PID) or its pseudonym (w_...). Raises ``ApiError`` 404 when none matches
     and 409 when several do (a worker with several participations: name it by number)."""
-    from server.app.export.tables import pseudonym
-
     p = PARTICIPANTS.c
     if who.isdigit() and len(who) <= 10:
         rows = c.execute(select(PARTICIPANTS).where(p.id == int(who))).mappings().all()
     else:
         # A raw id (scrubbed participants keep its pseudonym), or a scrubbed one's pseudonym.
-        named = (who, pseudonym(secret, who, "w"))
+        named = (who, pseudonym(secret, who, WORKER))
         rows = c.execute(select(PARTICIPANTS).where(p.worker_id.in_(named))).mappings().all()
         if not rows and who.startswith("w_"):  # the pseudonym of a participant not scrubbed
             rows = [
@@ -92,7 +72,7 @@ def find_participant(c: Connection, who: str, secret: str) -> Any:
                         p.worker_id.is_not(None), p.identifiers_scrubbed_at.is_(None)
                     )
                 ).mappings()
-                if pseudonym(secret, row["worker_id"], "w") == who
+                if pseudonym(secret, row["worker_id"], WORKER) == who
             ]
     if not rows:
         raise ApiError(
@@ -122,7 +102,7 @@ def erase(
     if participant is None:
         raise ApiError(404, f"no participant {participant_id}")
     record = Record(PARTICIPANTS, participant)
-    worker, assignment = pseudonyms(record, secret)
+    worker, assignment = participant_pseudonyms(record, secret)
     # Children before parents (foreign keys); each statement's count is the table's figure.
     statements: list[tuple[str, Any]] = [
         (table.name, delete(table).where(where)) for table, where in study_rows(participant_id)

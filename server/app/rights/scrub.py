@@ -17,14 +17,19 @@ from typing import Any
 
 from sqlalchemy import Connection, select, update
 
-from server.app.export.tables import pseudonym
 from server.app.platform_registry import platforms
-from server.app.rights.erasure import installation_secret
 from server.app.rights.identifiers import (
     own_replica_rows,
     rewrite_ids,
     shared_replica_rows,
     study_rows,
+)
+from server.app.rights.pseudonyms import (
+    ASSIGNMENT,
+    COMPLETION_CODE,
+    WORKER,
+    installation_secret,
+    pseudonym,
 )
 from server.app.storage.db import Database
 from server.app.storage.models import Participant, utcnow
@@ -41,9 +46,9 @@ def with_ids() -> list[str]:
 def replacements(participant: Any, secret: str) -> dict[str, str]:
     """Raw id -> its pseudonym, for the participant's ids that are set."""
     pairs = (
-        (participant.worker_id, "w"),
-        (participant.assignment_id, "a"),
-        (participant.completion_code, "c"),
+        (participant.worker_id, WORKER),
+        (participant.assignment_id, ASSIGNMENT),
+        (participant.completion_code, COMPLETION_CODE),
     )
     return {raw: str(pseudonym(secret, raw, prefix)) for raw, prefix in pairs if raw}
 

@@ -10,7 +10,8 @@ from sqlalchemy.orm import Session
 
 from server.app.deps import AdminDep, RowId, StateDep
 from server.app.errors import ApiError
-from server.app.export import tables as export
+from server.app.export.files import export_zip
+from server.app.export.tables import export_tables
 from server.app.participants import assignment, places, teaching, tokens
 from server.app.platforms import prolific_sync, review
 from server.app.rights.erasure import Erased, erase_participant
@@ -458,7 +459,7 @@ def replay(session_id: RowId, state: StateDep) -> AdminReplay:
 def read_quality(participant_id: RowId, state: StateDep) -> dict[str, Any]:
     """The participant's row of ``quality.csv``: the quality checks, their flags and the
     Prolific ground they support, if any (404 until the participant has completed)."""
-    quality = export.export_tables(state.db)["quality"]
+    quality = export_tables(state.db)["quality"]
     rows = quality[quality["participant_id"] == participant_id]
     if rows.empty:
         raise ApiError(404, f"no quality checks for participant {participant_id} (not completed)")
@@ -477,10 +478,10 @@ def download_export(
 ) -> Response:
     """The export (CSV files and their data dictionary) as a zip."""
     secret = state.settings.secret.get_secret_value() if state.settings.secret else None
-    tables = export.export_tables(state.db, pseudonymize=pseudonymize, secret=secret)
+    tables = export_tables(state.db, pseudonymize=pseudonymize, secret=secret)
     stamp = utcnow().strftime("%Y%m%dT%H%M%SZ")
     return Response(
-        content=export.export_zip(tables),
+        content=export_zip(tables),
         media_type="application/zip",
         headers={"Content-Disposition": f'attachment; filename="bam-study-export-{stamp}.zip"'},
     )

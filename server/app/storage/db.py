@@ -19,9 +19,11 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 from sqlalchemy import Connection, Engine, create_engine, event
 from sqlalchemy.engine import make_url
+from sqlalchemy.exc import ArgumentError
 from sqlalchemy.orm import Session, sessionmaker
 from sqlalchemy.pool import NullPool
 
@@ -198,6 +200,29 @@ PLATFORM_ID_TABLES = (
     "prolific_replica_bonus_setups",
     "prolific_replica_payments",
 )
+
+
+def open_study_database(url: str) -> Database:
+    """The study database at ``url``, to read from (the export, the analysis).
+
+    A SQLite file is opened read-only: SQLite would create an empty database for a path that
+    does not exist, and a reader never writes to (or changes the journal mode of) a study.
+    Raises ``FileNotFoundError`` or ``ValueError`` (a bad URL) with a message that names no
+    password.
+    """
+    try:
+        parsed = make_url(url)
+    except ArgumentError as error:
+        raise ValueError(f"{url!r} is not a database URL: {error}") from None
+    if parsed.get_backend_name() != "sqlite":
+        return Database.from_url(url)
+    if not parsed.database or parsed.database == ":memory:":
+        raise ValueError("a SQLite URL needs the database file")
+    file = Path(parsed.database)
+    if not file.is_file():
+        raise FileNotFoundError(f"no database file {file}")
+    path = quote(file.resolve().as_posix())
+    return Database(create_engine(f"sqlite:///file:{path}?mode=ro&uri=true"))
 
 
 # -- migrations ------------------------------------------------------------------------------

@@ -11,6 +11,7 @@ import subprocess
 import sys
 import textwrap
 import threading
+from datetime import timedelta
 from decimal import Decimal
 from typing import Any
 
@@ -383,3 +384,35 @@ def test_the_reconciliation_endpoint_settles_a_dropped_bonus_once(
     assert again.json()["settled_bonuses"] == []
     assert stand_in.bonuses == {"tok-reconcile-1": ("WORKER1", "4.00")}
     assert our_bonuses(db) == [("tok-reconcile-1", 400, "paid")]
+
+
+def test_an_mturk_bonus_older_than_mturks_token_memory_is_never_sent_again(
+    db: Database,
+) -> None:
+    """MTurk forgets a UniqueRequestToken after 24 hours: a bonus paid whose answer was lost,
+    found unsettled a day later, is marked in doubt and never sent again (sent again, a
+    forgetful MTurk would pay it twice)."""
+    participant = submitted(db, "WORKER1", "ASSIGN1")
+    stand_in = MTurkStandIn({"ASSIGN1": "Submitted"})
+    backend = MTurkClientBackend(stand_in)
+    stand_in.faults = ["drop"]  # paid, and the answer lost
+    with pytest.raises(ApiError):
+        review.pay_bonus(db, backend, participant, Decimal("1.00"), "Thanks", "tok-old-1")
+    assert our_bonuses(db) == [("tok-old-1", 100, "pending")]
+    with db.write() as s:  # 25 hours later, MTurk has forgotten the token
+        bonus = s.scalar(select(Bonus))
+        assert bonus is not None
+        bonus.requested_at -= timedelta(hours=25)
+    stand_in.bonuses.clear()
+    assert review.reconcile_bonuses(db, backend) == []
+    with pytest.raises(ApiError) as doubt:
+        review.pay_bonus(db, backend, participant, Decimal("1.00"), "Thanks", "tok-old-1")
+    assert doubt.value.status == 409 and "in doubt" in doubt.value.message
+    assert stand_in.calls.count("send_bonus") == 1  # paid once, never sent again
+    assert our_bonuses(db) == [("tok-old-1", 100, "in_doubt")]
+    # One a few hours old is still settled by its token, as before.
+    stand_in.faults = ["drop"]
+    with pytest.raises(ApiError):
+        review.pay_bonus(db, backend, participant, Decimal("2.00"), "More", "tok-new-1")
+    assert review.reconcile_bonuses(db, backend) == ["tok-new-1"]
+    assert stand_in.calls.count("send_bonus") == 3 and len(stand_in.bonuses) == 1

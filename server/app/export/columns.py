@@ -432,7 +432,8 @@ BONUSES = (
         "payment_state",
         "paid; or not yet confirmed: pending (recorded before the platform was "
         "called), set_up (Prolific's bonus set up, not yet paid), paying (Prolific's pay "
-        "called, outcome not known).",
+        "called, outcome not known), in_doubt (an MTurk bonus unsettled for longer than MTurk "
+        "remembers its request token, 24 hours: never sent again; check it on MTurk).",
         value=lambda b, ctx: b.state,
     ),
     Column(

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping
+from datetime import timedelta
 from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import and_, select
@@ -37,6 +38,11 @@ PREVIEW_ASSIGNMENT = "ASSIGNMENT_ID_NOT_AVAILABLE"
 ALREADY_PAID = re.compile(r"already (exists|been (processed|granted|sent))|idempoten", re.I)
 
 
+# How long MTurk remembers a UniqueRequestToken (its API reference: "The unique token expires
+# after 24 hours"): a SendBonus resent after it could pay the bonus again.
+MTURK_TOKEN_MEMORY = timedelta(hours=24)
+
+
 class MTurkReplicaBackend:
     """The replica's side: an assignment is approved or rejected once, after it was submitted,
     and a bonus goes to the worker of a submitted assignment, once per UniqueRequestToken (a
@@ -46,6 +52,7 @@ class MTurkReplicaBackend:
     platform = "mturk"
     currency = "USD"
     repeat_pay_is_safe = True
+    token_memory: timedelta | None = MTURK_TOKEN_MEMORY
 
     def __init__(self, db: Database) -> None:
         self.db = db
@@ -127,7 +134,8 @@ class MTurkClientBackend:
     name = "mturk"
     platform = "mturk"
     currency = "USD"
-    repeat_pay_is_safe = True  # SendBonus's UniqueRequestToken
+    repeat_pay_is_safe = True  # SendBonus's UniqueRequestToken ...
+    token_memory: timedelta | None = MTURK_TOKEN_MEMORY  # ... for 24 hours
 
     def __init__(self, client: Any) -> None:
         self.client = client

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
+from datetime import timedelta
 from typing import Any
 
 import httpx
@@ -218,6 +219,7 @@ class ProlificBackend:
 
     platform = "prolific"
     repeat_pay_is_safe = False  # Prolific's pay pays again
+    token_memory: timedelta | None = None  # (no request token: a bonus is paid once, by its set-up)
 
     def __init__(self, client: ProlificClient, currency: str, name: str = "prolific") -> None:
         self.client = client

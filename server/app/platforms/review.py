@@ -27,6 +27,7 @@ import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from datetime import datetime, timedelta
 from decimal import Decimal
 from typing import Any, Literal, Protocol, get_args
 
@@ -102,6 +103,9 @@ class ReviewBackend(Protocol):
     currency: str  # of its bonuses
     # False when paying a bonus twice pays twice (Prolific's ``pay``): then it is called once.
     repeat_pay_is_safe: bool
+    # Where paying again is safe only while the platform remembers the request token (MTurk:
+    # 24 hours), for how long; a bonus older than that is never sent again from here.
+    token_memory: timedelta | None
 
     def approve(self, who: Reviewed, message: str | None) -> None: ...
 
@@ -361,7 +365,19 @@ def _settle_bonus(
     with db.read() as s:
         row = s.scalar(select(Bonus).where(where))
         assert row is not None
-        setup_id, state = row.setup_id, row.state
+        setup_id, state, requested_at = row.setup_id, row.state, row.requested_at
+    if state == "pending" and _token_forgotten(backend, requested_at):
+        with db.write() as s:
+            s.execute(update(Bonus).where(where, Bonus.state == "pending").values(state="in_doubt"))
+        state = "in_doubt"
+    if state == "in_doubt":
+        raise ApiError(
+            409,
+            f"bonus {token} was asked for at {requested_at:%Y-%m-%d %H:%M} UTC and its payment "
+            f"is in doubt: {backend.name} no longer remembers its request token, so sending it "
+            "again could pay it twice. Check the worker's bonuses on the platform; it is not "
+            "sent again from here",
+        )
     if state == "pending" and not backend.repeat_pay_is_safe:
         try:
             made = backend.set_up_bonus(who, amount, reason)
@@ -421,6 +437,16 @@ def _settle_bonus(
     with db.write() as s:
         s.execute(update(Bonus).where(where).values(state="paid", paid_at=utcnow()))
     return True
+
+
+# A bonus is treated as forgotten an hour before the platform forgets its token: clocks and the
+# time a resend takes to arrive are not exact.
+TOKEN_MARGIN = timedelta(hours=1)
+
+
+def _token_forgotten(backend: ReviewBackend, requested_at: datetime) -> bool:
+    memory = backend.token_memory
+    return memory is not None and utcnow() - requested_at > memory - TOKEN_MARGIN
 
 
 def _is_paid(row: Bonus) -> bool:

@@ -23,6 +23,7 @@ from server.app.storage.models import Base, Erasure, LearningSession, Participan
 from tests.server.conftest import (
     ADMIN_TOKEN,
     demonstrate_each_task,
+    new_participant,
     study_config,
     wait_for_updates,
 )
@@ -308,3 +309,18 @@ def test_a_table_added_with_a_key_to_a_participant_is_erased_without_a_word_else
         "questionnaire_answers",
         "status_changes",
     }
+
+
+def test_an_erased_participants_number_is_never_given_to_another(client: TestClient) -> None:
+    """SQLite gives a new row the largest id plus one: erasing the newest participant must not
+    hand their number to the next arrival (erasures.csv would name two people by it)."""
+    first = new_participant(client, "W1", "A1")
+    second = new_participant(client, "W2", "A2")
+    assert [
+        first.get("/api/participant")["participant_id"],
+        second.get("/api/participant")["participant_id"],
+    ] == [1, 2]
+    erased = client.post("/api/admin/participants/2/erasure", headers=ADMIN)
+    assert erased.status_code == 200, erased.text
+    third = new_participant(client, "W3", "A3")
+    assert third.get("/api/participant")["participant_id"] == 3

@@ -74,6 +74,7 @@ class PlannerLearner(Learner):
     learner's state round-trips through one ``state_dict``."""
 
     default_settings = {**COMMON_SETTINGS, **COST_SETTINGS}
+    warm_up_settings = {"cost_steps": 1, "dynamics_steps": 1}
 
     def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
         super().__init__(env, seed, **settings)

@@ -1,24 +1,56 @@
 """Learners: soft value iteration and its gradients, the A-SABL feedback model, BAM and its
-baselines. Every learner is found through this registry: ``make("bam", env)``."""
+baselines. Every learner is found through this registry: ``make("bam", env)``.
+
+The registry is ``server.names.LEARNER_REGISTRY`` (its docstring states the order rule: append
+only, a learner's position seeds its agents' random streams). ``LEARNERS`` imports each class
+from its entry on first use, so importing this package loads no learner."""
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Iterator, Mapping
+from functools import cache
+from importlib import import_module
+from typing import TYPE_CHECKING, Any
 
 from server.domains.base import Environment
-from server.learners.bam import BAM
 from server.learners.base import Learner, UpdateResult, dumps, loads
-from server.learners.cloning import BehavioralCloning
-from server.learners.global_cost import GlobalCostIRL
-from server.learners.model_based import ModelBasedIRL
-from server.names import LEARNER_DISPLAY_NAMES
+from server.names import LEARNER_DISPLAY_NAMES, LEARNER_NAMES, LEARNER_REGISTRY
 
-LEARNERS: dict[str, type[Learner]] = {
-    cls.name: cls for cls in (BAM, ModelBasedIRL, GlobalCostIRL, BehavioralCloning)
-}
-NAMES: tuple[str, ...] = tuple(LEARNERS)
+if TYPE_CHECKING:
+    from server.learners.bam import BAM  # at run time, ``__getattr__`` imports it on first use
 
-DISPLAY_NAMES: dict[str, str] = LEARNER_DISPLAY_NAMES
+
+@cache
+def _load(entry: str) -> type[Learner]:
+    module, _, attribute = entry.partition(":")
+    cls = getattr(import_module(module), attribute)
+    if not (isinstance(cls, type) and issubclass(cls, Learner)):
+        raise TypeError(f"learner entry {entry!r} is not a Learner class")
+    return cls
+
+
+class _Classes(Mapping[str, type[Learner]]):
+    """Learner name -> class, in the registry's order; each class imported on first use."""
+
+    def __getitem__(self, name: str) -> type[Learner]:
+        cls = _load(LEARNER_REGISTRY[name].entry)
+        if cls.name != name:
+            raise TypeError(f"learner {name!r}'s entry is the class of {cls.name!r}")
+        return cls
+
+    def __len__(self) -> int:
+        return len(LEARNER_REGISTRY)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(tuple(LEARNER_REGISTRY))
+
+    def __repr__(self) -> str:
+        return repr({name: info.entry for name, info in LEARNER_REGISTRY.items()})
+
+
+LEARNERS: Mapping[str, type[Learner]] = _Classes()
+NAMES = LEARNER_NAMES
+DISPLAY_NAMES = LEARNER_DISPLAY_NAMES
 
 
 def learner_class(name: str) -> type[Learner]:
@@ -36,6 +68,12 @@ def make(name: str, env: Environment, seed: int = 0, **settings: Any) -> Learner
 def restore(env: Environment, state: dict[str, Any]) -> Learner:
     """A learner restored exactly from its ``state_dict()`` (or from ``loads(dumps(...))``)."""
     return learner_class(str(state.get("learner"))).from_state_dict(env, state)
+
+
+def __getattr__(attribute: str) -> type[Learner]:
+    if attribute == "BAM":
+        return LEARNERS["bam"]
+    raise AttributeError(f"module {__name__!r} has no attribute {attribute!r}")
 
 
 __all__ = [

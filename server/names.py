@@ -24,8 +24,10 @@ the figures' legends.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping, Sequence
-from typing import NamedTuple, overload
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from typing import NamedTuple, TypeVar, overload
+
+T = TypeVar("T")
 
 
 class LearnerInfo(NamedTuple):
@@ -73,9 +75,17 @@ LEARNER_REGISTRY: dict[str, LearnerInfo] = _by_name(
 )
 
 
-class _Names(Sequence[str]):
+class _InRegistryOrder:
     """The registry's names in its order, read from it at each use."""
 
+    def __len__(self) -> int:
+        return len(LEARNER_REGISTRY)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(tuple(LEARNER_REGISTRY))
+
+
+class _Names(_InRegistryOrder, Sequence[str]):
     @overload
     def __getitem__(self, index: int) -> str: ...
 
@@ -85,34 +95,26 @@ class _Names(Sequence[str]):
     def __getitem__(self, index: int | slice) -> str | tuple[str, ...]:
         return tuple(LEARNER_REGISTRY)[index]
 
-    def __len__(self) -> int:
-        return len(LEARNER_REGISTRY)
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(tuple(LEARNER_REGISTRY))
-
     def __repr__(self) -> str:
         return repr(tuple(LEARNER_REGISTRY))
 
 
-class _DisplayNames(Mapping[str, str]):
-    """Learner name -> the paper's name, in the registry's order, read from it at each use."""
+class RegistryMapping(_InRegistryOrder, Mapping[str, T]):
+    """Learner name -> ``value(its LearnerInfo)``, in the registry's order, read from it at
+    each use."""
 
-    def __getitem__(self, name: str) -> str:
-        return LEARNER_REGISTRY[name].display
+    def __init__(self, value: Callable[[LearnerInfo], T]) -> None:
+        self._value = value
 
-    def __len__(self) -> int:
-        return len(LEARNER_REGISTRY)
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(tuple(LEARNER_REGISTRY))
+    def __getitem__(self, name: str) -> T:
+        return self._value(LEARNER_REGISTRY[name])
 
     def __repr__(self) -> str:
         return repr(dict(self))
 
 
 LEARNER_NAMES: Sequence[str] = _Names()
-LEARNER_DISPLAY_NAMES: Mapping[str, str] = _DisplayNames()
+LEARNER_DISPLAY_NAMES: Mapping[str, str] = RegistryMapping(lambda info: info.display)
 
 
 def learner_names_prose(display: bool = False) -> str:

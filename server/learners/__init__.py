@@ -7,14 +7,14 @@ from its entry on first use, so importing this package loads no learner."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from functools import cache
 from importlib import import_module
 from typing import TYPE_CHECKING, Any
 
 from server.domains.base import Environment
 from server.learners.base import Learner, UpdateResult, dumps, loads
-from server.names import LEARNER_DISPLAY_NAMES, LEARNER_NAMES, LEARNER_REGISTRY
+from server.names import LEARNER_DISPLAY_NAMES, LEARNER_NAMES, LearnerInfo, RegistryMapping
 
 if TYPE_CHECKING:
     from server.learners.bam import BAM  # at run time, ``__getattr__`` imports it on first use
@@ -29,26 +29,15 @@ def _load(entry: str) -> type[Learner]:
     return cls
 
 
-class _Classes(Mapping[str, type[Learner]]):
-    """Learner name -> class, in the registry's order; each class imported on first use."""
-
-    def __getitem__(self, name: str) -> type[Learner]:
-        cls = _load(LEARNER_REGISTRY[name].entry)
-        if cls.name != name:
-            raise TypeError(f"learner {name!r}'s entry is the class of {cls.name!r}")
-        return cls
-
-    def __len__(self) -> int:
-        return len(LEARNER_REGISTRY)
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(tuple(LEARNER_REGISTRY))
-
-    def __repr__(self) -> str:
-        return repr({name: info.entry for name, info in LEARNER_REGISTRY.items()})
+def _class_of(info: LearnerInfo) -> type[Learner]:
+    cls = _load(info.entry)
+    if cls.name != info.name:
+        raise TypeError(f"learner {info.name!r}'s entry is the class of {cls.name!r}")
+    return cls
 
 
-LEARNERS: Mapping[str, type[Learner]] = _Classes()
+# Learner name -> class, in the registry's order; each class imported on first use.
+LEARNERS: Mapping[str, type[Learner]] = RegistryMapping(_class_of)
 NAMES = LEARNER_NAMES
 DISPLAY_NAMES = LEARNER_DISPLAY_NAMES
 

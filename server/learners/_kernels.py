@@ -53,7 +53,7 @@ A learner's cost steps run here too, whole (``cost_steps_tasks``): a task's step
 forward pass, its teacher data's likelihood, its reverse pass and its clipped momentum step, in
 one call (a NumPy call per operation had made a step's few microseconds of arithmetic about a
 hundred). They call the passes above, so an edit here recompiles them; they also compile in
-the likelihood of ``likelihoods.py`` (``_data_log_likelihood``), as the cloning steps do, and
+the likelihood of ``likelihoods.py`` (``data_log_likelihood_kernel``), as the cloning steps do, and
 numba's cache does not see an edit there: clear ``__pycache__`` after one.
 """
 
@@ -67,7 +67,16 @@ from numba import njit, prange, types
 from numba.extending import intrinsic, overload
 
 from server.domains.base import LEAST_PROBABILITY
-from server.learners.likelihoods import _data_log_likelihood, _step_advantages
+from server.learners.likelihoods import (
+    GRADIENT_NOT_FINITE,
+    IMPOSSIBLE_TRANSITION,
+    LAYOUT_CHANGED,
+    LIKELIHOOD_NOT_FINITE,
+    data_log_likelihood_kernel,
+    step_advantages,
+)
+
+# -- the exp: a polynomial that the compiler vectorises --------------------------------------------
 
 # exp(x) = 2^k exp(r) with k = round(x / ln 2) and r = x - k ln 2 (ln 2 split in two parts so
 # that r is exact to double precision; the constants are fdlibm's).
@@ -383,6 +392,9 @@ def exp_nonpositive(x: np.ndarray, out: np.ndarray) -> None:
         out[i] = exp_nonpositive_one(x[i])
 
 
+# -- rows and layouts: the table's and the passes' -------------------------------------------------
+
+
 @njit(inline="always")
 def pass_row(row: int, num_states: int, num_actions: int) -> int:
     """The passes' row ``a * S + s`` of the table's row ``s * A + a``."""
@@ -498,6 +510,9 @@ def split_rows(
         flat_probability,
         flat_start,
     )
+
+
+# -- the passes: forward (with its trace) and reverse, one thread ----------------------------------
 
 
 @njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
@@ -1215,11 +1230,7 @@ def soft_backward_chunks(
         )  # fmt: skip
 
 
-# -- a learner's cost steps, compiled whole ------------------------------------------------
-
-# ``cost_steps_tasks``' error codes beside the likelihood's (``likelihoods._refuse``).
-GRADIENT_NOT_FINITE = 9
-LIKELIHOOD_NOT_FINITE = 10
+# -- a learner's cost steps, compiled whole --------------------------------------------------------
 
 
 @njit(inline="always", fastmath=False, error_model="numpy")
@@ -1380,7 +1391,7 @@ def cost_steps_tasks(
                 s0, s1 = step_start[row], step_start[row + 1]
                 sigmoids = no_sigmoids
                 if agent_steps:
-                    advantages, code = _step_advantages(
+                    advantages, code = step_advantages(
                         q_row, local_steps, step_states[s0:s1], step_actions[s0:s1],
                         step_feedback[s0:s1],
                     )  # fmt: skip
@@ -1389,7 +1400,7 @@ def cost_steps_tasks(
                         break
                     sigmoids = 0.5 * (1.0 + np.tanh(0.5 * (alpha * advantages)))
                 demo_row_values, d_q_demos, step_row_values, d_q_steps, code = (
-                    _data_log_likelihood(
+                    data_log_likelihood_kernel(
                         q_row, local_demos, demo_states[d0:d1], demo_actions[d0:d1],
                         beta, normalized, variance_floor,
                         local_steps, step_states[s0:s1], step_actions[s0:s1],
@@ -1459,13 +1470,13 @@ def cost_steps_chunks(*arguments):  # type: ignore[no-untyped-def]
         cost_steps_tasks(*arguments[:-2], firsts[c], lasts[c])  # type: ignore[call-arg]
 
 
+# -- a learner's steps on theta and its dynamics steps, compiled whole -----------------------------
+
 # The model spaces whose steps on theta compile (``theta_steps``), by their primitives:
 # sigmoid(theta) per parameter (navigation), a softmax over each row of ``choices`` (gravity,
 # farming).
 SIGMOID_PRIMITIVES = 0
 SOFTMAX_ROWS_PRIMITIVES = 1
-# ``theta_steps``' error: an observed transition no theta of the model space gives.
-IMPOSSIBLE_TRANSITION = 11
 
 
 @njit(inline="always", fastmath=False, error_model="numpy")
@@ -1667,7 +1678,7 @@ def _teacher_gradient(
     q_data = q.astype(np.float64)
     no_values = np.empty(0)
     if step_tasks.shape[0] > 0:
-        advantages, code = _step_advantages(
+        advantages, code = step_advantages(
             q_data, step_tasks, step_states, step_actions, step_feedback
         )
         if code:
@@ -1675,7 +1686,7 @@ def _teacher_gradient(
         sigmoids = 0.5 * (1.0 + np.tanh(0.5 * (alpha * advantages)))
     else:
         sigmoids = np.empty(0)
-    demo_values, d_q, step_values, d_q_steps, code = _data_log_likelihood(
+    demo_values, d_q, step_values, d_q_steps, code = data_log_likelihood_kernel(
         q_data, demo_tasks, demo_states, demo_actions, beta, normalized, variance_floor,
         step_tasks, step_states, step_actions, step_feedback, sigmoids, epsilon, alpha,
         mu_plus, mu_minus,
@@ -1734,11 +1745,11 @@ def teacher_gradient(
     gradient on the table's entries and on the rewards, every task in this thread: what
     ``planned_teacher_log_likelihood`` with the transition gradient does on one planner thread
     (a forward pass of every task, the data's likelihood and dL/dQ from
-    ``_data_log_likelihood``, the reverse pass), the same operations in the same order but for
+    ``data_log_likelihood_kernel``, the reverse pass), the same operations in the same order but for
     a feedback step's sigmoid (the C library's tanh). The table by next state (``incoming``,
     empty where the reverse pass ``scatter``s through the forward layout) and for forward
     passes (``rows``), as ``soft_backward_tasks`` takes them; ``trace``: Q and the trace for
-    the passes to write; ``likelihood``: the data and models as ``_data_log_likelihood`` takes
+    the passes to write; ``likelihood``: the data and models as ``data_log_likelihood_kernel`` takes
     them; ``reverse``: the distinct gradient entries, their runs and places, dL/drewards and
     dL/dT to write (zeroed here), empty kept terms and task sums, and the entries that copy
     another's gradient and the ones they copy (``TransitionOperator.reverse_entries``).
@@ -1749,11 +1760,6 @@ def teacher_gradient(
         incoming, scatter, rows, next_flat, width, rewards, pass_beta, horizon, trace,
         likelihood, reverse,
     )  # fmt: skip
-
-
-# ``dynamics_steps`` stopped where a step's table has an entry theta moves at zero where the
-# passes' layouts have it not (or the reverse): the caller takes the rest of the steps.
-LAYOUT_CHANGED = 12
 
 
 @njit(cache=True, nogil=True, fastmath=False, error_model="numpy")

@@ -1,60 +1,39 @@
-"""Compiled inner loops of soft value iteration (forward and reverse pass).
+"""Compiled inner loops of soft value iteration (the forward and the reverse pass) and the
+learners' steps that call them (cost steps, theta steps, dynamics steps).
 
 One module, over 500 lines, on purpose: the passes inline the exp and Boltzmann helpers
 (``inline="always"``), and numba's on-disk cache (``cache=True``) checks only the source file
 of the function it compiled, so a helper edited in another module would leave stale compiled
-passes in the cache.
+passes in the cache. The steps also compile in the likelihood of ``likelihoods.py``
+(``data_log_likelihood_kernel``, ``step_advantages``), as the cloning steps do, and numba's
+cache does not see an edit there: clear ``__pycache__`` after one.
 
-The transitions are the padded sparse layout of ``SparseTransitions`` flattened to rows
-``s * A + a`` with ``width`` entries each. Written as plain loops for numba: the NumPy version
-spent most of its time in call overhead on small arrays (about 100 us per backup on flip); these
-loops do the same arithmetic without it.
+Conventions:
 
-The Boltzmann weights of a backup are computed by ``exp_nonpositive_one``, a polynomial exp that
-the compiler turns into SIMD code inside the loop that also shifts the rows and sums the weights:
-the scalar ``exp`` call per weight was more than half of the forward pass (flip: 4.7 ms per pass
-before, 2.6 after), and the exp's own three loops over memory, fused into one with 2^k built in
-registers, took a fifth more than one.
+- **Rows.** The transitions are the padded sparse layout of ``SparseTransitions`` flattened to
+  the table's rows ``s * A + a``, ``width`` entries each. Inside the passes Q's rows are held
+  action by action, row ``a * S + s`` (``pass_row`` and ``table_row`` convert), as are the
+  value Jacobians of the trace, ``jacobians[t, k, a, s]`` (step t, task k): each state's work
+  over its actions runs as one loop over states per action, which the compiler turns into SIMD
+  code, each state's arithmetic in the order a loop over its actions would do it.
+- **Sums.** A forward pass adds each row's terms level by level, those of one action that lead
+  the same distance away as one shifted row (``split_rows``), the rest gathered. A reverse pass
+  computes dL/dT only at the entries it is asked for (those the model space moves) and sums
+  each next state's dL/dV from the dL/dQ of the rows that lead there: float64 passes in the
+  table's order (``incoming``, gathered by next state), float32 passes scattered through the
+  forward pass's layout (``_scatter_levels``: the same terms in another order, so other last
+  bits).
+- **Bit for bit.** Float64 passes and steps reproduce the published runs to the last bit
+  (``tests/learners/test_same_updates.py``): an edit may change where a number is kept, not a
+  float64 operation or its order (the five-action code, ``_boltzmann_five``, does the general
+  loops' operations in their order), and any split of the tasks over threads computes the same
+  bits. Nothing is compiled with ``fastmath``, and the passes and steps with NumPy's error
+  model (no check of every division for a zero divisor: a Boltzmann normaliser is at least 1).
+- **Error codes.** A compiled step returns 0 or a code of the one block in ``likelihoods.py``
+  (``BAD_INDEX`` .. ``LAYOUT_CHANGED``); its caller raises it (``likelihoods.refuse`` for the
+  likelihood's) or, for ``LAYOUT_CHANGED``, takes over.
 
-The reverse pass computes dL/dT only at the entries it is asked for: the learners ask for those
-their model space moves (flip: 216 of 8000), the rest of the table being fixed or padding.
-
-Inside the passes, Q's rows are held action by action (row ``a * S + s``), as are the value
-Jacobians of the trace (``jacobians[t, k, a, s]``): each state's work over its actions (the
-maximum, the sum of the weights, the divisions, the value) then runs as one loop over states per
-action, which the compiler turns into SIMD code, doing each state's arithmetic in the same order
-as a loop over its actions would (the same bits). The passes are compiled with NumPy's error
-model: Python's, numba's default, checks every division for a zero divisor, which kept the
-divisions scalar (a weight's normaliser is at least 1: the best action weighs 1). Flip's forward
-pass: 1.31 ms before, 0.90 after.
-
-For five actions (every environment) a backup's Boltzmann step is one loop over states with the
-state's five actions written out (``_boltzmann_five``): the five exps' Horner steps interleaved
-(``exp_nonpositive_five``), so that their chains of dependent multiply-adds overlap, and the
-maximum a select rather than a branch (which had kept the loop scalar). The same operations in
-the same order as the general loops, so the same bits. Flip's forward pass with its trace, one
-thread, on an AVX2 machine: 1.45 ms before, 0.89 after; the exps had taken 60% of it.
-
-A forward pass adds each row's terms (probability times the next state's value) level by
-level, those of one action that lead the same distance away as one SIMD loop over states (a
-shifted row, ``split_rows``), gathering only the rest: the gather had been two thirds of the
-pass. Flip's forward pass with its trace, float32, one thread, on a Zen 5 AMD EPYC: 284 us
-before, 220 after; doorway 137 us, 80.
-
-A reverse pass sums each next state's dL/dV from the dL/dQ of the rows that lead there. In
-float64 passes it sums them in the table's order (``incoming``, gathered by next state), which
-reproduces the published runs to the last bit; the shifted layout by next state was no faster
-there (flip's and choices' next states carry many entries off the common offsets, added one by
-one). Float32 passes scatter through the forward pass's layout instead (``_scatter_levels``):
-each shifted row's terms added at its offset as one SIMD loop, the same terms in another
-order, so other last bits. Flip's reverse pass without the table's gradient, float32, on the Zen 5 AMD EPYC: 205 us before, 171 after; two-fields 179 us, 118.
-
-A learner's cost steps run here too, whole (``cost_steps_tasks``): a task's steps, each its
-forward pass, its teacher data's likelihood, its reverse pass and its clipped momentum step, in
-one call (a NumPy call per operation had made a step's few microseconds of arithmetic about a
-hundred). They call the passes above, so an edit here recompiles them; they also compile in
-the likelihood of ``likelihoods.py`` (``data_log_likelihood_kernel``), as the cloning steps do, and
-numba's cache does not see an edit there: clear ``__pycache__`` after one.
+The timings that chose these designs: docs/benchmarks.md, "The kernels' designs, timed".
 """
 
 from __future__ import annotations

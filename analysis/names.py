@@ -3,14 +3,14 @@ in which the paper's tables list them."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 
 from server.domains import title as environment_display
 from server.names import LEARNER_DISPLAY_NAMES
 
-# Learner name (as in the export) -> display name (``server.names``), in the order the tables
-# list them after the baseline.
-LEARNERS: dict[str, str] = LEARNER_DISPLAY_NAMES
+# Learner name (as in the export) -> display name, in the order the tables list them after the
+# baseline: the registry's (``server.names``), read at each use.
+LEARNERS: Mapping[str, str] = LEARNER_DISPLAY_NAMES
 
 # The four environments of the user study first, in the order of the paper's Table 1, then
 # the other four (display names from ``server.domains.title``).

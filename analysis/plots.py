@@ -16,15 +16,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from analysis.names import LEARNERS, environment_display, learner_display, threshold_label
+from analysis.names import environment_display, learner_display, threshold_label
 from analysis.results import Analysis
+from server.names import LEARNER_REGISTRY
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 AXIS_NAMES = {"episodes": "Episodes", "actions": "Actions"}
-# One colour per learner, the same in every panel and figure.
-COLOURS = dict(zip(LEARNERS, ("#1b7837", "#2166ac", "#8c510a", "#b2182b"), strict=True))
 
 
 def step_values(counts: np.ndarray, returns: np.ndarray, grid: np.ndarray) -> np.ndarray:
@@ -87,7 +86,7 @@ def learning_curve_figure(analysis: Analysis, x: str) -> Figure:
                 ]
             )
             mean, se, _ = mean_and_standard_error(values)
-            colour = COLOURS[learner]
+            colour = LEARNER_REGISTRY[learner].colour  # the same in every panel and figure
             ax.plot(
                 grid,
                 mean,

@@ -1,60 +1,39 @@
-"""Compiled inner loops of soft value iteration (forward and reverse pass).
+"""Compiled inner loops of soft value iteration (the forward and the reverse pass) and the
+learners' steps that call them (cost steps, theta steps, dynamics steps).
 
 One module, over 500 lines, on purpose: the passes inline the exp and Boltzmann helpers
 (``inline="always"``), and numba's on-disk cache (``cache=True``) checks only the source file
 of the function it compiled, so a helper edited in another module would leave stale compiled
-passes in the cache.
+passes in the cache. The steps also compile in the likelihood of ``likelihoods.py``
+(``data_log_likelihood_kernel``, ``step_advantages``), as the cloning steps do, and numba's
+cache does not see an edit there: clear ``__pycache__`` after one.
 
-The transitions are the padded sparse layout of ``SparseTransitions`` flattened to rows
-``s * A + a`` with ``width`` entries each. Written as plain loops for numba: the NumPy version
-spent most of its time in call overhead on small arrays (about 100 us per backup on flip); these
-loops do the same arithmetic without it.
+Conventions:
 
-The Boltzmann weights of a backup are computed by ``exp_nonpositive_one``, a polynomial exp that
-the compiler turns into SIMD code inside the loop that also shifts the rows and sums the weights:
-the scalar ``exp`` call per weight was more than half of the forward pass (flip: 4.7 ms per pass
-before, 2.6 after), and the exp's own three loops over memory, fused into one with 2^k built in
-registers, took a fifth more than one.
+- **Rows.** The transitions are the padded sparse layout of ``SparseTransitions`` flattened to
+  the table's rows ``s * A + a``, ``width`` entries each. Inside the passes Q's rows are held
+  action by action, row ``a * S + s`` (``pass_row`` and ``table_row`` convert), as are the
+  value Jacobians of the trace, ``jacobians[t, k, a, s]`` (step t, task k): each state's work
+  over its actions runs as one loop over states per action, which the compiler turns into SIMD
+  code, each state's arithmetic in the order a loop over its actions would do it.
+- **Sums.** A forward pass adds each row's terms level by level, those of one action that lead
+  the same distance away as one shifted row (``split_rows``), the rest gathered. A reverse pass
+  computes dL/dT only at the entries it is asked for (those the model space moves) and sums
+  each next state's dL/dV from the dL/dQ of the rows that lead there: float64 passes in the
+  table's order (``incoming``, gathered by next state), float32 passes scattered through the
+  forward pass's layout (``_scatter_levels``: the same terms in another order, so other last
+  bits).
+- **Bit for bit.** Float64 passes and steps reproduce the published runs to the last bit
+  (``tests/learners/test_same_updates.py``): an edit may change where a number is kept, not a
+  float64 operation or its order (the five-action code, ``_boltzmann_five``, does the general
+  loops' operations in their order), and any split of the tasks over threads computes the same
+  bits. Nothing is compiled with ``fastmath``, and the passes and steps with NumPy's error
+  model (no check of every division for a zero divisor: a Boltzmann normaliser is at least 1).
+- **Error codes.** A compiled step returns 0 or a code of the one block in ``likelihoods.py``
+  (``BAD_INDEX`` .. ``LAYOUT_CHANGED``); its caller raises it (``likelihoods.refuse`` for the
+  likelihood's) or, for ``LAYOUT_CHANGED``, takes over.
 
-The reverse pass computes dL/dT only at the entries it is asked for: the learners ask for those
-their model space moves (flip: 216 of 8000), the rest of the table being fixed or padding.
-
-Inside the passes, Q's rows are held action by action (row ``a * S + s``), as are the value
-Jacobians of the trace (``jacobians[t, k, a, s]``): each state's work over its actions (the
-maximum, the sum of the weights, the divisions, the value) then runs as one loop over states per
-action, which the compiler turns into SIMD code, doing each state's arithmetic in the same order
-as a loop over its actions would (the same bits). The passes are compiled with NumPy's error
-model: Python's, numba's default, checks every division for a zero divisor, which kept the
-divisions scalar (a weight's normaliser is at least 1: the best action weighs 1). Flip's forward
-pass: 1.31 ms before, 0.90 after.
-
-For five actions (every environment) a backup's Boltzmann step is one loop over states with the
-state's five actions written out (``_boltzmann_five``): the five exps' Horner steps interleaved
-(``exp_nonpositive_five``), so that their chains of dependent multiply-adds overlap, and the
-maximum a select rather than a branch (which had kept the loop scalar). The same operations in
-the same order as the general loops, so the same bits. Flip's forward pass with its trace, one
-thread, on an AVX2 machine: 1.45 ms before, 0.89 after; the exps had taken 60% of it.
-
-A forward pass adds each row's terms (probability times the next state's value) level by
-level, those of one action that lead the same distance away as one SIMD loop over states (a
-shifted row, ``split_rows``), gathering only the rest: the gather had been two thirds of the
-pass. Flip's forward pass with its trace, float32, one thread, on a Zen 5 AMD EPYC: 284 us
-before, 220 after; doorway 137 us, 80.
-
-A reverse pass sums each next state's dL/dV from the dL/dQ of the rows that lead there. In
-float64 passes it sums them in the table's order (``incoming``, gathered by next state), which
-reproduces the published runs to the last bit; the shifted layout by next state was no faster
-there (flip's and choices' next states carry many entries off the common offsets, added one by
-one). Float32 passes scatter through the forward pass's layout instead (``_scatter_levels``):
-each shifted row's terms added at its offset as one SIMD loop, the same terms in another
-order, so other last bits. Flip's reverse pass without the table's gradient, float32, on the Zen 5 AMD EPYC: 205 us before, 171 after; two-fields 179 us, 118.
-
-A learner's cost steps run here too, whole (``cost_steps_tasks``): a task's steps, each its
-forward pass, its teacher data's likelihood, its reverse pass and its clipped momentum step, in
-one call (a NumPy call per operation had made a step's few microseconds of arithmetic about a
-hundred). They call the passes above, so an edit here recompiles them; they also compile in
-the likelihood of ``likelihoods.py`` (``_data_log_likelihood``), as the cloning steps do, and
-numba's cache does not see an edit there: clear ``__pycache__`` after one.
+The timings that chose these designs: docs/benchmarks.md, "The kernels' designs, timed".
 """
 
 from __future__ import annotations
@@ -67,7 +46,16 @@ from numba import njit, prange, types
 from numba.extending import intrinsic, overload
 
 from server.domains.base import LEAST_PROBABILITY
-from server.learners.likelihoods import _data_log_likelihood, _step_advantages
+from server.learners.likelihoods import (
+    GRADIENT_NOT_FINITE,
+    IMPOSSIBLE_TRANSITION,
+    LAYOUT_CHANGED,
+    LIKELIHOOD_NOT_FINITE,
+    data_log_likelihood_kernel,
+    step_advantages,
+)
+
+# -- the exp: a polynomial that the compiler vectorises --------------------------------------------
 
 # exp(x) = 2^k exp(r) with k = round(x / ln 2) and r = x - k ln 2 (ln 2 split in two parts so
 # that r is exact to double precision; the constants are fdlibm's).
@@ -383,6 +371,9 @@ def exp_nonpositive(x: np.ndarray, out: np.ndarray) -> None:
         out[i] = exp_nonpositive_one(x[i])
 
 
+# -- rows and layouts: the table's and the passes' -------------------------------------------------
+
+
 @njit(inline="always")
 def pass_row(row: int, num_states: int, num_actions: int) -> int:
     """The passes' row ``a * S + s`` of the table's row ``s * A + a``."""
@@ -498,6 +489,9 @@ def split_rows(
         flat_probability,
         flat_start,
     )
+
+
+# -- the passes: forward (with its trace) and reverse, one thread ----------------------------------
 
 
 @njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
@@ -1215,11 +1209,7 @@ def soft_backward_chunks(
         )  # fmt: skip
 
 
-# -- a learner's cost steps, compiled whole ------------------------------------------------
-
-# ``cost_steps_tasks``' error codes beside the likelihood's (``likelihoods._refuse``).
-GRADIENT_NOT_FINITE = 9
-LIKELIHOOD_NOT_FINITE = 10
+# -- a learner's cost steps, compiled whole --------------------------------------------------------
 
 
 @njit(inline="always", fastmath=False, error_model="numpy")
@@ -1380,7 +1370,7 @@ def cost_steps_tasks(
                 s0, s1 = step_start[row], step_start[row + 1]
                 sigmoids = no_sigmoids
                 if agent_steps:
-                    advantages, code = _step_advantages(
+                    advantages, code = step_advantages(
                         q_row, local_steps, step_states[s0:s1], step_actions[s0:s1],
                         step_feedback[s0:s1],
                     )  # fmt: skip
@@ -1389,7 +1379,7 @@ def cost_steps_tasks(
                         break
                     sigmoids = 0.5 * (1.0 + np.tanh(0.5 * (alpha * advantages)))
                 demo_row_values, d_q_demos, step_row_values, d_q_steps, code = (
-                    _data_log_likelihood(
+                    data_log_likelihood_kernel(
                         q_row, local_demos, demo_states[d0:d1], demo_actions[d0:d1],
                         beta, normalized, variance_floor,
                         local_steps, step_states[s0:s1], step_actions[s0:s1],
@@ -1459,13 +1449,13 @@ def cost_steps_chunks(*arguments):  # type: ignore[no-untyped-def]
         cost_steps_tasks(*arguments[:-2], firsts[c], lasts[c])  # type: ignore[call-arg]
 
 
+# -- a learner's steps on theta and its dynamics steps, compiled whole -----------------------------
+
 # The model spaces whose steps on theta compile (``theta_steps``), by their primitives:
 # sigmoid(theta) per parameter (navigation), a softmax over each row of ``choices`` (gravity,
 # farming).
 SIGMOID_PRIMITIVES = 0
 SOFTMAX_ROWS_PRIMITIVES = 1
-# ``theta_steps``' error: an observed transition no theta of the model space gives.
-IMPOSSIBLE_TRANSITION = 11
 
 
 @njit(inline="always", fastmath=False, error_model="numpy")
@@ -1667,7 +1657,7 @@ def _teacher_gradient(
     q_data = q.astype(np.float64)
     no_values = np.empty(0)
     if step_tasks.shape[0] > 0:
-        advantages, code = _step_advantages(
+        advantages, code = step_advantages(
             q_data, step_tasks, step_states, step_actions, step_feedback
         )
         if code:
@@ -1675,7 +1665,7 @@ def _teacher_gradient(
         sigmoids = 0.5 * (1.0 + np.tanh(0.5 * (alpha * advantages)))
     else:
         sigmoids = np.empty(0)
-    demo_values, d_q, step_values, d_q_steps, code = _data_log_likelihood(
+    demo_values, d_q, step_values, d_q_steps, code = data_log_likelihood_kernel(
         q_data, demo_tasks, demo_states, demo_actions, beta, normalized, variance_floor,
         step_tasks, step_states, step_actions, step_feedback, sigmoids, epsilon, alpha,
         mu_plus, mu_minus,
@@ -1734,11 +1724,11 @@ def teacher_gradient(
     gradient on the table's entries and on the rewards, every task in this thread: what
     ``planned_teacher_log_likelihood`` with the transition gradient does on one planner thread
     (a forward pass of every task, the data's likelihood and dL/dQ from
-    ``_data_log_likelihood``, the reverse pass), the same operations in the same order but for
+    ``data_log_likelihood_kernel``, the reverse pass), the same operations in the same order but for
     a feedback step's sigmoid (the C library's tanh). The table by next state (``incoming``,
     empty where the reverse pass ``scatter``s through the forward layout) and for forward
     passes (``rows``), as ``soft_backward_tasks`` takes them; ``trace``: Q and the trace for
-    the passes to write; ``likelihood``: the data and models as ``_data_log_likelihood`` takes
+    the passes to write; ``likelihood``: the data and models as ``data_log_likelihood_kernel`` takes
     them; ``reverse``: the distinct gradient entries, their runs and places, dL/drewards and
     dL/dT to write (zeroed here), empty kept terms and task sums, and the entries that copy
     another's gradient and the ones they copy (``TransitionOperator.reverse_entries``).
@@ -1749,11 +1739,6 @@ def teacher_gradient(
         incoming, scatter, rows, next_flat, width, rewards, pass_beta, horizon, trace,
         likelihood, reverse,
     )  # fmt: skip
-
-
-# ``dynamics_steps`` stopped where a step's table has an entry theta moves at zero where the
-# passes' layouts have it not (or the reverse): the caller takes the rest of the steps.
-LAYOUT_CHANGED = 12
 
 
 @njit(cache=True, nogil=True, fastmath=False, error_model="numpy")

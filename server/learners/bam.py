@@ -33,6 +33,7 @@ class BAM(PlannerLearner):
         # the demonstrations experiment's chance: docs/reproduction.md, "Shorter warm updates").
         "warm_share": 0.7,
     }
+    warm_up_settings = {"alternations": 1, **PlannerLearner.warm_up_settings}
 
     def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
         super().__init__(env, seed, **settings)

@@ -153,6 +153,9 @@ class Learner(ABC):
 
     name: ClassVar[str]
     default_settings: ClassVar[dict[str, Any]]
+    # Settings that take an update through everything a study's updates do in as few steps as
+    # its schedule allows (the same kernels): what ``server.app.updates.warmup`` runs.
+    warm_up_settings: ClassVar[dict[str, Any]] = {}
 
     def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
         unknown = sorted(set(settings) - set(self.default_settings))

@@ -17,11 +17,12 @@ from server.domains.base import Environment, check_finite
 from server.learners._kernels import clipped_momentum_step
 from server.learners.base import Learner
 from server.learners.likelihoods import (
+    GRADIENT_NOT_FINITE,
     VARIANCE_FLOOR,
-    _data_log_likelihood,
-    _refuse,
-    _step_advantages,
+    data_log_likelihood_kernel,
     gaussian_log_prior,
+    refuse,
+    step_advantages,
 )
 from server.learners.objective import (
     COMMON_SETTINGS,
@@ -125,9 +126,9 @@ class BehavioralCloning(Learner):
         table, velocity, before, demo_values, step_values, code = _ascend(
             *self.ascent_arguments(data, steps)
         )
-        if code == NOT_FINITE:
+        if code == GRADIENT_NOT_FINITE:
             raise FloatingPointError("the objective's gradient is not finite")
-        _refuse(code, (len(data.tasks), *self.table.shape[1:]))
+        refuse(code, (len(data.tasks), *self.table.shape[1:]))
         self.table, self.optimizer.velocity = table, velocity
         # The objective at the last step's start, summed as NumPy sums.
         prior = float(-0.5 * (before**2).sum() / prior_sd**2)
@@ -198,9 +199,6 @@ class BehavioralCloning(Learner):
         self.optimizer.velocity = check_finite("velocity", state["velocity"]).copy()
 
 
-NOT_FINITE = 9  # _ascend's code for a gradient that is not finite (the others: likelihoods')
-
-
 @njit(cache=True, fastmath=False, error_model="numpy")
 def _ascend(
     table,
@@ -255,7 +253,7 @@ def _ascend(
         for t in range(tasks.shape[0]):
             q[t] = table[tasks[t]]
         if step_tasks.shape[0]:
-            advantages, code = _step_advantages(
+            advantages, code = step_advantages(
                 q, step_tasks, step_states, step_actions, step_feedback
             )
             if code:
@@ -263,7 +261,7 @@ def _ascend(
             sigmoids = 0.5 * (1.0 + np.tanh(0.5 * (alpha * advantages)))  # as _sigmoid
         else:
             sigmoids = np.empty(0)
-        demo_values, d_q, step_values, d_q_steps, code = _data_log_likelihood(
+        demo_values, d_q, step_values, d_q_steps, code = data_log_likelihood_kernel(
             q,
             demo_tasks,
             demo_states,
@@ -300,5 +298,5 @@ def _ascend(
                 flat[first:last], velocity[first:last], grad[first:last], learning_rate,
                 momentum, max_step, clip_step, bound,
             ):  # fmt: skip
-                return table, velocity, before, demo_values, step_values, NOT_FINITE
+                return table, velocity, before, demo_values, step_values, GRADIENT_NOT_FINITE
     return table, velocity, before, demo_values, step_values, 0

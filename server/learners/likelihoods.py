@@ -27,6 +27,21 @@ from server.domains.base import all_finite, check_finite
 # no floor, and a row whose values are all equal divides by 1, so the model is uniform there).
 VARIANCE_FLOOR = 1e-8
 
+# -- error codes -----------------------------------------------------------------------------
+# What a compiled function of the learners returns beside its results: 0, or one of these. The
+# one block of them: ``_kernels`` and ``cloning`` import theirs from here (numba compiles them
+# in as constants). ``refuse`` raises the likelihood's (1-3); the steps' callers, the others.
+BAD_INDEX = 1  # a task, state or action index out of range
+BAD_FEEDBACK = 2  # feedback that is not +1, -1 or 0 (none)
+IMPOSSIBLE_FEEDBACK = 3  # a feedback event of probability 0 under the feedback model
+# 4-8: unused.
+GRADIENT_NOT_FINITE = 9  # a step's gradient (cost, theta, dynamics or cloning steps)
+LIKELIHOOD_NOT_FINITE = 10  # the teacher data's log-likelihood (Q is not finite)
+IMPOSSIBLE_TRANSITION = 11  # an observed transition that no theta of the model space gives
+# ``dynamics_steps`` stopped where a step's table has an entry theta moves at zero where the
+# passes' layouts have it not (or the reverse): not an error, the caller takes the rest.
+LAYOUT_CHANGED = 12
+
 
 @dataclass(frozen=True)
 class ActionModel:
@@ -180,12 +195,12 @@ def data_log_likelihood(
     range ones and feedback other than +1, -1, 0 are refused."""
     q = np.ascontiguousarray(q, dtype=np.float64)
     if step_tasks.shape[0]:
-        advantages, bad = _step_advantages(q, step_tasks, step_states, step_actions, step_feedback)
-        _refuse(bad, q.shape)
+        advantages, bad = step_advantages(q, step_tasks, step_states, step_actions, step_feedback)
+        refuse(bad, q.shape)
         sigmoids = _sigmoid(float(feedback.alpha) * advantages)
     else:  # demonstrations alone (a demonstrations experiment's every update)
         sigmoids = NO_SIGMOIDS
-    demo_values, d_q, step_values, d_q_steps, bad = _data_log_likelihood(
+    demo_values, d_q, step_values, d_q_steps, bad = data_log_likelihood_kernel(
         q,
         demo_tasks,
         demo_states,
@@ -203,7 +218,7 @@ def data_log_likelihood(
         float(feedback.mu_plus),
         float(feedback.mu_minus),
     )
-    _refuse(bad, q.shape)
+    refuse(bad, q.shape)
     # Summed by NumPy, as before this was compiled: the same value to the last bit.
     value = float(demo_values.sum()) + (float(step_values.sum()) if step_values.shape[0] else 0.0)
     if not math.isfinite(value):
@@ -214,10 +229,7 @@ def data_log_likelihood(
     return value, d_q + d_q_steps
 
 
-BAD_INDEX, BAD_FEEDBACK, IMPOSSIBLE_FEEDBACK = 1, 2, 3
-
-
-def _refuse(code: int, shape: tuple[int, ...]) -> None:
+def refuse(code: int, shape: tuple[int, ...]) -> None:
     """Raise the error a compiled pass reported (0: none)."""
     if code == BAD_INDEX:
         raise ValueError(f"a task, state or action index is out of range for Q of shape {shape}")
@@ -231,7 +243,7 @@ def _refuse(code: int, shape: tuple[int, ...]) -> None:
 
 
 @njit(cache=True, fastmath=False)
-def _step_advantages(q, step_tasks, step_states, step_actions, step_feedback):
+def step_advantages(q, step_tasks, step_states, step_actions, step_feedback):
     """Q(s, a) - mean_b Q(s, b) of each agent step, and an error code (0: none)."""
     num_tasks, num_states, num_actions = q.shape
     advantages = np.zeros(step_tasks.shape[0])
@@ -250,7 +262,7 @@ def _step_advantages(q, step_tasks, step_states, step_actions, step_feedback):
 
 
 @njit(cache=True, fastmath=False)
-def _data_log_likelihood(
+def data_log_likelihood_kernel(
     q,
     demo_tasks,
     demo_states,

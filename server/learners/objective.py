@@ -248,7 +248,7 @@ def _feedback_model(epsilon: float, alpha: float, mu_plus: float, mu_minus: floa
 
 def likelihood_arguments(data: TeacherData, settings: dict[str, Any]) -> tuple[Any, ...]:
     """The teacher data and the action and feedback models as the compiled likelihood
-    (``likelihoods._data_log_likelihood``, but for its Q and sigmoids) takes them: the
+    (``likelihoods.data_log_likelihood_kernel``, but for its Q and sigmoids) takes them: the
     demonstrations, the action model, the agent steps, the feedback model."""
     actions, feedback = action_model(settings), feedback_model(settings)
     return (

@@ -18,7 +18,14 @@ from server.domains.base import (
 )
 from server.learners import _kernels, planning
 from server.learners.base import Learner
-from server.learners.likelihoods import _refuse, gaussian_log_prior
+from server.learners.likelihoods import (
+    GRADIENT_NOT_FINITE,
+    IMPOSSIBLE_TRANSITION,
+    LAYOUT_CHANGED,
+    LIKELIHOOD_NOT_FINITE,
+    gaussian_log_prior,
+    refuse,
+)
 from server.learners.objective import (
     COMMON_SETTINGS,
     COST_SETTINGS,
@@ -74,6 +81,7 @@ class PlannerLearner(Learner):
     learner's state round-trips through one ``state_dict``."""
 
     default_settings = {**COMMON_SETTINGS, **COST_SETTINGS}
+    warm_up_settings = {"cost_steps": 1, "dynamics_steps": 1}
 
     def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
         super().__init__(env, seed, **settings)
@@ -302,9 +310,9 @@ class PlannerLearner(Learner):
     ) -> float:
         """The teacher data's log-likelihood from a compiled gradient's records' values,
         summed as data_log_likelihood sums them; its error raised."""
-        if code == _kernels.LIKELIHOOD_NOT_FINITE:
+        if code == LIKELIHOOD_NOT_FINITE:
             raise FloatingPointError("the teacher data's log-likelihood is not finite (Q is not)")
-        _refuse(int(code), shape)
+        refuse(int(code), shape)
         value = float(demo_values.sum()) + (
             float(step_values.sum()) if step_values.shape[0] else 0.0
         )
@@ -404,12 +412,12 @@ class PlannerLearner(Learner):
 
     @staticmethod
     def _raise_theta_error(code: int, observed: ObservedTransitions, row: int) -> None:
-        if code == _kernels.IMPOSSIBLE_TRANSITION:
+        if code == IMPOSSIBLE_TRANSITION:
             raise ValueError(
                 f"observed transition {tuple(int(x) for x in observed.rows[row])} is "
                 "impossible under the model space"
             )
-        if code == _kernels.GRADIENT_NOT_FINITE:
+        if code == GRADIENT_NOT_FINITE:
             raise FloatingPointError("the objective's gradient is not finite")
 
     def dynamics_steps_in_one_call(
@@ -443,7 +451,7 @@ class PlannerLearner(Learner):
         value, demo_values, step_values, code, done, row = _kernels.dynamics_steps(
             *kernel_arguments
         )
-        if code not in (0, _kernels.LAYOUT_CHANGED):
+        if code not in (0, LAYOUT_CHANGED):
             self._raise_theta_error(code, observed, row)
             self._teacher_value(demo_values, step_values, code, self._q_shape(operator, data))
         self.theta, self.theta_optimizer.velocity = theta, velocity
@@ -607,13 +615,13 @@ class PlannerLearner(Learner):
             ),
         )
         for code in codes[codes != 0]:
-            if code == _kernels.GRADIENT_NOT_FINITE:
+            if code == GRADIENT_NOT_FINITE:
                 raise FloatingPointError("the objective's gradient is not finite")
-            if code == _kernels.LIKELIHOOD_NOT_FINITE:
+            if code == LIKELIHOOD_NOT_FINITE:
                 raise FloatingPointError(
                     "the teacher data's log-likelihood is not finite (Q is not)"
                 )
-            _refuse(int(code), (num_data, num_plan, env.num_actions))
+            refuse(int(code), (num_data, num_plan, env.num_actions))
         self.costs, optimizer.velocity = costs, velocity.reshape(-1)
         # The objective at the last step's start, summed as the NumPy steps sum it.
         value = float(demo_values.sum()) + (

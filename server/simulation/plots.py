@@ -10,20 +10,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from server import domains, learners
+from server.names import LEARNER_REGISTRY
 from server.simulation.config import RunConfig
 from server.simulation.runner import atomic_write
 
 if TYPE_CHECKING:
     from server.simulation.outputs import SummaryRow
-
-# One colour and marker per learner, the same in every figure (colour-blind safe palette).
-STYLES: dict[str, tuple[str, str]] = {
-    "bam": ("#0072B2", "o"),
-    "model-based": ("#D55E00", "s"),
-    "global-cost": ("#009E73", "^"),
-    "cloning": ("#CC79A7", "D"),
-}
-FALLBACK_COLOURS = ("#E69F00", "#56B4E9", "#F0E442", "#000000")
 
 TITLES: dict[str, str] = {
     "demonstrations": "Learning from demonstration",
@@ -59,7 +51,7 @@ def plot_curves(config: RunConfig, summary: Sequence[SummaryRow], stem: Path) ->
     handles = {}
     for index, environment in enumerate(config.environments):
         ax = axes[index // columns][index % columns]
-        for position, learner in enumerate(config.learners):
+        for learner in config.learners:
             points = sorted(
                 (row.round, row.mean_normalized_return, row.se_normalized_return)
                 for row in summary
@@ -67,9 +59,8 @@ def plot_curves(config: RunConfig, summary: Sequence[SummaryRow], stem: Path) ->
             )
             if not points:
                 continue
-            colour, marker = STYLES.get(
-                learner, (FALLBACK_COLOURS[position % len(FALLBACK_COLOURS)], "v")
-            )
+            # One colour and marker per learner, the same in every figure (the registry's).
+            colour, marker = LEARNER_REGISTRY[learner].colour, LEARNER_REGISTRY[learner].marker
             x = [p[0] for p in points]
             mean = [100 * p[1] for p in points]
             se = [0.0 if math.isnan(p[2]) else 100 * p[2] for p in points]

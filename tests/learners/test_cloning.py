@@ -15,7 +15,8 @@ import pytest
 
 from server import domains
 from server.learners import make
-from server.learners.cloning import NOT_FINITE, _ascend
+from server.learners.cloning import _ascend
+from server.learners.likelihoods import GRADIENT_NOT_FINITE
 from server.learners.objective import TeacherData
 from tests.learners.test_objective import teach
 
@@ -95,7 +96,7 @@ def test_a_gradient_that_is_not_finite_is_refused() -> None:
     learner.table = table
     learner.settings["q_prior_sd"] = 1e-200  # squared: 0
     *_, code = _ascend(*learner.ascent_arguments(TeacherData.from_log(learner.data), 5))
-    assert code == NOT_FINITE
+    assert code == GRADIENT_NOT_FINITE
     assert (table == 1.0).all()
     with pytest.raises(FloatingPointError, match="gradient is not finite"):
         learner.update()

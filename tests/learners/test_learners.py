@@ -42,11 +42,10 @@ def assert_same_state(first: Any, second: Any, path: str = "state") -> None:
         assert first == second, path
 
 
-# -- the registry --------------------------------------------------------------------------------
+# -- the registry (its order and entries: test_registry.py) ---------------------------------------
 
 
 def test_registry_names() -> None:
-    assert set(learners.NAMES) == {"bam", "model-based", "global-cost", "cloning"}
     env = domains.make("wall")
     for name in learners.NAMES:
         learner = learners.make(name, env)

@@ -83,7 +83,7 @@ def test_warm_up_loads_every_kernel_a_study_s_updates_use() -> None:
         "soft_forward_chunks",
         "soft_backward_tasks",
         "soft_backward_chunks",
-        "_data_log_likelihood",
+        "data_log_likelihood_kernel",
         "hard_backups",
     } <= loaded
     gained = {name: (warmed[name], count) for name, count in after.items() if count != warmed[name]}

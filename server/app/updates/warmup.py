@@ -13,9 +13,9 @@ import time
 
 import numpy as np
 
-from server import domains
+from server import domains, learners
 from server.domains.base import STAY, Environment
-from server.learners import NAMES, make, restore
+from server.learners import make, restore
 from server.learners.evaluation import normalized_return
 from server.learners.planner_learner import PlannerLearner
 from server.learners.planning import using_planner_threads
@@ -24,13 +24,6 @@ from server.teacher import Teacher
 # One environment of each domain (navigation, farming, gravity), each with several tasks so
 # that a pass can split over threads.
 ENVIRONMENTS = ("navigation-tutorial", "farming-tutorial", "gravity-tutorial")
-# What every update does, in as few steps as the schedules allow (the kernels are the same).
-SETTINGS: dict[str, dict[str, int]] = {
-    "bam": {"alternations": 1, "cost_steps": 1, "dynamics_steps": 1},
-    "model-based": {"cost_steps": 1, "dynamics_steps": 1},
-    "global-cost": {"cost_steps": 1, "dynamics_steps": 1},
-    "cloning": {},
-}
 
 
 def warm_up(thread_counts: tuple[int, ...] = (1, 2)) -> float:
@@ -46,8 +39,9 @@ def warm_up(thread_counts: tuple[int, ...] = (1, 2)) -> float:
             for name in ENVIRONMENTS:
                 env = domains.make(name)
                 teacher = Teacher(env, seed=0)
-                for learner_name in NAMES:
-                    learner = make(learner_name, env, **SETTINGS.get(learner_name, {}))
+                for learner_name, cls in learners.LEARNERS.items():
+                    # What every update does, in as few steps as its schedule allows.
+                    learner = make(learner_name, env, **cls.warm_up_settings)
                     normalized_return(env, learner)
                     for task in range(len(env.tasks)):
                         steps = teacher.demonstration(task, _start(env, task))

@@ -118,18 +118,24 @@ def learning_curve_figure(analysis: Analysis, x: str) -> Figure:
     return figure
 
 
-def save_learning_curves(analysis: Analysis, folder: Path) -> list[Path]:
-    """``return_vs_episodes`` and ``return_vs_actions`` as PNG and SVG in ``folder``."""
+def save_figure(figure: Figure, folder: Path, stem: str) -> list[Path]:
+    """``figure`` as ``stem``.png and ``stem``.svg in ``folder``; the two paths."""
     import matplotlib
 
     written = []
+    # A fixed salt and no date make the SVG files reproducible.
+    with matplotlib.rc_context({"svg.hashsalt": "bam-study"}):
+        for suffix in ("png", "svg"):
+            path = folder / f"{stem}.{suffix}"
+            metadata = {"Date": None} if suffix == "svg" else {}
+            figure.savefig(path, dpi=150, metadata=metadata)
+            written.append(path)
+    return written
+
+
+def save_learning_curves(analysis: Analysis, folder: Path) -> list[Path]:
+    """``return_vs_episodes`` and ``return_vs_actions`` as PNG and SVG in ``folder``."""
+    written = []
     for x in ("episodes", "actions"):
-        figure = learning_curve_figure(analysis, x)
-        # A fixed salt and no date make the SVG files reproducible.
-        with matplotlib.rc_context({"svg.hashsalt": "bam-study"}):
-            for suffix in ("png", "svg"):
-                path = folder / f"return_vs_{x}.{suffix}"
-                metadata = {"Date": None} if suffix == "svg" else {}
-                figure.savefig(path, dpi=150, metadata=metadata)
-                written.append(path)
+        written += save_figure(learning_curve_figure(analysis, x), folder, f"return_vs_{x}")
     return written

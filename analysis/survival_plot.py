@@ -11,9 +11,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from analysis.names import environment_display, learner_display, threshold_label
-from analysis.plots import COLOURS
+from analysis.plots import save_figure
 from analysis.results import Analysis
 from analysis.survival import event_times, kaplan_meier
+from server.names import LEARNER_REGISTRY
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -61,7 +62,7 @@ def _curve(ax, sessions, learner: str) -> None:  # type: ignore[no-untyped-def]
     end = float(sessions["time"].max())
     x = np.concatenate([[0.0], times, [max(end, times[-1] if len(times) else 0.0)]])
     y = np.concatenate([[1.0], share, [share[-1] if len(share) else 1.0]])
-    colour = COLOURS[learner]
+    colour = LEARNER_REGISTRY[learner].colour
     ax.plot(
         x,
         y,
@@ -78,15 +79,7 @@ def _curve(ax, sessions, learner: str) -> None:  # type: ignore[no-untyped-def]
 
 def save_survival_curves(analysis: Analysis, folder: Path) -> list[Path]:
     """``survival_episodes`` and ``survival_actions`` as PNG and SVG in ``folder``."""
-    import matplotlib
-
     written = []
     for measure in ("episodes", "actions"):
-        figure = survival_figure(analysis, measure)
-        with matplotlib.rc_context({"svg.hashsalt": "bam-study"}):
-            for suffix in ("png", "svg"):
-                path = folder / f"survival_{measure}.{suffix}"
-                metadata = {"Date": None} if suffix == "svg" else {}
-                figure.savefig(path, dpi=150, metadata=metadata)
-                written.append(path)
+        written += save_figure(survival_figure(analysis, measure), folder, f"survival_{measure}")
     return written

@@ -23,6 +23,7 @@ from server.app.export.read import Context
 from server.app.rights.pseudonyms import ASSIGNMENT, WORKER
 from server.domains import make as make_environment
 from server.domains.base import ACTIONS
+from server.names import learner_names_prose
 
 Kind = Literal["int", "number", "bool", "time", "text"]
 INT: Kind = "int"  # an integer, its empty cells empty (pandas' Int64, no decimal point)
@@ -158,7 +159,7 @@ SESSIONS = (
     Column("participant_id", "The participant (participants.csv).", INT),
     Column("domain", "navigation, farming or gravity."),
     Column("environment", "The environment taught."),
-    Column("learner", "The agent's learning algorithm (bam, model-based, global-cost, cloning)."),
+    Column("learner", f"The agent's learning algorithm ({learner_names_prose()})."),
     Column("position", "Order among the participant's study agents, from 0.", INT),
     Column("started_at", "When this agent's turn came (UTC).", TIME),
     Column("finished_at", "When the participant finished this agent (UTC; empty if not).", TIME),

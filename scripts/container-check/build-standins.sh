@@ -6,7 +6,7 @@
 #   sudo sh scripts/container-check/build-standins.sh
 #   BAM_CHECK_PYTHON_IMAGE=bam-standin/python:3.11-bookworm \
 #   BAM_CHECK_POSTGRES_IMAGE=bam-standin/postgres:15-bookworm \
-#       .venv/bin/python -m pytest tests/server/test_container_image.py
+#       .venv/bin/python -m pytest tests/commands/test_container_image.py
 #
 # Needs root, debootstrap and a running Docker engine. The Python image is Debian bookworm's
 # Python 3.11 with pip allowed to install system-wide (as in the official image, and like it

@@ -29,8 +29,8 @@ from server import domains
 from server.app.main import create_app
 from server.app.settings import Settings
 from server.domains.base import ACTIONS
-from tests.server.conftest import live
 from tests.support.databases import migrated_sqlite
+from tests.support.server import live
 
 ADMIN_TOKEN = "browser-test-admin-token"
 CHROMIUM = "/usr/bin/chromium"

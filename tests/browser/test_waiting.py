@@ -23,7 +23,7 @@ pytestmark = pytest.mark.browser
 
 ADMITTED_WITHIN_MS = 60_000  # the page asks every 3 s: a generous bound
 # The server's own CPU seconds per update, as timed at start (the timing itself is tested in
-# tests/server/test_server_share.py).
+# tests/commands/test_server_share.py).
 SERVER_SHARE = 0.0437
 
 

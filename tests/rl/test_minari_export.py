@@ -32,7 +32,7 @@ from server.domains.base import ACTIONS, STAY
 from server.rl import environment_id
 from server.rl.datasets import Dataset, DatasetEpisode, write_datasets
 from tests.rl._support import run_python
-from tests.server.conftest import ADMIN_TOKEN, wait_for_updates
+from tests.support.server import ADMIN_TOKEN, wait_for_updates
 
 PLAN = TeachingPlan(min_rounds=1, max_rounds=2, agent_try_probability=0.7, max_agent_steps=10)
 

@@ -3,7 +3,7 @@
 The Alembic migrations run once for SQLite (into a template file) and once for PostgreSQL
 (into a template schema, dumped with ``pg_dump`` and dropped). Each test then gets its own copy:
 the file copied, or the dump replayed under a new schema name; the copy's installation secret
-(the pseudonyms' key) is drawn anew, as a real migration draws it. ``tests/server/test_migrations.py`` still runs the
+(the pseudonyms' key) is drawn anew, as a real migration draws it. ``tests/app/storage/test_migrations.py`` still runs the
 real migrations on empty databases, so what they build stays tested; this only spares the
 hundreds of tests that need *a* migrated database from running nine revisions each.
 """

@@ -186,7 +186,7 @@ def _truncate_wal(engine: Engine, busy_timeout_ms: int) -> bool:
 
 # The tables whose rows may hold a platform's raw ids (a worker's, a submission's, a study's):
 # rewritten on PostgreSQL after an erasure or a scrub. Small: a row or a few per participant
-# (tests/server/test_forget_removed.py checks that every table with such a column is here).
+# (tests/app/rights/test_forget_removed.py checks that every table with such a column is here).
 PLATFORM_ID_TABLES = (
     "participants",
     "assignment_reviews",

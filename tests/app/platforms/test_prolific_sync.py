@@ -1,0 +1,258 @@
+"""Prolific's submission statuses kept in step: the signed webhook (a forged, unsigned, altered
+or old request changes nothing; a redelivered event is applied once) and the poll of the
+study's submissions; a RETURNED or TIMED-OUT participant is released, their data kept."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
+from typing import Any
+
+import httpx
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import select
+
+from server.app.config import StudyConfig
+from server.app.export.tables import export_tables
+from server.app.main import create_app
+from server.app.platforms.prolific import ProlificClient
+from server.app.platforms.prolific_replica import ReplicaTransport
+from server.app.platforms.prolific_sync import reconcile_submissions, signature
+from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.app.storage.models import Participant, StatusChange
+from tests.app.platforms.test_prolific import ADMIN, draft
+from tests.support.server import ADMIN_TOKEN, live, make_settings, study_config
+from tests.support.server import Participant as Participant_
+
+SECRET = "d2ViaG9vay1zZWNyZXQtZm9yLXRlc3Rz"
+
+
+@pytest.fixture
+def settings(db: Database) -> Settings:
+    return make_settings(
+        db.engine.url.render_as_string(hide_password=False), prolific_webhook_secret=SECRET
+    )
+
+
+@pytest.fixture
+def client(
+    db: Database, settings: Settings, study: StudyConfig, executor: ProcessPoolExecutor
+) -> Iterator[TestClient]:
+    with TestClient(create_app(settings, study, db=db, executor=executor)) as test_client:
+        yield test_client
+
+
+def teaching(db: Database, pid: str, submission: str, study_id: str = "a" * 24) -> int:
+    with db.write() as s:
+        p = Participant(
+            token_hash=os.urandom(32).hex(),
+            platform="prolific",
+            worker_id=pid,
+            assignment_id=submission,
+            hit_id=study_id,
+            status="teaching",
+        )
+        s.add(p)
+        s.flush()
+        return p.id
+
+
+def status_of(db: Database, participant: int) -> tuple[str, str | None]:
+    with db.read() as s:
+        p = s.get(Participant, participant)
+        assert p is not None
+        return p.status, p.platform_status
+
+
+def send(
+    client: TestClient,
+    payload: dict[str, Any],
+    event_id: str,
+    *,
+    secret: str = SECRET,
+    at: int | None = None,
+    alter: bool = False,
+) -> httpx.Response:
+    body = json.dumps(payload).encode()
+    stamp = str(int(time.time()) if at is None else at)
+    signed = signature(secret, stamp, body)
+    if alter:
+        body = body.replace(b"RETURNED", b"APPROVED")
+    return client.post(
+        "/prolific/webhook",
+        content=body,
+        headers={
+            "Content-Type": "application/json",
+            "X-Prolific-Request-Signature": signed,
+            "X-Prolific-Request-Timestamp": stamp,
+            "X-Event-ID": event_id,
+        },
+    )
+
+
+def test_only_a_genuine_fresh_webhook_releases_a_returned_participant_once(
+    client: TestClient, db: Database
+) -> None:
+    participant = teaching(db, "b" * 24, "c" * 24)
+    event = {
+        "event_type": "submission.status.change",
+        "resource_id": "c" * 24,
+        "study_id": "a" * 24,
+        "status": "RETURNED",
+    }
+    refusals = [
+        send(client, event, "ev-1", secret="not-the-secret"),
+        send(client, event, "ev-1", at=int(time.time()) - 3600),
+        send(client, event, "ev-1", alter=True),
+        client.post("/prolific/webhook", json=event, headers={"X-Event-ID": "ev-1"}),
+    ]
+    assert [r.status_code for r in refusals] == [401, 401, 401, 401]
+    assert "replay" in refusals[1].text and "signature" in refusals[0].text
+    assert status_of(db, participant) == ("teaching", None)
+
+    applied = send(client, event, "ev-1")
+    assert applied.status_code == 200 and applied.json()["result"] == "applied"
+    assert status_of(db, participant) == ("returned", "RETURNED")
+    # Redelivered (at-least-once): applied once; the status history has one release.
+    assert send(client, event, "ev-1").json()["result"] == "already applied"
+    with db.read() as s:
+        notes = list(
+            s.scalars(select(StatusChange.note).where(StatusChange.participant_id == participant))
+        )
+    assert len(notes) == 1 and "RETURNED" in (notes[0] or "")
+    # The dashboard shows Prolific's status; the export keeps the participant, marked with it.
+    listed = client.get("/api/admin/participants", headers=ADMIN).json()
+    assert [(x["status"], x["prolific_status"]) for x in listed] == [("returned", "RETURNED")]
+    row = export_tables(db)["participants"].set_index("participant_id").loc[participant]
+    assert row["status"] == "returned" and row["prolific_status"] == "RETURNED"
+
+
+def test_the_poll_releases_returned_and_timed_out_participants(
+    client: TestClient, db: Database
+) -> None:
+    token = {"Authorization": f"Token {ADMIN_TOKEN}"}
+    study = client.post("/prolific/api/v1/studies/", json=draft(5), headers=token).json()
+    client.post(
+        f"/prolific/api/v1/studies/{study['id']}/transition/",
+        json={"action": "PUBLISH"},
+        headers=token,
+    )
+    ours = {}
+    for _ in range(3):
+        sent = client.post(
+            f"/prolific/studies/{study['id']}/take-part", headers=ADMIN, follow_redirects=False
+        )
+        url = httpx.URL(sent.headers["location"])
+        submission = url.params["SESSION_ID"]
+        ours[submission] = teaching(db, url.params["PROLIFIC_PID"], submission, study["id"])
+    kept, returned, timed_out = list(ours)
+    client.post(f"/prolific/submissions/{returned}/return", headers=ADMIN)
+    client.post(f"/prolific/submissions/{timed_out}/time-out", headers=ADMIN)
+    prolific = ProlificClient(
+        "http://replica/prolific/api/v1",
+        ADMIN_TOKEN,
+        transport=ReplicaTransport(db, ADMIN_TOKEN),
+    )
+    seen = reconcile_submissions(db, prolific, study["id"])
+    assert seen == {kept: "ACTIVE", returned: "RETURNED", timed_out: "TIMED-OUT"}
+    assert status_of(db, ours[kept]) == ("teaching", "ACTIVE")
+    assert status_of(db, ours[returned]) == ("returned", "RETURNED")
+    assert status_of(db, ours[timed_out]) == ("returned", "TIMED-OUT")
+    # The same poll from the admin API (the server's own client, on the replica here).
+    answer = client.post(
+        "/api/admin/reconciliation", params={"prolific_study": study["id"]}, headers=ADMIN
+    )
+    assert answer.status_code == 200 and answer.json()["prolific_statuses"] == seen
+
+
+@pytest.fixture
+def study() -> StudyConfig:
+    return study_config(
+        completion={
+            "mode": "prolific",
+            "prolific_code": "C1A2B3C4",
+            "prolific_no_consent_code": "NOCONSNT",
+        }
+    )
+
+
+def test_a_released_participant_who_comes_back_sees_a_clear_page_and_changes_nothing(
+    client: TestClient, db: Database
+) -> None:
+    link = {"PROLIFIC_PID": "e" * 24, "STUDY_ID": "a" * 24, "SESSION_ID": "f" * 24}
+    arrived = client.post("/api/arrivals", json=link)
+    assert arrived.status_code == 201, arrived.text
+    participant = Participant_(client, arrived.json()["token"])
+    participant.act("/api/participant/consent", agree=True)
+    event = {
+        "event_type": "submission.status.change",
+        "resource_id": "f" * 24,
+        "study_id": "a" * 24,
+        "status": "TIMED-OUT",
+    }
+    assert send(client, event, "ev-timeout-1").json()["result"] == "applied"
+    with db.read() as s:
+        (ours,) = s.scalars(select(Participant.id))
+    assert status_of(db, ours) == ("returned", "TIMED-OUT")
+    # Coming back by the same link: a page that says why, and the release stands.
+    again = client.post("/api/arrivals", json=link)
+    assert again.status_code == 403 and "returned or that its time ran out" in again.text
+    page = client.get("/study", params=link)
+    assert "This study has ended for you" in page.text
+    refused = client.post(
+        "/api/participant/start", json={"seq": participant.seq}, headers=participant.headers
+    )
+    assert refused.status_code == 409 and "place has gone to another participant" in refused.text
+    assert status_of(db, ours) == ("returned", "TIMED-OUT")
+
+
+def test_the_replica_sends_signed_webhooks_that_release_a_returning_participant(
+    db: Database, settings: Settings, study: StudyConfig, executor: ProcessPoolExecutor
+) -> None:
+    app = create_app(settings, study, db=db, executor=executor)
+    token = {"Authorization": f"Token {ADMIN_TOKEN}"}
+    with live(app) as base, httpx.Client(base_url=base, headers=ADMIN) as browser:
+        made = draft(2)
+        made["external_study_url"] = (
+            f"{base}/study?PROLIFIC_PID={{{{%PROLIFIC_PID%}}}}&STUDY_ID={{{{%STUDY_ID%}}}}"
+            "&SESSION_ID={{%SESSION_ID%}}"
+        )
+        created = browser.post("/prolific/api/v1/studies/", json=made, headers=token).json()
+        browser.post(
+            f"/prolific/api/v1/studies/{created['id']}/transition/",
+            json={"action": "PUBLISH"},
+            headers=token,
+        )
+        # The participant takes part: the replica sends them to the study, which lets them in.
+        entered = browser.post(
+            f"/prolific/studies/{created['id']}/take-part", follow_redirects=True
+        )
+        assert entered.status_code == 200 and entered.url.path == "/study", entered.url
+        with db.read() as s:
+            (ours,) = s.scalars(select(Participant.id))
+            submission = s.scalar(select(Participant.assignment_id))
+        browser.post(f"/prolific/submissions/{submission}/return")
+        deadline = time.monotonic() + 60
+        while status_of(db, ours) != ("returned", "RETURNED"):
+            assert time.monotonic() < deadline, status_of(db, ours)
+            time.sleep(0.1)
+
+
+def test_a_prolific_participant_who_declines_consent_is_sent_back_with_no_consent(
+    client: TestClient, db: Database
+) -> None:
+    link = {"PROLIFIC_PID": "1" * 24, "STUDY_ID": "a" * 24, "SESSION_ID": "2" * 24}
+    participant = Participant_(client, client.post("/api/arrivals", json=link).json()["token"])
+    declined = participant.act("/api/participant/consent", agree=False)["participant"]
+    assert declined["status"] == "declined"
+    assert declined["completion"] == {
+        **declined["completion"],
+        "code": "NOCONSNT",
+        "mode": "prolific",
+        "redirect_url": "https://app.prolific.com/submissions/complete?cc=NOCONSNT",
+    }

@@ -1,0 +1,492 @@
+"""``bam-study prolific`` and ``bam-study teach --platform prolific``: the study file's
+``[prolific]`` table, the draft study it makes (Prolific's placeholders, the reward in cents, the
+completion codes, the blocklist, the concurrency), the replica refusing what Prolific refuses,
+and the whole run on a live server's replica: create, publish, simulated participants through
+Prolific's link and completion redirect, status, places, pause."""
+
+from __future__ import annotations
+
+import argparse
+import re
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from sqlalchemy import select
+
+from server.app.config import DEFAULT_STUDY_CONFIG, StudyConfigError, load_study_config
+from server.app.main import create_app
+from server.app.platforms.prolific import (
+    NO_CONSENT_REASON,
+    ProlificClient,
+    ProlificRefused,
+    draft_study,
+)
+from server.app.platforms.prolific_replica import ReplicaTransport
+from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.app.storage.models import Participant
+from server.app.storage.replica_models import ProlificReplicaSubmission
+from server.commands import prolific as prolific_command
+from server.commands.main import main
+from tests.support.server import ADMIN_TOKEN, live, study_config
+
+PILOT = "a1b2c3d4e5f60718293a4b5c"
+PROLIFIC = {
+    "name": "Teaching robots",
+    "description": "Teach simulated robots in a grid world with the arrow keys.",
+    "places": 3,
+    "reward": 7.35,
+    "estimated_minutes": 30,
+    "maximum_minutes": 90,
+    "previous_studies_blocklist": [PILOT],
+    "public_url": "https://study.example.org/",
+}
+TEACH_PROLIFIC = ["--platform", "prolific", "--prolific-study"]
+COMPLETION = {
+    "mode": "prolific",
+    "prolific_code": "C1A2B3C4",
+    "prolific_no_consent_code": "NOCONSNT",
+}
+
+
+def toml_value(value: Any) -> str:
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, list):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    return str(value)
+
+
+def study_file(folder: Path, completion: dict[str, str] | None = None, **prolific: Any) -> Path:
+    """The paper's study file with a completion table and a [prolific] table (``None`` values
+    left out; ``prolific`` empty of keys: no table)."""
+    text = DEFAULT_STUDY_CONFIG.read_text()
+    lines = [f"{key} = {toml_value(value)}" for key, value in (completion or COMPLETION).items()]
+    text = text.replace('mode = "mturk"', "\n".join(lines))
+    table = {**PROLIFIC, **prolific}
+    if not prolific.get("omit"):
+        text += "\n[prolific]\n" + "".join(
+            f"{key} = {toml_value(value)}\n" for key, value in table.items() if value is not None
+        )
+    path = folder / "study.toml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+# -- the [prolific] table and the draft it makes ------------------------------------------------
+def test_the_draft_has_prolifics_placeholders_cents_codes_blocklist_and_concurrency(
+    tmp_path: Path,
+) -> None:
+    study = load_study_config(study_file(tmp_path))
+    fields = draft_study(study, max_concurrent=5)
+    # The exact link the study page reads (PROLIFIC_PID, STUDY_ID, SESSION_ID at /study).
+    assert fields["external_study_url"] == (
+        "https://study.example.org/study?PROLIFIC_PID={{%PROLIFIC_PID%}}"
+        "&STUDY_ID={{%STUDY_ID%}}&SESSION_ID={{%SESSION_ID%}}"
+    )
+    assert fields["reward"] == 735  # 7.35 as a float would give 734
+    assert isinstance(fields["reward"], int)
+    assert fields["prolific_id_option"] == "url_parameters"
+    assert fields["completion_codes"] == [
+        {
+            "code": "C1A2B3C4",
+            "code_type": "COMPLETED",
+            "actor": "participant",
+            "actions": [{"action": "MANUALLY_REVIEW"}],
+        },
+        {
+            "code": "NOCONSNT",
+            "code_type": "NO_CONSENT",
+            "actor": "participant",
+            "actions": [{"action": "REQUEST_RETURN", "return_reason": NO_CONSENT_REASON}],
+        },
+    ]
+    assert NO_CONSENT_REASON.strip()
+    assert fields["filters"] == [
+        {"filter_id": "previous_studies_blocklist", "selected_values": [PILOT]}
+    ]
+    assert (fields["total_available_places"], fields["estimated_completion_time"]) == (3, 30)
+    assert fields["maximum_allowed_time"] == 90
+    assert fields["device_compatibility"] == ["desktop"]
+    assert fields["submissions_config"] == {"max_concurrent_submissions": 5}
+    assert fields["name"] == "Teaching robots" and fields["description"].startswith("Teach")
+
+    # A rehearsal's link is the local server's; no blocklist, no filter; no NO_CONSENT code,
+    # no second code.
+    plain = load_study_config(
+        study_file(
+            tmp_path,
+            completion={"mode": "prolific", "prolific_code": "DONE1"},
+            previous_studies_blocklist=None,
+        )
+    )
+    rehearsal = draft_study(plain, 2, "http://127.0.0.1:8000/")
+    assert rehearsal["external_study_url"].startswith(
+        "http://127.0.0.1:8000/study?PROLIFIC_PID={{%PROLIFIC_PID%}}&"
+    )
+    assert "filters" not in rehearsal
+    assert [c["code"] for c in rehearsal["completion_codes"]] == ["DONE1"]
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"reward": 6.555}, "prolific.reward: Decimal input should have no more than 2 decimal"),
+        ({"reward": 0}, "prolific.reward: Input should be greater than 0"),
+        ({"maximum_minutes": 20}, "maximum_minutes (20) is less than estimated_minutes (30)"),
+        ({"maximum_minutes": 1440}, "maximum_minutes (1440) must be under 24 hours"),
+        ({"places": 0}, "prolific.places: Input should be greater than or equal to 1"),
+        ({"public_url": "http://study.example.org"}, "public address starts with https://"),
+        ({"public_url": "https://study.example.org/study?x=1"}, "the server's address only"),
+        ({"previous_studies_blocklist": ["pilot"]}, "'pilot': a Prolific study id is 24"),
+        ({"rewrd": 6}, "prolific.rewrd: unknown key; did you mean reward?"),
+        ({"name": None}, "prolific.name: Field required"),
+    ],
+)
+def test_a_bad_prolific_table_is_refused_with_its_place_and_reason(
+    tmp_path: Path, change: dict[str, Any], message: str
+) -> None:
+    with pytest.raises(StudyConfigError) as refused:
+        load_study_config(study_file(tmp_path, **change))
+    assert message in str(refused.value)
+
+
+def test_the_concurrency_is_the_option_else_the_study_files_else_the_servers_capacity(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    settings = Settings(admin_token=ADMIN_TOKEN)
+    study = study_config(completion=COMPLETION, prolific=PROLIFIC)
+    asked: list[str] = []
+
+    def limit(server: str, _: Settings) -> int | None:
+        asked.append(server)
+        return answer
+
+    monkeypatch.setattr(prolific_command, "server_limit", limit)
+    monkeypatch.setattr(prolific_command, "measured_capacity", lambda *_: 4)
+
+    def args(**given: Any) -> argparse.Namespace:
+        return argparse.Namespace(**{"max_concurrent": None, "replica": None, **given})
+
+    answer: int | None = 7
+    assert prolific_command.max_concurrent(args(max_concurrent=2), study, settings) == 2
+    limited = study_config(completion=COMPLETION, prolific=PROLIFIC, max_active_participants=3)
+    assert prolific_command.max_concurrent(args(), limited, settings) == 3
+    assert asked == []
+    # The server that will serve the study: the rehearsal's, else the public address.
+    assert prolific_command.max_concurrent(args(replica="http://127.0.0.1:9"), study, settings) == 7
+    assert prolific_command.max_concurrent(args(), study, settings) == 7
+    assert asked == ["http://127.0.0.1:9", "https://study.example.org"]
+    answer = None  # the server cannot tell: measured here
+    assert prolific_command.max_concurrent(args(), study, settings) == 4
+
+
+# -- the replica refuses what Prolific refuses -------------------------------------------------
+def replica_client(db: Database) -> ProlificClient:
+    return ProlificClient(
+        "http://replica/prolific/api/v1",
+        ADMIN_TOKEN,
+        transport=ReplicaTransport(db, ADMIN_TOKEN),
+        first_wait=0.0,
+    )
+
+
+def first_action(fields: dict[str, Any], code: int = 0) -> dict[str, Any]:
+    action: dict[str, Any] = fields["completion_codes"][code]["actions"][0]
+    return action
+
+
+@pytest.mark.parametrize(
+    ("spoil", "message"),
+    [
+        (lambda f: f.pop("description"), "description: This field is required"),
+        (lambda f: first_action(f, 1).pop("return_reason"), "REQUEST_RETURN needs a return_reason"),
+        (
+            lambda f: f["completion_codes"][0]["actions"].append(
+                {"action": "AUTOMATICALLY_APPROVE"}
+            ),
+            "MANUALLY_REVIEW cannot go with AUTOMATICALLY_APPROVE",
+        ),
+        (lambda f: first_action(f).update(action="AUTO_APPROVE"), "action is one of"),
+        (lambda f: f["completion_codes"][0].update(actor="robot"), "actor is participant or"),
+        (lambda f: f["completion_codes"][1].update(code="C1A2B3C4"), "is given twice"),
+        (lambda f: f.update(device_compatibility=["watch"]), "device_compatibility"),
+        (
+            lambda f: f["filters"][0].update(selected_values=["pilot"]),
+            "previous_studies_blocklist: selected_values are study ids",
+        ),
+        (
+            lambda f: f.update(submissions_config={"max_concurrent_submissions": 0}),
+            "max_concurrent_submissions is -1 (no limit) or at least 1",
+        ),
+        (lambda f: f.update(reward=7.35), "reward: a positive whole number"),
+        (lambda f: f.update(maximum_allowed_time=24 * 60), "under 24 hours"),
+    ],
+)
+def test_the_replica_refuses_a_draft_prolific_refuses_and_keeps_nothing(
+    db: Database, spoil: Any, message: str
+) -> None:
+    fields = draft_study(study_config(completion=COMPLETION, prolific=PROLIFIC), 3)
+    spoil(fields)
+    client = replica_client(db)
+    with pytest.raises(ProlificRefused, match=re.escape(message)):
+        client.create_study(fields)
+    made = client.create_study(
+        draft_study(study_config(completion=COMPLETION, prolific=PROLIFIC), 3)
+    )
+    assert made["submissions_config"] == {"max_concurrent_submissions": 3}
+    assert made["filters"][0]["selected_values"] == [PILOT]
+    with db.read() as s:
+        assert s.scalar(select(ProlificReplicaSubmission)) is None
+
+
+# -- the command's refusals ---------------------------------------------------------------------
+def run_command(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    try:
+        status = main(argv)
+    except SystemExit as exit_:  # argparse
+        status = int(exit_.code or 0)
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def test_a_study_file_that_cannot_run_on_prolific_is_refused_before_anything_is_sent(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("BAM_PROLIFIC_TOKEN", "prolific-secret-token")
+    monkeypatch.setenv("BAM_PROLIFIC_API_URL", "http://127.0.0.1:9/api/v1")  # nothing there
+    sent: list[Any] = []
+    monkeypatch.setattr(ProlificClient, "request", lambda *a, **k: sent.append(a))
+
+    mturk = study_file(tmp_path, completion={"mode": "mturk"})
+    status, _, err = run_command(
+        ["prolific", "create", str(mturk), "--max-concurrent", "2"], capsys
+    )
+    assert status == 2 and 'the completion mode is "mturk"' in err
+
+    bad = study_file(tmp_path, reward=6.555)
+    status, _, err = run_command(["prolific", "create", str(bad), "--max-concurrent", "2"], capsys)
+    assert status == 2 and "prolific.reward" in err and "2 decimal places" in err
+
+    bare = study_file(tmp_path, omit=True)
+    status, _, err = run_command(["prolific", "create", str(bare), "--max-concurrent", "2"], capsys)
+    assert status == 2 and "has no [prolific] table" in err
+
+    missing = tmp_path / "nowhere.toml"
+    status, _, err = run_command(["prolific", "create", str(missing)], capsys)
+    assert status == 2 and "cannot read the study configuration" in err
+
+    status, _, err = run_command(["prolific", "publish", "not-an-id"], capsys)
+    assert status == 2 and "is not a Prolific study id" in err
+    status, _, err = run_command(["prolific", "add-places", "a" * 24, "0"], capsys)
+    assert status == 2 and "at least 1" in err
+    status, _, err = run_command(
+        ["prolific", "create", str(study_file(tmp_path)), "--max-concurrent", "0"], capsys
+    )
+    assert status == 2 and "at least 1" in err
+
+    monkeypatch.delenv("BAM_PROLIFIC_TOKEN")
+    status, _, err = run_command(["prolific", "status", "a" * 24], capsys)
+    assert status == 2 and "set BAM_PROLIFIC_TOKEN" in err
+    assert sent == []
+
+    # teach: Prolific participants need the study and the admin token; the study, Prolific.
+    url = ["teach", "--url", "http://127.0.0.1:9"]
+    monkeypatch.delenv("BAM_ADMIN_TOKEN", raising=False)
+    status, _, err = run_command([*url, *TEACH_PROLIFIC, "a" * 24], capsys)
+    assert status == 2 and "BAM_ADMIN_TOKEN" in err
+    monkeypatch.setenv("BAM_ADMIN_TOKEN", ADMIN_TOKEN)
+    status, _, err = run_command([*url, "--platform", "prolific"], capsys)
+    assert status == 2 and "needs --prolific-study" in err
+    status, _, err = run_command([*url, "--prolific-study", "a" * 24], capsys)
+    assert status == 2 and "goes with --platform prolific" in err
+
+
+# -- the whole run on a live server's replica ---------------------------------------------------
+@pytest.fixture
+def server(db: Database, settings: Settings, executor: ProcessPoolExecutor) -> Iterator[str]:
+    """A study server running the Prolific study (the study file's learners made fast), whose
+    dashboard says it serves 2 participants at once."""
+    study = study_config(completion=COMPLETION, max_active_participants=2)
+    app = create_app(settings, study, db=db, executor=executor)
+    with live(app) as base:
+        yield base
+
+
+def test_a_study_runs_on_the_replica_from_the_command_line(
+    server: str,
+    db: Database,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    monkeypatch.setenv("BAM_ADMIN_TOKEN", ADMIN_TOKEN)
+    monkeypatch.delenv("BAM_PROLIFIC_TOKEN", raising=False)
+    path = study_file(tmp_path)
+    replica = ["--replica", server]
+
+    status, out, err = run_command(["prolific", "create", str(path), *replica], capsys)
+    assert status == 0, err
+    study_id = out.strip()
+    assert re.fullmatch(r"[0-9a-f]{24}", study_id)
+    client = ProlificClient(f"{server}/prolific/api/v1", ADMIN_TOKEN)
+    made = client.get_study(study_id)
+    assert made["status"] == "UNPUBLISHED"
+    # The link is the rehearsal server's; the concurrency is what that server serves.
+    assert made["external_study_url"].startswith(f"{server}/study?PROLIFIC_PID=")
+    assert made["submissions_config"] == {"max_concurrent_submissions": 2}
+    assert (made["reward"], made["total_available_places"]) == (735, 3)
+
+    # Pausing a draft is refused by Prolific (the replica): one line, exit 1, no token.
+    status, out, err = run_command(["prolific", "pause", study_id, *replica], capsys)
+    assert status == 1 and "cannot PAUSE" in err and len(err.strip().splitlines()) == 1
+    assert ADMIN_TOKEN not in err + out
+
+    status, out, err = run_command(["prolific", "publish", study_id, *replica], capsys)
+    assert (status, out.strip()) == (0, f"study {study_id}: ACTIVE"), err
+
+    status, out, err = run_command(
+        [
+            "teach",
+            "--url",
+            server,
+            "--participants",
+            "2",
+            "--concurrency",
+            "2",
+            "--rounds",
+            "1",
+            *TEACH_PROLIFIC,
+            study_id,
+        ],
+        capsys,
+    )
+    assert status == 0, out + err
+    assert "participants completed  2 of 2" in out
+
+    # The server's participants are the replica's, arrived through Prolific's link.
+    submissions = {s["participant_id"]: s for s in client.submissions(study_id)}
+    with db.read() as s:
+        arrived = s.scalars(select(Participant)).all()
+    assert len(arrived) == 2
+    for participant in arrived:
+        assert participant.platform == "prolific"
+        assert participant.hit_id == study_id
+        submission = submissions[participant.worker_id]
+        assert participant.assignment_id == submission["id"]
+        assert (submission["status"], submission["study_code"]) == ("AWAITING REVIEW", "C1A2B3C4")
+
+    status, out, err = run_command(["prolific", "status", study_id, *replica], capsys)
+    assert status == 0, err
+    assert re.search(r"^status\s+ACTIVE$", out, re.M), out
+    assert re.search(r"^places\s+2 taken of 3$", out, re.M), out
+    assert re.search(r"^  AWAITING REVIEW\s+2$", out, re.M), out
+
+    status, out, err = run_command(["prolific", "add-places", study_id, "5", *replica], capsys)
+    assert (status, out.strip()) == (0, f"study {study_id}: 5 places"), err
+    status, out, err = run_command(["prolific", "add-places", study_id, "4", *replica], capsys)
+    assert status == 1 and "places only go up" in err and "has 5 places" in err
+    assert client.get_study(study_id)["total_available_places"] == 5
+
+    status, out, err = run_command(["prolific", "pause", study_id, *replica], capsys)
+    assert (status, out.strip()) == (0, f"study {study_id}: PAUSED"), err
+    # Paused: the replica gives no one a place, and the simulated participant says so.
+    status, out, err = run_command(
+        ["teach", "--url", server, "--participants", "1", *TEACH_PROLIFIC, study_id], capsys
+    )
+    assert status == 1
+    assert f"gave no place in study {study_id} (409)" in err and "is PAUSED" in err
+    client.close()
+
+
+def test_a_refusal_of_prolifics_api_reaches_the_user_in_one_line_without_the_token(
+    server: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("BAM_PROLIFIC_API_URL", f"{server}/prolific/api/v1")
+    monkeypatch.setenv("BAM_PROLIFIC_TOKEN", "not-the-token-1234")
+    status, out, err = run_command(["prolific", "status", "a" * 24], capsys)
+    assert status == 1
+    assert err.strip().splitlines() == [
+        f"bam-study prolific status: Prolific refused GET /studies/{'a' * 24}/ (401): "
+        "Invalid token."
+    ]
+    assert "not-the-token-1234" not in out + err
+    monkeypatch.setenv("BAM_PROLIFIC_TOKEN", ADMIN_TOKEN)
+    status, out, err = run_command(["prolific", "publish", "a" * 24], capsys)
+    assert status == 1 and "(404)" in err and f"Study {'a' * 24} not found" in err
+
+
+def test_the_replica_lets_in_no_more_than_max_concurrent_submissions_at_once(server: str) -> None:
+    client = ProlificClient(f"{server}/prolific/api/v1", ADMIN_TOKEN)
+    study = study_config(completion=COMPLETION, prolific=PROLIFIC)
+    made = client.create_study(draft_study(study, max_concurrent=1, base_url=server))
+    client.transition_study(made["id"], "PUBLISH")
+    admin = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    with (
+        httpx.Client(base_url=server, headers=admin) as first,
+        httpx.Client(base_url=server, headers=admin) as second,
+    ):
+        path = f"/prolific/studies/{made['id']}/take-part"
+        assert first.post(path).status_code == 303
+        busy = second.post(path)
+        assert busy.status_code == 409 and "max_concurrent_submissions" in busy.text
+        # The first finishes (the completion redirect): the second may take part.
+        assert first.get("/prolific/submissions/complete?cc=C1A2B3C4").status_code == 200
+        assert second.post(path).status_code == 303
+    statuses = sorted(s["status"] for s in client.submissions(made["id"]))
+    assert statuses == ["ACTIVE", "AWAITING REVIEW"]
+    client.close()
+
+
+def test_simulated_participants_beyond_the_studys_concurrency_wait_their_turn(
+    server: str, db: Database, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("BAM_ADMIN_TOKEN", ADMIN_TOKEN)
+    client = ProlificClient(f"{server}/prolific/api/v1", ADMIN_TOKEN)
+    study = study_config(completion=COMPLETION, prolific=PROLIFIC)
+    made = client.create_study(draft_study(study, max_concurrent=1, base_url=server))
+    client.transition_study(made["id"], "PUBLISH")
+    status, out, err = run_command(
+        [
+            "teach",
+            "--url",
+            server,
+            "--participants",
+            "2",
+            "--concurrency",
+            "2",
+            "--rounds",
+            "1",
+            *TEACH_PROLIFIC,
+            made["id"],
+        ],
+        capsys,
+    )
+    assert status == 0, out + err
+    listed = list(client.submissions(made["id"]))
+    assert [s["status"] for s in listed] == ["AWAITING REVIEW"] * 2
+    # One at a time: the second began after the first had completed.
+    first, second = sorted(listed, key=lambda s: s["started_at"])
+    assert second["started_at"] >= first["completed_at"]
+    client.close()
+
+
+def test_a_simulated_participant_does_not_follow_a_link_to_another_server(
+    server: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("BAM_ADMIN_TOKEN", ADMIN_TOKEN)
+    client = ProlificClient(f"{server}/prolific/api/v1", ADMIN_TOKEN)
+    study = study_config(completion=COMPLETION, prolific=PROLIFIC)
+    made = client.create_study(draft_study(study, max_concurrent=1))  # the public address
+    client.transition_study(made["id"], "PUBLISH")
+    status, _, err = run_command(
+        ["teach", "--url", server, "--participants", "1", *TEACH_PROLIFIC, made["id"]], capsys
+    )
+    assert status == 1
+    assert "https://study.example.org/study?PROLIFIC_PID=" in err
+    assert f"is not on {server}: make the rehearsal's study with" in err
+    client.close()

@@ -19,7 +19,7 @@ import re
 import tomllib
 from decimal import Decimal
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal, get_args
+from typing import TYPE_CHECKING, Annotated, Any, Literal, get_args, get_origin
 from urllib.parse import urlsplit
 
 from pydantic import (
@@ -790,8 +790,10 @@ def _keys_at(loc: tuple[int | str, ...]) -> set[str]:
     """The keys of the table at ``loc`` (list indexes skipped; a question's kind picks its
     class, as in Pydantic's locations)."""
     tables: list[type[BaseModel]] = [StudyConfig]
+    keyed = False  # the tables are a mapping's values: the next part is a key of it
     for part in loc:
-        if isinstance(part, int):
+        if isinstance(part, int) or keyed:
+            keyed = False
             continue
         kinds = [
             table
@@ -806,6 +808,7 @@ def _keys_at(loc: tuple[int | str, ...]) -> set[str]:
         if not fields:
             return set()
         tables = list(_tables_in(fields[0].annotation))
+        keyed = get_origin(fields[0].annotation) is dict
     return {name for table in tables for name in table.model_fields}
 
 

@@ -16,8 +16,9 @@ def study_name(path: Path) -> str:
     return re.sub(r"[^A-Za-z0-9_-]", "-", path.stem) or "study"
 
 
-def register_study(path: Path) -> tuple[str, ...]:
+def register_study(path: Path | str) -> tuple[str, ...]:
     """Register the study's own environments; returns their names in the study's order."""
+    path = Path(path)
     from server.app.config import StudyConfigError, load_study_config
     from server.rl.environments import register_study_environments
 

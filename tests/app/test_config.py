@@ -181,3 +181,41 @@ def test_an_unknown_key_with_no_near_one_lists_the_valid_keys() -> None:
     [line] = [line for line in str(raised.value).splitlines() if "zzzz" in line]
     assert line.startswith("  completion.zzzz: unknown key; valid keys: ")
     assert "mode" in line
+
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "server" / "examples"
+
+
+@pytest.mark.parametrize(
+    ("key", "expected"),
+    [
+        ("horizn", "unknown key; did you mean horizon?"),
+        ("zzzz", "unknown key; valid keys: colours, family, gravity, gravity_colours, horizon"),
+    ],
+)
+def test_an_unknown_key_inside_an_environment_is_named_with_the_environments_keys(
+    tmp_path: Path, key: str, expected: str
+) -> None:
+    """Inside ``[environments.NAME]`` (a table under a name of the study's choosing) the keys
+    are an environment's, not none (the list was empty)."""
+    text = (EXAMPLES / "office-study.toml").read_text()
+    table = 'map_file = "office-floor.txt"'
+    (tmp_path / "office-floor.txt").write_text((EXAMPLES / "office-floor.txt").read_text())
+    study = tmp_path / "study.toml"
+    study.write_text(text.replace(table, f"{table}\n{key} = 40", 1))
+    with pytest.raises(StudyConfigError) as raised:
+        load_study_config(study)
+    [line] = [line for line in str(raised.value).splitlines() if key in line]
+    assert line.startswith(f"  environments.office-floor.{key}: {expected}"), line
+
+
+def test_a_studys_environments_register_from_a_path_given_as_text() -> None:
+    from server import domains
+    from server.commands.studies import register_study
+
+    known = set(domains.names())
+    try:
+        assert register_study(str(EXAMPLES / "office-study.toml")) == ("office-floor",)
+    finally:
+        for name in set(domains.names()) - known:
+            domains.unregister(name)

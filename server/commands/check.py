@@ -98,9 +98,9 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         study = load_study_config(args.study)
-    except StudyConfigError as error:
+    except StudyConfigError as error:  # a file that cannot be used: 2, as serve answers it
         print(f"{PROG}: {error}", file=sys.stderr)
-        return 1
+        return 2
     study.register_environments()
     out = args.out if args.out is not None else Path(f"{args.study.stem}-check")
     out.mkdir(parents=True, exist_ok=True)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from pathlib import Path
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -36,6 +37,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "one who finds the study busy with its max_concurrent_submissions tries again)",
     )
     parser.add_argument(
+        "--study",
+        type=Path,
+        metavar="STUDY.toml",
+        help="the study file the server runs, where it defines environments of its own (the "
+        "simulated teachers find them by name)",
+    )
+    parser.add_argument(
         "--prolific-study",
         metavar="STUDY_ID",
         help="with --platform prolific: the replica's published study to take part in "
@@ -52,6 +60,26 @@ def parse_rounds(text: str) -> tuple[int, int]:
     if not 1 <= bounds[0] <= bounds[1]:
         raise argparse.ArgumentTypeError(f"--rounds must be 1 <= N <= M, got {text!r}")
     return bounds
+
+
+def no_server_at(url: str, timeout: float = 10.0) -> str | None:
+    """Why no study server answers at ``url`` (None: one does), asked once before any
+    participant starts: without it each simulated participant retried for two minutes in
+    silence and then failed."""
+    import httpx
+
+    try:
+        response = httpx.get(f"{url.rstrip('/')}/api/study", timeout=timeout)
+    except httpx.InvalidURL as error:
+        return f"--url {url!r} is not a URL: {error}"
+    except httpx.HTTPError as error:
+        return (
+            f"no study server answers at {url} ({error or type(error).__name__}): start one "
+            "with `bam-study serve`, or give its address with --url"
+        )
+    if response.status_code != 200:
+        return f"{url} answered /api/study with {response.status_code}: is it a study server?"
+    return None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -86,6 +114,18 @@ def run(args: argparse.Namespace) -> int:
     elif args.prolific_study:
         print("bam-study teach: --prolific-study goes with --platform prolific", file=sys.stderr)
         return 2
+    if args.study is not None:
+        from server.commands.studies import StudyEnvironmentsError, register_study
+
+        try:
+            register_study(args.study)
+        except StudyEnvironmentsError as error:
+            print(f"bam-study teach: {error}", file=sys.stderr)
+            return 2
+    unreachable = no_server_at(args.url)
+    if unreachable is not None:
+        print(f"bam-study teach: {unreachable}", file=sys.stderr)
+        return 1
     plan = TeachingPlan(
         min_rounds=low,
         max_rounds=high,

@@ -361,3 +361,35 @@ def test_a_study_file_goes_on_prolific_for_the_demo() -> None:
         assert study.completion.mode == "prolific" and study.prolific is not None
     assert "[prolific]" in on_prolific('title = "x"\n')
     assert on_prolific('title = "x"\n').count("[completion]") == 1
+
+
+def test_teach_at_an_address_where_no_server_listens_says_so_at_once(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Asked once before any participant starts (each retried for two minutes in silence)."""
+    import socket
+
+    with socket.socket() as closed:
+        closed.bind(("127.0.0.1", 0))
+        port = closed.getsockname()[1]  # bound, never listening: connections are refused
+        assert main(["teach", "--url", f"http://127.0.0.1:{port}", "--participants", "1"]) == 1
+    error = capsys.readouterr().err
+    assert f"no study server answers at http://127.0.0.1:{port}" in error
+    assert "bam-study serve" in error
+
+
+def test_teach_takes_the_study_file_whose_environments_its_teachers_need(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("title = 1\n")
+    url = ["teach", "--url", "http://127.0.0.1:9", "--participants", "1"]
+    assert main([*url, "--study", str(bad)]) == 2
+    assert "is not a valid study" in capsys.readouterr().err
+    known = set(domains.names())
+    try:
+        assert main([*url, "--study", str(EXAMPLES / "office-study.toml")]) == 1  # no server
+        assert set(domains.names()) - known == {"office-floor"}
+    finally:
+        for name in set(domains.names()) - known:
+            domains.unregister(name)

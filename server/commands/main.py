@@ -63,9 +63,24 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def subcommand_parser(
+    parser: argparse.ArgumentParser, argv: Sequence[str]
+) -> argparse.ArgumentParser:
+    """The parser of the deepest subcommand ``argv`` names (``prolific create``'s, say)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for word in argv:
+                if word in action.choices:
+                    return subcommand_parser(action.choices[word], argv[argv.index(word) + 1 :])
+    return parser
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    words = list(sys.argv[1:] if argv is None else argv)
+    args, unknown = parser.parse_known_args(words)
+    if unknown:  # said by the subcommand's parser, with its usage, not the top level's
+        subcommand_parser(parser, words).error(f"unrecognized arguments: {' '.join(unknown)}")
     module = importlib.import_module(args._module)
     try:
         return int(module.run(args) or 0)

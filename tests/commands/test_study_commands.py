@@ -393,3 +393,21 @@ def test_teach_takes_the_study_file_whose_environments_its_teachers_need(
     finally:
         for name in set(domains.names()) - known:
             domains.unregister(name)
+
+
+@pytest.mark.parametrize(
+    ("argv", "usage"),
+    [
+        (["check", "x.toml", "--bogus"], "usage: bam-study check "),
+        (["db", "scrub", "--bogus"], "usage: bam-study db "),
+        (["prolific", "status", "a" * 24, "--bogus"], "usage: bam-study prolific status "),
+    ],
+)
+def test_a_wrong_flag_is_answered_with_its_subcommands_usage(
+    argv: list[str], usage: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exited:
+        main(argv)
+    assert exited.value.code == 2
+    error = capsys.readouterr().err
+    assert error.startswith(usage) and "unrecognized arguments: --bogus" in error

@@ -55,6 +55,15 @@ def notice(request: Request, title: str, message: str, status_code: int) -> Resp
     )
 
 
+def sentence(text: str) -> str:
+    """An API error's message (a clause: "the Prolific link lacks SESSION_ID") as a page's
+    sentence: a capital first letter and a full stop."""
+    text = text.strip()
+    if not text:
+        return text
+    return text[0].upper() + text[1:] + ("" if text.endswith((".", "!", "?")) else ".")
+
+
 def set_participant_cookie(response: Response, state: ServerState, token: str) -> None:
     settings = state.settings
     response.set_cookie(

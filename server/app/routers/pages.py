@@ -16,7 +16,7 @@ from server.app.deps import StateDep
 from server.app.errors import ApiError, TurnedAway
 from server.app.participants import places
 from server.app.platform_registry import arrival_parameters
-from server.app.routers.common import arrive, notice, templates
+from server.app.routers.common import arrive, notice, sentence, templates
 from server.app.schemas import ArrivalRequest, ArrivalResponse
 from server.app.state import ServerState
 
@@ -44,7 +44,9 @@ def study_page(request: Request, state: StateDep) -> Response:
     except TurnedAway as refused:
         return notice(request, refused.title, refused.message, refused.status)
     except ApiError as error:
-        return notice(request, "This study link is not valid", error.message, error.status)
+        return notice(
+            request, "This study link is not valid", sentence(error.message), error.status
+        )
     if arrival.preview:
         return templates.TemplateResponse(request, "preview.html", {"study": state.study.public()})
     assert arrival.participant is not None

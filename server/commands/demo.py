@@ -231,7 +231,7 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
     from server.app.export.files import write_export
     from server.app.export.tables import export_tables
     from server.app.storage.db import Database, upgrade
-    from server.commands.live import ServerProcess
+    from server.commands.live import ServerProcess, WarmUpNotice
     from server.commands.simulated import TeachingPlan, run_participants
     from server.simulation.progress import Progress
 
@@ -275,7 +275,9 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
             file=err,
             flush=True,
         )
-        with ServerProcess(out, environment) as server:
+        starting = ServerProcess(out, environment)
+        starting.waiting = WarmUpNotice(err)
+        with starting as server:
             prolific = None
             if options.platform == "prolific":
                 prolific = publish_on_replica(study, server.url, admin_token, options, err)

@@ -10,7 +10,9 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import httpx
 
@@ -34,12 +36,18 @@ class ServerProcess:
         self.environment = {**os.environ, **environment}
         self.process: subprocess.Popen[bytes] | None = None
         self.starts = 0
+        # Told how long the start has taken while the update processes warm up (``start``).
+        self.waiting: Callable[[float, dict[str, Any]], None] | None = None
 
     @property
     def log_path(self) -> Path:
         return self.folder / f"server-{self.starts}.log"
 
-    def start(self, timeout: float = 600.0) -> None:
+    def start(
+        self, timeout: float = 600.0, waiting: Callable[[float, dict[str, Any]], None] | None = None
+    ) -> None:
+        """Start the server and return once it is ready (``/api/health`` 200); ``waiting`` is
+        told the seconds so far and the health answer while the update processes warm up."""
         self.starts += 1
         with open(self.log_path, "wb") as log:
             self.process = subprocess.Popen(
@@ -55,9 +63,12 @@ class ServerProcess:
             if self.process.poll() is not None:
                 raise RuntimeError(f"the server exited:\n{self.log()}")
             try:
-                if httpx.get(f"{self.url}/api/health", timeout=1).status_code == 200:
+                answer = httpx.get(f"{self.url}/api/health", timeout=1)
+                if answer.status_code == 200:
                     return
-            except httpx.HTTPError:
+                if waiting is not None and answer.status_code == 503:
+                    waiting(time.monotonic() - (deadline - timeout), answer.json())
+            except (httpx.HTTPError, ValueError):
                 pass
             time.sleep(0.1)
         self.stop()
@@ -83,8 +94,38 @@ class ServerProcess:
         return self.log_path.read_text(errors="replace")[-4000:] if self.log_path.exists() else ""
 
     def __enter__(self) -> ServerProcess:
-        self.start()
+        self.start(waiting=self.waiting)
         return self
 
     def __exit__(self, *_: object) -> None:
         self.stop()
+
+
+class WarmUpNotice:
+    """What a command says while its server's update processes load the learners' kernels:
+    a first line saying why it waits (compiling them takes minutes on a machine whose cache
+    lacks them), then the time so far and the processes ready, every ``every`` seconds."""
+
+    def __init__(self, stream: Any, every: float = 15.0) -> None:
+        self.stream = stream
+        self.every = every
+        self.said_at: float | None = None
+
+    def __call__(self, seconds: float, health: dict[str, Any]) -> None:
+        if self.said_at is None:
+            print(
+                "the server's update processes are loading the learners' compiled kernels "
+                "(the first time on a machine, one of them compiles them: about two minutes; "
+                "then a second or two)",
+                file=self.stream,
+                flush=True,
+            )
+            self.said_at = seconds
+        elif seconds - self.said_at >= self.every:
+            warm, of = health.get("update_processes_warm", 0), health.get("update_processes", "?")
+            print(
+                f"  ... {seconds:.0f} s, {warm} of {of} update processes ready",
+                file=self.stream,
+                flush=True,
+            )
+            self.said_at = seconds

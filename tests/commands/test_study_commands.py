@@ -411,3 +411,20 @@ def test_a_wrong_flag_is_answered_with_its_subcommands_usage(
     assert exited.value.code == 2
     error = capsys.readouterr().err
     assert error.startswith(usage) and "unrecognized arguments: --bogus" in error
+
+
+def test_a_command_waiting_for_its_servers_warm_up_says_why_and_how_long() -> None:
+    import io
+
+    from server.commands.live import WarmUpNotice
+
+    stream = io.StringIO()
+    notice = WarmUpNotice(stream, every=15.0)
+    for seconds, warm in ((0.5, 0), (5.0, 0), (16.0, 1), (20.0, 1), (31.5, 1)):
+        notice(seconds, {"update_processes_warm": warm, "update_processes": 2})
+    lines = stream.getvalue().splitlines()
+    assert "compiled kernels" in lines[0] and "about two minutes" in lines[0]
+    assert lines[1:] == [
+        "  ... 16 s, 1 of 2 update processes ready",
+        "  ... 32 s, 1 of 2 update processes ready",
+    ]

@@ -8,7 +8,7 @@ the row and the column.
 
 Table 1 counts the learning sessions of the participants who completed the study (as the
 paper's section 5 did: 58 of the 129 who began); ``include_unfinished`` adds the taught
-sessions (those with at least one evaluation) of the participants who did not. A note says how
+sessions (those with at least one episode or action) of the participants who did not. A note says how
 many sessions were left out and why (``analysis.selection``).
 
 Empty episodes are not counted. Before the study server refused to start an episode on its

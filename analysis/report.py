@@ -52,7 +52,7 @@ def describe_files(baseline: str, thresholds: Sequence[float], fdr: float) -> st
 
 Learning sessions counted: those of the participants who completed the study (`status`
 completed or submitted in `participants.csv`), as in the paper. `--include-unfinished` adds
-the taught sessions (at least one evaluation) of the participants who did not finish;
+the taught sessions (at least one episode or action) of the participants who did not finish;
 `--exclude-excluded` drops those of the participants the experimenter excluded, and
 `--exclude-flagged` those of the participants a chosen quality check flags (`quality.csv`). A
 note says

@@ -49,7 +49,7 @@ def keep_finished(
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """The learning sessions Table 1 counts, and their evaluations: those of the participants
     who completed the study (``COMPLETED_STATUSES``) and, with ``include_unfinished``, the
-    taught ones (at least one evaluation) of the others. A note says how many were left out
+    taught ones (at least one episode or action) of the others. A note says how many were left out
     (or added), by why their participants did not finish (``UNFINISHED_REASONS``)."""
     if participants is None or not {"participant_id", "status"} <= set(participants.columns):
         if unreadable is not None:
@@ -75,7 +75,7 @@ def keep_finished(
     if not unfinished.any():
         return sessions, evaluations
     reason = status.map(lambda s: _unfinished_reason(s, source))
-    taught = sessions["session_id"].isin(set(evaluations["session_id"]))
+    taught = sessions["session_id"].isin(taught_sessions(evaluations))
     left_out = unfinished & ~taught if include_unfinished else unfinished
     people = int(sessions.loc[unfinished, "participant_id"].nunique())
     if include_unfinished:
@@ -88,8 +88,8 @@ def keep_finished(
             )
         if left_out.any():
             notes.append(
-                f"left out {count_phrase(int(left_out.sum()), 'learning session')} never taught (no "
-                "evaluations) of participants who did not complete the study "
+                f"left out {count_phrase(int(left_out.sum()), 'learning session')} never taught (no episode "
+                "or action) of participants who did not complete the study "
                 f"({_by_reason(reason[left_out])})"
             )
     else:
@@ -97,7 +97,7 @@ def keep_finished(
         never = (
             "none was taught"
             if untaught == int(unfinished.sum())
-            else f"{untaught} never taught (no evaluations)"
+            else f"{untaught} never taught (no episode or action)"
             if untaught
             else "all were taught"
         )
@@ -114,6 +114,15 @@ def keep_finished(
         evaluations["session_id"].isin(set(sessions["session_id"]))
     ].reset_index(drop=True)
     return sessions, evaluations
+
+
+def taught_sessions(evaluations: pd.DataFrame) -> set[object]:
+    """The sessions taught something: an evaluation after at least one episode or one action.
+    An evaluation alone is not teaching: the agent is evaluated before any data
+    (``update_index`` 0, no episode and no action), so an agent the participant never opened
+    has one too."""
+    done = evaluations["episodes"].fillna(0).gt(0) | evaluations["actions"].fillna(0).gt(0)
+    return set(evaluations.loc[done, "session_id"])
 
 
 def _unfinished_reason(status: object, source: str) -> str:

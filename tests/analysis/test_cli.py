@@ -300,7 +300,7 @@ def test_sessions_of_participants_who_did_not_finish_are_left_out_unless_asked_f
     export = write_export(tmp_path / "export", small_study(), participants=statuses)
     note = (
         "left out 6 learning sessions of 1 participant who did not complete the study "
-        "(returned the task: 6); 1 never taught (no evaluations); --include-unfinished adds "
+        "(returned the task: 6); 1 never taught (no episode or action); --include-unfinished adds "
         "the 5 taught"
     )
     out = tmp_path / "out"
@@ -325,7 +325,7 @@ def test_sessions_of_participants_who_did_not_finish_are_left_out_unless_asked_f
         "- --include-unfinished: counted 5 taught learning sessions of 1 participant who did "
         "not complete the study (returned the task: 5)"
     ) in stdout
-    assert "- left out 1 learning session never taught (no evaluations)" in stdout
+    assert "- left out 1 learning session never taught (no episode or action)" in stdout
 
 
 def test_the_readme_gives_the_notes_there_are_and_no_other(

@@ -265,7 +265,7 @@ def test_only_the_sessions_of_participants_who_completed_the_study_are_counted(
     assert notes == [
         "left out 6 learning sessions of 3 participants who did not complete the study "
         "(returned the task: 2, still in the study: 2, timed out: 2); 4 never taught (no "
-        "evaluations); --include-unfinished adds the 2 taught"
+        "episode or action); --include-unfinished adds the 2 taught"
     ]
 
     notes = []
@@ -275,7 +275,7 @@ def test_only_the_sessions_of_participants_who_completed_the_study_are_counted(
     assert notes == [
         "--include-unfinished: counted 2 taught learning sessions of 2 participants who did not "
         "complete the study (still in the study: 1, timed out: 1)",
-        "left out 4 learning sessions never taught (no evaluations) of participants who did not "
+        "left out 4 learning sessions never taught (no episode or action) of participants who did not "
         "complete the study (returned the task: 2, still in the study: 1, timed out: 1)",
     ]
 
@@ -302,7 +302,7 @@ def test_an_unknown_or_missing_status_is_named_in_the_note(tmp_path: Path) -> No
     assert sessions["session_id"].tolist() == ["a"]
     assert notes == [
         "left out 2 learning sessions of 2 participants who did not complete the study "
-        "(not in participants.csv: 1, status 'x': 1); 1 never taught (no evaluations); "
+        "(not in participants.csv: 1, status 'x': 1); 1 never taught (no episode or action); "
         "--include-unfinished adds the 1 taught"
     ]
 
@@ -328,3 +328,24 @@ def test_no_participant_who_completed_the_study_is_a_clear_error(tmp_path: Path)
         load_tables(folder)
     sessions, _ = load_tables(folder, include_unfinished=True)
     assert sessions["session_id"].tolist() == ["t1"]
+
+
+def test_an_agent_evaluated_but_never_opened_is_not_taught(tmp_path: Path) -> None:
+    """Every agent is evaluated before any data (update 0, no episode, no action): one the
+    participant never opened has that evaluation alone, and --include-unfinished must not
+    count it as taught (it added it as a session that reached no threshold)."""
+    study = [
+        ("a1", "p1", "two-rooms", "bam", 0, TAUGHT),
+        ("a2", "p1", "two-rooms", "cloning", 1, TAUGHT),
+        ("u1", "p2", "two-rooms", "bam", 0, TAUGHT),
+        ("u2", "p2", "two-rooms", "cloning", 1, [(0, 0, 0.1)]),  # evaluated, never opened
+    ]
+    folder = write_export(
+        tmp_path / "export", study, participants={"p1": "submitted", "p2": "returned"}
+    )
+    notes: list[str] = []
+    sessions, _ = load_tables(folder, include_unfinished=True, notes=notes)
+    assert sessions["session_id"].tolist() == ["a1", "a2", "u1"]
+    assert any(
+        "left out 1 learning session never taught (no episode or action)" in n for n in notes
+    )

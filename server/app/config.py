@@ -689,19 +689,24 @@ class StudyConfig(_Strict):
         from server import domains
 
         problems: list[str] = []
-        for domain in self.domains:
+        for number, domain in enumerate(self.domains):
+            where = {name: f"domains.{number}.environments" for name in domain.environments}
+            if domain.tutorial is not None:
+                where[domain.tutorial] = f"domains.{number}.tutorial"
             for environment in (*domain.environments, domain.tutorial):
                 if environment is None or environment in domains.NAMES:
                     continue
                 own = self.environments.get(environment)
                 if own is None:
                     problems.append(
-                        f"domain {domain.name!r}: no environment {environment!r}; valid: "
+                        f"{where[environment]}: domain {domain.name!r}: no environment "
+                        f"{environment!r}; valid: "
                         f"{', '.join((*domains.DOMAINS[domain.name], *self.environments))}"
                     )
                 elif own.family != domain.name:
                     problems.append(
-                        f"domain {domain.name!r}: {environment!r} is a {own.family} environment"
+                        f"{where[environment]}: domain {domain.name!r}: {environment!r} is a "
+                        f"{own.family} environment"
                     )
         if problems:
             raise ValueError("\n    ".join(problems))
@@ -769,12 +774,19 @@ def _format_errors(error: ValidationError) -> str:
     for item in error.errors():
         where = ".".join(str(part) for part in item["loc"]) or "(top level)"
         message = item["msg"].removeprefix("Value error, ")
+        if not item["loc"] and _LOCATED.match(message):  # a whole-study check names its places
+            lines.append(f"  {message}")
+            continue
         if item["type"] == "union_tag_not_found":  # a question without its kind
             message = "needs kind = 'text', 'likert' or 'choice'"
         elif item["type"] == "extra_forbidden":
             message = _unknown_key(item["loc"])
         lines.append(f"  {where}: {message}")
     return "\n".join(lines)
+
+
+# A problem that a check of the whole study found, named by its place ("domains.0.tutorial: ...").
+_LOCATED = re.compile(r"^[a-z_]+(\.[A-Za-z0-9_-]+)*: ")
 
 
 def _unknown_key(loc: tuple[int | str, ...]) -> str:

@@ -219,3 +219,16 @@ def test_a_studys_environments_register_from_a_path_given_as_text() -> None:
     finally:
         for name in set(domains.names()) - known:
             domains.unregister(name)
+
+
+def test_an_unknown_environment_of_a_domain_is_located_in_the_domain() -> None:
+    data = tomllib.loads(PAPER)
+    data["domains"][0]["environments"] = [*data["domains"][0]["environments"], "kitchen"]
+    with pytest.raises(StudyConfigError) as raised:
+        parse_study_config(data, "study.toml")
+    lines = str(raised.value).splitlines()
+    name = data["domains"][0]["name"]
+    assert f"  domains.0.environments: domain {name!r}: no environment 'kitchen'" in "\n".join(
+        lines
+    ), lines
+    assert "(top level)" not in str(raised.value)

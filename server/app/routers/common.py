@@ -61,7 +61,10 @@ def sentence(text: str) -> str:
     text = text.strip()
     if not text:
         return text
-    return text[0].upper() + text[1:] + ("" if text.endswith((".", "!", "?")) else ".")
+    first = text.split(" ", 1)[0]
+    if first.isalpha() and first.islower():  # a word, not a name such as turkSubmitTo
+        text = text[0].upper() + text[1:]
+    return text + ("" if text.endswith((".", "!", "?")) else ".")
 
 
 def set_participant_cookie(response: Response, state: ServerState, token: str) -> None:

@@ -18,6 +18,7 @@ or zero (separation): the model is not fitted and a note says why.
 from __future__ import annotations
 
 import math
+import sys
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -101,6 +102,9 @@ def _pair(data: pd.DataFrame, baseline: str, alternative: str, pooled: bool) -> 
     return _fit(data, baseline, alternative, pooled, "; ".join(notes))
 
 
+_LARGEST_LOG = math.log(sys.float_info.max)  # about 709.8
+
+
 def _none(note: str) -> OddsRatio:
     return OddsRatio(None, None, None, None, note)
 
@@ -133,6 +137,10 @@ def _fit(data: pd.DataFrame, baseline: str, alternative: str, pooled: bool, note
     coefficient, se = float(fit.params[1]), float(fit.bse[1])
     if not (math.isfinite(coefficient) and math.isfinite(se) and se > 0):
         return _none("the model did not converge")
+    if abs(coefficient) + Z95 * se > _LARGEST_LOG:
+        # A near-separation the counts above miss (a covariate's level, the position): the
+        # interval's bound is not a float.
+        return _none("the model did not converge (the odds ratio's interval is unbounded)")
     return OddsRatio(
         math.exp(coefficient),
         math.exp(coefficient - Z95 * se),

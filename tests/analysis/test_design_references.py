@@ -312,3 +312,21 @@ def test_gee_refuses_separated_data() -> None:
     )
     found = models.gee_odds_ratios(summary, 0.5, "bam", ["cloning"], pooled=False)["cloning"]
     assert found.ratio is None and "every BAM session reached it" in found.note
+
+
+def test_gee_whose_interval_is_not_a_float_is_not_estimated() -> None:
+    """Success follows the position (both sessions at 0 and 4 reached the threshold, one of
+    the six at 2 and 3) while each learner has successes and failures: the fit's standard error
+    makes the interval's bound overflow a float, which is reported, not raised."""
+    summary = pd.DataFrame(
+        {
+            "participant_id": ["p0", "p0", "p1", "p1", "p2", "p2", "p3", "p3"],
+            "environment": "e",
+            "learner": ["bam", "cloning"] * 4,
+            "position": [3, 2, 3, 2, 4, 0, 3, 2],
+            "reached_50": [False, False, False, True, True, True, False, False],
+        }
+    )
+    found = models.gee_odds_ratios(summary, 0.5, "bam", ["cloning"], pooled=False)["cloning"]
+    assert found.ratio is None and found.low is None and found.high is None
+    assert "did not converge" in found.note

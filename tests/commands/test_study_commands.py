@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import csv
 import re
-from collections.abc import Iterator
 from pathlib import Path
 
 import gymnasium as gym
@@ -24,17 +23,9 @@ EXAMPLES = Path(__file__).resolve().parents[2] / "server" / "examples"
 STUDIES = {"office-study": "office-floor", "vineyard-study": "vineyard"}
 
 
-@pytest.fixture
-def forget() -> Iterator[None]:
-    before = set(domains.names())
-    yield
-    for name in set(domains.names()) - before:
-        domains.unregister(name)
-
-
 @pytest.mark.parametrize("study", sorted(STUDIES))
 def test_check_draws_each_environment_with_its_optimal_returns(
-    study: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], forget: None
+    study: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     assert main(["check", str(EXAMPLES / f"{study}.toml"), "--out", str(tmp_path)]) == 0
     printed = capsys.readouterr().out
@@ -62,7 +53,6 @@ def test_check_warns_above_the_capacity(
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
     monkeypatch: pytest.MonkeyPatch,
-    forget: None,
 ) -> None:
     """With a learner timed at 1e-5 s per unit of size, the vineyard (869,400 units) takes
     8.7 s, above the capacity; 1e-9 s is far below it."""
@@ -154,7 +144,7 @@ def test_check_prints_the_traps_of_the_papers_gravity_maps(
 
 
 @pytest.mark.parametrize("study", sorted(STUDIES))
-def test_a_short_simulation_of_each_example(study: str, tmp_path: Path, forget: None) -> None:
+def test_a_short_simulation_of_each_example(study: str, tmp_path: Path) -> None:
     out = tmp_path / "run"
     argv = ["simulate", "--study", str(EXAMPLES / f"{study}.toml"), "--experiment",
             "demonstrations", "--learners", "bam", "--agents", "1", "--rounds", "1", "--jobs",
@@ -176,7 +166,7 @@ def test_a_short_simulation_of_each_example(study: str, tmp_path: Path, forget: 
         assert returns[1] > returns[0]
 
 
-def test_a_study_s_environment_is_a_gymnasium_id(forget: None) -> None:
+def test_a_study_s_environment_is_a_gymnasium_id() -> None:
     from server.commands.studies import register_study
 
     (name,) = register_study(EXAMPLES / "office-study.toml")
@@ -199,7 +189,6 @@ def test_demo_runs_the_example_study_end_to_end(
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
     monkeypatch: pytest.MonkeyPatch,
-    forget: None,
 ) -> None:
     """``bam-study demo --study``: a server on SQLite, a simulated participant teaching the
     study's own environment (the office floor; the vineyard, with its vines and trellis), the
@@ -280,7 +269,7 @@ def test_demo_runs_the_example_study_end_to_end(
 
 
 def test_a_study_s_teacher_datasets_are_minari_datasets(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, forget: None
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     import minari
 
@@ -305,7 +294,7 @@ def test_a_study_s_teacher_datasets_are_minari_datasets(
 
 
 @pytest.mark.slow
-def test_demo_runs_on_the_prolific_replica(tmp_path: Path, forget: None) -> None:
+def test_demo_runs_on_the_prolific_replica(tmp_path: Path) -> None:
     """``bam-study demo --platform prolific``: the study made and published on the server's
     Prolific replica, the simulated participants arriving there as Prolific participants and
     sent back to it at the end: every submission awaits review, and the export and the

@@ -2,8 +2,9 @@
 (``submission.status.change``, signature checked, each event applied once) and from a poll of
 the study's submissions (for a server without a public https address).
 
-A participant whose submission is RETURNED or TIMED-OUT is released at once: their flow status
-becomes ``returned`` (so they no longer count in the balanced domain assignment, and the
+A participant still working whose submission is RETURNED or TIMED-OUT is released at once
+(one who had finished keeps their status, see ``NOT_RELEASED``): their flow status becomes
+``returned`` (so they no longer count in the balanced domain assignment, and the
 study's pages refuse to go on), their active learning sessions stop, and their data stays,
 marked with Prolific's status."""
 
@@ -29,6 +30,11 @@ from server.app.storage.models import (
 )
 
 RELEASED = ("RETURNED", "TIMED-OUT")
+# Flow statuses a RETURNED or TIMED-OUT submission leaves as they are: the flow had ended, or
+# the participant had finished, which Prolific allows past the time limit ("Participants can
+# still complete their submission if they go over the time limit"); such a finisher stays
+# reviewable, marked with Prolific's status.
+NOT_RELEASED = ("returned", "declined", "completed", "submitted")
 # A webhook older (or newer) than this is refused: a replay of a captured request.
 WEBHOOK_MAX_AGE_SECONDS = 300
 
@@ -48,7 +54,9 @@ def verify(
 ) -> None:
     if not timestamp or not given:
         raise WebhookRefused("the request is not signed")
-    if not timestamp.isdigit():
+    # ASCII digits only (``"²³".isdigit()`` holds), and few enough to be a time: a longer one
+    # overflows the subtraction below.
+    if not (timestamp.isascii() and timestamp.isdigit() and len(timestamp) <= 12):
         raise WebhookRefused("the timestamp is not a UNIX time")
     age = (time.time() if now is None else now) - int(timestamp)
     if abs(age) > WEBHOOK_MAX_AGE_SECONDS:
@@ -82,7 +90,7 @@ def apply_status(db: Database, study_id: str | None, submission_id: str, status:
         if p is None:
             return False
         p.platform_status = status
-        if status in RELEASED and p.status not in ("returned", "declined"):
+        if status in RELEASED and p.status not in NOT_RELEASED:
             now = utcnow()
             p.status = "returned"
             s.add(

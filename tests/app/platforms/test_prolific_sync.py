@@ -21,7 +21,12 @@ from server.app.export.tables import export_tables
 from server.app.main import create_app
 from server.app.platforms.prolific import ProlificClient
 from server.app.platforms.prolific_replica import ReplicaTransport
-from server.app.platforms.prolific_sync import reconcile_submissions, signature
+from server.app.platforms.prolific_sync import (
+    WebhookRefused,
+    reconcile_submissions,
+    signature,
+    verify,
+)
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Participant, StatusChange
@@ -47,7 +52,9 @@ def client(
         yield test_client
 
 
-def teaching(db: Database, pid: str, submission: str, study_id: str = "a" * 24) -> int:
+def teaching(
+    db: Database, pid: str, submission: str, study_id: str = "a" * 24, status: str = "teaching"
+) -> int:
     with db.write() as s:
         p = Participant(
             token_hash=os.urandom(32).hex(),
@@ -55,7 +62,7 @@ def teaching(db: Database, pid: str, submission: str, study_id: str = "a" * 24) 
             worker_id=pid,
             assignment_id=submission,
             hit_id=study_id,
-            status="teaching",
+            status=status,
         )
         s.add(p)
         s.flush()
@@ -256,3 +263,39 @@ def test_a_prolific_participant_who_declines_consent_is_sent_back_with_no_consen
         "mode": "prolific",
         "redirect_url": "https://app.prolific.com/submissions/complete?cc=NOCONSNT",
     }
+
+
+@pytest.mark.parametrize("timestamp", ["²³", "1" * 400, "9" * 5000, "-5", " 17", "1.5e9"])
+def test_a_webhook_timestamp_that_is_not_a_unix_time_is_refused_not_raised(
+    timestamp: str,
+) -> None:
+    """Refused as a forgery (401), never an error of ours (500): superscript digits pass
+    ``str.isdigit`` and fail ``int``; hundreds of digits overflow a float."""
+    with pytest.raises(WebhookRefused, match="not a UNIX time"):
+        verify(SECRET, timestamp, signature(SECRET, timestamp, b"{}"), b"{}")
+
+
+def test_a_time_out_or_return_releases_only_who_is_still_working(
+    client: TestClient, db: Database
+) -> None:
+    """Prolific lets a participant past the time limit finish: one who completed or submitted
+    keeps that status (reviewable, paid if approved), marked TIMED-OUT; one still teaching
+    is released."""
+    ids = {
+        status: teaching(db, f"{n}" * 24, f"{n + 4}" * 24, status=status)
+        for n, status in enumerate(("teaching", "completed", "submitted"), start=1)
+    }
+    for n in range(1, len(ids) + 1):
+        event = {
+            "event_type": "submission.status.change",
+            "resource_id": f"{n + 4}" * 24,
+            "study_id": "a" * 24,
+            "status": "TIMED-OUT",
+        }
+        assert send(client, event, f"ev-{n}").json()["result"] == "applied"
+    assert status_of(db, ids["teaching"]) == ("returned", "TIMED-OUT")
+    assert status_of(db, ids["completed"]) == ("completed", "TIMED-OUT")
+    assert status_of(db, ids["submitted"]) == ("submitted", "TIMED-OUT")
+    with db.read() as s:
+        released = set(s.scalars(select(StatusChange.participant_id)))
+    assert released == {ids["teaching"]}

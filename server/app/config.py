@@ -15,6 +15,7 @@ checked.
 from __future__ import annotations
 
 import difflib
+import math
 import re
 import tomllib
 from decimal import Decimal
@@ -358,6 +359,14 @@ PROLIFIC_LINK_QUERY = (
 PROLIFIC_ID = r"^[0-9a-f]{24}$"
 
 
+def prolific_least_maximum_minutes(estimated: int) -> int:
+    """The least ``maximum_allowed_time`` Prolific accepts for an estimate of ``estimated``
+    minutes: "two minutes plus two times the estimated time plus two times the square root of
+    the estimated time" (its API reference; the participant help page's 2 + X + 2√X is the
+    lower, so this one is kept), rounded up to a whole minute."""
+    return math.ceil(2 + 2 * estimated + 2 * math.sqrt(estimated))
+
+
 class ProlificStudy(_Strict):
     """The study as ``bam-study prolific create`` makes it on Prolific (with completion mode
     prolific): what participants see there, the places and the pay, the times, who may not
@@ -388,7 +397,8 @@ class ProlificStudy(_Strict):
     maximum_minutes: int = Field(
         ge=1,
         description="The longest a participant may take, in minutes (maximum_allowed_time): "
-        "at least estimated_minutes, under 24 hours.",
+        "at least Prolific's least maximum for the estimate (2 + 2X + 2√X minutes for an "
+        "estimate of X: 73 for 30), under 24 hours.",
     )
     previous_studies_blocklist: tuple[str, ...] = Field(
         (),
@@ -433,6 +443,13 @@ class ProlificStudy(_Strict):
             raise ValueError(
                 f"maximum_minutes ({self.maximum_minutes}) is less than estimated_minutes "
                 f"({self.estimated_minutes})"
+            )
+        floor = prolific_least_maximum_minutes(self.estimated_minutes)
+        if self.maximum_minutes < floor:
+            raise ValueError(
+                f"maximum_minutes ({self.maximum_minutes}) is below Prolific's least maximum "
+                f"time for estimated_minutes {self.estimated_minutes}: {floor} (2 + 2 x "
+                "estimate + 2 x its square root, in minutes); Prolific refuses the study"
             )
         return self
 

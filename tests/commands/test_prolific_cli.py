@@ -139,6 +139,11 @@ def test_the_draft_has_prolifics_placeholders_cents_codes_blocklist_and_concurre
         ({"reward": 0}, "prolific.reward: Input should be greater than 0"),
         ({"maximum_minutes": 20}, "maximum_minutes (20) is less than estimated_minutes (30)"),
         ({"maximum_minutes": 1440}, "maximum_minutes (1440) must be under 24 hours"),
+        (
+            {"maximum_minutes": 72},
+            "maximum_minutes (72) is below Prolific's least maximum time for estimated_minutes "
+            "30: 73",
+        ),
         ({"places": 0}, "prolific.places: Input should be greater than or equal to 1"),
         ({"public_url": "http://study.example.org"}, "public address starts with https://"),
         ({"public_url": "https://study.example.org/study?x=1"}, "the server's address only"),
@@ -225,6 +230,9 @@ def first_action(fields: dict[str, Any], code: int = 0) -> dict[str, Any]:
         ),
         (lambda f: f.update(reward=7.35), "reward: a positive whole number"),
         (lambda f: f.update(maximum_allowed_time=24 * 60), "under 24 hours"),
+        # 2 + 2 x 30 + 2 x sqrt(30) = 72.95: Prolific's floor for an estimate of 30 minutes.
+        (lambda f: f.update(maximum_allowed_time=72), "at least 73 minutes"),
+        (lambda f: f.update(maximum_allowed_time=31), "at least 73 minutes"),
     ],
 )
 def test_the_replica_refuses_a_draft_prolific_refuses_and_keeps_nothing(
@@ -490,3 +498,14 @@ def test_a_simulated_participant_does_not_follow_a_link_to_another_server(
     assert "https://study.example.org/study?PROLIFIC_PID=" in err
     assert f"is not on {server}: make the rehearsal's study with" in err
     client.close()
+
+
+def test_the_replica_gives_a_draft_without_a_maximum_time_the_largest(db: Database) -> None:
+    """Prolific: "If it is not provided the default value is set to the max value"; the floor
+    itself is accepted."""
+    client = replica_client(db)
+    fields = draft_study(study_config(completion=COMPLETION, prolific=PROLIFIC), 3)
+    del fields["maximum_allowed_time"]
+    assert client.create_study(fields)["maximum_allowed_time"] == 24 * 60 - 1
+    fields["maximum_allowed_time"] = 73
+    assert client.create_study(fields)["maximum_allowed_time"] == 73

@@ -31,6 +31,7 @@ import httpx
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from server.app.config import prolific_least_maximum_minutes
 from server.app.platforms.prolific_sync import signature
 from server.app.platforms.review import REJECTION_CATEGORIES
 from server.app.storage.db import Database
@@ -52,6 +53,7 @@ STUDY_ACTIONS = {
     "STOP": ({"ACTIVE", "PAUSED", "AWAITING REVIEW"}, "COMPLETED"),
 }
 SUBMISSION_ACTIONS = {"APPROVE": "APPROVED", "REJECT": "REJECTED"}
+LARGEST_MAXIMUM_MINUTES = 24 * 60 - 1
 # A place is held by these; RETURNED, TIMED-OUT and REJECTED give it back.
 HOLDING = ("RESERVED", "ACTIVE", "AWAITING REVIEW", "APPROVED")
 MIN_REJECTION_MESSAGE = 100
@@ -258,9 +260,18 @@ def create_study(s: Session, body: dict[str, Any]) -> tuple[int, Any]:
     places = _positive_int(body, "total_available_places")
     reward = _positive_int(body, "reward")
     estimated = _positive_int(body, "estimated_completion_time")
-    maximum = body.get("maximum_allowed_time") or 2 + 2 * estimated + int(2 * estimated**0.5)
-    if not isinstance(maximum, int) or not estimated <= maximum < 24 * 60:
-        raise Refusal(400, "maximum_allowed_time: from the estimated time to under 24 hours.")
+    # Left out, Prolific sets the largest value ("the max value": under 24 hours).
+    maximum = body.get("maximum_allowed_time", LARGEST_MAXIMUM_MINUTES)
+    least = prolific_least_maximum_minutes(estimated)
+    if not isinstance(maximum, int) or isinstance(maximum, bool) or maximum >= 24 * 60:
+        raise Refusal(400, "maximum_allowed_time: whole minutes, under 24 hours.")
+    if maximum < least:
+        raise Refusal(
+            400,
+            f"maximum_allowed_time: at least {least} minutes for an estimated completion time "
+            f"of {estimated} (two minutes plus two times the estimated time plus two times its "
+            "square root).",
+        )
     study = ProlificReplicaStudy(
         id=new_id(),
         name=name,

@@ -18,6 +18,7 @@ from typing import Any
 
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
 
 from server.app.platforms.prolific import SUBMISSION_STATUSES, ProlificClient
 from server.app.storage.db import Database
@@ -65,49 +66,48 @@ def verify(
         raise WebhookRefused("the signature does not match")
 
 
-def first_delivery(db: Database, event_id: str, event_type: str) -> bool:
-    """Record the event; False when it was applied before (a redelivery)."""
-    try:
-        with db.write() as s:
-            s.add(ProlificEvent(event_id=event_id, event_type=event_type, received_at=utcnow()))
-    except IntegrityError:
-        return False
-    return True
+# Statuses Prolific reports that say nothing lasting: ``PROCESSING`` between an approval or a
+# rejection and its result, ``UNKNOWN``; answered and left out, the status stays as it was.
+TRANSIENT_STATUSES = ("PROCESSING", "UNKNOWN")
 
 
 def apply_status(db: Database, study_id: str | None, submission_id: str, status: str) -> bool:
     """Store Prolific's status of the submission and release a returned or timed-out
-    participant; False when no participant of ours has that submission."""
+    participant still in the study; False when no participant of ours has that submission."""
     if status not in SUBMISSION_STATUSES:
         raise ValueError(f"unknown Prolific submission status {status!r}")
     with db.write() as s:
-        query = select(Participant).where(
-            Participant.platform == "prolific", Participant.assignment_id == submission_id
-        )
-        if study_id:
-            query = query.where(Participant.hit_id == study_id)
-        p = s.scalar(query)
-        if p is None:
-            return False
-        p.platform_status = status
-        if status in RELEASED and p.status not in NOT_RELEASED:
-            now = utcnow()
-            p.status = "returned"
-            s.add(
-                StatusChange(
-                    participant_id=p.id,
-                    status="returned",
-                    at=now,
-                    note=f"Prolific: submission {status}; the place went back to Prolific",
-                )
+        return _apply_status(s, study_id, submission_id, status)
+
+
+def _apply_status(s: Session, study_id: str | None, submission_id: str, status: str) -> bool:
+    query = select(Participant).where(
+        Participant.platform == "prolific", Participant.assignment_id == submission_id
+    )
+    if study_id:
+        query = query.where(Participant.hit_id == study_id)
+    p = s.scalar(query)
+    if p is None:
+        return False
+    p.platform_status = status
+    if status in RELEASED and p.status not in NOT_RELEASED:
+        now = utcnow()
+        p.status = "returned"
+        s.add(
+            StatusChange(
+                participant_id=p.id,
+                status="returned",
+                at=now,
+                note=f"Prolific: submission {status}; the place went back to Prolific",
             )
-            for session in s.scalars(
-                select(LearningSession).where(
-                    LearningSession.participant_id == p.id, LearningSession.status == "active"
-                )
-            ):
-                session.status = "finished"
-                session.finished_at = now
+        )
+        for session in s.scalars(
+            select(LearningSession).where(
+                LearningSession.participant_id == p.id, LearningSession.status == "active"
+            )
+        ):
+            session.status = "finished"
+            session.finished_at = now
     return True
 
 
@@ -123,16 +123,29 @@ def reconcile_submissions(db: Database, client: ProlificClient, study_id: str) -
 
 
 def apply_webhook(db: Database, event_id: str, payload: dict[str, Any]) -> str:
-    """Apply one ``submission.status.change`` event once; what was done."""
+    """Apply one ``submission.status.change`` event once; what was done. The event's id and
+    its effect are committed in one transaction: a failure between the two leaves neither, so
+    Prolific's redelivery applies it (an id committed alone would answer "already applied"
+    and lose the change)."""
     event_type = str(payload.get("event_type", ""))
     if event_type != "submission.status.change":
         return f"event {event_type!r} ignored"
-    if not first_delivery(db, event_id, event_type):
-        return "already applied"
     submission_id = payload.get("resource_id")
     status = payload.get("status")
     if not isinstance(submission_id, str) or not isinstance(status, str):
         return "no submission or status"
+    if status in TRANSIENT_STATUSES:
+        return f"status {status} is transient: the submission's status is kept"
+    if status not in SUBMISSION_STATUSES:
+        raise ValueError(f"unknown Prolific submission status {status!r}")
     study_id = payload.get("study_id")
-    known = apply_status(db, study_id if isinstance(study_id, str) else None, submission_id, status)
+    try:
+        with db.write() as s:
+            s.add(ProlificEvent(event_id=event_id, event_type=event_type, received_at=utcnow()))
+            s.flush()  # a redelivered id fails here, before anything else is written
+            known = _apply_status(
+                s, study_id if isinstance(study_id, str) else None, submission_id, status
+            )
+    except IntegrityError:
+        return "already applied"
     return "applied" if known else "not a participant of this study"

@@ -299,3 +299,52 @@ def test_a_time_out_or_return_releases_only_who_is_still_working(
     with db.read() as s:
         released = set(s.scalars(select(StatusChange.participant_id)))
     assert released == {ids["teaching"]}
+
+
+def test_an_event_whose_effect_failed_is_applied_when_redelivered(
+    db: Database, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The event's id and the status change commit together: a crash between the two leaves
+    no id behind, so Prolific's redelivery of the same id releases the participant."""
+    from server.app.platforms import prolific_sync
+
+    participant = teaching(db, "b" * 24, "c" * 24)
+    event = {
+        "event_type": "submission.status.change",
+        "resource_id": "c" * 24,
+        "study_id": "a" * 24,
+        "status": "RETURNED",
+    }
+
+    def crash(*args: Any) -> bool:
+        raise RuntimeError("the server died after recording the event")
+
+    with monkeypatch.context() as patched:
+        patched.setattr(prolific_sync, "_apply_status", crash)
+        with pytest.raises(RuntimeError):
+            prolific_sync.apply_webhook(db, "ev-1", event)
+    assert status_of(db, participant) == ("teaching", None)
+    assert prolific_sync.apply_webhook(db, "ev-1", event) == "applied"
+    assert status_of(db, participant) == ("returned", "RETURNED")
+    assert prolific_sync.apply_webhook(db, "ev-1", event) == "already applied"
+
+
+@pytest.mark.parametrize("status", ["PROCESSING", "UNKNOWN"])
+def test_a_transient_status_is_answered_and_keeps_the_submissions_status(
+    client: TestClient, db: Database, status: str
+) -> None:
+    participant = teaching(db, "b" * 24, "c" * 24)
+    event = {
+        "event_type": "submission.status.change",
+        "resource_id": "c" * 24,
+        "study_id": "a" * 24,
+        "status": "AWAITING REVIEW",
+    }
+    assert send(client, event, "ev-1").json()["result"] == "applied"
+    answered = send(client, {**event, "status": status}, "ev-2")
+    assert answered.status_code == 200 and "transient" in answered.json()["result"]
+    assert status_of(db, participant) == ("teaching", "AWAITING REVIEW")
+    refused = send(client, {**event, "status": "LOST"}, "ev-3")
+    assert refused.status_code == 400 and "LOST" in refused.text
+    # A refused event leaves no id: sent again with a known status, it is applied.
+    assert send(client, event | {"status": "APPROVED"}, "ev-3").json()["result"] == "applied"

@@ -82,6 +82,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     for name, help_text in (
         ("publish", "Publish the study: participants can take part."),
         ("pause", "Pause the published study: no one new takes part."),
+        (
+            "start",
+            "Start the paused study again, or the full one (AWAITING REVIEW) to replace a "
+            "returned, timed-out or rejected submission: Prolific does not reopen it by itself.",
+        ),
+        ("stop", "Stop the study for good (COMPLETED): no one new takes part."),
         ("status", "The study's status, places and submissions per status."),
     ):
         action(name, help_text).add_argument("study_id", metavar="STUDY_ID", type=study_id)
@@ -231,7 +237,7 @@ def run(args: argparse.Namespace) -> int:
             elif args.action == "add-places":
                 add_places(client, args.study_id, args.places)
             else:
-                action = {"publish": "PUBLISH", "pause": "PAUSE"}[args.action]
+                action = args.action.upper()  # publish, pause, start, stop
                 done = client.transition_study(args.study_id, action)
                 print(f"study {args.study_id}: {done['status']}")
         finally:

@@ -408,6 +408,15 @@ def test_a_study_runs_on_the_replica_from_the_command_line(
     )
     assert status == 1
     assert f"gave no place in study {study_id} (409)" in err and "is PAUSED" in err
+
+    # Started again from our side; stopped for good; more places make it active again.
+    status, out, err = run_command(["prolific", "start", study_id, *replica], capsys)
+    assert (status, out.strip()) == (0, f"study {study_id}: ACTIVE"), err
+    status, out, err = run_command(["prolific", "stop", study_id, *replica], capsys)
+    assert (status, out.strip()) == (0, f"study {study_id}: COMPLETED"), err
+    status, out, err = run_command(["prolific", "start", study_id, *replica], capsys)
+    assert status == 1 and "cannot START" in err, err
+    assert client.set_places(study_id, 6)["status"] == "ACTIVE"
     client.close()
 
 

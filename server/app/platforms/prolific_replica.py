@@ -296,7 +296,9 @@ def update_study(s: Session, study_id: str, body: dict[str, Any]) -> tuple[int, 
     if study.status != "UNPUBLISHED" and places < study.total_available_places:
         raise Refusal(400, "total_available_places: a published study's places can only go up.")
     study.total_available_places = places
-    if study.status == "AWAITING REVIEW" and places > places_taken(s, study.id):
+    # As Prolific: more places reopen a full study, and "a completed study will become
+    # active again".
+    if study.status in ("AWAITING REVIEW", "COMPLETED") and places > places_taken(s, study.id):
         study.status = "ACTIVE"
     return 200, study_view(s, study)
 

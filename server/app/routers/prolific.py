@@ -218,10 +218,9 @@ def _end(
         row = s.get(ProlificReplicaSubmission, submission_id)
         if row is None or row.status != "ACTIVE":
             return notice(request, "Cannot", "This submission is not active.", 409)
+        # The place is free again: an ACTIVE study offers it at once; a full one (AWAITING
+        # REVIEW) stays so until the researcher sends START, as on Prolific.
         row.status = status
-        study = s.get(ProlificReplicaStudy, row.study_id)
-        if study is not None and study.status == "AWAITING REVIEW":
-            study.status = "ACTIVE"  # the place reopens
         view = submission_view(row)
     notify(background, request, state, view)
     return RedirectResponse("/prolific", status_code=303)

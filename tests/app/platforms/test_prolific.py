@@ -117,11 +117,14 @@ def test_the_client_runs_a_study_on_the_replica_over_http(
     assert client.transition_study(study["id"], "PUBLISH")["status"] == "ACTIVE"
     first, second = take_part(browser, study["id"]), take_part(browser, study["id"])
     third = take_part(browser, study["id"], code=None)
-    # Every place taken: the study awaits review (as Prolific); a return reopens the place.
+    # Every place taken: the study awaits review (as Prolific). A return frees a place, but
+    # the full study does not reopen by itself: the researcher sends START to replace it.
     assert client.get_study(study["id"])["status"] == "AWAITING REVIEW"
     returned = browser.post(f"/prolific/submissions/{third}/return", follow_redirects=False)
     assert returned.status_code == 303, returned.text
-    assert client.get_study(study["id"])["status"] == "ACTIVE"
+    assert client.get_study(study["id"])["status"] == "AWAITING REVIEW"
+    assert browser.post(f"/prolific/studies/{study['id']}/take-part").status_code == 409
+    assert client.transition_study(study["id"], "START")["status"] == "ACTIVE"
     with pytest.raises(ProlificRefused, match="can only go up"):
         client.set_places(study["id"], 2)
     assert client.set_places(study["id"], 4)["total_available_places"] == 4

@@ -561,4 +561,5 @@ def status_event(
         "X-Prolific-Request-Signature": signature(secret, stamp, body),
         "X-Prolific-Request-Timestamp": stamp,
         "X-Event-ID": secrets.token_hex(16),
+        "X-Timestamp": stamp,  # when the status changed: the replica sends at once
     }, body

@@ -14,6 +14,7 @@ import base64
 import hashlib
 import hmac
 import time
+from datetime import UTC, datetime
 from typing import Any
 
 from sqlalchemy import select
@@ -71,25 +72,44 @@ def verify(
 TRANSIENT_STATUSES = ("PROCESSING", "UNKNOWN")
 
 
-def apply_status(db: Database, study_id: str | None, submission_id: str, status: str) -> bool:
-    """Store Prolific's status of the submission and release a returned or timed-out
-    participant still in the study; False when no participant of ours has that submission."""
+def apply_status(
+    db: Database,
+    study_id: str | None,
+    submission_id: str,
+    status: str,
+    at: datetime | None = None,
+) -> bool:
+    """Store Prolific's status of the submission, true at ``at`` (now: a poll's reading), and
+    release a returned or timed-out participant still in the study; False when no participant
+    of ours has that submission."""
     if status not in SUBMISSION_STATUSES:
         raise ValueError(f"unknown Prolific submission status {status!r}")
+    # A poll's reading counts from its whole second: an event stamped in that second (a
+    # webhook's time may be in whole seconds) may be the one it read, and applies.
+    at = at or utcnow().replace(microsecond=0)
     with db.write() as s:
-        return _apply_status(s, study_id, submission_id, status)
+        return _apply_status(s, study_id, submission_id, status, at) != UNKNOWN
 
 
-def _apply_status(s: Session, study_id: str | None, submission_id: str, status: str) -> bool:
+APPLIED, OLDER, UNKNOWN = "applied", "older than the status stored", "not a participant"
+
+
+def _apply_status(
+    s: Session, study_id: str | None, submission_id: str, status: str, at: datetime
+) -> str:
+    """APPLIED, OLDER (a status true before the one stored: events arrive out of order, and a
+    poll reads the status of its moment) or UNKNOWN."""
     query = select(Participant).where(
         Participant.platform == "prolific", Participant.assignment_id == submission_id
     )
     if study_id:
         query = query.where(Participant.hit_id == study_id)
-    p = s.scalar(query)
+    p = s.scalar(query.with_for_update())
     if p is None:
-        return False
-    p.platform_status = status
+        return UNKNOWN
+    if p.platform_status_at is not None and at < p.platform_status_at:
+        return OLDER
+    p.platform_status, p.platform_status_at = status, at
     if status in RELEASED and p.status not in NOT_RELEASED:
         now = utcnow()
         p.status = "returned"
@@ -108,7 +128,7 @@ def _apply_status(s: Session, study_id: str | None, submission_id: str, status: 
         ):
             session.status = "finished"
             session.finished_at = now
-    return True
+    return APPLIED
 
 
 def reconcile_submissions(db: Database, client: ProlificClient, study_id: str) -> dict[str, str]:
@@ -122,11 +142,29 @@ def reconcile_submissions(db: Database, client: ProlificClient, study_id: str) -
     return seen
 
 
-def apply_webhook(db: Database, event_id: str, payload: dict[str, Any]) -> str:
+def event_time(header: str | None) -> datetime | None:
+    """When the event happened, from Prolific's ``X-Timestamp`` (UNIX seconds or ISO 8601);
+    None without one, or one that is not a time."""
+    if not header or len(header) > 40:
+        return None
+    text = header.strip()
+    try:
+        if text.replace(".", "", 1).isascii() and text.replace(".", "", 1).isdigit():
+            return datetime.fromtimestamp(float(text), UTC)
+        moment = datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except (ValueError, OverflowError, OSError):
+        return None
+    return moment.replace(tzinfo=UTC) if moment.tzinfo is None else moment.astimezone(UTC)
+
+
+def apply_webhook(
+    db: Database, event_id: str, payload: dict[str, Any], happened_at: datetime | None = None
+) -> str:
     """Apply one ``submission.status.change`` event once; what was done. The event's id and
     its effect are committed in one transaction: a failure between the two leaves neither, so
     Prolific's redelivery applies it (an id committed alone would answer "already applied"
-    and lose the change)."""
+    and lose the change). ``happened_at`` (``event_time``) orders the events: one older than
+    the status stored leaves it; without it the event counts as happening on arrival."""
     event_type = str(payload.get("event_type", ""))
     if event_type != "submission.status.change":
         return f"event {event_type!r} ignored"
@@ -143,9 +181,15 @@ def apply_webhook(db: Database, event_id: str, payload: dict[str, Any]) -> str:
         with db.write() as s:
             s.add(ProlificEvent(event_id=event_id, event_type=event_type, received_at=utcnow()))
             s.flush()  # a redelivered id fails here, before anything else is written
-            known = _apply_status(
-                s, study_id if isinstance(study_id, str) else None, submission_id, status
+            outcome = _apply_status(
+                s,
+                study_id if isinstance(study_id, str) else None,
+                submission_id,
+                status,
+                happened_at or utcnow(),
             )
     except IntegrityError:
         return "already applied"
-    return "applied" if known else "not a participant of this study"
+    if outcome == UNKNOWN:
+        return "not a participant of this study"
+    return "applied" if outcome == APPLIED else f"not applied: {OLDER}"

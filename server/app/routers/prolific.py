@@ -38,7 +38,12 @@ from server.app.platforms.prolific_replica import (
     submission_view,
     taking_part,
 )
-from server.app.platforms.prolific_sync import WebhookRefused, apply_webhook, verify
+from server.app.platforms.prolific_sync import (
+    WebhookRefused,
+    apply_webhook,
+    event_time,
+    verify,
+)
 from server.app.routers.common import login_redirect, notice, own_origin, templates
 from server.app.state import ServerState
 from server.app.storage.models import utcnow
@@ -314,7 +319,8 @@ async def webhook(request: Request, state: StateDep) -> Response:
     if not isinstance(payload, dict):
         return JSONResponse({"detail": "the body is not a JSON object"}, status_code=400)
     try:
-        result = await state.run_db(lambda: apply_webhook(state.db, event_id, payload))
+        happened_at = event_time(request.headers.get("X-Timestamp"))
+        result = await state.run_db(lambda: apply_webhook(state.db, event_id, payload, happened_at))
     except ValueError as error:
         return JSONResponse({"detail": str(error)}, status_code=400)
     return JSONResponse({"result": result})

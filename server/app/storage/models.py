@@ -119,6 +119,9 @@ class Participant(Base):
     # The platform's status of the participant's submission, as its status sync keeps it
     # (Prolific's webhook or poll, e.g. RETURNED; None on a platform without one).
     platform_status: Mapped[str | None] = mapped_column(String(24))
+    # When that status was true: the event's time (Prolific's X-Timestamp) or the poll's; an
+    # older report leaves a newer one as it is.
+    platform_status_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
 
 
 class ParticipantToken(Base):

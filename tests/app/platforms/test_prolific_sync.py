@@ -9,6 +9,7 @@ import os
 import time
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
+from datetime import UTC, datetime
 from typing import Any
 
 import httpx
@@ -23,6 +24,7 @@ from server.app.platforms.prolific import ProlificClient
 from server.app.platforms.prolific_replica import ReplicaTransport
 from server.app.platforms.prolific_sync import (
     WebhookRefused,
+    event_time,
     reconcile_submissions,
     signature,
     verify,
@@ -84,6 +86,7 @@ def send(
     secret: str = SECRET,
     at: int | None = None,
     alter: bool = False,
+    happened: str | None = None,
 ) -> httpx.Response:
     body = json.dumps(payload).encode()
     stamp = str(int(time.time()) if at is None else at)
@@ -98,6 +101,7 @@ def send(
             "X-Prolific-Request-Signature": signed,
             "X-Prolific-Request-Timestamp": stamp,
             "X-Event-ID": event_id,
+            **({} if happened is None else {"X-Timestamp": happened}),
         },
     )
 
@@ -348,3 +352,46 @@ def test_a_transient_status_is_answered_and_keeps_the_submissions_status(
     assert refused.status_code == 400 and "LOST" in refused.text
     # A refused event leaves no id: sent again with a known status, it is applied.
     assert send(client, event | {"status": "APPROVED"}, "ev-3").json()["result"] == "applied"
+
+
+def test_an_event_older_than_the_status_stored_leaves_it(client: TestClient, db: Database) -> None:
+    """Prolific's events can arrive out of order; ``X-Timestamp`` says when each happened. The
+    approval (later) arrives first; the completion (earlier) then changes nothing."""
+    participant = teaching(db, "b" * 24, "c" * 24, status="submitted")
+    event = {
+        "event_type": "submission.status.change",
+        "resource_id": "c" * 24,
+        "study_id": "a" * 24,
+    }
+    approved = send(client, {**event, "status": "APPROVED"}, "ev-2", happened="1700000200")
+    assert approved.json()["result"] == "applied"
+    late = send(
+        client, {**event, "status": "AWAITING REVIEW"}, "ev-1", happened="2023-11-14T22:13:20Z"
+    )
+    assert late.status_code == 200 and "older" in late.json()["result"]
+    assert status_of(db, participant) == ("submitted", "APPROVED")
+    # A newer one applies.
+    newer = send(client, {**event, "status": "RETURNED"}, "ev-3", happened="1700000300.5")
+    assert newer.json()["result"] == "applied"
+    assert status_of(db, participant) == ("submitted", "RETURNED")
+
+
+@pytest.mark.parametrize(
+    ("header", "expected"),
+    [
+        ("1700000000", datetime(2023, 11, 14, 22, 13, 20, tzinfo=UTC)),
+        ("1700000000.25", datetime(2023, 11, 14, 22, 13, 20, 250000, tzinfo=UTC)),
+        ("2023-11-14T22:13:20Z", datetime(2023, 11, 14, 22, 13, 20, tzinfo=UTC)),
+        ("2023-11-14T23:13:20+01:00", datetime(2023, 11, 14, 22, 13, 20, tzinfo=UTC)),
+        ("2023-11-14T22:13:20", datetime(2023, 11, 14, 22, 13, 20, tzinfo=UTC)),
+        ("yesterday", None),
+        ("9" * 30, None),
+        ("²³", None),
+        ("", None),
+        (None, None),
+    ],
+)
+def test_the_events_time_is_read_from_unix_seconds_or_iso_8601(
+    header: str | None, expected: datetime | None
+) -> None:
+    assert event_time(header) == expected

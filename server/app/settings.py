@@ -132,8 +132,9 @@ class Settings(BaseSettings):
     )
     prolific_webhook_secret: SecretStr | None = Field(
         None,
-        description="The secret of the Prolific webhook subscription (base64, as Prolific gives "
-        "it): /prolific/webhook accepts only events signed with it.",
+        description="The Prolific workspace's webhook signing secret, as POST /hooks/secrets/ "
+        "gives it (one per workspace; a new one replaces the old), not the X-Hook-Secret that "
+        "confirms a subscription: /prolific/webhook accepts only events signed with it.",
     )
     mturk_endpoint_url: str = Field(
         "https://mturk-requester-sandbox.us-east-1.amazonaws.com",

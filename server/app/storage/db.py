@@ -90,8 +90,9 @@ def _configure_sqlite(engine: Engine, busy_timeout_ms: int, synchronous: str) ->
 class Database:
     """An engine with read and write transactions (see the module docstring)."""
 
-    def __init__(self, engine: Engine) -> None:
+    def __init__(self, engine: Engine, *, read_only: bool = False) -> None:
         self.engine = engine
+        self.read_only = read_only  # opened to read (``open_study_database``): never written
         self.is_sqlite = engine.dialect.name == "sqlite"
         self._write_lock = threading.Lock() if self.is_sqlite else None
         self._write_engine = (
@@ -160,7 +161,7 @@ class Database:
         return True
 
     def dispose(self) -> None:
-        if self._write_lock is not None:
+        if self._write_lock is not None and not self.read_only:
             with self._write_lock:
                 if self._writing is not None:
                     self._writing.close()
@@ -222,7 +223,7 @@ def open_study_database(url: str) -> Database:
     if not file.is_file():
         raise FileNotFoundError(f"no database file {file}")
     path = quote(file.resolve().as_posix())
-    return Database(create_engine(f"sqlite:///file:{path}?mode=ro&uri=true"))
+    return Database(create_engine(f"sqlite:///file:{path}?mode=ro&uri=true"), read_only=True)
 
 
 # -- migrations ------------------------------------------------------------------------------

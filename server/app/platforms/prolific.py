@@ -107,8 +107,8 @@ class ProlificClient:
             except httpx.HTTPError as error:
                 if last:
                     raise ProlificUnavailable(
-                        f"Prolific did not answer {method} /{path.lstrip('/')}: "
-                        f"{type(error).__name__}"
+                        f"Prolific ({self._http.base_url}) did not answer {method} "
+                        f"/{path.lstrip('/')}: {type(error).__name__}"
                     ) from None
             else:
                 if response.status_code in RETRIED:
@@ -157,7 +157,13 @@ class ProlificClient:
             body = self.request(
                 "GET",
                 "submissions/",
-                params={"study": study_id, "page": page, "page_size": page_size},
+                # In the order they started: a page stays put while submissions arrive.
+                params={
+                    "study": study_id,
+                    "page": page,
+                    "page_size": page_size,
+                    "ordering": "started_at",
+                },
             )
             yield from body.get("results", [])
             links = body.get("_links", {})

@@ -32,6 +32,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from server.app.config import prolific_least_maximum_minutes
+from server.app.platforms.prolific import SUBMISSION_STATUSES
 from server.app.platforms.prolific_sync import signature
 from server.app.platforms.review import REJECTION_CATEGORIES
 from server.app.storage.db import Database
@@ -331,20 +332,33 @@ def list_submissions(s: Session, query: dict[str, str]) -> tuple[int, Any]:
         raise Refusal(400, "page from 1, page_size from 1 to 200.")
     where = [ProlificReplicaSubmission.study_id == study_id]
     if query.get("status"):
-        where.append(ProlificReplicaSubmission.status == query["status"])
+        # The filter spells statuses with underscores (AWAITING_REVIEW), as Prolific's does.
+        spelt = {name.replace(" ", "_").replace("-", "_"): name for name in SUBMISSION_STATUSES}
+        status = spelt.get(query["status"], query["status"])
+        where.append(ProlificReplicaSubmission.status == status)
+    newest_first = query.get("ordering") == "-started_at"  # else by started_at
     total = int(
         s.scalar(select(func.count()).select_from(ProlificReplicaSubmission).where(*where)) or 0
     )
     rows = s.scalars(
         select(ProlificReplicaSubmission)
         .where(*where)
-        .order_by(ProlificReplicaSubmission.started_at, ProlificReplicaSubmission.id)
+        .order_by(
+            *(
+                (ProlificReplicaSubmission.started_at.desc(), ProlificReplicaSubmission.id.desc())
+                if newest_first
+                else (ProlificReplicaSubmission.started_at, ProlificReplicaSubmission.id)
+            )
+        )
         .offset((page - 1) * size)
         .limit(size)
     ).all()
     following = None
     if page * size < total:
-        following = {"href": f"submissions/?study={study_id}&page={page + 1}&page_size={size}"}
+        kept = "".join(f"&{k}={query[k]}" for k in ("status", "ordering") if query.get(k))
+        following = {
+            "href": f"submissions/?study={study_id}&page={page + 1}&page_size={size}{kept}"
+        }
     return 200, {
         "results": [submission_view(r) for r in rows],
         "_links": {"next": following},

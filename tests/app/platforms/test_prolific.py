@@ -129,10 +129,22 @@ def test_the_client_runs_a_study_on_the_replica_over_http(
         client.set_places(study["id"], 2)
     assert client.set_places(study["id"], 4)["total_available_places"] == 4
 
-    # Listed page by page, for this study only.
+    # Listed page by page, for this study only, in the order they started (ordering=started_at);
+    # the status filter spells statuses as Prolific's does.
     listed = list(client.submissions(study["id"], page_size=2))
-    assert sorted(x["id"] for x in listed) == sorted([first, second, third])
+    assert [x["id"] for x in listed] == [first, second, third]
     assert {x["id"]: x["status"] for x in listed}[third] == "RETURNED"
+    newest = client.request(
+        "GET", "submissions/", params={"study": study["id"], "ordering": "-started_at"}
+    )
+    assert [x["id"] for x in newest["results"]] == [third, second, first]
+    awaiting = client.request(
+        "GET",
+        "submissions/",
+        params={"study": study["id"], "status": "AWAITING_REVIEW", "page_size": 1},
+    )
+    assert [x["id"] for x in awaiting["results"]] == [first]
+    assert "status=AWAITING_REVIEW" in awaiting["_links"]["next"]["href"]
 
     # Approve, reject (Prolific's refusals first), bulk approve.
     client.transition_submission(study["id"], first, "APPROVE")
@@ -359,3 +371,31 @@ def test_a_crash_around_a_prolific_bonus_never_pays_twice(client: TestClient, db
         assert unknown.value.status == 502
     assert review.reconcile_bonuses(db, backend) == []
     assert payments(db) == [200, 100]  # the one pay that was sent, once
+
+
+def test_the_client_pages_submissions_in_the_order_they_started_and_names_where_it_failed() -> None:
+    """``ordering=started_at`` keeps each page stable while submissions arrive (an unordered
+    page can skip or repeat one); an unreachable API is named in the error."""
+    sent: list[httpx.URL] = []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        sent.append(request.url)
+        return httpx.Response(200, json={"results": [{"id": "s1"}], "_links": {"next": None}})
+
+    client = ProlificClient(
+        "https://prolific.test/api/v1", "t", transport=httpx.MockTransport(answer)
+    )
+    assert [x["id"] for x in client.submissions("a" * 24)] == ["s1"]
+    assert sent[0].params["ordering"] == "started_at" and sent[0].params["study"] == "a" * 24
+
+    def refuse(request: httpx.Request) -> httpx.Response:
+        raise httpx.ConnectError("refused", request=request)
+
+    down = ProlificClient(
+        "http://127.0.0.1:9/prolific/api/v1",
+        "t",
+        attempts=1,
+        transport=httpx.MockTransport(refuse),
+    )
+    with pytest.raises(ProlificUnavailable, match=r"http://127\.0\.0\.1:9/prolific/api/v1/"):
+        down.get_study("a" * 24)

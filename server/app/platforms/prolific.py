@@ -96,26 +96,36 @@ class ProlificClient:
     def close(self) -> None:
         self._http.close()
 
-    def request(self, method: str, path: str, *, retry: bool = True, **kwargs: Any) -> Any:
+    def request(
+        self, method: str, path: str, *, retry: bool = True, creates: bool = False, **kwargs: Any
+    ) -> Any:
         """Prolific's JSON answer (None for an empty one). ``retry=False`` for a call that must
-        not be sent twice (``pay``): a failure then is reported, never resent."""
+        not be sent twice (``pay``): a failure then is reported, never resent. ``creates`` for
+        a call that makes something (a draft study, a bonus set-up): resent only where
+        Prolific cannot have acted (a 429, a connection that never opened); after a 5xx or a
+        lost answer it may exist, so the failure is reported, not a second one made."""
         wait = self.first_wait
+        maybe_made = " (it may have been made: look on Prolific before sending it again)"
         for attempt in range(1, self.attempts + 1):
             last = attempt == self.attempts or not retry
             try:
                 response = self._http.request(method, path.lstrip("/"), **kwargs)
             except httpx.HTTPError as error:
-                if last:
+                unsent = isinstance(error, httpx.ConnectError)
+                if last or (creates and not unsent):
                     raise ProlificUnavailable(
                         f"Prolific ({self._http.base_url}) did not answer {method} "
                         f"/{path.lstrip('/')}: {type(error).__name__}"
+                        + (maybe_made if creates and not unsent else "")
                     ) from None
             else:
                 if response.status_code in RETRIED:
-                    if last:
+                    acted = creates and response.status_code != 429
+                    if last or acted:
                         raise ProlificUnavailable(
                             f"Prolific answered {response.status_code} to {method} "
                             f"/{path.lstrip('/')}: {_message(response)}"
+                            + (maybe_made if acted else "")
                         )
                     after = response.headers.get("Retry-After", "")
                     if after.isdigit():
@@ -134,7 +144,7 @@ class ProlificClient:
 
     # -- studies --------------------------------------------------------------------------
     def create_study(self, fields: dict[str, Any]) -> dict[str, Any]:
-        return dict(self.request("POST", "studies/", json=fields))
+        return dict(self.request("POST", "studies/", json=fields, creates=True))
 
     def get_study(self, study_id: str) -> dict[str, Any]:
         return dict(self.request("GET", f"studies/{study_id}/"))

@@ -399,3 +399,33 @@ def test_the_client_pages_submissions_in_the_order_they_started_and_names_where_
     )
     with pytest.raises(ProlificUnavailable, match=r"http://127\.0\.0\.1:9/prolific/api/v1/"):
         down.get_study("a" * 24)
+
+
+def test_a_draft_is_resent_only_where_prolific_cannot_have_made_it() -> None:
+    """A 429 or a connection that never opened is resent; a 503 may come after the draft was
+    made, so it is reported, with what to check, and no second draft is asked for."""
+    seen: list[httpx.Request] = []
+    answers: list[Any] = [
+        httpx.Response(429),
+        httpx.ConnectError("refused"),
+        httpx.Response(201, json={"id": "a" * 24, "status": "UNPUBLISHED"}),
+    ]
+    client = ProlificClient(
+        "https://api.prolific.test/api/v1",
+        "t",
+        transport=scripted(answers, seen),
+        sleep=lambda _: None,
+    )
+    assert client.create_study({"name": "x"})["id"] == "a" * 24 and len(seen) == 3
+
+    seen.clear()
+    answers = [httpx.Response(503), httpx.Response(201, json={"id": "b" * 24})]
+    client = ProlificClient(
+        "https://api.prolific.test/api/v1",
+        "t",
+        transport=scripted(answers, seen),
+        sleep=lambda _: None,
+    )
+    with pytest.raises(ProlificUnavailable, match=r"503.*look on Prolific before sending it again"):
+        client.create_study({"name": "x"})
+    assert len(seen) == 1

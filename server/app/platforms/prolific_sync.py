@@ -82,8 +82,6 @@ def apply_status(
     """Store Prolific's status of the submission, true at ``at`` (now: a poll's reading), and
     release a returned or timed-out participant still in the study; False when no participant
     of ours has that submission."""
-    if status not in SUBMISSION_STATUSES:
-        raise ValueError(f"unknown Prolific submission status {status!r}")
     # A poll's reading counts from its whole second: an event stamped in that second (a
     # webhook's time may be in whole seconds) may be the one it read, and applies.
     at = at or utcnow().replace(microsecond=0)
@@ -98,7 +96,10 @@ def _apply_status(
     s: Session, study_id: str | None, submission_id: str, status: str, at: datetime
 ) -> str:
     """APPLIED, OLDER (a status true before the one stored: events arrive out of order, and a
-    poll reads the status of its moment) or UNKNOWN."""
+    poll reads the status of its moment) or UNKNOWN; ValueError for a status Prolific does not
+    have."""
+    if status not in SUBMISSION_STATUSES:
+        raise ValueError(f"unknown Prolific submission status {status!r}")
     query = select(Participant).where(
         Participant.platform == "prolific", Participant.assignment_id == submission_id
     )
@@ -148,8 +149,9 @@ def event_time(header: str | None) -> datetime | None:
     if not header or len(header) > 40:
         return None
     text = header.strip()
+    digits = text.replace(".", "", 1)
     try:
-        if text.replace(".", "", 1).isascii() and text.replace(".", "", 1).isdigit():
+        if digits.isascii() and digits.isdigit():
             return datetime.fromtimestamp(float(text), UTC)
         moment = datetime.fromisoformat(text.replace("Z", "+00:00"))
     except (ValueError, OverflowError, OSError):
@@ -174,8 +176,6 @@ def apply_webhook(
         return "no submission or status"
     if status in TRANSIENT_STATUSES:
         return f"status {status} is transient: the submission's status is kept"
-    if status not in SUBMISSION_STATUSES:
-        raise ValueError(f"unknown Prolific submission status {status!r}")
     study_id = payload.get("study_id")
     try:
         with db.write() as s:

@@ -71,6 +71,16 @@ def teaching(
         return p.id
 
 
+def status_change(status: str, submission: str = "c" * 24) -> dict[str, Any]:
+    """Prolific's ``submission.status.change`` body for a submission of study a...a."""
+    return {
+        "event_type": "submission.status.change",
+        "resource_id": submission,
+        "study_id": "a" * 24,
+        "status": status,
+    }
+
+
 def status_of(db: Database, participant: int) -> tuple[str, str | None]:
     with db.read() as s:
         p = s.get(Participant, participant)
@@ -110,12 +120,7 @@ def test_only_a_genuine_fresh_webhook_releases_a_returned_participant_once(
     client: TestClient, db: Database
 ) -> None:
     participant = teaching(db, "b" * 24, "c" * 24)
-    event = {
-        "event_type": "submission.status.change",
-        "resource_id": "c" * 24,
-        "study_id": "a" * 24,
-        "status": "RETURNED",
-    }
+    event = status_change("RETURNED")
     refusals = [
         send(client, event, "ev-1", secret="not-the-secret"),
         send(client, event, "ev-1", at=int(time.time()) - 3600),
@@ -200,12 +205,7 @@ def test_a_released_participant_who_comes_back_sees_a_clear_page_and_changes_not
     assert arrived.status_code == 201, arrived.text
     participant = Participant_(client, arrived.json()["token"])
     participant.act("/api/participant/consent", agree=True)
-    event = {
-        "event_type": "submission.status.change",
-        "resource_id": "f" * 24,
-        "study_id": "a" * 24,
-        "status": "TIMED-OUT",
-    }
+    event = status_change("TIMED-OUT", "f" * 24)
     assert send(client, event, "ev-timeout-1").json()["result"] == "applied"
     with db.read() as s:
         (ours,) = s.scalars(select(Participant.id))
@@ -290,12 +290,7 @@ def test_a_time_out_or_return_releases_only_who_is_still_working(
         for n, status in enumerate(("teaching", "completed", "submitted"), start=1)
     }
     for n in range(1, len(ids) + 1):
-        event = {
-            "event_type": "submission.status.change",
-            "resource_id": f"{n + 4}" * 24,
-            "study_id": "a" * 24,
-            "status": "TIMED-OUT",
-        }
+        event = status_change("TIMED-OUT", f"{n + 4}" * 24)
         assert send(client, event, f"ev-{n}").json()["result"] == "applied"
     assert status_of(db, ids["teaching"]) == ("returned", "TIMED-OUT")
     assert status_of(db, ids["completed"]) == ("completed", "TIMED-OUT")
@@ -313,12 +308,7 @@ def test_an_event_whose_effect_failed_is_applied_when_redelivered(
     from server.app.platforms import prolific_sync
 
     participant = teaching(db, "b" * 24, "c" * 24)
-    event = {
-        "event_type": "submission.status.change",
-        "resource_id": "c" * 24,
-        "study_id": "a" * 24,
-        "status": "RETURNED",
-    }
+    event = status_change("RETURNED")
 
     def crash(*args: Any) -> bool:
         raise RuntimeError("the server died after recording the event")
@@ -338,12 +328,7 @@ def test_a_transient_status_is_answered_and_keeps_the_submissions_status(
     client: TestClient, db: Database, status: str
 ) -> None:
     participant = teaching(db, "b" * 24, "c" * 24)
-    event = {
-        "event_type": "submission.status.change",
-        "resource_id": "c" * 24,
-        "study_id": "a" * 24,
-        "status": "AWAITING REVIEW",
-    }
+    event = status_change("AWAITING REVIEW")
     assert send(client, event, "ev-1").json()["result"] == "applied"
     answered = send(client, {**event, "status": status}, "ev-2")
     assert answered.status_code == 200 and "transient" in answered.json()["result"]
@@ -358,11 +343,7 @@ def test_an_event_older_than_the_status_stored_leaves_it(client: TestClient, db:
     """Prolific's events can arrive out of order; ``X-Timestamp`` says when each happened. The
     approval (later) arrives first; the completion (earlier) then changes nothing."""
     participant = teaching(db, "b" * 24, "c" * 24, status="submitted")
-    event = {
-        "event_type": "submission.status.change",
-        "resource_id": "c" * 24,
-        "study_id": "a" * 24,
-    }
+    event = status_change("AWAITING REVIEW")
     approved = send(client, {**event, "status": "APPROVED"}, "ev-2", happened="1700000200")
     assert approved.json()["result"] == "applied"
     late = send(

@@ -11,9 +11,13 @@ server (the dashboard's reviews on a rehearsal). As on Prolific:
   and started with transitions; after publishing its places can only go up, and at most its
   max_concurrent_submissions take part at once;
 - submissions are listed for one study (``?study=`` is required), page by page;
-- a submission is approved or rejected once it is AWAITING REVIEW; a rejection needs one of
-  Prolific's categories and a message of at least 100 characters (400 otherwise); the same
-  transition sent again is ignored (the endpoint is idempotent);
+- a completion code with the REQUEST_RETURN action (our NO_CONSENT code) completes the
+  submission (AWAITING REVIEW) with ``return_requested`` set; it is RETURNED only if the
+  participant then returns it (``routers/prolific.py``);
+- a submission is approved or rejected once it is AWAITING REVIEW (a TIMED-OUT one may be
+  approved too); a rejection needs one of Prolific's categories and a message of at least 100
+  characters (400 otherwise); the same transition sent again is ignored (the endpoint is
+  idempotent);
 - bonuses are set up (``csv_bonuses``: participant or submission id, amount in the currency)
   and paid with ``pay``, which is not idempotent: a second ``pay`` pays again.
 """
@@ -54,6 +58,11 @@ STUDY_ACTIONS = {
     "STOP": ({"ACTIVE", "PAUSED", "AWAITING REVIEW"}, "COMPLETED"),
 }
 SUBMISSION_ACTIONS = {"APPROVE": "APPROVED", "REJECT": "REJECTED"}
+# The statuses each decision is taken from. A TIMED-OUT submission can be approved as well:
+# "You will not be charged for this submission, but you can also manually approve them if you
+# wish" (researcher-help.prolific.com, "Timed out submission status"), which pays a timed-out
+# participant who finished.
+DECIDED_FROM = {"APPROVE": ("AWAITING REVIEW", "TIMED-OUT"), "REJECT": ("AWAITING REVIEW",)}
 LARGEST_MAXIMUM_MINUTES = 24 * 60 - 1
 # A place is held by these; RETURNED, TIMED-OUT and REJECTED give it back.
 HOLDING = ("RESERVED", "ACTIVE", "AWAITING REVIEW", "APPROVED")
@@ -155,6 +164,7 @@ def submission_view(row: ProlificReplicaSubmission) -> dict[str, Any]:
         "started_at": row.started_at.isoformat(),
         "completed_at": row.completed_at.isoformat() if row.completed_at else None,
         "study_code": row.study_code,
+        "return_requested": row.return_requested.isoformat() if row.return_requested else None,
     }
 
 
@@ -380,7 +390,7 @@ def transition_submission(s: Session, submission_id: str, body: dict[str, Any]) 
             raise Refusal(400, f"rejection_category: one of {', '.join(REJECTION_CATEGORIES)}.")
     if row.status == target:  # idempotent: the same request again is ignored
         return 200, submission_view(row)
-    if row.status != "AWAITING REVIEW":
+    if row.status not in DECIDED_FROM[action]:
         raise Refusal(400, f"A submission that is {row.status} cannot be {target.lower()}.")
     row.status = target
     row.reviewed_at = utcnow()
@@ -388,6 +398,13 @@ def transition_submission(s: Session, submission_id: str, body: dict[str, Any]) 
         row.message = body["message"]
         row.rejection_category = body["rejection_category"]
     return 200, submission_view(row)
+
+
+def requests_return(code: dict[str, Any]) -> bool:
+    """Whether a completion code (one of the study's ``completion_codes``) asks the participant
+    to return the submission (its actions include REQUEST_RETURN, as our NO_CONSENT code's)."""
+    actions = code.get("actions") or []
+    return any(isinstance(a, dict) and a.get("action") == "REQUEST_RETURN" for a in actions)
 
 
 def bulk_approve(s: Session, body: dict[str, Any]) -> tuple[int, Any]:

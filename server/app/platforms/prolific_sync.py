@@ -6,7 +6,14 @@ A participant still working whose submission is RETURNED or TIMED-OUT is release
 (one who had finished keeps their status, see ``NOT_RELEASED``): their flow status becomes
 ``returned`` (so they no longer count in the balanced domain assignment, and the
 study's pages refuse to go on), their active learning sessions stop, and their data stays,
-marked with Prolific's status."""
+marked with Prolific's status.
+
+A submission completed with a code that asks for a return (our NO_CONSENT code, with Prolific's
+REQUEST_RETURN action) is AWAITING REVIEW with ``return_requested`` set: the participant is asked
+to return it, and Prolific approves it by itself 21 days after its completion if they never do.
+Both times are kept (``platform_completed_at``, ``platform_return_requested_at``): from
+Prolific's record of the submission in a poll, and, from the webhook (whose body has the status
+only), from the event's time."""
 
 from __future__ import annotations
 
@@ -14,6 +21,7 @@ import base64
 import hashlib
 import hmac
 import time
+from collections.abc import Mapping
 from datetime import UTC, datetime
 from typing import Any
 
@@ -78,22 +86,29 @@ def apply_status(
     submission_id: str,
     status: str,
     at: datetime | None = None,
+    record: Mapping[str, Any] | None = None,
 ) -> bool:
     """Store Prolific's status of the submission, true at ``at`` (now: a poll's reading), and
     release a returned or timed-out participant still in the study; False when no participant
-    of ours has that submission."""
+    of ours has that submission. ``record``: Prolific's submission as a poll lists it (its
+    ``completed_at`` and ``return_requested`` are kept)."""
     # A poll's reading counts from its whole second: an event stamped in that second (a
     # webhook's time may be in whole seconds) may be the one it read, and applies.
     at = at or utcnow().replace(microsecond=0)
     with db.write() as s:
-        return _apply_status(s, study_id, submission_id, status, at) != UNKNOWN
+        return _apply_status(s, study_id, submission_id, status, at, record) != UNKNOWN
 
 
 APPLIED, OLDER, UNKNOWN = "applied", "older than the status stored", "not a participant"
 
 
 def _apply_status(
-    s: Session, study_id: str | None, submission_id: str, status: str, at: datetime
+    s: Session,
+    study_id: str | None,
+    submission_id: str,
+    status: str,
+    at: datetime,
+    record: Mapping[str, Any] | None = None,
 ) -> str:
     """APPLIED, OLDER (a status true before the one stored: events arrive out of order, and a
     poll reads the status of its moment) or UNKNOWN; ValueError for a status Prolific does not
@@ -111,6 +126,7 @@ def _apply_status(
     if p.platform_status_at is not None and at < p.platform_status_at:
         return OLDER
     p.platform_status, p.platform_status_at = status, at
+    _keep_times(p, status, at, record)
     if status in RELEASED and p.status not in NOT_RELEASED:
         now = utcnow()
         p.status = "returned"
@@ -132,13 +148,38 @@ def _apply_status(
     return APPLIED
 
 
+def _keep_times(
+    p: Participant, status: str, at: datetime, record: Mapping[str, Any] | None
+) -> None:
+    """When Prolific completed the submission and asked for its return: Prolific's own record
+    where a poll read it; else, for a status from the webhook, the event's time."""
+    if record is not None:
+        completed = event_time(str(record.get("completed_at") or ""))
+        if completed is not None:
+            p.platform_completed_at = completed
+        if "return_requested" in record:  # Prolific's word, a null one included
+            p.platform_return_requested_at = event_time(str(record["return_requested"] or ""))
+            return
+    if status != "AWAITING REVIEW":
+        return
+    if p.platform_completed_at is None:
+        p.platform_completed_at = at
+    # Our page sends a participant who declined with the study's NO_CONSENT code, which asks for
+    # a return (REQUEST_RETURN, ``prolific.draft_study``): their submission completed, Prolific
+    # has asked them to return it. A poll replaces this with Prolific's own record.
+    if p.status == "declined" and p.platform_return_requested_at is None:
+        p.platform_return_requested_at = at
+
+
 def reconcile_submissions(db: Database, client: ProlificClient, study_id: str) -> dict[str, str]:
     """Poll the study's submissions (page by page) and apply every status; the statuses of
     our participants' submissions."""
     seen: dict[str, str] = {}
     for submission in client.submissions(study_id):
         status = str(submission.get("status"))
-        if status in SUBMISSION_STATUSES and apply_status(db, study_id, submission["id"], status):
+        if status in SUBMISSION_STATUSES and apply_status(
+            db, study_id, submission["id"], status, record=submission
+        ):
             seen[submission["id"]] = status
     return seen
 

@@ -5,7 +5,9 @@
 - ``/prolific``: the researcher's view (each study, its places, each submission with Prolific's
   statuses and times, the bonuses paid), behind the admin sign-in, and the participant's way
   in: take part with a generated PROLIFIC_PID (the study's external URL, its placeholders
-  filled), return the submission, or let it time out at the study's maximum time.
+  filled), return the submission (while active, or, as Prolific's "Return and cancel reward",
+  once it awaits review: what a participant asked to return does), or let it time out at the
+  study's maximum time.
 - ``/prolific/submissions/complete?cc=CODE``: where the study's completion redirect lands; the
   code is checked against the study's completion codes.
 """
@@ -34,6 +36,7 @@ from server.app.platforms.prolific_replica import (
     handle,
     new_id,
     places_taken,
+    requests_return,
     status_event,
     submission_view,
     taking_part,
@@ -216,13 +219,21 @@ def _end(
     background: BackgroundTasks,
     submission_id: str,
     status: str,
+    sources: tuple[str, ...],
 ) -> Response:
     if not is_admin(request, state):
         return login_redirect("/prolific")
     with state.db.write() as s:
         row = s.get(ProlificReplicaSubmission, submission_id)
-        if row is None or row.status != "ACTIVE":
-            return notice(request, "Cannot", "This submission is not active.", 409)
+        if row is None or row.status not in sources:
+            now = "not found" if row is None else row.status
+            return notice(
+                request,
+                "Cannot",
+                f"This submission is {now}: only one that is {' or '.join(sources)} can become "
+                f"{status}.",
+                409,
+            )
         # The place is free again: an ACTIVE study offers it at once; a full one (AWAITING
         # REVIEW) stays so until the researcher sends START, as on Prolific.
         row.status = status
@@ -235,14 +246,18 @@ def _end(
 def return_submission(
     submission_id: str, request: Request, state: StateDep, background: BackgroundTasks
 ) -> Response:
-    return _end(request, state, background, submission_id, "RETURNED")
+    # As Prolific: an active submission, or a completed one awaiting review ("Return and cancel
+    # reward"), which is what a participant asked to return (REQUEST_RETURN) does.
+    return _end(
+        request, state, background, submission_id, "RETURNED", ("ACTIVE", "AWAITING REVIEW")
+    )
 
 
 @router.post("/submissions/{submission_id}/time-out")
 def time_out(
     submission_id: str, request: Request, state: StateDep, background: BackgroundTasks
 ) -> Response:
-    return _end(request, state, background, submission_id, "TIMED-OUT")
+    return _end(request, state, background, submission_id, "TIMED-OUT", ("ACTIVE",))
 
 
 @router.get("/submissions/complete", response_class=HTMLResponse)
@@ -278,15 +293,19 @@ def complete(
         row.study_code = cc
         row.completed_at = utcnow()
         row.status = "AWAITING REVIEW"
-        if codes[cc].get("code_type") == "NO_CONSENT":
-            row.status = "RETURNED"  # the participant is asked to return, and does
+        asked = requests_return(codes[cc])
+        if asked and row.return_requested is None:
+            # As Prolific: the submission is completed and the participant asked to return
+            # it; it is RETURNED only if they do (and approved after 21 days if they never do).
+            row.return_requested = row.completed_at
         status = row.status
         view = submission_view(row)
     notify(background, request, state, view)
     return notice(
         request,
         "Submission recorded",
-        f"Completion code {cc} accepted: the submission is {status}.",
+        f"Completion code {cc} accepted: the submission is {status}."
+        + (" You are asked to return it: Return, beside it on /prolific." if asked else ""),
         200,
     )
 

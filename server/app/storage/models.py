@@ -122,6 +122,12 @@ class Participant(Base):
     # When that status was true: the event's time (Prolific's X-Timestamp) or the poll's; an
     # older report leaves a newer one as it is.
     platform_status_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    # When the platform completed the submission (Prolific's ``completed_at``: it went to
+    # AWAITING REVIEW, which Prolific approves by itself 21 days later).
+    platform_completed_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    # When the platform asked the participant to return the submission (Prolific's
+    # ``return_requested``: a REQUEST_RETURN code, such as NO_CONSENT).
+    platform_return_requested_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
 
 
 class ParticipantToken(Base):

@@ -114,6 +114,8 @@ class ProlificReplicaSubmission(Base):
     rejection_category: Mapped[str | None] = mapped_column(String(32))
     message: Mapped[str | None] = mapped_column(Text)  # a rejection's message
     reviewed_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    # When the participant was asked to return it (a completion code with REQUEST_RETURN).
+    return_requested: Mapped[datetime | None] = mapped_column(UTCDateTime())
 
 
 class ProlificReplicaBonusSetup(Base):

@@ -1,9 +1,10 @@
 """A whole paid study rehearsed on the local Prolific replica, over real HTTP: the study made
 and published through the Prolific client, twelve participants of whom one returns, one times
-out and one declines consent; their places refilled and the balanced assignment blind to them;
-nine approved in bulk but one rejected with a category, two bonuses with a crash between a
-bonus's set-up and its payment: the replica records every decision and exactly one payment
-per bonus, and the export says the same."""
+out and one declines consent (and returns the submission Prolific then asks them to
+return); their places refilled and the balanced assignment blind to them; nine approved in
+bulk but one rejected with a category, two bonuses with a crash between a bonus's set-up and
+its payment: the replica records every decision and exactly one payment per bonus, and the
+export says the same."""
 
 from __future__ import annotations
 
@@ -143,12 +144,23 @@ def test_a_paid_study_rehearsed_on_the_replica(server: tuple[str, Any], db: Data
     assert client.transition_study(study["id"], "PUBLISH")["status"] == "ACTIVE"
 
     # Three leave without completing. One declines consent: sent back with the NO_CONSENT
-    # code, the replica's submission RETURNED.
+    # code, which completes the replica's submission and asks them to return it (as Prolific:
+    # it holds its place until they do); they return it.
     decliner = Person(base, study["id"])
     declined = decliner.consent(agree=False)
     assert declined["status"] == "declined" and declined["completion"]["code"] == "NOCONSNT"
     decliner.leave(declined["completion"])
+    assert replica_statuses(db)[decliner.submission] == "AWAITING REVIEW"
+    wait_until(
+        lambda: ours(db)[decliner.id][:2] == ("declined", "AWAITING REVIEW"),
+        "the server recorded the decliner's completed submission",
+    )
+    decliner.end("return")
     assert replica_statuses(db)[decliner.submission] == "RETURNED"
+    wait_until(
+        lambda: ours(db)[decliner.id][:2] == ("declined", "RETURNED"),
+        "the server recorded the decliner's return",
+    )
 
     def domain(person: Person) -> str | None:
         return ours(db)[person.id][2]

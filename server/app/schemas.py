@@ -497,6 +497,28 @@ class AdminParticipant(BaseModel):
     prolific_status: str | None = Field(
         None, description="Prolific's status of the submission (from its webhook or a poll)."
     )
+    return_requested_at: datetime | None = Field(
+        None,
+        description="When Prolific asked the participant to return the submission (a "
+        "completion code with REQUEST_RETURN, such as NO_CONSENT); returned only if "
+        "prolific_status is RETURNED.",
+    )
+    awaits_decision: bool = Field(
+        False,
+        description="The work is open to approval or rejection: submitted, or on Prolific a "
+        "decliner's completed submission or a finisher's timed-out one.",
+    )
+    auto_approval_at: datetime | None = Field(
+        None,
+        description="When the platform approves and pays the submission by itself unless "
+        "someone decides first (Prolific: 21 days after it was completed, while AWAITING "
+        "REVIEW).",
+    )
+    auto_approval_soon: bool = Field(
+        False,
+        description="auto_approval_at is at most 7 days away (AUTO_APPROVAL_WARNING_DAYS): "
+        "the dashboard warns.",
+    )
     domain: str | None
     excluded: bool
     exclusion_reason: str | None

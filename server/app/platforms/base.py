@@ -8,9 +8,9 @@ A platform says:
   assignment, study), checked, with where the submission goes (``submit_to``);
 - how a participant finishes (``fixed_code``, ``handing``) and how one who declines consent or
   withdraws leaves (``no_consent_code``, ``withdrawal``);
-- where its reviews go (``review_backend``), its own rules for a rejection
-  (``check_rejection``) and its status of the submission after a decision (``status_after``,
-  kept in ``participants.platform_status``);
+- where its reviews go (``review_backend``), whose work is open to a decision
+  (``awaits_decision``) and when the platform approves it by itself (``auto_approval_at``), its own rules for a rejection (``check_rejection``) and its status of
+  the submission after a decision (``status_after``, kept in ``participants.platform_status``);
 - the rows of its local replica that hold a participant's turn (``own_replica_rows``) or name
   them among others (``shared_replica_rows``), for erasure and scrubbing.
 
@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from datetime import datetime
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 from server.app.errors import ApiError
@@ -119,6 +120,16 @@ class Platform(Protocol):
         platform's own; None: it has none."""
         ...
 
+    def awaits_decision(self, participant: Any) -> bool:
+        """Whether the participant's work is open to approval or rejection (their flow status
+        and the platform's status of their submission)."""
+        ...
+
+    def auto_approval_at(self, participant: Any) -> datetime | None:
+        """When the platform approves (and pays) the participant's submission by itself if no
+        one has decided by then; None: it will not (or not known)."""
+        ...
+
     def check_rejection(self, message: str | None, category: str | None) -> None:
         """422 for a rejection the platform would refuse."""
         ...
@@ -176,6 +187,12 @@ class BasePlatform:
     def review_backend(
         self, settings: Settings, db: Database, replica: bool
     ) -> ReviewBackend | None:
+        return None
+
+    def awaits_decision(self, participant: Any) -> bool:
+        return bool(participant.status == "submitted")
+
+    def auto_approval_at(self, participant: Any) -> datetime | None:
         return None
 
     def check_rejection(self, message: str | None, category: str | None) -> None:

@@ -6,6 +6,7 @@ submission is kept (``prolific_sync``, and after each decision)."""
 
 from __future__ import annotations
 
+from datetime import datetime, timedelta
 from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import Connection, and_, select
@@ -39,6 +40,13 @@ if TYPE_CHECKING:
     from server.app.config import StudyConfig
     from server.app.settings import Settings
     from server.app.storage.db import Database
+
+# Prolific approves, and pays, a submission still AWAITING REVIEW this long after it was
+# completed: "Submissions that are awaiting review are automatically approved after 21 days"
+# (docs.prolific.com/api-reference/submissions/submissions-guide); "After a participant completes
+# a study, submissions move to Awaiting Review, where you have up to 21 days to review the
+# submission" (researcher-help.prolific.com/en/article/e55aad, "Submission statuses explained").
+AUTO_APPROVAL = timedelta(days=21)
 
 PROLIFIC_SUBMISSIONS = table_of(ProlificReplicaSubmission)
 PROLIFIC_PAYMENTS = table_of(ProlificReplicaPayment)
@@ -107,6 +115,26 @@ class Prolific(BasePlatform):
             settings.prolific_api_url, settings.prolific_token.get_secret_value()
         )
         return ProlificBackend(client, settings.prolific_currency)
+
+    def awaits_decision(self, participant: Any) -> bool:
+        """Submitted work, and two more that Prolific pays unless the researcher decides: a
+        participant who declined consent, whose NO_CONSENT code completed the submission
+        (AWAITING REVIEW, approved by itself after 21 days unless they return it), and one who
+        finished although their submission timed out (Prolific lets a timed-out submission be
+        approved) or whose code reached Prolific before our page said it was sent."""
+        status, prolific = participant.status, participant.platform_status
+        if status == "declined":
+            return bool(prolific == "AWAITING REVIEW")
+        if status == "completed":
+            return prolific in ("AWAITING REVIEW", "TIMED-OUT")
+        return bool(status == "submitted")
+
+    def auto_approval_at(self, participant: Any) -> datetime | None:
+        """21 days after Prolific completed the submission, while it is AWAITING REVIEW."""
+        completed = participant.platform_completed_at
+        if participant.platform_status != "AWAITING REVIEW" or completed is None:
+            return None
+        return completed + AUTO_APPROVAL  # type: ignore[no-any-return]
 
     def check_rejection(self, message: str | None, category: str | None) -> None:
         # Prolific's own rules, checked here first (Prolific answers 400).

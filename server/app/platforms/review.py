@@ -161,7 +161,11 @@ dollars = money
 
 
 # -- the study's side -------------------------------------------------------------------------
-def reviewable(db: Database, participant_id: int, platform: str) -> Reviewed:
+def reviewable(
+    db: Database, participant_id: int, platform: str, decision: bool = False
+) -> Reviewed:
+    """The participant's ids, checked: from ``platform``, with submitted work (for a
+    ``decision``, work the platform says is open to one: ``Platform.awaits_decision``)."""
     with db.read() as s:
         p = s.get(Participant, participant_id)
         if p is None:
@@ -172,11 +176,13 @@ def reviewable(db: Database, participant_id: int, platform: str) -> Reviewed:
                 f"participant {participant_id} came from {p.platform}, not from a submission "
                 f"on {platform}: there is nothing to approve, reject or pay a bonus for",
             )
-        if p.status != "submitted":
+        theirs = registry.platform(p.platform)
+        if not (theirs.awaits_decision(p) if decision else p.status == "submitted"):
+            also = f", {theirs.display_name}'s {p.platform_status}" if p.platform_status else ""
             raise ApiError(
                 409,
                 f"participant {participant_id} has not submitted their work (status "
-                f"{p.status}): only submitted work is reviewed",
+                f"{p.status}{also}): only submitted work is reviewed",
             )
         return Reviewed(p.id, p.platform, p.worker_id, p.assignment_id, p.hit_id)
 
@@ -202,7 +208,7 @@ def review_submission(
 ) -> None:
     """Approve or reject the participant's submitted work, once: a repeat of the same decision
     answers as the first did; another decision is refused (409, a decision is final)."""
-    who = reviewable(db, participant_id, backend.platform)
+    who = reviewable(db, participant_id, backend.platform, decision=True)
     if decision == "rejected" and not message:
         raise InvalidInput(
             ("body", "message"),

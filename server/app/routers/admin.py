@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from datetime import timedelta
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Response
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from server.app import platform_registry as registry
 from server.app.deps import AdminDep, RowId, StateDep
 from server.app.errors import ApiError
 from server.app.export.files import export_zip
@@ -99,10 +101,17 @@ def _admin_sessions(s: Session, sessions: list[LearningSession]) -> list[AdminSe
     ]
 
 
+# The dashboard warns this many days before the platform approves a submission by itself.
+AUTO_APPROVAL_WARNING_DAYS = 7
+
+
 def _admin_participant(
     p: Participant, sessions: list[LearningSession], completed_at: Any
 ) -> AdminParticipant:
     figures = participant_figures(p, [x for x in sessions if x.kind == "study"], completed_at)
+    platform = registry.platform(p.platform)
+    auto_approval = platform.auto_approval_at(p)
+    warn_from = utcnow() + timedelta(days=AUTO_APPROVAL_WARNING_DAYS)
     return AdminParticipant(
         participant_id=p.id,
         platform=p.platform,
@@ -111,6 +120,10 @@ def _admin_participant(
         hit_id=p.hit_id,
         status=p.status,
         prolific_status=p.platform_status,
+        return_requested_at=p.platform_return_requested_at,
+        awaits_decision=platform.awaits_decision(p),
+        auto_approval_at=auto_approval,
+        auto_approval_soon=auto_approval is not None and auto_approval <= warn_from,
         domain=p.domain,
         excluded=p.excluded_at is not None,
         exclusion_reason=p.exclusion_reason,

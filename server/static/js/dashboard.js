@@ -24,6 +24,31 @@ function badge(status) {
   return h("span", { class: `badge ${status}` }, status);
 }
 
+/** What Prolific's side says beside our status: its status, a return it asked for and not yet
+ * made, and when it approves (and pays) the submission by itself, with a warning when close. */
+function platformBadges(p) {
+  if (!p.prolific_status) return null;
+  const asked = p.return_requested_at && p.prolific_status === "AWAITING REVIEW";
+  return [
+    " ", h("span", { class: "badge", "data-prolific-status": p.prolific_status, title: "Prolific's status" }, `Prolific: ${p.prolific_status}`),
+    asked ? [" ", h("span", { class: "badge return-requested", "data-return-requested": p.return_requested_at,
+      title: `Prolific asked for a return at ${time(p.return_requested_at)}` }, "asked to return; not returned yet")] : null,
+    p.auto_approval_at ? [" ", h("span", { class: `badge ${p.auto_approval_soon ? "auto-approval-soon" : ""}`,
+      "data-auto-approval": p.auto_approval_at, "data-soon": String(p.auto_approval_soon) },
+      `${p.auto_approval_soon ? "⚠ " : ""}auto-approved ${time(p.auto_approval_at)}`)] : null,
+  ];
+}
+
+/** The auto-approval date in words, for the participant's review. */
+function autoApprovalLine(p) {
+  if (!p.auto_approval_at) return null;
+  const when = time(p.auto_approval_at);
+  return h("p", { class: `auto-approval ${p.auto_approval_soon ? "soon" : ""}`, "data-auto-approval": p.auto_approval_at, role: p.auto_approval_soon ? "alert" : null },
+    p.auto_approval_soon
+      ? `Prolific approves and pays this submission by itself at ${when}, in less than a week: approve or reject it before then.`
+      : `Prolific approves and pays this submission by itself at ${when} unless it is reviewed first.`);
+}
+
 async function loadParticipants() {
   const participants = await getJSON(`${API}/participants`);
   const body = $("#participants tbody");
@@ -33,8 +58,7 @@ async function loadParticipants() {
       h("td", {}, p.platform),
       h("td", { class: "mono" }, p.worker_id ?? ""),
       h("td", { class: "mono" }, p.assignment_id ?? ""),
-      h("td", {}, badge(p.status), p.excluded ? [" ", badge("excluded")] : null,
-        p.prolific_status ? [" ", h("span", { class: "badge", "data-prolific-status": p.prolific_status, title: "Prolific's status" }, `Prolific: ${p.prolific_status}`)] : null),
+      h("td", {}, badge(p.status), p.excluded ? [" ", badge("excluded")] : null, platformBadges(p)),
       h("td", {}, p.domain ?? ""),
       h("td", {}, `${p.agents_finished} / ${p.agents}`),
       h("td", {}, p.minutes.toFixed(1)),
@@ -224,8 +248,14 @@ function reviewSection(p) {
       h("p", { class: "muted" }, `Approvals and bonuses are for MTurk and Prolific participants; this participant came from ${p.platform}.`));
   }
   const prolific = p.platform === "prolific";
-  if (p.status !== "submitted") {
-    return h("section", { class: "review", "aria-labelledby": "review-heading" }, heading,
+  const returnAsked = p.return_requested_at
+    ? h("p", { "data-return-requested": p.return_requested_at },
+      p.prolific_status === "RETURNED"
+        ? `Prolific asked them to return the submission at ${time(p.return_requested_at)}, and they did.`
+        : `Asked to return; not returned yet: Prolific asked at ${time(p.return_requested_at)}. Until they return it, it awaits review like any other.`)
+    : null;
+  if (!p.awaits_decision && !p.review) {
+    return h("section", { class: "review", "aria-labelledby": "review-heading" }, heading, returnAsked,
       h("p", { class: "muted" }, "The review opens once the participant has submitted their work."));
   }
   // Each form says what is wrong under its own buttons: the decision's, the bonus's.
@@ -279,8 +309,11 @@ function reviewSection(p) {
       }
       send("rejection", { message: text, rejection_category: prolific ? category.value : null }, [approve, reject], message);
     });
-    const suggestion = h("p", { class: "muted", "data-testid": "suggested-ground" }, "Suggested ground: loading the quality checks…");
-    getJSON(`${API}/participants/${p.participant_id}/quality`).then((q) => {
+    const checked = p.status === "completed" || p.status === "submitted";
+    const suggestion = h("p", { class: "muted", "data-testid": "suggested-ground" }, checked
+      ? "Suggested ground: loading the quality checks…"
+      : "Suggested ground: none (no quality checks: they did not do the study).");
+    if (checked) getJSON(`${API}/participants/${p.participant_id}/quality`).then((q) => {
       suggestion.textContent = q.prolific_ground === "none"
         ? "Suggested ground: none (the quality checks support no rejection)."
         : `Suggested ground: ${q.prolific_ground} (${groundReason(q)}).`;
@@ -292,7 +325,7 @@ function reviewSection(p) {
       h("p", { class: "muted" }, "Not reviewed yet."),
       suggestion,
       h("label", { for: "review-feedback" }, prolific ? "Rejection message (at least 100 characters)" : "Feedback to the worker (needed to reject)"), feedback,
-      ...(prolific ? [category] : []),
+      ...(prolific ? [h("label", { for: "review-category" }, "Rejection category"), category] : []),
       h("div", { class: "review-buttons" }, approve, reject), message);
   }
   const bonusMessage = errorLine("bonus-error");
@@ -312,7 +345,16 @@ function reviewSection(p) {
     if (!window.confirm(`Pay a bonus of ${amount.value}? It is paid once, with this form's request token.`)) return;
     send("bonuses", { amount: amount.value, reason: reason.value.trim(), unique_token: token }, [pay], bonusMessage);
   });
-  return h("section", { class: "review", "aria-labelledby": "review-heading" }, heading, decision,
+  const why = p.status === "declined"
+    ? h("p", { class: "muted" }, "They declined consent; Prolific completed their submission with the NO_CONSENT code, so it is paid unless it is returned or rejected.")
+    : p.prolific_status === "TIMED-OUT"
+      ? h("p", { class: "muted" }, "They finished although Prolific timed their submission out; Prolific lets a timed-out submission be approved.")
+      : null;
+  if (p.status !== "submitted") {
+    // Bonuses are for submitted work only.
+    return h("section", { class: "review", "aria-labelledby": "review-heading" }, heading, why, returnAsked, autoApprovalLine(p), decision);
+  }
+  return h("section", { class: "review", "aria-labelledby": "review-heading" }, heading, why, returnAsked, autoApprovalLine(p), decision,
     h("h4", {}, "Bonuses"),
     p.bonuses.length
       ? h("ul", { class: "bonuses" }, p.bonuses.map((b) => h("li", { "data-amount": b.amount, "data-state": b.state },

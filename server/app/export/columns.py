@@ -117,6 +117,22 @@ PARTICIPANTS = (
         "webhook or a poll; empty for other platforms or when not yet known.",
         value=lambda p, ctx: p.platform_status,
     ),
+    Column(
+        "prolific_completed_at",
+        "When Prolific completed the submission (UTC): it went to AWAITING REVIEW, which Prolific "
+        "approves and pays by itself 21 days later unless it is reviewed or returned first; "
+        "Prolific's completed_at from a poll, else the webhook's event time.",
+        TIME,
+        lambda p, ctx: p.platform_completed_at,
+    ),
+    Column(
+        "prolific_return_requested_at",
+        "When Prolific asked the participant to return the submission (UTC): a completion code "
+        "with REQUEST_RETURN, such as NO_CONSENT (a decliner); returned only if prolific_status "
+        "is RETURNED. Empty when no return was asked for.",
+        TIME,
+        lambda p, ctx: p.platform_return_requested_at,
+    ),
     Column("domain", "Domain assigned at consent (empty before)."),
     Column(
         "excluded",

@@ -18,6 +18,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 
 from server.app.config import StudyConfig
+from server.app.export.tables import export_tables
 from server.app.main import create_app
 from server.app.platforms.prolific import ProlificClient
 from server.app.platforms.prolific_replica import ReplicaTransport
@@ -156,6 +157,11 @@ def test_the_poll_records_prolifics_completion_and_return_request(
         days=21
     )
     assert shown["auto_approval_soon"] is False
+
+    # The export keeps both times, for the decliners who never returned.
+    exported = export_tables(db)["participants"].set_index("participant_id").loc[participant]
+    assert exported["prolific_return_requested_at"] == row.return_requested.isoformat()
+    assert exported["prolific_completed_at"] == row.completed_at.isoformat()
 
     # They return it: RETURNED, still "declined" on our side, the request kept, nothing due.
     client.post(f"/prolific/submissions/{submission}/return", headers=ADMIN)

@@ -121,8 +121,12 @@ class Prolific(BasePlatform):
         participant who declined consent, whose NO_CONSENT code completed the submission
         (AWAITING REVIEW, approved by itself after 21 days unless they return it), and one who
         finished although their submission timed out (Prolific lets a timed-out submission be
-        approved) or whose code reached Prolific before our page said it was sent."""
+        approved) or whose code reached Prolific before our page said it was sent. Not a
+        submission the participant returned ("Return and cancel reward"): Prolific would pay it
+        only as an extra participant."""
         status, prolific = participant.status, participant.platform_status
+        if prolific == "RETURNED":
+            return False
         if status == "declined":
             return bool(prolific == "AWAITING REVIEW")
         if status == "completed":

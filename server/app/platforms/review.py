@@ -178,6 +178,12 @@ def reviewable(
             )
         theirs = registry.platform(p.platform)
         if not (theirs.awaits_decision(p) if decision else p.status == "submitted"):
+            if p.status == "submitted":  # the platform's status closed it
+                raise ApiError(
+                    409,
+                    f"participant {participant_id}'s submission is {p.platform_status} on "
+                    f"{theirs.display_name}: it is not open to review",
+                )
             also = f", {theirs.display_name}'s {p.platform_status}" if p.platform_status else ""
             raise ApiError(
                 409,

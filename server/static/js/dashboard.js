@@ -256,7 +256,9 @@ function reviewSection(p) {
     : null;
   if (!p.awaits_decision && !p.review) {
     return h("section", { class: "review", "aria-labelledby": "review-heading" }, heading, returnAsked,
-      h("p", { class: "muted" }, "The review opens once the participant has submitted their work."));
+      h("p", { class: "muted" }, p.status === "submitted"
+        ? `Prolific shows this submission as ${p.prolific_status}: it is not open to review.`
+        : "The review opens once the participant has submitted their work."));
   }
   // Each form says what is wrong under its own buttons: the decision's, the bonus's.
   const errorLine = (id) => h("p", { class: "form-error", id, role: "alert", hidden: true });

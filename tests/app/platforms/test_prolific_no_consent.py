@@ -310,3 +310,18 @@ def test_a_finisher_whose_submission_timed_out_can_be_approved_not_rejected(
         headers=ADMIN,
     )
     assert bonus.status_code == 409 and "has not submitted" in bonus.text
+
+
+def test_a_submission_the_participant_returned_is_not_reviewed(
+    client: TestClient, db: Database
+) -> None:
+    """Returned after submitting ("Return and cancel reward"): nothing to approve from here
+    (Prolific would pay it as an extra participant), and nothing is recorded."""
+    participant = teaching(db, "5" * 24, "6" * 24, status="submitted")
+    assert send(client, status_change("RETURNED", "6" * 24), "ev-r").json()["result"] == "applied"
+    assert listed(client, participant)["awaits_decision"] is False
+    refused = client.post(f"/api/admin/participants/{participant}/approval", json={}, headers=ADMIN)
+    assert refused.status_code == 409 and "is RETURNED on Prolific" in refused.text
+    assert (
+        client.get(f"/api/admin/participants/{participant}", headers=ADMIN).json()["review"] is None
+    )

@@ -153,13 +153,13 @@ def _keep_times(
 ) -> None:
     """When Prolific completed the submission and asked for its return: Prolific's own record
     where a poll read it; else, for a status from the webhook, the event's time."""
+    recorded = record is not None and "return_requested" in record
     if record is not None:
         completed = event_time(str(record.get("completed_at") or ""))
         if completed is not None:
             p.platform_completed_at = completed
-        if "return_requested" in record:  # Prolific's word, a null one included
+        if recorded:  # Prolific's word, a null one included
             p.platform_return_requested_at = event_time(str(record["return_requested"] or ""))
-            return
     if status != "AWAITING REVIEW":
         return
     if p.platform_completed_at is None:
@@ -167,7 +167,7 @@ def _keep_times(
     # Our page sends a participant who declined with the study's NO_CONSENT code, which asks for
     # a return (REQUEST_RETURN, ``prolific.draft_study``): their submission completed, Prolific
     # has asked them to return it. A poll replaces this with Prolific's own record.
-    if p.status == "declined" and p.platform_return_requested_at is None:
+    if not recorded and p.status == "declined" and p.platform_return_requested_at is None:
         p.platform_return_requested_at = at
 
 

@@ -298,6 +298,22 @@ class ProlificBackend:
         self.client = client
         self.currency = currency
         self.name = name
+        self._currencies: dict[str, str] = {}  # study id -> its workspace's currency
+
+    def _check_currency(self, study_id: str) -> None:
+        """Refuse a bonus in another currency than the study's workspace pays in (Prolific
+        reads a bonus's amount in it): the currency is read once per study."""
+        currency = self._currencies.get(study_id)
+        if currency is None:
+            workspace = self.client.workspace_of(self.client.get_study(study_id))
+            currency = str(self.client.balance(workspace).get("currency_code"))
+            self._currencies[study_id] = currency
+        if currency != self.currency:
+            raise ReviewRefused(
+                f"study {study_id}'s workspace pays in {currency}, but BAM_PROLIFIC_CURRENCY is "
+                f"{self.currency}: Prolific would read the bonus's amount in {currency}. Set "
+                f"BAM_PROLIFIC_CURRENCY={currency}; nothing was sent"
+            )
 
     @staticmethod
     def _study(who: Reviewed) -> str:
@@ -322,6 +338,7 @@ class ProlificBackend:
         return {"APPROVED": "approved", "REJECTED": "rejected"}.get(str(status))  # type: ignore[return-value]
 
     def set_up_bonus(self, who: Reviewed, amount: str, reason: str) -> str | None:
+        self._check_currency(self._study(who))
         made = self.client.set_up_bonuses(self._study(who), [(who.worker_id, amount)])
         return str(made["id"])
 

@@ -169,6 +169,7 @@ def concurrency_limit(study: ProlificReplicaStudy) -> int | None:
 def study_view(s: Session, study: ProlificReplicaStudy) -> dict[str, Any]:
     return {
         **study.fields,
+        "project": PROJECT_ID,  # the replica's one project (studies made before it had none)
         "id": study.id,
         "name": study.name,
         "status": study.status,

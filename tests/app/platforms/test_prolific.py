@@ -29,12 +29,16 @@ from server.app.platforms.prolific import (
     ProlificRefused,
     ProlificUnavailable,
 )
-from server.app.platforms.prolific_replica import ReplicaTransport
+from server.app.platforms.prolific_replica import ReplicaTransport, Workspace
 from server.app.platforms.review import Reviewed
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Bonus, Participant
-from server.app.storage.replica_models import ProlificReplicaPayment, ProlificReplicaSubmission
+from server.app.storage.replica_models import (
+    ProlificReplicaBonusSetup,
+    ProlificReplicaPayment,
+    ProlificReplicaSubmission,
+)
 from tests.support.server import ADMIN_TOKEN, live, study_config
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
@@ -605,6 +609,26 @@ def test_bonuses_may_not_pass_the_study_files_budget(
         assert payments(db) == [200, 100] and our_tokens(db) == ["budget-tok-1", "budget-tok-3"]
     with pytest.raises(StudyConfigError, match="bonus_budget"):
         study_config(completion={"mode": "prolific", "prolific_code": "C"}, prolific={**PROLIFIC_TABLE, "bonus_budget": 0})  # fmt: skip
+
+
+def test_a_bonus_in_another_currency_than_the_workspaces_is_refused_before_it_is_set_up(
+    client: TestClient, db: Database
+) -> None:
+    participant, _, _ = prolific_participant(client, db)
+    # The workspace pays in USD; the server is set for GBP (BAM_PROLIFIC_CURRENCY).
+    usd = ReplicaTransport(db, ADMIN_TOKEN, workspace=Workspace("USD", 100_000))
+    backend = ProlificBackend(
+        ProlificClient("http://replica/prolific/api/v1", ADMIN_TOKEN, transport=usd),
+        "GBP",
+        name="prolific-replica",
+    )
+    for _ in range(2):  # read once, refused each time
+        with pytest.raises(ApiError, match="pays in USD, but BAM_PROLIFIC_CURRENCY is GBP") as no:
+            review.pay_bonus(db, backend, participant, Decimal("1"), "Taught well", "cur-tok-1")
+        assert no.value.status == 409
+    assert payments(db) == [] and our_tokens(db) == []
+    with db.read() as s:
+        assert s.scalars(select(ProlificReplicaBonusSetup)).all() == []
 
 
 def our_tokens(db: Database) -> list[str]:

@@ -6,6 +6,7 @@ carried out once even when the server dies between a bonus's set-up and its paym
 from __future__ import annotations
 
 import os
+import threading
 import time
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
@@ -545,6 +546,43 @@ def test_a_prolific_bonus_whose_pay_failed_is_in_doubt_until_prolifics_record_se
         client.post(f"{BASE}/{participant}/bonuses", json=fresh, headers=ADMIN).status_code == 200
     )
     assert payments(db) == [125, 125]
+
+
+def test_concurrent_resends_of_a_bonus_in_doubt_pay_it_once(
+    client: TestClient, db: Database
+) -> None:
+    participant, _, _ = prolific_participant(client, db)
+    failing = ProlificBackend(
+        ProlificClient(
+            "http://replica/prolific/api/v1",
+            ADMIN_TOKEN,
+            transport=FailingPay(ReplicaTransport(db, ADMIN_TOKEN), "429"),
+        ),
+        "GBP",
+        name="prolific-replica",
+    )
+    with pytest.raises(ApiError, match="is in doubt"):
+        review.pay_bonus(db, failing, participant, Decimal("3"), "Taught well", "tok-many")
+    age(db, "tok-many", review.PAY_SETTLES_WITHIN)  # not on Prolific's record: unpaid
+    backend = client.app.state.server.review_backend("prolific")  # type: ignore[attr-defined]
+    answers: list[Any] = []
+
+    def resend() -> None:
+        try:
+            answers.append(
+                review.pay_bonus(db, backend, participant, Decimal("3"), "Taught well", "tok-many")
+            )
+        except ApiError as error:
+            answers.append(error.status)
+
+    threads = [threading.Thread(target=resend) for _ in range(8)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=60)
+    assert len(answers) == 8 and answers.count(True) == 1, answers
+    assert set(answers) <= {True, False, 409}
+    assert payments(db) == [300] and state_of(db, "tok-many") == "paid"
 
 
 def test_the_reconciliation_settles_a_prolific_bonus_in_doubt_from_prolifics_record(

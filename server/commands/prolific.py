@@ -237,6 +237,10 @@ def publish(client: ProlificClient, study_id: str, settings: Settings, force: bo
     from server.app.platforms.review import ReviewRefused, ReviewUnavailable
 
     study = client.get_study(study_id)
+    if study.get("status") != "UNPUBLISHED":  # Prolific refuses it: nothing to pay for
+        done = client.transition_study(study_id, "PUBLISH")
+        print(f"study {study_id}: {done['status']}")
+        return
     workspace = client.workspace_of(study)
     balance = client.balance(workspace)  # the workspace's currency, read once
     currency = str(balance.get("currency_code"))

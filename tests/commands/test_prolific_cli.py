@@ -506,6 +506,11 @@ def test_publish_checks_the_currency_the_hourly_pay_and_the_balance_before_it_pu
         after = client.balance(workspace)
         assert after["total_balance"] == before["total_balance"] == 100_000
         assert after["available_balance"] == before["available_balance"] - 1000
+        # Published already: Prolific's refusal, not a second look at the money.
+        status, out, err = run_command(
+            ["prolific", "publish", underpaid, "--replica", server], capsys
+        )
+        assert status == 1 and "cannot PUBLISH" in err and out == ""
         client.close()
 
 

@@ -391,6 +391,16 @@ class ProlificStudy(_Strict):
         description="The pay of one participant, in the workspace's currency "
         "(BAM_PROLIFIC_CURRENCY), at most two decimals: 6.50; sent to Prolific in cents.",
     )
+    bonus_budget: Decimal | None = Field(
+        None,
+        gt=0,
+        max_digits=10,
+        decimal_places=2,
+        description="The most the study's bonuses may come to, in the workspace's currency "
+        "(before Prolific's fees and VAT): the dashboard refuses a bonus that would take the "
+        "bonuses recorded (paid, or perhaps paid) past it, before anything is sent. Left out: "
+        "no cap.",
+    )
     estimated_minutes: int = Field(
         ge=1, description="How long the study takes, in minutes (estimated_completion_time)."
     )

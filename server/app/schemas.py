@@ -432,10 +432,16 @@ class BonusView(BaseModel):
     unique_token: str
     backend: str
     state: str = Field(
-        description="paid; or pending, set_up, paying: recorded, not yet confirmed paid."
+        description="paid; or pending, set_up, paying: recorded, not yet confirmed paid; or "
+        "in_doubt: the platform's pay failed after it may have paid (Prolific: settled from the "
+        "submission's bonus_payments by a resend or the reconciliation, never paid twice)."
     )
     setup_id: str | None = Field(description="Prolific's bonus set-up id.")
+    pay_sent_at: datetime | None = Field(description="When Prolific's pay was sent.")
     paid_at: datetime | None
+    note: str | None = Field(
+        description="What an unsettled bonus waits for and how it settles (None once paid)."
+    )
 
 
 class StatusChangeView(BaseModel):

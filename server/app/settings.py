@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import ipaddress
 import re
+from decimal import Decimal
 from functools import lru_cache
 from pathlib import Path
 from typing import Any, Literal
@@ -129,6 +130,14 @@ class Settings(BaseSettings):
         "GBP",
         description="The currency of the Prolific workspace's studies: rewards and bonuses are "
         "paid in it.",
+    )
+    prolific_replica_funds: Decimal = Field(
+        Decimal(1000),
+        ge=0,
+        max_digits=10,
+        decimal_places=2,
+        description="The funds in the local Prolific replica's workspace, in "
+        "BAM_PROLIFIC_CURRENCY: its balance is these less the rewards and bonuses paid there.",
     )
     prolific_webhook_secret: SecretStr | None = Field(
         None,

@@ -80,7 +80,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "the capacity measured here)",
     )
     for name, help_text in (
-        ("publish", "Publish the study: participants can take part."),
+        (
+            "publish",
+            "Publish the study: participants can take part. First the workspace's currency is "
+            "checked against BAM_PROLIFIC_CURRENCY, the hourly pay against Prolific's minimum, "
+            "and the study's cost against the workspace's available balance.",
+        ),
         ("pause", "Pause the published study: no one new takes part."),
         (
             "start",
@@ -90,7 +95,15 @@ def configure(parser: argparse.ArgumentParser) -> None:
         ("stop", "Stop the study for good (COMPLETED): no one new takes part."),
         ("status", "The study's status, places and submissions per status."),
     ):
-        action(name, help_text).add_argument("study_id", metavar="STUDY_ID", type=study_id)
+        sub = action(name, help_text)
+        sub.add_argument("study_id", metavar="STUDY_ID", type=study_id)
+        if name == "publish":
+            sub.add_argument(
+                "--force",
+                action="store_true",
+                help="publish even though the hourly pay is below Prolific's minimum (the "
+                "balance and the currency are checked all the same)",
+            )
     places = action("add-places", "Raise the study's places to N (places only go up).")
     places.add_argument("study_id", metavar="STUDY_ID", type=study_id)
     places.add_argument("places", metavar="N", type=positive, help="the new number of places")
@@ -205,6 +218,85 @@ def status(client: ProlificClient, study_id: str) -> None:
             print(f"  {name:<18} {counts[name]}")
 
 
+# Prolific's documented minimum hourly pay, in cents (researcher help: £6 / $8 an hour).
+LEAST_HOURLY_REWARD = {"GBP": 600, "USD": 800}
+
+
+def amount(cents: float, currency: str) -> str:
+    """Cents as an amount with two decimals and the currency: 12.30 GBP."""
+    whole = round(cents)
+    sign = "-" if whole < 0 else ""
+    return f"{sign}{abs(whole) // 100}.{abs(whole) % 100:02d} {currency}"
+
+
+def publish(client: ProlificClient, study_id: str, settings: Settings, force: bool) -> None:
+    """Publish the study once the money is checked and shown: the workspace's currency is
+    BAM_PROLIFIC_CURRENCY, the hourly pay is at least Prolific's minimum (unless ``force``),
+    and the available balance covers the study's cost (its places' rewards with Prolific's
+    fees and VAT, from Prolific's cost calculator)."""
+    from server.app.platforms.review import ReviewRefused, ReviewUnavailable
+
+    study = client.get_study(study_id)
+    if study.get("status") != "UNPUBLISHED":  # Prolific refuses it: nothing to pay for
+        done = client.transition_study(study_id, "PUBLISH")
+        print(f"study {study_id}: {done['status']}")
+        return
+    workspace = client.workspace_of(study)
+    balance = client.balance(workspace)  # the workspace's currency, read once
+    currency = str(balance.get("currency_code"))
+    if currency != settings.prolific_currency:
+        raise Refused(
+            f"workspace {workspace} pays in {currency}, but BAM_PROLIFIC_CURRENCY is "
+            f"{settings.prolific_currency}: the study's rewards and bonuses would be read in "
+            f"the wrong currency. Set BAM_PROLIFIC_CURRENCY={currency} on the server and here "
+            "(and the study file's amounts in it); the study is not published"
+        )
+    reward = int(study["reward"])
+    places = int(study["total_available_places"])
+    minutes = int(study["estimated_completion_time"])
+    cost = client.study_cost(reward, places)
+    available = int(balance["available_balance"])
+    hourly = reward * 60 / minutes
+    try:
+        least = client.least_hourly_reward(workspace, currency)
+        source = "Prolific's reward recommendations"
+    except (ReviewRefused, ReviewUnavailable):
+        least = None
+    if least is None:
+        least, source = LEAST_HOURLY_REWARD[currency], "Prolific's documented minimum"
+    print(
+        f"cost        {amount(cost, currency)} for {places} places at "
+        f"{amount(reward, currency)} (with Prolific's fees and VAT)"
+    )
+    print(f"balance     {amount(available, currency)} available in workspace {workspace}")
+    print(
+        f"hourly pay  {amount(hourly, currency)} an hour for an estimated {minutes} minutes "
+        f"(the least: {amount(least, currency)}, {source})",
+        flush=True,
+    )
+    if hourly < least:
+        if not force:
+            raise Refused(
+                f"the study pays {amount(hourly, currency)} an hour ({amount(reward, currency)} "
+                f"for an estimated {minutes} minutes), below Prolific's minimum of "
+                f"{amount(least, currency)} an hour: raise the reward, or give --force to "
+                "publish it all the same; the study is not published"
+            )
+        print(
+            "bam-study prolific publish: --force: publishing below Prolific's minimum hourly "
+            "pay; Prolific asks for adjustment payments to studies that underpay",
+            file=sys.stderr,
+        )
+    if available < cost:
+        raise Refused(
+            f"workspace {workspace} has {amount(available, currency)} available, less than the "
+            f"study's cost of {amount(cost, currency)}: add at least "
+            f"{amount(cost - available, currency)} to it on Prolific; the study is not published"
+        )
+    done = client.transition_study(study_id, "PUBLISH")
+    print(f"study {study_id}: {done['status']}")
+
+
 def add_places(client: ProlificClient, study_id: str, places: int) -> None:
     study: dict[str, Any] = client.get_study(study_id)
     current = int(study["total_available_places"])
@@ -236,6 +328,8 @@ def run(args: argparse.Namespace) -> int:
                 status(client, args.study_id)
             elif args.action == "add-places":
                 add_places(client, args.study_id, args.places)
+            elif args.action == "publish":
+                publish(client, args.study_id, settings, args.force)
             else:
                 action = args.action.upper()  # publish, pause, start, stop
                 done = client.transition_study(args.study_id, action)

@@ -3,16 +3,20 @@ URL with the study's code (the only request that leaves the server, answered her
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 
 import pytest
-from playwright.sync_api import Page, Route
+from playwright.sync_api import Page, Route, expect
 
+from server.app.storage.db import Database
+from server.app.storage.models import Bonus, Participant, utcnow
 from tests.browser.conftest import (
     WAIT_MS,
     LiveServer,
     Study,
     Watch,
+    admin_login,
     domain_toml,
     run_live_server,
     study_toml,
@@ -59,3 +63,51 @@ def test_a_prolific_participant_is_sent_back_with_the_code(page: Page, server: L
     assert watch.foreign == landed
     watch.foreign.clear()
     watch.check()
+
+
+def test_a_bonus_in_doubt_is_shown_as_such_and_settled_from_the_dashboard(
+    page: Page, server: LiveServer
+) -> None:
+    """A Prolific bonus whose pay failed after it may have paid: neither paid nor unpaid on the
+    dashboard, with how it settles; Settle it sends it again with its own token, and the answer
+    (here: no record of that submission to settle it by) is shown by the bonus."""
+    db = Database.from_url(server.database_url)
+    with db.write() as s:
+        p = Participant(
+            token_hash=os.urandom(32).hex(),
+            platform="prolific",
+            worker_id="PIDDOUBT",
+            assignment_id="SESSIONDOUBT",
+            hit_id="STUDYDOUBT",
+            status="submitted",
+        )
+        s.add(p)
+        s.flush()
+        s.add(
+            Bonus(
+                participant_id=p.id,
+                assignment_id="SESSIONDOUBT",
+                worker_id="PIDDOUBT",
+                amount_cents=125,
+                currency="GBP",
+                reason="Taught well",
+                unique_token="doubt-token-1",
+                backend="prolific-replica",
+                state="in_doubt",
+                setup_id="b" * 24,
+                requested_at=utcnow(),
+                pay_sent_at=utcnow(),
+            )
+        )
+    db.dispose()
+    admin_login(page, server, "/dashboard")
+    page.locator('#participants tr[data-participant]:has-text("PIDDOUBT")').click()
+    item = page.locator('#detail .bonuses li[data-state="in_doubt"]')
+    expect(item).to_contain_text("in doubt: neither paid nor unpaid until settled")
+    expect(item.locator(".bonus-note")).to_contain_text(
+        "settled from Prolific's record of the submission's bonuses"
+    )
+    item.locator('[data-action="settle-bonus"]').click()
+    expect(item.locator(".form-error")).to_contain_text("is in doubt", timeout=WAIT_MS)
+    (row,) = server.query("SELECT state FROM bonuses WHERE unique_token = 'doubt-token-1'")
+    assert row.state == "in_doubt"

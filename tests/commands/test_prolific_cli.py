@@ -10,6 +10,8 @@ import argparse
 import re
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
+from decimal import Decimal
 from pathlib import Path
 from typing import Any
 
@@ -355,7 +357,7 @@ def test_a_study_runs_on_the_replica_from_the_command_line(
     assert ADMIN_TOKEN not in err + out
 
     status, out, err = run_command(["prolific", "publish", study_id, *replica], capsys)
-    assert (status, out.strip()) == (0, f"study {study_id}: ACTIVE"), err
+    assert (status, out.strip().splitlines()[-1]) == (0, f"study {study_id}: ACTIVE"), err
 
     status, out, err = run_command(
         [
@@ -418,6 +420,98 @@ def test_a_study_runs_on_the_replica_from_the_command_line(
     assert status == 1 and "cannot START" in err, err
     assert client.set_places(study_id, 6)["status"] == "ACTIVE"
     client.close()
+
+
+@contextmanager
+def server_with(
+    db: Database, settings: Settings, executor: ProcessPoolExecutor, **changes: Any
+) -> Iterator[str]:
+    """The study server with ``changes`` to its settings (its replica's currency, funds)."""
+    study = study_config(completion=COMPLETION, max_active_participants=2)
+    app = create_app(settings.model_copy(update=changes), study, db=db, executor=executor)
+    with live(app) as base:
+        yield base
+
+
+def test_publish_checks_the_currency_the_hourly_pay_and_the_balance_before_it_publishes(
+    db: Database,
+    settings: Settings,
+    executor: ProcessPoolExecutor,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    monkeypatch.setenv("BAM_ADMIN_TOKEN", ADMIN_TOKEN)
+    monkeypatch.setenv("BAM_PROLIFIC_CURRENCY", "GBP")
+    fair = study_file(tmp_path)  # 3 places at 7.35 for 30 minutes: 14.70 an hour
+    (tmp_path / "low").mkdir()
+    low = study_file(tmp_path / "low", reward=2.5)  # 5.00 an hour
+
+    def made(server: str, path: Path) -> str:
+        status, out, err = run_command(
+            ["prolific", "create", str(path), "--max-concurrent", "2", "--replica", server], capsys
+        )
+        assert status == 0, err
+        return out.strip()
+
+    # A workspace in another currency than BAM_PROLIFIC_CURRENCY: refused, naming both.
+    with server_with(db, settings, executor, prolific_currency="USD") as server:
+        study_id = made(server, fair)
+        status, out, err = run_command(
+            ["prolific", "publish", study_id, "--replica", server], capsys
+        )
+        assert status == 1
+        assert "pays in USD, but BAM_PROLIFIC_CURRENCY is GBP" in err and "not published" in err
+        client = ProlificClient(f"{server}/prolific/api/v1", ADMIN_TOKEN)
+        assert client.get_study(study_id)["status"] == "UNPUBLISHED"
+        client.close()
+
+    # 25.00 GBP in the workspace: the study costs 3 x 7.35 with Prolific's fee, 29.39.
+    with server_with(db, settings, executor, prolific_replica_funds=Decimal(25)) as server:
+        client = ProlificClient(f"{server}/prolific/api/v1", ADMIN_TOKEN)
+        study_id = made(server, fair)
+        assert client.study_cost(735, 3) == 2939
+        status, out, err = run_command(
+            ["prolific", "publish", study_id, "--replica", server], capsys
+        )
+        assert status == 1, out
+        assert "cost        29.39 GBP for 3 places at 7.35 GBP" in out
+        assert "balance     25.00 GBP available" in out
+        assert "hourly pay  14.70 GBP an hour" in out and "6.00 GBP" in out
+        assert "has 25.00 GBP available, less than the study's cost of 29.39 GBP" in err
+        assert "add at least 4.39 GBP" in err and len(err.strip().splitlines()) == 1
+        assert client.get_study(study_id)["status"] == "UNPUBLISHED"
+        client.close()
+
+    with server_with(db, settings, executor) as server:  # 1,000.00 GBP
+        client = ProlificClient(f"{server}/prolific/api/v1", ADMIN_TOKEN)
+        workspace = client.workspace_of(client.get_study(made(server, fair)))
+        before = client.balance(workspace)
+        # Below Prolific's minimum hourly pay: refused unless forced.
+        underpaid = made(server, low)
+        status, out, err = run_command(
+            ["prolific", "publish", underpaid, "--replica", server], capsys
+        )
+        assert status == 1
+        assert "pays 5.00 GBP an hour" in err and "below Prolific's minimum of 6.00 GBP" in err
+        assert "--force" in err and client.get_study(underpaid)["status"] == "UNPUBLISHED"
+        assert client.balance(workspace) == before
+        status, out, err = run_command(
+            ["prolific", "publish", underpaid, "--force", "--replica", server], capsys
+        )
+        assert status == 0, err
+        assert out.strip().splitlines()[-1] == f"study {underpaid}: ACTIVE"
+        assert "publishing below Prolific's minimum" in err
+        # Published, the study holds its cost: 3 x 2.50 with the fee, 10.00.
+        after = client.balance(workspace)
+        assert after["total_balance"] == before["total_balance"] == 100_000
+        assert after["available_balance"] == before["available_balance"] - 1000
+        # Published already: Prolific's refusal, not a second look at the money.
+        status, out, err = run_command(
+            ["prolific", "publish", underpaid, "--replica", server], capsys
+        )
+        assert status == 1 and "cannot PUBLISH" in err and out == ""
+        client.close()
 
 
 def test_a_refusal_of_prolifics_api_reaches_the_user_in_one_line_without_the_token(

@@ -449,8 +449,10 @@ BONUSES = (
         "payment_state",
         "paid; or not yet confirmed: pending (recorded before the platform was "
         "called), set_up (Prolific's bonus set up, not yet paid), paying (Prolific's pay "
-        "called, outcome not known), in_doubt (an MTurk bonus unsettled for longer than MTurk "
-        "remembers its request token, 24 hours: never sent again; check it on MTurk).",
+        "sent, its answer awaited), in_doubt (paid or not, not known yet: Prolific's pay "
+        "failed after it may have paid, settled from the submission's bonus_payments, never "
+        "paid twice; or an MTurk bonus unsettled for longer than MTurk remembers its request "
+        "token, 24 hours: never sent again; check it on MTurk).",
         value=lambda b, ctx: b.state,
     ),
     Column(
@@ -458,6 +460,7 @@ BONUSES = (
         "Prolific's bonus set-up id (its bulk bonus payment), stored before pay was called.",
     ),
     Column("requested_at", "When the experimenter asked for the bonus (UTC).", TIME),
+    Column("pay_sent_at", "When Prolific's pay was sent (UTC; empty before).", TIME),
     Column("paid_at", "When the platform took the bonus (UTC; empty until paid).", TIME),
 )
 

@@ -138,6 +138,11 @@ class Platform(Protocol):
         """The platform's status of the submission once ``decision`` is taken (None: none)."""
         ...
 
+    def bonus_budget_cents(self, study: StudyConfig) -> int | None:
+        """The most the study's bonuses on this platform may come to, in cents of its currency
+        (the study file's budget; None: no cap)."""
+        ...
+
     def own_replica_rows(self, participant: Any) -> Rows:
         """The replica rows of the participant's turn alone, children before parents."""
         ...
@@ -199,6 +204,9 @@ class BasePlatform:
         return None
 
     def status_after(self, decision: Decision) -> str | None:
+        return None
+
+    def bonus_budget_cents(self, study: StudyConfig) -> int | None:
         return None
 
     def own_replica_rows(self, participant: Any) -> Rows:

@@ -96,6 +96,9 @@ class MTurkReplicaBackend:
     def set_up_bonus(self, who: Reviewed, amount: str, reason: str) -> str | None:
         return None
 
+    def bonuses_paid(self, who: Reviewed) -> list[int] | None:
+        return None  # a repeat of SendBonus with its token settles an MTurk bonus instead
+
     def pay_bonus(
         self, who: Reviewed, amount: str, reason: str, token: str, setup_id: str | None
     ) -> None:
@@ -172,6 +175,9 @@ class MTurkClientBackend:
 
     def set_up_bonus(self, who: Reviewed, amount: str, reason: str) -> str | None:
         return None
+
+    def bonuses_paid(self, who: Reviewed) -> list[int] | None:
+        return None  # a repeat of SendBonus with its token settles an MTurk bonus instead
 
     def pay_bonus(
         self, who: Reviewed, amount: str, reason: str, token: str, setup_id: str | None

@@ -159,6 +159,49 @@ class ProlificClient:
             self.request("PATCH", f"studies/{study_id}/", json={"total_available_places": places})
         )
 
+    # -- money ----------------------------------------------------------------------------
+    def workspace_of(self, study: dict[str, Any]) -> str:
+        """The id of the workspace whose funds pay the study (through its project)."""
+        project = study.get("project")
+        if not isinstance(project, str) or not project:
+            raise ProlificUnavailable(
+                f"Prolific's study {study.get('id')} names no project, so its workspace (and "
+                "balance) cannot be found"
+            )
+        workspace = self.request("GET", f"projects/{project}/").get("workspace")
+        if not isinstance(workspace, str) or not workspace:
+            raise ProlificUnavailable(f"Prolific's project {project} names no workspace")
+        return workspace
+
+    def balance(self, workspace_id: str) -> dict[str, Any]:
+        """The workspace's balance: ``currency_code``, ``total_balance`` and
+        ``available_balance`` (in cents: what active studies hold is not available)."""
+        return dict(self.request("GET", f"workspaces/{workspace_id}/balance/"))
+
+    def study_cost(self, reward_cents: int, places: int) -> int:
+        """What ``places`` places at ``reward_cents`` cost, with Prolific's fees and VAT, in
+        cents of the workspace's currency."""
+        body = self.request(
+            "POST",
+            "study-cost-calculator/",
+            json={"reward": reward_cents, "total_available_places": places},
+        )
+        return round(body["total_cost"])
+
+    def least_hourly_reward(self, workspace_id: str, currency: str) -> int | None:
+        """Prolific's minimum hourly reward for the workspace, in cents (the first of its
+        reward recommendations, the most recent); None when it gives none."""
+        listed = self.request(
+            "GET",
+            "reward-recommendations/",
+            params={"workspace_id": workspace_id, "currency": currency},
+        )
+        if isinstance(listed, list) and listed and isinstance(listed[0], dict):
+            least = listed[0].get("min_reward_per_hour")
+            if isinstance(least, int) and not isinstance(least, bool) and least > 0:
+                return least
+        return None
+
     # -- submissions ----------------------------------------------------------------------
     def submissions(self, study_id: str, page_size: int = 100) -> Iterator[dict[str, Any]]:
         """Every submission of the study, page by page."""
@@ -221,12 +264,26 @@ class ProlificClient:
                 "POST",
                 "submissions/bonus-payments/",
                 json={"study_id": study_id, "csv_bonuses": csv},
+                creates=True,  # a 5xx may have set one up: not a second one unasked
             )
         )
 
     def pay_bonuses(self, setup_id: str) -> None:
         """Pay a set-up: sent once, never retried (Prolific's pay is not idempotent)."""
         self.request("POST", f"bulk-bonus-payments/{setup_id}/pay/", retry=False)
+
+    def bonus_payments(self, study_id: str, submission_id: str) -> list[int]:
+        """The bonuses Prolific lists as paid on the submission, in cents (its
+        ``bonus_payments``: what settles a bonus whose pay failed after it may have paid)."""
+        listed = self.submission(study_id, submission_id).get("bonus_payments")
+        if not isinstance(listed, list) or not all(
+            isinstance(c, (int, float)) and not isinstance(c, bool) for c in listed
+        ):
+            raise ProlificUnavailable(
+                f"Prolific's submission {submission_id} has no list of bonus_payments to "
+                "settle a bonus by"
+            )
+        return [round(c) for c in listed]
 
 
 class ProlificBackend:
@@ -241,6 +298,22 @@ class ProlificBackend:
         self.client = client
         self.currency = currency
         self.name = name
+        self._currencies: dict[str, str] = {}  # study id -> its workspace's currency
+
+    def _check_currency(self, study_id: str) -> None:
+        """Refuse a bonus in another currency than the study's workspace pays in (Prolific
+        reads a bonus's amount in it): the currency is read once per study."""
+        currency = self._currencies.get(study_id)
+        if currency is None:
+            workspace = self.client.workspace_of(self.client.get_study(study_id))
+            currency = str(self.client.balance(workspace).get("currency_code"))
+            self._currencies[study_id] = currency
+        if currency != self.currency:
+            raise ReviewRefused(
+                f"study {study_id}'s workspace pays in {currency}, but BAM_PROLIFIC_CURRENCY is "
+                f"{self.currency}: Prolific would read the bonus's amount in {currency}. Set "
+                f"BAM_PROLIFIC_CURRENCY={currency}; nothing was sent"
+            )
 
     @staticmethod
     def _study(who: Reviewed) -> str:
@@ -265,6 +338,7 @@ class ProlificBackend:
         return {"APPROVED": "approved", "REJECTED": "rejected"}.get(str(status))  # type: ignore[return-value]
 
     def set_up_bonus(self, who: Reviewed, amount: str, reason: str) -> str | None:
+        self._check_currency(self._study(who))
         made = self.client.set_up_bonuses(self._study(who), [(who.worker_id, amount)])
         return str(made["id"])
 
@@ -274,6 +348,9 @@ class ProlificBackend:
         if setup_id is None:
             raise ReviewRefused(f"bonus {token} has no set-up on Prolific to pay")
         self.client.pay_bonuses(setup_id)
+
+    def bonuses_paid(self, who: Reviewed) -> list[int] | None:
+        return self.client.bonus_payments(self._study(who), who.assignment_id)
 
 
 def draft_study(

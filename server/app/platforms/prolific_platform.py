@@ -27,6 +27,7 @@ from server.app.platforms.prolific_replica import (
     ReplicaTransport,
     completion_url,
     is_replica_study,
+    workspace_of,
 )
 from server.app.platforms.review import PROLIFIC_MIN_MESSAGE, Decision
 from server.app.storage.records import table_of
@@ -106,7 +107,9 @@ class Prolific(BasePlatform):
             # Prolific's client, answered by the replica inside the server.
             token = settings.admin_token.get_secret_value() if settings.admin_token else ""
             client = ProlificClient(
-                "http://replica/prolific/api/v1", token, transport=ReplicaTransport(db, token)
+                "http://replica/prolific/api/v1",
+                token,
+                transport=ReplicaTransport(db, token, workspace=workspace_of(settings)),
             )
             return ProlificBackend(client, settings.prolific_currency, name="prolific-replica")
         if settings.prolific_token is None:
@@ -157,6 +160,10 @@ class Prolific(BasePlatform):
     def status_after(self, decision: Decision) -> str | None:
         # Prolific's status of the submission is now ours (its webhook says it again).
         return "APPROVED" if decision == "approved" else "REJECTED"
+
+    def bonus_budget_cents(self, study: StudyConfig) -> int | None:
+        budget = study.prolific.bonus_budget if study.prolific is not None else None
+        return None if budget is None else int(budget * 100)
 
     def own_replica_rows(self, participant: Any) -> Rows:
         worker, submission = participant.worker_id, participant.assignment_id

@@ -19,7 +19,12 @@ server (the dashboard's reviews on a rehearsal). As on Prolific:
   characters (400 otherwise); the same transition sent again is ignored (the endpoint is
   idempotent);
 - bonuses are set up (``csv_bonuses``: participant or submission id, amount in the currency)
-  and paid with ``pay``, which is not idempotent: a second ``pay`` pays again.
+  and paid with ``pay``, which is not idempotent: a second ``pay`` pays again; a submission
+  lists the bonuses paid on it (``bonus_payments``);
+- the one workspace (``Workspace``: its currency, the funds put in it) has a balance that the
+  rewards of approved submissions and the bonuses paid take from, with Prolific's fee, and that
+  published studies hold their places' cost from; the study cost calculator and the reward
+  recommendations answer as Prolific's.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from __future__ import annotations
 import json
 import re
 import secrets
+from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
 from typing import Any
 from urllib.parse import parse_qs
@@ -78,6 +84,36 @@ CODE_ACTIONS = (
 )
 DEVICES = ("desktop", "tablet", "mobile")
 PLACEHOLDERS = ("{{%PROLIFIC_PID%}}", "{{%STUDY_ID%}}", "{{%SESSION_ID%}}")
+
+
+# The replica's one workspace and project: every study is made in them.
+WORKSPACE_ID = "5e0f000000000000000000a1"
+PROJECT_ID = "5e0f000000000000000000b1"
+# Prolific's service fee on rewards and bonuses (VAT: none).
+SERVICE_FEE = Decimal("0.333")
+# Prolific's minimum hourly pay and the pay it recommends, in cents (researcher help).
+HOURLY_REWARD = {"GBP": (600, 900), "USD": (800, 1200)}
+# A published study holds the cost of its places not yet paid.
+PUBLISHED = ("ACTIVE", "PAUSED", "AWAITING REVIEW")
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """The replica's workspace: its currency and the funds put in it, in cents."""
+
+    currency: str = "GBP"
+    funds: int = 100_000
+
+
+def workspace_of(settings: Any) -> Workspace:
+    """The replica's workspace for the server's settings: BAM_PROLIFIC_CURRENCY, and
+    BAM_PROLIFIC_REPLICA_FUNDS put in it."""
+    return Workspace(settings.prolific_currency, int(settings.prolific_replica_funds * 100))
+
+
+def with_fees(cents: int) -> int:
+    """What paying ``cents`` to participants costs the workspace (Prolific's fee on top)."""
+    return cents + int((cents * SERVICE_FEE).to_integral_value())
 
 
 class Refusal(Exception):
@@ -142,6 +178,7 @@ def concurrency_limit(study: ProlificReplicaStudy) -> int | None:
 def study_view(s: Session, study: ProlificReplicaStudy) -> dict[str, Any]:
     return {
         **study.fields,
+        "project": PROJECT_ID,  # the replica's one project (studies made before it had none)
         "id": study.id,
         "name": study.name,
         "status": study.status,
@@ -166,6 +203,25 @@ def submission_view(row: ProlificReplicaSubmission) -> dict[str, Any]:
         "study_code": row.study_code,
         "return_requested": row.return_requested.isoformat() if row.return_requested else None,
     }
+
+
+def submission_detail(s: Session, row: ProlificReplicaSubmission) -> dict[str, Any]:
+    """``GET /submissions/{id}/``: the submission with its ``bonus_payments``, the bonuses paid
+    on it in cents (each ``pay`` of a set-up that names its participant or it), as Prolific's
+    SubmissionDetail lists them."""
+    paid = s.scalars(
+        select(ProlificReplicaPayment.amount)
+        .join(
+            ProlificReplicaBonusSetup,
+            ProlificReplicaBonusSetup.id == ProlificReplicaPayment.setup_id,
+        )
+        .where(
+            ProlificReplicaBonusSetup.study_id == row.study_id,
+            ProlificReplicaPayment.participant_id == row.participant_id,
+        )
+        .order_by(ProlificReplicaPayment.id)
+    ).all()
+    return {**submission_view(row), "bonus_payments": list(paid)}
 
 
 # -- the API ----------------------------------------------------------------------------------
@@ -283,6 +339,9 @@ def create_study(s: Session, body: dict[str, Any]) -> tuple[int, Any]:
             f"of {estimated} (two minutes plus two times the estimated time plus two times its "
             "square root).",
         )
+    if body.get("project", PROJECT_ID) != PROJECT_ID:
+        raise Refusal(400, f"project: no project {body.get('project')!r} in your workspace.")
+    body = {**body, "project": PROJECT_ID}
     study = ProlificReplicaStudy(
         id=new_id(),
         name=name,
@@ -297,6 +356,55 @@ def create_study(s: Session, body: dict[str, Any]) -> tuple[int, Any]:
     s.add(study)
     s.flush()
     return 201, study_view(s, study)
+
+
+def balance(s: Session, workspace: Workspace) -> dict[str, Any]:
+    """``GET /workspaces/{id}/balance/``: the funds less what was paid (the rewards of approved
+    submissions and the bonuses, each with Prolific's fee), and, available, less what the
+    published studies hold for their places not yet paid."""
+    approved = s.execute(
+        select(ProlificReplicaStudy.reward, func.count())
+        .join(
+            ProlificReplicaSubmission, ProlificReplicaSubmission.study_id == ProlificReplicaStudy.id
+        )
+        .where(ProlificReplicaSubmission.status == "APPROVED")
+        .group_by(ProlificReplicaStudy.id, ProlificReplicaStudy.reward)
+    ).all()
+    rewards = sum(reward * count for reward, count in approved)
+    bonuses = int(s.scalar(select(func.coalesce(func.sum(ProlificReplicaPayment.amount), 0))) or 0)
+    total = workspace.funds - with_fees(rewards) - with_fees(bonuses)
+    held = 0
+    for study in s.scalars(
+        select(ProlificReplicaStudy).where(ProlificReplicaStudy.status.in_(PUBLISHED))
+    ):
+        paid = _submissions(s, study.id, ("APPROVED",))
+        held += with_fees(max(study.total_available_places - paid, 0) * study.reward)
+    return {
+        "currency_code": workspace.currency,
+        "total_balance": total,
+        "available_balance": total - held,
+    }
+
+
+def study_cost(body: dict[str, Any]) -> tuple[int, Any]:
+    """``POST /study-cost-calculator/``: the reward of every place, with Prolific's fee."""
+    values = [body.get(name) for name in ("reward", "total_available_places")]
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for v in values):
+        raise Refusal(400, "reward and total_available_places: positive numbers are required.")
+    reward, places = values
+    return 200, {"total_cost": with_fees(round(reward * places))}  # type: ignore[operator]
+
+
+def reward_recommendations(query: dict[str, str]) -> tuple[int, Any]:
+    if query.get("workspace_id") != WORKSPACE_ID:
+        raise Refusal(400, "workspace_id: the id of your workspace is required.")
+    currency = query.get("currency")
+    if currency not in HOURLY_REWARD:
+        raise Refusal(400, "currency: one of GBP, USD.")
+    least, good = HOURLY_REWARD[currency]
+    return 200, [
+        {"currency": currency, "min_reward_per_hour": least, "recommended_reward_per_hour": good}
+    ]
 
 
 def update_study(s: Session, study_id: str, body: dict[str, Any]) -> tuple[int, Any]:
@@ -457,7 +565,7 @@ def set_up_bonuses(s: Session, body: dict[str, Any]) -> tuple[int, Any]:
         id=new_id(), study_id=study_id, csv_bonuses=csv, amount=total, created_at=utcnow()
     )
     s.add(setup)
-    fees = round(total * 0.333)
+    fees = with_fees(total) - total
     return 201, {
         "id": setup.id,
         "study": study_id,
@@ -501,11 +609,20 @@ ROUTES: list[tuple[str, re.Pattern[str], str]] = [
     ("GET", re.compile(r"submissions/(?P<id>[0-9a-f]{24})/"), "get_submission"),
     ("POST", re.compile(r"submissions/(?P<id>[0-9a-f]{24})/transition/"), "transition_submission"),
     ("POST", re.compile(r"bulk-bonus-payments/(?P<id>[0-9a-f]{24})/pay/"), "pay_bonuses"),
+    ("GET", re.compile(r"projects/(?P<id>[0-9a-f]{24})/"), "get_project"),
+    ("GET", re.compile(r"workspaces/(?P<id>[0-9a-f]{24})/balance/"), "get_balance"),
+    ("POST", re.compile(r"study-cost-calculator/"), "study_cost"),
+    ("GET", re.compile(r"reward-recommendations/"), "reward_recommendations"),
 ]
 
 
 def handle(
-    db: Database, method: str, path: str, query: dict[str, str], raw: bytes
+    db: Database,
+    method: str,
+    path: str,
+    query: dict[str, str],
+    raw: bytes,
+    workspace: Workspace = Workspace(),
 ) -> tuple[int, Any]:
     """Prolific's answer (status, JSON body) to one request under ``/api/v1/``."""
     path = path.lstrip("/")
@@ -543,9 +660,21 @@ def handle(
             if name == "set_up_bonuses":
                 return set_up_bonuses(s, body)
             if name == "get_submission":
-                return 200, submission_view(_submission(s, ident))
+                return 200, submission_detail(s, _submission(s, ident))
             if name == "transition_submission":
                 return transition_submission(s, ident, body)
+            if name == "get_project":
+                if ident != PROJECT_ID:
+                    raise Refusal(404, f"Project {ident} not found.")
+                return 200, {"id": PROJECT_ID, "title": "Rehearsals", "workspace": WORKSPACE_ID}
+            if name == "get_balance":
+                if ident != WORKSPACE_ID:
+                    raise Refusal(404, f"Workspace {ident} not found.")
+                return 200, balance(s, workspace)
+            if name == "study_cost":
+                return study_cost(body)
+            if name == "reward_recommendations":
+                return reward_recommendations(query)
             return pay_bonuses(s, ident)
     except Refusal as refused:
         return refused.status, error_body(refused.status, refused.detail)
@@ -555,10 +684,17 @@ class ReplicaTransport(httpx.BaseTransport):
     """The client's requests answered by the replica inside this process (no network): the
     same code runs as against Prolific, with the token checked as Prolific does."""
 
-    def __init__(self, db: Database, token: str, prefix: str = "/prolific/api/v1/") -> None:
+    def __init__(
+        self,
+        db: Database,
+        token: str,
+        prefix: str = "/prolific/api/v1/",
+        workspace: Workspace = Workspace(),
+    ) -> None:
         self.db = db
         self.token = token
         self.prefix = prefix
+        self.workspace = workspace
 
     def handle_request(self, request: httpx.Request) -> httpx.Response:
         if request.headers.get("Authorization") != f"Token {self.token}":
@@ -567,7 +703,9 @@ class ReplicaTransport(httpx.BaseTransport):
             path = request.url.path
             path = path[len(self.prefix) :] if path.startswith(self.prefix) else path
             query = {k: v[-1] for k, v in parse_qs(request.url.query.decode()).items()}
-            status, body = handle(self.db, request.method, path, query, request.read())
+            status, body = handle(
+                self.db, request.method, path, query, request.read(), self.workspace
+            )
         content = b"" if body is None else json.dumps(body).encode()
         return httpx.Response(status, content=content, headers={"Content-Type": "application/json"})
 

@@ -19,6 +19,14 @@ answered as it stands; an unsettled one (the platform failed, or the server died
 call and the record) is reconciled from the platform: MTurk answers "already exists" for a
 UniqueRequestToken it has paid, and a decision already taken shows in the submission's status.
 A definite refusal by the platform removes the intent (nothing was done there).
+
+A Prolific bonus whose ``pay`` was sent and not answered 2xx (a 429, a time-out, a 5xx, a
+refusal, or the server dying while it was out) may have been paid: it is ``in_doubt``, and only
+Prolific's record settles it. The submission's ``bonus_payments`` (GET /submissions/{id}/) lists
+the bonuses paid on it: a bonus it lists is ``paid``; one it does not list, once Prolific has had
+``PAY_SETTLES_WITHIN`` to carry out an asynchronous pay, was not paid, goes back to ``set_up``
+and is paid again, once. A resend of the bonus (same token) or the reconciliation settles it;
+until then no new bonus for that participant is taken, so that a fresh form cannot pay it twice.
 """
 
 from __future__ import annotations
@@ -31,13 +39,13 @@ from datetime import datetime, timedelta
 from decimal import Decimal
 from typing import Any, Literal, Protocol, get_args
 
-from sqlalchemy import delete, select, update
+from sqlalchemy import delete, func, select, update
 from sqlalchemy.exc import IntegrityError
 
 from server.app import platform_registry as registry
 from server.app.errors import ApiError, InvalidInput
 from server.app.storage.db import Database
-from server.app.storage.models import AssignmentReview, Bonus, Participant, utcnow
+from server.app.storage.models import AssignmentReview, Bonus, Installation, Participant, utcnow
 
 Decision = Literal["approved", "rejected"]
 
@@ -67,6 +75,12 @@ PROLIFIC_MIN_MESSAGE = 100
 
 # How long a duplicate request waits for the request that holds the intent to settle it.
 SETTLE_WAIT_SECONDS = 20.0
+# A Prolific pay still out after this was lost (the client gives up on a call after 30 s).
+PAY_CALL_LIMIT = timedelta(minutes=2)
+# Prolific pays a bonus "in the following minutes" after its 202: a bonus that its record does
+# not list this long after its pay was sent was not paid.
+PAY_SETTLES_WITHIN = timedelta(minutes=30)
+UNSETTLED = ("pending", "set_up", "paying", "in_doubt")
 
 
 class ReviewRefused(Exception):
@@ -122,6 +136,11 @@ class ReviewBackend(Protocol):
     def pay_bonus(
         self, who: Reviewed, amount: str, reason: str, token: str, setup_id: str | None
     ) -> None: ...
+
+    def bonuses_paid(self, who: Reviewed) -> list[int] | None:
+        """The bonuses the platform lists as paid on the submission, in cents (Prolific's
+        ``bonus_payments``); None where it keeps no such record to settle a bonus by."""
+        ...
 
 
 # -- input ------------------------------------------------------------------------------------
@@ -320,12 +339,15 @@ def pay_bonus(
     amount: Decimal,
     reason: str,
     unique_token: str,
+    budget_cents: int | None = None,
 ) -> bool:
     """Pay the participant a bonus of ``amount`` in the backend's currency, exactly once per
     ``unique_token``. True when this call paid it; False when it was paid before (a retry or a
     concurrent duplicate, answered with the stored bonus); 409 when the token was used for
-    another bonus, or the platform refused; 502 when the platform failed (the intent stays and
-    a retry with the same token settles it without paying twice)."""
+    another bonus, the platform refused, the bonus would take the study's bonuses past
+    ``budget_cents`` (nothing is recorded or sent), or the participant has a Prolific bonus in
+    doubt (settle it first); 502 when the platform failed (the intent stays and a retry with
+    the same token settles it without paying twice)."""
     cents = int(amount * 100)
     who = reviewable(db, participant_id, backend.platform)
 
@@ -339,6 +361,10 @@ def pay_bonus(
         with db.write() as s:
             earlier = read(s)
             if earlier is None:
+                if not backend.repeat_pay_is_safe:
+                    _refuse_beside_doubt(s, backend, participant_id)
+                if budget_cents is not None:
+                    _check_budget(s, backend, cents, budget_cents)
                 s.add(
                     Bonus(
                         participant_id=participant_id,
@@ -369,6 +395,52 @@ def pay_bonus(
     return _settle_bonus(db, backend, who, unique_token, money(cents), reason)
 
 
+def _refuse_beside_doubt(s: Any, backend: ReviewBackend, participant_id: int) -> None:
+    """409 when the participant has a bonus whose pay may have paid (``paying``, ``in_doubt``):
+    a new request token for it (a reloaded form) could pay it a second time."""
+    doubtful = s.scalar(
+        select(Bonus)
+        .where(
+            Bonus.participant_id == participant_id,
+            Bonus.backend == backend.name,
+            Bonus.state.in_(("paying", "in_doubt")),
+        )
+        .limit(1)
+    )
+    if doubtful is not None:
+        raise ApiError(
+            409,
+            f"participant {participant_id} has a bonus of {money(doubtful.amount_cents)} "
+            f"{doubtful.currency} whose payment is in doubt (request token "
+            f"{doubtful.unique_token}): settle it first (send it again with its own token, or "
+            "reconcile), so that a new request cannot pay it a second time",
+        )
+
+
+def _check_budget(s: Any, backend: ReviewBackend, cents: int, budget_cents: int) -> None:
+    """409 when ``cents`` would take the bonuses recorded on the backend (paid, or perhaps paid)
+    past ``budget_cents``; nothing is recorded then."""
+    # One bonus at a time passes this check (PostgreSQL: the installation's row is locked;
+    # SQLite runs one write at a time).
+    s.execute(select(Installation.id).with_for_update())
+    spent = int(
+        s.scalar(
+            select(func.coalesce(func.sum(Bonus.amount_cents), 0)).where(
+                Bonus.backend == backend.name
+            )
+        )
+        or 0
+    )
+    if spent + cents > budget_cents:
+        raise ApiError(
+            409,
+            f"a bonus of {money(cents)} {backend.currency} would take the study's bonuses to "
+            f"{money(spent + cents)}, past its budget of {money(budget_cents)} (the study "
+            f"file's bonus_budget); {money(max(budget_cents - spent, 0))} is left. Nothing "
+            "was paid",
+        )
+
+
 def _settle_bonus(
     db: Database, backend: ReviewBackend, who: Reviewed, token: str, amount: str, reason: str
 ) -> bool:
@@ -382,7 +454,7 @@ def _settle_bonus(
         with db.write() as s:
             s.execute(update(Bonus).where(where, Bonus.state == "pending").values(state="in_doubt"))
         state = "in_doubt"
-    if state == "in_doubt":
+    if state == "in_doubt" and backend.repeat_pay_is_safe:
         raise ApiError(
             409,
             f"bonus {token} was asked for at {requested_at:%Y-%m-%d %H:%M} UTC and its payment "
@@ -390,6 +462,11 @@ def _settle_bonus(
             "again could pay it twice. Check the worker's bonuses on the platform; it is not "
             "sent again from here",
         )
+    if state in ("paying", "in_doubt"):
+        # Prolific's pay was sent: only Prolific's record says whether it paid.
+        if _settle_from_record(db, backend, who, token):
+            return False
+        state = "set_up"  # not paid: its set-up is paid now, once
     if state == "pending" and not backend.repeat_pay_is_safe:
         try:
             made = backend.set_up_bonus(who, amount, reason)
@@ -408,47 +485,169 @@ def _settle_bonus(
                 .where(where, Bonus.setup_id.is_(None))
                 .values(setup_id=made, state="set_up")
             )
-            setup_id = s.scalar(select(Bonus.setup_id).where(where))
     if not backend.repeat_pay_is_safe:
         # The one request that moves the bonus from set_up to paying calls pay.
         with db.write() as s:
             claimed = s.scalar(
                 update(Bonus)
                 .where(where, Bonus.state == "set_up")
-                .values(state="paying")
-                .returning(Bonus.id)
+                .values(state="paying", pay_sent_at=utcnow())
+                .returning(Bonus.setup_id)
             )
         if claimed is None:
-            row = _wait_for(db, lambda s: s.scalar(select(Bonus).where(where)), _is_paid)
+            with db.read() as s:
+                row = s.scalar(select(Bonus).where(where))
             if row is not None and row.state == "paid":
                 return False
-            raise ApiError(
-                502,
-                f"bonus {token} was sent to {backend.name} for payment (set-up {setup_id}) and "
-                "its outcome is not known yet: it will not be paid again from here; check the "
-                "bonus on the platform",
-            )
+            raise ApiError(409, _unsettled_message(row, token))
+        setup_id = claimed
     try:
         backend.pay_bonus(who, amount, reason, token, setup_id)
     except AlreadyDone:
         pass
-    except ReviewRefused as refused:
-        with db.write() as s:
-            if backend.repeat_pay_is_safe:
+    except (ReviewRefused, ReviewUnavailable) as error:
+        if backend.repeat_pay_is_safe:
+            if isinstance(error, ReviewUnavailable):
+                raise ApiError(
+                    502,
+                    f"{error}. The bonus is recorded as unsettled: send the same request again "
+                    "(same token): it will not pay twice",
+                ) from None
+            with db.write() as s:
                 s.execute(delete(Bonus).where(where, Bonus.state == "pending"))
-            else:  # the set-up stands; a retry pays it
-                s.execute(update(Bonus).where(where).values(state="set_up"))
-        raise ApiError(409, str(refused)) from None
-    except ReviewUnavailable as error:
-        retry = (
-            "send the same request again (same token): it will not pay twice"
-            if backend.repeat_pay_is_safe
-            else "it will not be paid again from here; check the bonus on the platform"
-        )
-        raise ApiError(502, f"{error}. The bonus is recorded as unsettled: {retry}") from None
+            raise ApiError(409, str(error)) from None
+        # Prolific's pay was sent and is not idempotent: it may have paid (a 429 or an error
+        # after paying, an answer lost on the way).
+        with db.write() as s:
+            s.execute(update(Bonus).where(where, Bonus.state == "paying").values(state="in_doubt"))
+            row = s.scalar(select(Bonus).where(where))
+        status = 502 if isinstance(error, ReviewUnavailable) else 409
+        raise ApiError(status, f"{error}. {_unsettled_message(row, token)}") from None
     with db.write() as s:
         s.execute(update(Bonus).where(where).values(state="paid", paid_at=utcnow()))
     return True
+
+
+def _sent_at(row: Any) -> datetime:
+    """When the bonus's pay was sent (before this was kept: when it was paid or asked for)."""
+    return row.pay_sent_at or row.paid_at or row.requested_at  # type: ignore[no-any-return]
+
+
+def _settle_from_record(db: Database, backend: ReviewBackend, who: Reviewed, token: str) -> bool:
+    """Settle the bonus ``token`` whose pay was sent (``paying`` or ``in_doubt``) from the
+    platform's record of the submission's bonuses: True (now ``paid``) when the record lists
+    it; False (now ``set_up``, to be paid again) when it does not, ``PAY_SETTLES_WITHIN`` after
+    every pay of that amount to the submission was sent; else 409 (still in doubt).
+
+    The record lists amounts, not set-ups, so a bonus is matched by its amount among the bonuses
+    of that amount sent to the submission: the ones answered 2xx (``paid``) account for as many
+    entries of the record, the doubtful ones for the rest, oldest first (a bonus paid by hand on
+    Prolific's site is taken for one of ours: a bonus is left unpaid, never paid twice)."""
+    where = Bonus.unique_token == token
+    now = utcnow()
+    with db.read() as s:
+        row = s.scalar(select(Bonus).where(where))
+        assert row is not None
+        if row.state == "paying" and now - _sent_at(row) < PAY_CALL_LIMIT:
+            raise ApiError(409, _unsettled_message(row, token))
+        sent = s.execute(
+            select(Bonus.id, Bonus.state, Bonus.pay_sent_at, Bonus.paid_at, Bonus.requested_at)
+            .where(
+                Bonus.assignment_id == row.assignment_id,
+                Bonus.backend == row.backend,
+                Bonus.amount_cents == row.amount_cents,
+                Bonus.state.in_(("paid", "paying", "in_doubt")),
+            )
+            .order_by(Bonus.id)
+        ).all()
+    try:
+        listed = backend.bonuses_paid(who)
+    except ReviewRefused as refused:
+        raise ApiError(409, f"{refused}. {_unsettled_message(row, token)}") from None
+    except ReviewUnavailable as error:
+        raise ApiError(502, f"{error}. {_unsettled_message(row, token)}") from None
+    if listed is None:
+        raise ApiError(
+            409,
+            f"bonus {token}'s payment is in doubt and {backend.name} keeps no record of a "
+            "submission's bonuses to settle it by: check it on the platform; it is not sent "
+            "again from here",
+        )
+    on_record = sum(1 for cents in listed if round(cents) == row.amount_cents)
+    confirmed = sum(1 for r in sent if r.state == "paid")
+    doubtful = [r.id for r in sent if r.state != "paid"]
+    # The 2xx ones will all be on the record: at least this many doubtful ones were paid.
+    if doubtful.index(row.id) < on_record - confirmed:
+        paid = True
+    elif now < max(_sent_at(r) for r in sent) + PAY_SETTLES_WITHIN:
+        raise ApiError(409, _unsettled_message(row, token, on_record=False))
+    else:
+        paid = False
+    # Only the state read above is settled: a concurrent request that settled it first and
+    # sent pay again (a new pay_sent_at) is not undone.
+    same = (
+        Bonus.pay_sent_at.is_(None)
+        if row.pay_sent_at is None
+        else Bonus.pay_sent_at == row.pay_sent_at
+    )
+    with db.write() as s:
+        done = s.scalar(
+            update(Bonus)
+            .where(where, Bonus.state == row.state, same)
+            .values(
+                {"state": "paid", "paid_at": _sent_at(row)}
+                if paid
+                else {"state": "set_up", "pay_sent_at": None}
+            )
+            .returning(Bonus.id)
+        )
+    if done is None:
+        with db.read() as s:
+            now_row = s.scalar(select(Bonus).where(where))
+        if now_row is not None and now_row.state == "paid":
+            return True
+        raise ApiError(409, _unsettled_message(now_row, token))
+    return paid
+
+
+def _unsettled_message(row: Any, token: str, on_record: bool | None = None) -> str:
+    """What an unsettled Prolific bonus is waiting for, in words."""
+    if row is None:
+        return f"bonus {token} is no longer recorded"
+    state = row.state
+    if state == "paying" and utcnow() - _sent_at(row) < PAY_CALL_LIMIT:
+        return (
+            f"bonus {token} is being paid now (Prolific's pay was sent at "
+            f"{_sent_at(row):%H:%M:%S} UTC): look again in a minute; it is not sent twice"
+        )
+    if state in ("paying", "in_doubt"):
+        sent, after = _sent_at(row), _sent_at(row) + PAY_SETTLES_WITHIN
+        listed = (
+            "Prolific does not list it among the submission's bonuses yet"
+            if on_record is False
+            else "It is settled from Prolific's record of the submission's bonuses"
+        )
+        return (
+            f"bonus {token} is in doubt: Prolific's pay was sent at {sent:%Y-%m-%d %H:%M} UTC "
+            f"and may have paid. {listed}: paid if Prolific lists it; if not, paid again from "
+            f"here, once, from {after:%H:%M} UTC (Prolific pays within minutes). Send it again "
+            "(same token) or reconcile to settle it: it is never paid twice"
+        )
+    return f"bonus {token} is {state}: send it again (same token) to pay it"
+
+
+def bonus_note(row: Bonus) -> str | None:
+    """The bonus's state in words for the dashboard (None once paid)."""
+    if row.state == "paid":
+        return None
+    if row.state == "in_doubt" and not row.backend.startswith("prolific"):
+        return (
+            "in doubt: unsettled for longer than the platform remembers its request token; "
+            "check it on the platform (it is not sent again from here)"
+        )
+    if row.state in ("paying", "in_doubt"):
+        return _unsettled_message(row, row.unique_token)
+    return "recorded, not yet paid: send it again (same token) or reconcile to pay it"
 
 
 # A bonus is treated as forgotten an hour before the platform forgets its token: clocks and the
@@ -461,18 +660,16 @@ def _token_forgotten(backend: ReviewBackend, requested_at: datetime) -> bool:
     return memory is not None and utcnow() - requested_at > memory - TOKEN_MARGIN
 
 
-def _is_paid(row: Bonus) -> bool:
-    return row.state == "paid"
-
-
 def reconcile_bonuses(db: Database, backend: ReviewBackend) -> list[str]:
     """Settle the backend's unsettled bonuses that can be settled safely (those whose payment
     may be repeated: MTurk's, by their UniqueRequestToken, or Prolific's set up but never sent
-    to ``pay``); the tokens settled."""
+    to ``pay``; and Prolific's in doubt, from its record of the submission's bonuses); the
+    tokens settled."""
+    states = ("pending", "set_up") if backend.repeat_pay_is_safe else UNSETTLED
     with db.read() as s:
         rows = s.execute(
             select(Bonus.participant_id, Bonus.unique_token, Bonus.amount_cents, Bonus.reason)
-            .where(Bonus.backend == backend.name, Bonus.state.in_(("pending", "set_up")))
+            .where(Bonus.backend == backend.name, Bonus.state.in_(states))
             .order_by(Bonus.id)
         ).all()
     settled = []

@@ -212,7 +212,9 @@ def _participant_detail(s: Session, participant_id: int) -> AdminParticipantDeta
                 backend=b.backend,
                 state=b.state,
                 setup_id=b.setup_id,
+                pay_sent_at=b.pay_sent_at,
                 paid_at=b.paid_at,
+                note=review.bonus_note(b),
             )
             for b in bonuses
         ],
@@ -334,7 +336,8 @@ def reconcile(
     ] = None,
 ) -> dict[str, Any]:
     """Settle the unsettled bonuses that can be settled without paying twice (MTurk's by their
-    UniqueRequestToken; Prolific's set up but never sent to pay), and, with ``prolific_study``,
+    UniqueRequestToken; Prolific's set up but never sent to pay, and Prolific's in doubt from
+    the submission's ``bonus_payments``), and, with ``prolific_study``,
     apply Prolific's status of each of the study's submissions (for a server that Prolific's
     webhook cannot reach)."""
     settled: list[str] = []
@@ -343,7 +346,7 @@ def reconcile(
             s.scalars(
                 select(Participant.platform)
                 .join(Bonus, Bonus.participant_id == Participant.id)
-                .where(Bonus.state.in_(("pending", "set_up")))
+                .where(Bonus.state.in_(review.UNSETTLED))
             )
         )
     for platform in sorted(platforms):
@@ -368,14 +371,17 @@ def send_bonus(
     participant_id: RowId, body: BonusRequest, state: StateDep
 ) -> AdminParticipantDetail:
     """Pay the participant a bonus; a retry with the same ``unique_token`` pays nothing more
-    and answers the same."""
+    and answers the same (a Prolific bonus in doubt is settled from Prolific's record first); a
+    bonus past the study file's budget for the platform's bonuses is refused (409)."""
+    backend = _backend_for(state, participant_id)
     review.pay_bonus(
         state.db,
-        _backend_for(state, participant_id),
+        backend,
         participant_id,
         body.amount,
         body.reason,
         body.unique_token,
+        registry.platform(backend.platform).bonus_budget_cents(state.study),
     )
     with state.db.read() as s:
         return _participant_detail(s, participant_id)

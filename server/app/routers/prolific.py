@@ -40,6 +40,7 @@ from server.app.platforms.prolific_replica import (
     status_event,
     submission_view,
     taking_part,
+    workspace_of,
 )
 from server.app.platforms.prolific_sync import (
     WebhookRefused,
@@ -95,7 +96,10 @@ async def api(path: str, request: Request, state: StateDep) -> Response:
         return JSONResponse(error_body(401, "Invalid token."), status_code=401)
     raw = await request.body()
     query = dict(request.query_params)
-    status, body = await state.run_db(lambda: handle(state.db, request.method, path, query, raw))
+    workspace = workspace_of(state.settings)
+    status, body = await state.run_db(
+        lambda: handle(state.db, request.method, path, query, raw, workspace)
+    )
     if body is None:
         return Response(status_code=status)
     return JSONResponse(body, status_code=status)

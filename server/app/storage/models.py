@@ -350,8 +350,10 @@ class AssignmentReview(Base):
 class Bonus(Base):
     """A bonus for a participant's submitted work. The row is written before the platform is
     called (``pending``, with ``unique_token``, sent as MTurk's UniqueRequestToken); on Prolific
-    the bonus's set-up id is stored (``set_up``) before the one ``pay`` call (``paying``), so
-    that neither a retry nor a crash pays twice; ``paid`` once the platform took it."""
+    the bonus's set-up id is stored (``set_up``) before the one ``pay`` call (``paying``, at
+    ``pay_sent_at``), so that neither a retry nor a crash pays twice; ``paid`` once the platform
+    took it; ``in_doubt`` when the outcome is not known (Prolific's pay failed after it may have
+    paid: settled from the submission's ``bonus_payments``)."""
 
     __tablename__ = "bonuses"
 
@@ -367,6 +369,7 @@ class Bonus(Base):
     state: Mapped[str] = mapped_column(String(16), default="paid")
     setup_id: Mapped[str | None] = mapped_column(String(64))  # Prolific's bulk bonus payment id
     requested_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    pay_sent_at: Mapped[datetime | None] = mapped_column(UTCDateTime())  # Prolific's pay sent
     paid_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
 
 

@@ -347,6 +347,23 @@ function reviewSection(p) {
     if (!window.confirm(`Pay a bonus of ${amount.value}? It is paid once, with this form's request token.`)) return;
     send("bonuses", { amount: amount.value, reason: reason.value.trim(), unique_token: token }, [pay], bonusMessage);
   });
+  // An unsettled bonus is sent again with its own token: the server settles it (a Prolific
+  // bonus in doubt from Prolific's record of the submission's bonuses) and never pays twice.
+  const bonusItem = (b) => {
+    const label = b.state === "paid" ? time(b.paid_at)
+      : b.state === "in_doubt" ? "in doubt: neither paid nor unpaid until settled"
+      : `${b.state}: not yet confirmed paid`;
+    const item = h("li", { "data-amount": b.amount, "data-state": b.state },
+      `${b.amount} ${b.currency} · ${b.reason} · ${label}`);
+    if (b.state === "paid") return item;
+    const settleMessage = errorLine(`bonus-settle-${b.unique_token}`);
+    const settle = h("button", { class: "btn", type: "button", "data-action": "settle-bonus" }, "Settle it");
+    settle.addEventListener("click", () => {
+      send("bonuses", { amount: b.amount, reason: b.reason, unique_token: b.unique_token }, [settle], settleMessage);
+    });
+    item.append(h("p", { class: "muted bonus-note" }, b.note || ""), settle, settleMessage);
+    return item;
+  };
   const why = p.status === "declined"
     ? h("p", { class: "muted" }, "They declined consent; Prolific completed their submission with the NO_CONSENT code, so it is paid unless it is returned or rejected.")
     : p.prolific_status === "TIMED-OUT"
@@ -359,8 +376,7 @@ function reviewSection(p) {
   return h("section", { class: "review", "aria-labelledby": "review-heading" }, heading, why, returnAsked, autoApprovalLine(p), decision,
     h("h4", {}, "Bonuses"),
     p.bonuses.length
-      ? h("ul", { class: "bonuses" }, p.bonuses.map((b) => h("li", { "data-amount": b.amount, "data-state": b.state },
-        `${b.amount} ${b.currency} · ${b.reason} · ${b.state === "paid" ? time(b.paid_at) : `${b.state}: not yet confirmed paid`}`)))
+      ? h("ul", { class: "bonuses" }, p.bonuses.map(bonusItem))
       : h("p", { class: "muted" }, "No bonus paid."),
     bonusForm);
 }

@@ -2,9 +2,10 @@
 and published through the Prolific client, twelve participants of whom one returns, one times
 out and one declines consent (and returns the submission Prolific then asks them to
 return); their places refilled and the balanced assignment blind to them; nine approved in
-bulk but one rejected with a category, two bonuses with a crash between a bonus's set-up and
-its payment: the replica records every decision and exactly one payment per bonus, and the
-export says the same."""
+bulk but one rejected with a category, three bonuses, one with a crash between its set-up and
+its payment, one whose pay answers 429 after paying (in doubt, then settled from the
+submission's bonus_payments): the replica records every decision and exactly one payment per
+bonus, and the export says the same."""
 
 from __future__ import annotations
 
@@ -22,12 +23,19 @@ from server.app.config import StudyConfig
 from server.app.export.tables import export_tables
 from server.app.main import create_app
 from server.app.platforms import review
-from server.app.platforms.prolific import ProlificClient
+from server.app.platforms.prolific import ProlificBackend, ProlificClient
+from server.app.platforms.prolific_replica import ReplicaTransport
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Participant as ParticipantRow
 from server.app.storage.replica_models import ProlificReplicaPayment, ProlificReplicaSubmission
-from tests.app.platforms.test_prolific import REASON, Crash, CrashesAroundPay, draft
+from tests.app.platforms.test_prolific import (
+    REASON,
+    Crash,
+    CrashesAroundPay,
+    FailingPay,
+    draft,
+)
 
 # The replica's webhooks are signed with the server's secret, as Prolific's are.
 from tests.app.platforms.test_prolific_sync import settings as settings
@@ -240,12 +248,36 @@ def test_a_paid_study_rehearsed_on_the_replica(server: tuple[str, Any], db: Data
                 headers=ADMIN,
             )
             assert paid.status_code == 200, paid.text
+    # A third: Prolific's pay answers 429 after paying. The bonus is in doubt, and the resend
+    # settles it from the submission's bonus_payments without paying it again.
+    third = approved[2]
+    app.state.server.reviews["prolific"] = ProlificBackend(
+        ProlificClient(
+            "http://replica/prolific/api/v1",
+            ADMIN_TOKEN,
+            transport=FailingPay(ReplicaTransport(db, ADMIN_TOKEN), "paid-429"),
+        ),
+        "GBP",
+        name="prolific-replica",
+    )
+    bonus = {"amount": "0.75", "reason": "Thanks", "unique_token": "bonus-token-3"}
+    doubt = httpx.post(f"{base}/api/admin/participants/{third}/bonuses", json=bonus, headers=ADMIN)
+    assert doubt.status_code == 502 and "is in doubt" in doubt.text
+    shown = httpx.get(f"{base}/api/admin/participants/{third}", headers=ADMIN).json()
+    assert [b["state"] for b in shown["bonuses"]] == ["in_doubt"]
+    app.state.server.reviews["prolific"] = backend
+    for _ in range(2):
+        settled = httpx.post(
+            f"{base}/api/admin/participants/{third}/bonuses", json=bonus, headers=ADMIN
+        )
+        assert settled.status_code == 200, settled.text
+        assert [b["state"] for b in settled.json()["bonuses"]] == ["paid"]
     pids = {p.id: p.link["PROLIFIC_PID"] for p in completers}
     with db.read() as s:
         payments = sorted(
             (row.participant_id, row.amount) for row in s.scalars(select(ProlificReplicaPayment))
         )
-    assert payments == sorted([(pids[first], 125), (pids[second], 50)])
+    assert payments == sorted([(pids[first], 125), (pids[second], 50), (pids[third], 75)])
 
     statuses = replica_statuses(db)
     assert statuses[completers[0].submission] == "REJECTED"
@@ -257,7 +289,7 @@ def test_a_paid_study_rehearsed_on_the_replica(server: tuple[str, Any], db: Data
     assert Counter(reviews["decision"]) == {"approved": 8, "rejected": 1}
     assert set(reviews.loc[reviews["decision"] == "rejected", "rejection_category"]) == {"NO_DATA"}
     bonuses = tables["bonuses"]
-    assert sorted(bonuses["amount"].astype(str)) == ["0.50", "1.25"]
+    assert sorted(bonuses["amount"].astype(str)) == ["0.50", "0.75", "1.25"]
     assert set(bonuses["payment_state"]) == {"paid"}
     participants = tables["participants"]
     assert Counter(participants["prolific_status"]) == {

@@ -760,6 +760,18 @@ class StudyConfig(_Strict):
                 return domain
         raise KeyError(name)
 
+    def taught_environments(self) -> list[str]:
+        """Every environment the study teaches, each domain's tutorial first, each once."""
+        names = [
+            name
+            for domain in self.domains
+            for name in (
+                *((domain.tutorial_environment,) if self.tutorial.enabled else ()),
+                *domain.environments,
+            )
+        ]
+        return list(dict.fromkeys(names))
+
     def pairs(self) -> list[tuple[str, str]]:
         """Every (environment, learner) of the study's agents."""
         return [
@@ -782,6 +794,7 @@ class StudyConfig(_Strict):
             "tutorial": self.tutorial.enabled,
             "agents_per_environment": self.agents,
             "reveal_gravity": self.reveal_gravity,
+            "environments": self.taught_environments(),
             "questionnaire": self.questionnaire.model_dump(mode="json")
             if self.questionnaire.questions
             else None,

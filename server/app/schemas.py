@@ -339,6 +339,10 @@ class PublicStudy(BaseModel):
     tutorial: bool
     agents_per_environment: int
     reveal_gravity: bool
+    environments: list[str] = Field(
+        description="The environments the study teaches, tutorials included, by name (a "
+        "simulated teacher must know each: `bam-study teach --study` gives it the study's own)."
+    )
     questionnaire: dict[str, Any] | None = Field(
         None, description="The post-study questionnaire (intro and questions); None: none."
     )

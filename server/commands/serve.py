@@ -37,7 +37,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--log-level", default="info", choices=("debug", "info", "warning", "error")
     )
-    parser.add_argument("--access-log", action="store_true", help="log every request")
+    parser.add_argument(
+        "--access-log",
+        action="store_true",
+        help="log every request (participants' platform ids as their pseudonyms)",
+    )
 
 
 def listen(host: str, port: int) -> socket.socket:
@@ -104,6 +108,8 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from server.app.main import create_app
+    from server.app.rights.log_ids import keep_ids_out_of_logs
+    from server.app.rights.pseudonyms import database_secret
     from server.app.storage.db import Database, SchemaError, prepare_schema
 
     db = Database.from_url(
@@ -152,6 +158,10 @@ def run(args: argparse.Namespace) -> int:
     )
     server = uvicorn.Server(
         server_config(app, settings, args.host, args.port, args.log_level, args.access_log)
+    )
+    # After uvicorn's Config, which sets up its loggers.
+    keep_ids_out_of_logs(
+        settings.secret.get_secret_value() if settings.secret else database_secret(db)
     )
     try:
         server.run(sockets=[sock])

@@ -63,10 +63,13 @@ def parse_rounds(text: str) -> tuple[int, int]:
 
 
 def no_server_at(url: str, timeout: float = 10.0) -> str | None:
-    """Why no study server answers at ``url`` (None: one does), asked once before any
-    participant starts: without it each simulated participant retried for two minutes in
-    silence and then failed."""
+    """Why no study server answers at ``url``, or why its study cannot be taught from here
+    (None: it can), asked once before any participant starts: without it each simulated
+    participant retried for two minutes in silence and then failed, or took a place on
+    Prolific and then failed on an environment it did not know."""
     import httpx
+
+    from server import domains
 
     try:
         response = httpx.get(f"{url.rstrip('/')}/api/study", timeout=timeout)
@@ -79,6 +82,13 @@ def no_server_at(url: str, timeout: float = 10.0) -> str | None:
         )
     if response.status_code != 200:
         return f"{url} answered /api/study with {response.status_code}: is it a study server?"
+    taught = response.json().get("environments", [])
+    unknown = [name for name in taught if name not in domains.names()]
+    if unknown:
+        return (
+            f"the study at {url} teaches environments of its own ({', '.join(unknown)}) that "
+            "the simulated teachers do not know: give the server's study file with --study FILE"
+        )
     return None
 
 
@@ -122,9 +132,9 @@ def run(args: argparse.Namespace) -> int:
         except StudyEnvironmentsError as error:
             print(f"bam-study teach: {error}", file=sys.stderr)
             return 2
-    unreachable = no_server_at(args.url)
-    if unreachable is not None:
-        print(f"bam-study teach: {unreachable}", file=sys.stderr)
+    unteachable = no_server_at(args.url)
+    if unteachable is not None:
+        print(f"bam-study teach: {unteachable}", file=sys.stderr)
         return 1
     plan = TeachingPlan(
         min_rounds=low,

@@ -125,9 +125,11 @@ def test_serve_lab_lets_a_participant_in_without_parameters(tmp_path: Path) -> N
         if not k.startswith("BAM_") or k == "BAM_TEST_POSTGRES_URL"
     }
     environment["BAM_UPDATE_WORKERS"] = "1"
-    server, log = start_serve(tmp_path, environment, "--lab", "--port", str(port))
+    server, log = start_serve(tmp_path, environment, "--lab", "--access-log", "--port", str(port))
+    pid = "5f4e3d2c1b0a99887766aabb"
     try:
         wait_until_answering(server, log, f"http://127.0.0.1:{port}", ready=False)
+        httpx.get(f"http://127.0.0.1:{port}/study?PROLIFIC_PID={pid}", timeout=10)
         arrived = httpx.post(f"http://127.0.0.1:{port}/api/arrivals", json={}, timeout=10)
         assert arrived.status_code == 201, arrived.text
         assert arrived.json()["participant"]["platform"] == "lab"
@@ -142,6 +144,8 @@ def test_serve_lab_lets_a_participant_in_without_parameters(tmp_path: Path) -> N
     assert "Lab participants enter at /study with no parameters." in text
     assert "BAM_ADMIN_TOKEN is not set: the dashboard (/dashboard)" in text
     assert f"Serving at http://127.0.0.1:{port} (the study at /study)." in text
+    # The access log writes the participant's id as its pseudonym.
+    assert "GET /study?PROLIFIC_PID=w_" in text and pid not in text
 
 
 def test_a_server_stopped_after_serving_participants_leaves_nothing_behind(

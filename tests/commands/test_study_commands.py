@@ -384,6 +384,50 @@ def test_teach_takes_the_study_file_whose_environments_its_teachers_need(
             domains.unregister(name)
 
 
+def test_teach_refuses_a_study_whose_environments_it_was_not_given(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Refused before any simulated participant arrives (on Prolific each took a place and
+    then failed with 'unknown environment'); with the study file, the same server is taught."""
+    import tomllib
+
+    from server.app.config import parse_study_config
+    from server.app.main import create_app
+    from server.app.storage.db import Database
+    from tests.support.databases import migrated_sqlite
+    from tests.support.server import FAST_LEARNERS, live, make_settings
+
+    path = EXAMPLES / "office-study.toml"
+    data = tomllib.loads(path.read_text())
+    data["learner_settings"] = FAST_LEARNERS
+    study = parse_study_config(data, str(path), path.parent)
+    db = Database.from_url(migrated_sqlite(tmp_path / "study.db"))
+    app = create_app(make_settings(str(db.engine.url)), study, db=db)
+    try:
+        with live(app) as url:
+            assert client_study(url)["environments"] == ["navigation-tutorial", "office-floor"]
+            # The server's process knows its study's environments; a teacher started apart
+            # from it knows only the built-in ones.
+            domains.unregister("office-floor")
+            teach = ["teach", "--url", url, "--participants", "1", "--rounds", "1-1"]
+            assert main(teach) == 1
+            error = capsys.readouterr().err
+            assert f"the study at {url} teaches environments of its own (office-floor)" in error
+            assert "--study FILE" in error
+            assert main([*teach, "--study", str(path)]) == 0
+            assert "participants completed  1 of 1" in capsys.readouterr().out
+    finally:
+        db.dispose()
+
+
+def client_study(url: str) -> dict[str, object]:
+    import httpx
+
+    response = httpx.get(f"{url}/api/study")
+    assert response.status_code == 200
+    return dict(response.json())
+
+
 @pytest.mark.parametrize(
     ("argv", "usage"),
     [

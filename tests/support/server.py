@@ -183,12 +183,13 @@ def client(
 
 
 @contextmanager
-def live(app: FastAPI) -> Iterator[str]:
+def live(app: FastAPI, log_level: str = "warning", access_log: bool = False) -> Iterator[str]:
     """``app`` served by uvicorn in a thread on a free port, as ``serve`` runs it (one lifespan,
     real HTTP); yields its base URL."""
     port = free_port()
     settings = app.state.server.settings
-    server = uvicorn.Server(server_config(app, settings, "127.0.0.1", port, log_level="warning"))
+    config = server_config(app, settings, "127.0.0.1", port, log_level, access_log)
+    server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, name=f"live-server-{port}", daemon=True)
     thread.start()
     deadline = time.monotonic() + 60

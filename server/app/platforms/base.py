@@ -85,6 +85,8 @@ class Platform(Protocol):
     display_name: str  # in the participants' pages: "Mechanical Turk"
     # The study link's URL parameters (empty: none, a lab), each with its value's pattern.
     parameters: Mapping[str, str]
+    # Which of them holds which of the participant's ids (worker_id, assignment_id, hit_id).
+    ids: Mapping[str, str]
     # An assignment is one worker's at a time, and a returned one goes to the next (MTurk).
     exclusive_assignments: bool
     reviews: bool  # it has a review backend of its own, which BAM_REVIEW_BACKEND may name

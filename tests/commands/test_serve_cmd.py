@@ -254,6 +254,58 @@ def running(pid: int) -> bool:
         return False
 
 
+def test_ctrl_c_during_the_first_start_s_compile_stops_at_once_and_quietly(
+    tmp_path: Path,
+) -> None:
+    """Ctrl-C (SIGINT to the process group) while the update processes compile the kernels
+    into an empty cache: the server and its processes end without waiting for the compile,
+    and the console shows no traceback (a worker's 'Exception in initializer', asyncio's
+    'Future exception was never retrieved')."""
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    environment = {k: v for k, v in os.environ.items() if not k.startswith("BAM_")}
+    environment.update(
+        BAM_DATABASE_URL=f"sqlite:///{tmp_path / 'study.db'}",
+        BAM_UPDATE_WORKERS="2",
+        NUMBA_CACHE_DIR=str(tmp_path / "numba-cache"),  # empty: a first start
+    )
+    log = tmp_path / "serve.log"
+    with log.open("wb") as out:
+        server = subprocess.Popen(
+            [sys.executable, "-m", "server.commands.main", "serve", "--port", str(port)],
+            cwd=tmp_path,
+            env=environment,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,  # its own process group, as a terminal's foreground job
+        )
+    try:
+        wait_until_answering(server, log, url, ready=False)
+        while "waiting for 2 update process(es)" not in log.read_text():
+            assert server.poll() is None, log.read_text()
+            time.sleep(0.1)
+        # Still compiling: a cache that empty takes most of a minute to fill, at the least.
+        assert httpx.get(f"{url}/api/health", timeout=10).status_code == 503
+        os.killpg(server.pid, signal.SIGINT)
+        server.wait(timeout=60)
+        deadline = time.monotonic() + 60
+        while True:  # the update processes, in the same group, are gone too
+            try:
+                os.killpg(server.pid, 0)
+            except ProcessLookupError:
+                break
+            assert time.monotonic() < deadline, "an update process outlived the server"
+            time.sleep(0.2)
+    finally:
+        if server.poll() is None:
+            os.killpg(server.pid, signal.SIGKILL)
+            server.wait()
+    text = log.read_text()
+    assert "Application shutdown complete." in text
+    for noise in ("Traceback", "Exception in initializer", "never retrieved"):
+        assert noise not in text, text
+
+
 def start_serve(
     folder: Path, environment: dict[str, str], *args: str
 ) -> tuple[subprocess.Popen[bytes], Path]:

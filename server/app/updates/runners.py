@@ -6,10 +6,12 @@ run side by side; the manager (``server.app.updates.manager``) keeps the order."
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import signal
 import threading
 import time
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable, Coroutine, Iterator
 from concurrent.futures import Executor, Future
 from concurrent.futures.process import BrokenProcessPool
 from typing import TYPE_CHECKING, Any, Protocol
@@ -94,7 +96,11 @@ class LocalUpdates:
             # Updates not started stay pending in the database and run after the next start.
             # The processes are waited for (one in an update finishes it), and the pool's
             # queues released: a server stopped by a signal ends right after this, without
-            # Python's exit handlers, and their semaphores would be reported leaked.
+            # Python's exit handlers, and their semaphores would be reported leaked. Processes
+            # still warming up (compiling, minutes on a first start) have no update to finish:
+            # they are ended, or the stop would wait for their compile.
+            if not self.ready:
+                _end_processes(executor)
             await asyncio.to_thread(executor.shutdown, wait=True, cancel_futures=True)
 
     async def run(
@@ -189,8 +195,9 @@ class LocalUpdates:
         """Start every update process now (a process pool starts one when a job finds none
         idle), so that they are warmed up before the first participant's update."""
         assert self.executor is not None
-        for _ in range(self.workers):
-            self.executor.submit(worker_ready)
+        with processes_born_deaf_to_ctrl_c():
+            for _ in range(self.workers):
+                self.executor.submit(worker_ready)  # each submit starts one process
 
     async def _await_warm(self) -> None:
         """Until every update process answers a job, which it takes only once it has loaded
@@ -211,12 +218,18 @@ class LocalUpdates:
             if executor is not pool:  # replaced: its processes are new
                 seen.clear()
                 pool = executor
+            answers: list[asyncio.Future[int]] = []
             try:
                 jobs = [executor.submit(worker_ready, 0.2) for _ in range(self.workers)]
-                for done in asyncio.as_completed([asyncio.wrap_future(job) for job in jobs]):
+                answers = [asyncio.wrap_future(job) for job in jobs]
+                for done in asyncio.as_completed(answers):
                     seen.add(await done)
                     self.warm_processes = min(len(seen), self.workers)
             except asyncio.CancelledError:
+                # The server stops: the jobs' answers (a broken pool's error, once its
+                # processes are ended) are nobody's, and asyncio would log each as lost.
+                for answer in answers:
+                    answer.cancel()
                 raise
             except Exception:  # a broken pool is replaced when an update finds it broken
                 await asyncio.sleep(0.5)
@@ -225,6 +238,35 @@ class LocalUpdates:
             "update processes ready after %.1f s: the server is ready",
             time.monotonic() - began,
         )
+
+
+@contextlib.contextmanager
+def processes_born_deaf_to_ctrl_c() -> Iterator[None]:
+    """Processes started meanwhile ignore SIGINT from their first instruction: an ignored
+    signal stays ignored across ``exec``, and Python then installs no KeyboardInterrupt handler.
+    Ctrl-C reaches the terminal's whole process group; an update process interrupted while it
+    imports, before ``worker_init`` ignores SIGINT itself, printed a traceback. Only the main
+    thread may change a signal's handler: elsewhere nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, handler)
+
+
+def _end_processes(executor: Executor) -> None:
+    """End a process pool's processes at once (SIGTERM), whatever they are doing."""
+    terminate = getattr(executor, "terminate_workers", None)  # Python 3.14
+    if terminate is not None:
+        terminate()
+        return
+    processes = getattr(executor, "_processes", None) or {}
+    for process in list(processes.values()):
+        if process.is_alive():
+            process.terminate()
 
 
 class ClusterUpdates:

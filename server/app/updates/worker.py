@@ -5,6 +5,7 @@ updates it and scores its greedy policies."""
 from __future__ import annotations
 
 import os
+import signal
 import sys
 import threading
 import time
@@ -38,6 +39,9 @@ def worker_init(
 ) -> None:
     """Lower the worker's priority, leave with the server, import the learners once, know
     the study's own environments."""
+    # Ctrl-C reaches the whole process group: the server stops its workers itself (``stop``),
+    # and a worker interrupted in its warm-up printed a traceback and broke the pool.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     register_all(environments)
     # A server that dies without shutting its pool down (killed, or stopped while it was
     # replacing workers that a SIGTERM to its process group had killed) leaves its workers

@@ -92,8 +92,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--include-unfinished",
         action="store_true",
-        help="also count the taught learning sessions (at least one evaluation) of participants "
-        "who did not complete the study (default: only those of participants who did)",
+        help="also count the taught learning sessions (at least one episode or action) of "
+        "participants who did not complete the study (default: only those of participants who did)",
+    )
+    parser.add_argument(
+        "--include-rejected",
+        action="store_true",
+        help="also count the sessions of participants whose submission was rejected (reviews.csv, "
+        "or Prolific's REJECTED); by default they are left out, as work judged invalid",
     )
 
 
@@ -110,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
                 args.database_url,
                 exclude_excluded=args.exclude_excluded,
                 include_unfinished=args.include_unfinished,
+                include_rejected=args.include_rejected,
                 exclude_flagged=args.exclude_flagged,
                 notes=notes,
             )
@@ -118,6 +125,7 @@ def run(args: argparse.Namespace) -> int:
                 args.data,
                 exclude_excluded=args.exclude_excluded,
                 include_unfinished=args.include_unfinished,
+                include_rejected=args.include_rejected,
                 exclude_flagged=args.exclude_flagged,
                 notes=notes,
             )

@@ -43,6 +43,10 @@ STAGE_LABELS = {
 }
 # Statuses of a participant still in the study after consent (the server's flow statuses).
 IN_STUDY = ("consented", "tutorial", "teaching", "questionnaire")
+# The statuses a participant can end in before consent, and after it (the server's
+# ``participants.tokens.STATUSES``); "returned" and "abandoned" can be either.
+BEFORE_CONSENT = ("waiting", "declined", "arrived", "returned", "abandoned")
+AFTER_CONSENT = ("returned", "abandoned", *IN_STUDY, *COMPLETED_STATUSES)
 
 # The columns of participant_flow.csv.
 FLOW_COLUMNS = ("stage", "kind", "box", "label", "participants", "learning_sessions", "definition")
@@ -115,7 +119,8 @@ def participant_flow(
     )
     per_person = owners.value_counts()
     people["sessions"] = people["participant_id"].map(per_person).fillna(0).astype(int)
-    consented = people["sessions"] > 0
+    # Only a participant who consented can be in these statuses.
+    consented = (people["sessions"] > 0) | people["status"].isin(AFTER_CONSENT[2:])
     if "consented_at" in participants.columns:
         consented |= ~cells.optional_text(participants["consented_at"]).eq("").to_numpy()
     people["consented"] = consented.to_numpy()
@@ -151,16 +156,23 @@ def participant_flow(
         "left",
         "waiting",
         "Waited for a place, never started",
-        status.eq("waiting"),
+        status.eq("waiting") & before,
         "status waiting",
     )
-    add(ARRIVED, "left", "declined", "Declined consent", status.eq("declined"), "status declined")
+    add(
+        ARRIVED,
+        "left",
+        "declined",
+        "Declined consent",
+        status.eq("declined") & before,
+        "status declined",
+    )
     add(
         ARRIVED,
         "left",
         "at_consent",
         "Still at the consent page",
-        status.eq("arrived"),
+        status.eq("arrived") & before,
         "status arrived",
     )
     add(
@@ -191,16 +203,9 @@ def participant_flow(
             f"rows of {ERASURES_FILE} that erased no learning session",
         )
     )
-    known = (
-        "waiting",
-        "declined",
-        "arrived",
-        "returned",
-        "abandoned",
-        *IN_STUDY,
-        *COMPLETED_STATUSES,
-    )
-    other = ~status.isin(known)
+    # Any other status (one the analysis does not know, or one that cannot follow consent found
+    # after it) has a box of its own, so that everybody is in exactly one box.
+    other = ~status.isin(BEFORE_CONSENT)
     for name in sorted(set(status[other & before])):
         add(
             ARRIVED,
@@ -212,6 +217,7 @@ def participant_flow(
         )
 
     after = people["consented"]
+    other = ~status.isin(AFTER_CONSENT)
     add(
         CONSENTED,
         "stage",
@@ -259,7 +265,7 @@ def participant_flow(
         "left",
         "in_study",
         "Still in the study",
-        status.isin(IN_STUDY),
+        status.isin(IN_STUDY) & after,
         f"status {', '.join(IN_STUDY)}",
     )
     for name in sorted(set(status[other & after])):

@@ -12,8 +12,9 @@ import pandas as pd
 import pytest
 
 from analysis.data import load_tables
-from analysis.flow import IN_STUDY, STAGES, participant_flow
+from analysis.flow import AFTER_CONSENT, BEFORE_CONSENT, IN_STUDY, STAGES, participant_flow
 from analysis.results import analyze
+from server.app.export.columns import STATUS_COLUMNS
 from server.commands.main import main
 
 from .conftest import small_study, write_csv, write_export
@@ -342,3 +343,31 @@ def test_without_participant_statuses_there_is_no_flow(
     assert not (tmp_path / "out" / "participant_flow.csv").exists()
     readme = (tmp_path / "out" / "README.md").read_text(encoding="utf-8")
     assert "Not drawn: no `participants.csv` with a `status` column" in readme
+
+
+def test_every_status_of_the_server_has_its_place_in_the_flow() -> None:
+    from server.app.participants.tokens import STATUSES
+
+    assert set(BEFORE_CONSENT) | set(AFTER_CONSENT) == set(STATUSES)
+    # The export's participants.csv says the same statuses.
+    assert set(STATUSES) == set(STATUS_COLUMNS) | {"waiting"}
+
+
+def test_an_unknown_or_impossible_status_still_ends_in_one_box(tmp_path: Path) -> None:
+    sessions = small_study()
+    statuses = {"p1": "submitted", "p2": "paused", "p3": "declined", "p4": "submitted", "p5": "x"}
+    folder = write_export(tmp_path / "export", sessions, participants=statuses)
+    tables: dict = {}
+    counted, _ = load_tables(folder, tables=tables)
+    flow = participant_flow(tables, counted)
+    assert flow is not None
+    boxes = {box.box: box for box in flow.boxes}
+    # p2 and p3 have learning sessions, so they consented: a status that cannot follow consent
+    # is named as it is; p5 (no sessions) left before consenting.
+    assert boxes["status_paused"].participants == 1
+    assert boxes["status_declined"].participants == 1
+    assert boxes["declined"].participants == 0
+    assert boxes["status_x_before_consent"].participants == 1
+    left = sum(b.participants for b in flow.boxes if b.kind == "left")
+    assert flow.stage("arrived").participants == len(statuses) == left + 2
+    assert flow.stage("analysed").participants == 2

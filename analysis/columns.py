@@ -8,6 +8,8 @@ EVALUATIONS_FILE = "evaluations.csv"
 PARTICIPANTS_FILE = "participants.csv"
 EPISODES_FILE = "episodes.csv"
 QUALITY_FILE = "quality.csv"
+REVIEWS_FILE = "reviews.csv"
+ERASURES_FILE = "erasures.csv"
 EPISODE_COLUMNS = (
     "session_id",
     "kind",

@@ -29,10 +29,12 @@ import pandas as pd
 from analysis import cells
 from analysis.columns import (
     EPISODES_FILE,
+    ERASURES_FILE,
     EVALUATION_COLUMNS,
     EVALUATIONS_FILE,
     PARTICIPANTS_FILE,
     QUALITY_FILE,
+    REVIEWS_FILE,
     SESSION_COLUMNS,
     SESSIONS_FILE,
     SHARED_COLUMNS,
@@ -41,13 +43,18 @@ from analysis.names import LEARNERS
 from analysis.options import InputError
 from analysis.selection import (
     COMPLETED_STATUSES,
+    apply_rejections,
     count_phrase,
     discount_empty_episodes,
     drop_flagged,
     excluded_participants,
     flagged_participants,
     keep_finished,
+    rejected_participants,
 )
+
+# The tables the participant flow reads (``load_tables``' ``tables``).
+FLOW_TABLES = ("participants", "sessions", "reviews", "quality", "erasures")
 
 # A policy can be exactly optimal; exact scoring can overshoot 1.0 by rounding only.
 RETURN_TOLERANCE = 1e-6
@@ -58,8 +65,10 @@ def load_tables(
     *,
     exclude_excluded: bool = False,
     include_unfinished: bool = False,
+    include_rejected: bool = False,
     exclude_flagged: tuple[str, ...] = (),
     notes: list[str] | None = None,
+    tables: dict[str, pd.DataFrame | None] | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Read and validate an export folder: ``(sessions, evaluations)``.
 
@@ -67,8 +76,12 @@ def load_tables(
     ``status`` in ``participants.csv``); with ``include_unfinished``, also the taught sessions
     of those who did not. With ``exclude_excluded``, the learning sessions of participants the
     experimenter excluded are dropped; with ``exclude_flagged``, those of the participants
-    ``quality.csv`` flags with any of those checks. Remarks for the reader of the results (how
-    many sessions were left out and why, for example) are appended to ``notes``.
+    ``quality.csv`` flags with any of those checks. The sessions of participants whose
+    submission was rejected (``reviews.csv``, or Prolific's status) are left out unless
+    ``include_rejected``. Remarks for the reader of the results (how many sessions were left
+    out and why, for example) are appended to ``notes``; the tables as read (``participants``,
+    ``sessions``, ``reviews``, ``quality``, ``erasures``; None for a file not given) are put
+    into ``tables``, for the participant flow (``analysis.flow``).
     """
     folder = Path(data_dir)
     if not folder.exists():
@@ -96,19 +109,32 @@ def load_tables(
         if not (folder / QUALITY_FILE).exists():
             raise InputError(f"--exclude-flagged needs {QUALITY_FILE}, which is not in {folder}")
         quality = read_csv(folder / QUALITY_FILE)
+    reviews_path = folder / REVIEWS_FILE
+    reviews = read_csv(reviews_path) if reviews_path.exists() else None
+    if tables is not None:
+        tables.update(
+            participants=participants,
+            sessions=sessions,
+            reviews=reviews,
+            quality=quality if quality is not None else _optional_csv(folder / QUALITY_FILE),
+            erasures=_optional_csv(folder / ERASURES_FILE),
+        )
     notes = notes if notes is not None else []
     sessions, evaluations = validate_tables(
         sessions,
         evaluations,
         participants=participants,
         episodes=episodes,
+        reviews=reviews,
         exclude_excluded=exclude_excluded,
         include_unfinished=include_unfinished,
+        include_rejected=include_rejected,
         notes=notes,
         participants_unreadable=unreadable,
     )
-    if quality is None:
+    if not exclude_flagged:
         return sessions, evaluations
+    assert quality is not None
     flagged = flagged_participants(quality, exclude_flagged, QUALITY_FILE)
     return drop_flagged(sessions, evaluations, flagged, exclude_flagged, QUALITY_FILE, notes)
 
@@ -118,8 +144,10 @@ def load_database(
     *,
     exclude_excluded: bool = False,
     include_unfinished: bool = False,
+    include_rejected: bool = False,
     exclude_flagged: tuple[str, ...] = (),
     notes: list[str] | None = None,
+    tables: dict[str, pd.DataFrame | None] | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Read and validate a study database directly: the tables ``bam-study export`` would
     write, taken from the database at ``url`` (SQLite or PostgreSQL). See ``load_tables``."""
@@ -146,20 +174,24 @@ def load_database(
                 f"{head}: not a study database, or one that `bam-study db upgrade` must bring "
                 "up to date first"
             )
-        tables = read_database(db, pseudonymize=False)
+        read = read_database(db, pseudonymize=False)
     except SQLAlchemyError as error:
         message = str(error).strip().splitlines()[0]
         raise InputError(f"--database-url {shown}: cannot read the database: {message}") from None
     finally:
         db.dispose()
+    if tables is not None:
+        tables.update({name: read[name] for name in FLOW_TABLES})
     notes = notes if notes is not None else []
     sessions, evaluations = validate_tables(
-        tables["sessions"],
-        tables["evaluations"],
-        participants=tables["participants"],
-        episodes=tables["episodes"],
+        read["sessions"],
+        read["evaluations"],
+        participants=read["participants"],
+        episodes=read["episodes"],
+        reviews=read["reviews"],
         exclude_excluded=exclude_excluded,
         include_unfinished=include_unfinished,
+        include_rejected=include_rejected,
         notes=notes,
         sources=(
             "the sessions table",
@@ -167,12 +199,24 @@ def load_database(
             "the participants table",
             "the episodes table",
         ),
+        reviews_source="the reviews table",
     )
     if not exclude_flagged:
         return sessions, evaluations
     source = "the quality checks"
-    flagged = flagged_participants(tables["quality"], exclude_flagged, source)
+    flagged = flagged_participants(read["quality"], exclude_flagged, source)
     return drop_flagged(sessions, evaluations, flagged, exclude_flagged, source, notes)
+
+
+def _optional_csv(path: Path) -> pd.DataFrame | None:
+    """A file the participant flow reads if it is there and readable (None otherwise: the
+    flow then says what it could not count)."""
+    if not path.exists():
+        return None
+    try:
+        return read_csv(path)
+    except InputError:
+        return None
 
 
 def read_csv(path: Path) -> pd.DataFrame:
@@ -199,8 +243,10 @@ def validate_tables(
     *,
     participants: pd.DataFrame | None = None,
     episodes: pd.DataFrame | None = None,
+    reviews: pd.DataFrame | None = None,
     exclude_excluded: bool = False,
     include_unfinished: bool = False,
+    include_rejected: bool = False,
     notes: list[str] | None = None,
     participants_unreadable: str | None = None,
     sources: tuple[str, str, str, str] = (
@@ -209,12 +255,15 @@ def validate_tables(
         PARTICIPANTS_FILE,
         EPISODES_FILE,
     ),
+    reviews_source: str = REVIEWS_FILE,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Check and type the learning sessions and evaluations; see ``load_tables``. With
     ``episodes``, empty episodes are taken out of the evaluations' counts (module docstring);
     without, the counts are taken as they are, and a note says so. Without ``participants``
     (or without its ``status`` column), every learning session is counted, and a note says
-    why (``participants_unreadable``: the error that kept the caller from reading it).
+    why (``participants_unreadable``: the error that kept the caller from reading it). The
+    sessions of participants whose submission was rejected (``reviews``, or
+    ``participants``' ``prolific_status``) are left out unless ``include_rejected``.
 
     ``sources`` name the four tables in messages (file names, or table names for a
     database). Rows are counted from 1 in the order given.
@@ -264,6 +313,14 @@ def validate_tables(
             f"(status {' or '.join(COMPLETED_STATUSES)} in {participants_source}); "
             "--include-unfinished adds the taught sessions of those who did not"
         )
+    sessions, evaluations = apply_rejections(
+        sessions,
+        evaluations,
+        rejected_participants(reviews, participants, reviews_source),
+        include_rejected=include_rejected,
+        reviews_source=reviews_source,
+        notes=notes,
+    )
     if episodes is None:
         notes.append(
             f"no {episodes_source} given: episodes and actions are counted as the evaluations "

@@ -9,6 +9,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from analysis.design_report import describe_design_files, readme_section, write_design_outputs
+from analysis.flow import ParticipantFlow
+from analysis.flow_plot import save_flow
 from analysis.names import threshold_label
 from analysis.options import InputError
 from analysis.plots import save_learning_curves
@@ -19,6 +21,7 @@ from analysis.tables import (
     appendix_all_markdown,
     appendix_raw_latex,
     appendix_raw_markdown,
+    markdown_table,
     table1_latex,
     table1_markdown,
 )
@@ -39,7 +42,7 @@ def describe_outputs(analysis: Analysis) -> str:
     return f"""# Results of `bam-study analyze`
 
 {describe_files(analysis.baseline, analysis.thresholds, analysis.fdr)}
-{readme_section(analysis) if analysis.design is not None else ""}## Notes on this study's data
+{readme_section(analysis) if analysis.design is not None else ""}{flow_section(analysis.flow)}## Notes on this study's data
 
 {notes}"""
 
@@ -51,7 +54,11 @@ def describe_files(baseline: str, thresholds: Sequence[float], fdr: float) -> st
 {labels}. False discovery rate of the Benjamini-Yekutieli correction: {fdr:g}.
 
 Learning sessions counted: those of the participants who completed the study (`status`
-completed or submitted in `participants.csv`), as in the paper. `--include-unfinished` adds
+completed or submitted in `participants.csv`), as in the paper, but for those whose submission
+was rejected (a decision `rejected` in `reviews.csv`, or Prolific's `REJECTED`): a rejection is
+the experimenter's judgement that the work is not valid, and the paper counted the participants
+who completed the study and were paid for it. `--include-rejected` counts them.
+`--include-unfinished` adds
 the taught sessions (at least one episode or action) of the participants who did not finish;
 `--exclude-excluded` drops those of the participants the experimenter excluded, and
 `--exclude-flagged` those of the participants a chosen quality check flags (`quality.csv`). A
@@ -89,7 +96,43 @@ how many sessions were left out and why (returned the task, timed out, still in 
 - `return_vs_episodes.png|svg`, `return_vs_actions.png|svg`: normalised return against the
   cumulative counts, mean and standard error per learner, one panel per environment; each
   session's latest evaluation is carried forward.
-{describe_design_files()}"""
+{describe_design_files()}- `participant_flow.csv`, `participant_flow.png|svg`: the participant flow, CONSORT style:
+  how many arrived, consented, completed and were analysed, and at each step how many left and
+  why (`kind` `left`), from `participants.csv`'s `status`, `erasures.csv`, `reviews.csv` and
+  `quality.csv`. Each stage is the one above it less its `left` rows (plus its `added` row,
+  with `--include-unfinished`); *analysed* is the participants and learning sessions Table 1
+  counts. `counted` rows (flagged, or excluded by the experimenter, but counted all the same)
+  are for information and are not subtracted. `learning_sessions` are the participants'
+  learning sessions in the export (erased ones from `erasures.csv`).
+"""
+
+
+def flow_section(flow: ParticipantFlow | None) -> str:
+    """The README's section on the participant flow: its table, and what it could not count."""
+    if flow is None:
+        return (
+            "## Participant flow\n\nNot drawn: no `participants.csv` with a `status` column, "
+            "so every learning session is counted and nothing says who left or why.\n\n"
+        )
+    rows = []
+    for box in flow.boxes:
+        label = f"**{box.label}**" if box.kind == "stage" else f"{_MARKS[box.kind]} {box.label}"
+        rows.append([label, str(box.participants), str(box.learning_sessions), box.definition])
+    table = markdown_table(["Stage", "Participants", "Learning sessions", "From"], rows, "lrrl")
+    remarks = "".join(f"- {remark}\n" for remark in flow.remarks)
+    return f"""## Participant flow
+
+`participant_flow.csv` and `participant_flow.png|svg`. Each stage (in bold) is the one above it
+less the rows marked `-` (plus the row marked `+`, with `--include-unfinished`); rows marked `=`
+are counted all the same, for information.
+
+{table}
+
+{remarks}
+"""
+
+
+_MARKS = {"left": "-", "added": "+", "counted": "="}
 
 
 def write_outputs(analysis: Analysis, out: Path | str) -> list[str]:
@@ -124,6 +167,9 @@ def write_outputs(analysis: Analysis, out: Path | str) -> list[str]:
         save_learning_curves(analysis, staging)
         if analysis.design is not None:
             write_design_outputs(analysis, staging)
+        if analysis.flow is not None:
+            analysis.flow.frame().to_csv(staging / "participant_flow.csv", index=False)
+            save_flow(analysis.flow, staging)
         names = sorted(path.name for path in staging.iterdir())
         if out.exists():
             for name in names:

@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 
 from analysis.design_results import DesignResults, design_analysis
+from analysis.flow import ParticipantFlow
 from analysis.names import LEARNERS, order_environments, order_learners
 from analysis.options import (
     DEFAULT_BASELINE,
@@ -35,6 +36,8 @@ class Analysis:
     notes: tuple[str, ...]  # remarks about the data, for the reader of the results
     # The design-respecting comparisons beside the paper's (design_results.design_analysis).
     design: DesignResults | None = None
+    # Arrived to analysed, from the export's statuses (analysis.flow); None without them.
+    flow: ParticipantFlow | None = None
 
     @property
     def alternatives(self) -> tuple[str, ...]:
@@ -87,8 +90,10 @@ def analyze(
     fdr: float = DEFAULT_FDR,
     baseline: str = DEFAULT_BASELINE,
     notes: Iterable[str] = (),
+    flow: ParticipantFlow | None = None,
 ) -> Analysis:
-    """Everything the outputs show, from tables validated by ``analysis.data``."""
+    """Everything the outputs show, from tables validated by ``analysis.data`` (and the
+    participant flow of the same export, ``analysis.flow.participant_flow``)."""
     thresholds = check_thresholds(thresholds)
     fdr = check_fdr(fdr)
     if baseline not in LEARNERS:
@@ -126,4 +131,5 @@ def analyze(
         table1=table1_values(summary, thresholds, baseline),
         notes=tuple(notes),
         design=design_analysis(summary, evaluations, thresholds, baseline, fdr),
+        flow=flow,
     )

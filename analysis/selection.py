@@ -36,6 +36,11 @@ UNFINISHED_REASONS = {
 
 NOT_LISTED = "not in {source}"
 
+# A decision on a participant's submitted work (reviews.csv's ``decision``) that judged it invalid,
+# and Prolific's status of a submission rejected there (participants.csv's ``prolific_status``).
+REJECTED_DECISION = "rejected"
+REJECTED_PROLIFIC_STATUS = "REJECTED"
+
 
 def keep_finished(
     sessions: pd.DataFrame,
@@ -258,6 +263,71 @@ def drop_flagged(
         raise InputError(
             f"no learning sessions are left after excluding the participants flagged "
             f"{' or '.join(flags)} in {source}"
+        )
+    evaluations = evaluations.loc[evaluations["session_id"].isin(kept["session_id"])]
+    return kept, evaluations.reset_index(drop=True)
+
+
+def rejected_participants(
+    reviews: pd.DataFrame | None,
+    participants: pd.DataFrame | None,
+    reviews_source: str,
+) -> set[str]:
+    """Ids of the participants whose submitted work was rejected: a ``decision`` of
+    ``rejected`` in ``reviews`` (``reviews.csv``; one still ``pending`` too, since the decision
+    is the experimenter's and final, only the platform's confirmation is outstanding), or a
+    ``prolific_status`` of ``REJECTED`` in ``participants`` (a rejection made on Prolific's
+    site)."""
+    rejected: set[str] = set()
+    if reviews is not None:
+        missing = [c for c in ("participant_id", "decision") if c not in reviews.columns]
+        if missing:
+            raise InputError(
+                f"{reviews_source}: rejections are read from the columns 'participant_id' and "
+                "'decision', which the file does not have (found: "
+                f"{', '.join(repr(str(c)) for c in reviews.columns)})"
+            )
+        decided = reviews["decision"].astype(str).str.strip().str.lower() == REJECTED_DECISION
+        rejected |= set(reviews.loc[decided, "participant_id"].astype(str).str.strip())
+    if participants is not None and {"participant_id", "prolific_status"} <= set(
+        participants.columns
+    ):
+        on_prolific = (
+            participants["prolific_status"].astype(str).str.strip().str.upper()
+            == REJECTED_PROLIFIC_STATUS
+        )
+        rejected |= set(participants.loc[on_prolific, "participant_id"].astype(str).str.strip())
+    return rejected
+
+
+def apply_rejections(
+    sessions: pd.DataFrame,
+    evaluations: pd.DataFrame,
+    rejected: set[str],
+    *,
+    include_rejected: bool,
+    reviews_source: str,
+    notes: list[str],
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The learning sessions and evaluations without those of the ``rejected`` participants
+    (with ``include_rejected``, with them), and a note of how many, when there are any."""
+    of_rejected = sessions["participant_id"].astype(str).str.strip().isin(rejected)
+    if not of_rejected.any():
+        return sessions, evaluations
+    counted = (
+        f"{count_phrase(int(of_rejected.sum()), 'learning session')} of "
+        f"{count_phrase(int(sessions.loc[of_rejected, 'participant_id'].nunique()), 'participant')}"
+        f" whose submission was rejected ({reviews_source} or Prolific)"
+    )
+    if include_rejected:
+        notes.append(f"--include-rejected: counted {counted}")
+        return sessions, evaluations
+    notes.append(f"left out {counted}; --include-rejected counts them")
+    kept = sessions.loc[~of_rejected].reset_index(drop=True)
+    if kept.empty:
+        raise InputError(
+            "no learning sessions are left after leaving out the participants whose submission "
+            "was rejected; --include-rejected counts them"
         )
     evaluations = evaluations.loc[evaluations["session_id"].isin(kept["session_id"])]
     return kept, evaluations.reset_index(drop=True)

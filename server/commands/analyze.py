@@ -7,7 +7,7 @@ import argparse
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 from analysis.names import LEARNERS
 from analysis.options import (
@@ -19,6 +19,9 @@ from analysis.options import (
     parse_flags,
     parse_thresholds,
 )
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 PROG = "bam-study analyze"
 T = TypeVar("T")
@@ -92,35 +95,55 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--include-unfinished",
         action="store_true",
-        help="also count the taught learning sessions (at least one evaluation) of participants "
-        "who did not complete the study (default: only those of participants who did)",
+        help="also count the taught learning sessions (at least one episode or action) of "
+        "participants who did not complete the study (default: only those of participants who did)",
+    )
+    parser.add_argument(
+        "--include-rejected",
+        action="store_true",
+        help="also count the sessions of participants whose submission was rejected (reviews.csv, "
+        "or Prolific's REJECTED); by default they are left out, as work judged invalid",
     )
 
 
 def run(args: argparse.Namespace) -> int:
     from analysis.data import load_database, load_tables
+    from analysis.flow import participant_flow
     from analysis.report import write_outputs
     from analysis.results import analyze
     from analysis.tables import table1_markdown
 
     notes: list[str] = []
+    tables: dict[str, pd.DataFrame | None] = {}
     try:
         if args.database_url is not None:
             sessions, evaluations = load_database(
                 args.database_url,
                 exclude_excluded=args.exclude_excluded,
                 include_unfinished=args.include_unfinished,
+                include_rejected=args.include_rejected,
                 exclude_flagged=args.exclude_flagged,
                 notes=notes,
+                tables=tables,
             )
         else:
             sessions, evaluations = load_tables(
                 args.data,
                 exclude_excluded=args.exclude_excluded,
                 include_unfinished=args.include_unfinished,
+                include_rejected=args.include_rejected,
                 exclude_flagged=args.exclude_flagged,
                 notes=notes,
+                tables=tables,
             )
+        flow = participant_flow(
+            tables,
+            sessions,
+            exclude_excluded=args.exclude_excluded,
+            include_rejected=args.include_rejected,
+            exclude_flagged=args.exclude_flagged,
+            include_unfinished=args.include_unfinished,
+        )
         analysis = analyze(
             sessions,
             evaluations,
@@ -128,6 +151,7 @@ def run(args: argparse.Namespace) -> int:
             fdr=args.fdr,
             baseline=args.baseline,
             notes=notes,
+            flow=flow,
         )
         written = write_outputs(analysis, args.out)
     except InputError as error:

@@ -26,6 +26,8 @@ from typing import TYPE_CHECKING, TextIO
 from server.cores import available_cores
 
 if TYPE_CHECKING:
+    import pandas as pd
+
     from server.app.storage.db import Database
     from server.commands.simulated import ProlificArrival
 
@@ -224,6 +226,7 @@ def check(options: DemoOptions) -> None:
 def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
     """Run the demo into ``options.out`` (checked by ``check``); returns Table 1 as text."""
     from analysis.data import load_tables as load_export
+    from analysis.flow import participant_flow
     from analysis.options import InputError
     from analysis.report import write_outputs
     from analysis.results import analyze
@@ -314,8 +317,9 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
         db.dispose()
     write_export(tables, out / "export")
     try:
-        sessions, evaluations = load_export(out / "export")
-        analysis = analyze(sessions, evaluations)
+        read: dict[str, pd.DataFrame | None] = {}
+        sessions, evaluations = load_export(out / "export", tables=read)
+        analysis = analyze(sessions, evaluations, flow=participant_flow(read, sessions))
     except InputError as error:  # the export of our own server must always be readable
         raise DemoError(f"the analysis refused the export: {error}") from error
     write_outputs(analysis, out / "analysis")

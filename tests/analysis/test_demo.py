@@ -88,6 +88,11 @@ def test_the_demo_runs_a_whole_study(tmp_path: Path, capsys: pytest.CaptureFixtu
         assert list(group["update_index"]) == list(range(episodes + 1))
     summary = pd.read_csv(out / "analysis" / "sessions_summary.csv")
     assert len(summary) == 12
+    # The participant flow: both arrived, consented, completed and were analysed.
+    flow = pd.read_csv(out / "analysis" / "participant_flow.csv")
+    stages = flow[flow["kind"] == "stage"].set_index("stage")["participants"].to_dict()
+    assert stages == {"arrived": 2, "consented": 2, "completed": 2, "analysed": 2}
+    assert (out / "analysis" / "participant_flow.png").is_file()
     assert set(zip(summary["environment"], summary["learner"], strict=True)) == {
         (environment, learner) for environment in ENVIRONMENTS for learner in LEARNERS
     }

@@ -38,8 +38,12 @@ from server.app import platform_registry as registry
 from server.app.errors import ApiError, InvalidInput
 from server.app.storage.db import Database
 from server.app.storage.models import AssignmentReview, Bonus, Participant, utcnow
-
-Decision = Literal["approved", "rejected"]
+from server.app.storage.vocabulary import (
+    BonusState,
+    ParticipantStatus,
+    ReviewDecision,
+    ReviewState,
+)
 
 # The largest bonus the dashboard pays at once, in the study's currency (docs/running-a-study.md).
 MAX_BONUS = Decimal(100)
@@ -111,7 +115,7 @@ class ReviewBackend(Protocol):
 
     def reject(self, who: Reviewed, message: str, category: str | None) -> None: ...
 
-    def decision_of(self, who: Reviewed) -> Decision | None:
+    def decision_of(self, who: Reviewed) -> ReviewDecision | None:
         """The platform's decision on the submission now (None: not decided)."""
         ...
 
@@ -172,7 +176,7 @@ def reviewable(db: Database, participant_id: int, platform: str) -> Reviewed:
                 f"participant {participant_id} came from {p.platform}, not from a submission "
                 f"on {platform}: there is nothing to approve, reject or pay a bonus for",
             )
-        if p.status != "submitted":
+        if p.status != ParticipantStatus.SUBMITTED:
             raise ApiError(
                 409,
                 f"participant {participant_id} has not submitted their work (status "
@@ -196,20 +200,20 @@ def review_submission(
     db: Database,
     backend: ReviewBackend,
     participant_id: int,
-    decision: Decision,
+    decision: ReviewDecision,
     message: str | None,
     category: str | None = None,
 ) -> None:
     """Approve or reject the participant's submitted work, once: a repeat of the same decision
     answers as the first did; another decision is refused (409, a decision is final)."""
     who = reviewable(db, participant_id, backend.platform)
-    if decision == "rejected" and not message:
+    if decision == ReviewDecision.REJECTED and not message:
         raise InvalidInput(
             ("body", "message"),
             "a rejection needs a message: the platform shows the participant why",
         )
     platform = registry.platform(backend.platform)
-    if decision == "rejected":
+    if decision == ReviewDecision.REJECTED:
         platform.check_rejection(message, category)
 
     def read(s: Any) -> AssignmentReview | None:
@@ -230,7 +234,7 @@ def review_submission(
                         message=message,
                         rejection_category=category,
                         backend=backend.name,
-                        state="pending",
+                        state=ReviewState.PENDING,
                         requested_at=utcnow(),
                     )
                 )
@@ -248,14 +252,14 @@ def review_submission(
                 f"submission {who.assignment_id} was already {earlier_decision}: a decision "
                 "is final",
             )
-        if earlier_state == "done":
+        if earlier_state == ReviewState.DONE:
             return
         # A duplicate: let the request that holds the intent settle it, then reconcile.
-        row = _wait_for(db, read, lambda r: r.state == "done")
-        if row is not None and row.state == "done":
+        row = _wait_for(db, read, lambda r: r.state == ReviewState.DONE)
+        if row is not None and row.state == ReviewState.DONE:
             return
     try:
-        if decision == "approved":
+        if decision == ReviewDecision.APPROVED:
             backend.approve(who, message)
         else:
             backend.reject(who, message or "", category)
@@ -272,7 +276,7 @@ def review_submission(
                 s.execute(
                     delete(AssignmentReview).where(
                         AssignmentReview.participant_id == participant_id,
-                        AssignmentReview.state == "pending",
+                        AssignmentReview.state == ReviewState.PENDING,
                     )
                 )
             raise ApiError(409, str(refused)) from None
@@ -287,9 +291,9 @@ def review_submission(
             update(AssignmentReview)
             .where(
                 AssignmentReview.participant_id == participant_id,
-                AssignmentReview.state == "pending",
+                AssignmentReview.state == ReviewState.PENDING,
             )
-            .values(state="done", decided_at=utcnow())
+            .values(state=ReviewState.DONE, decided_at=utcnow())
         )
         status = platform.status_after(decision)
         if status is not None:
@@ -337,22 +341,22 @@ def pay_bonus(
                         reason=reason,
                         unique_token=unique_token,
                         backend=backend.name,
-                        state="pending",
+                        state=BonusState.PENDING,
                         requested_at=utcnow(),
                     )
                 )
             elif not same(earlier):
                 raise ApiError(409, f"the request token {unique_token} was used for another bonus")
-            elif earlier.state == "paid":
+            elif earlier.state == BonusState.PAID:
                 return False
     except IntegrityError:  # a concurrent request with this token recorded its intent first
-        earlier = _wait_for(db, read, lambda r: r.state == "paid")
+        earlier = _wait_for(db, read, lambda r: r.state == BonusState.PAID)
         assert earlier is not None
         if not same(earlier):
             raise ApiError(
                 409, f"the request token {unique_token} was used for another bonus"
             ) from None
-        if earlier.state == "paid":
+        if earlier.state == BonusState.PAID:
             return False
     return _settle_bonus(db, backend, who, unique_token, money(cents), reason)
 
@@ -366,11 +370,15 @@ def _settle_bonus(
         row = s.scalar(select(Bonus).where(where))
         assert row is not None
         setup_id, state, requested_at = row.setup_id, row.state, row.requested_at
-    if state == "pending" and _token_forgotten(backend, requested_at):
+    if state == BonusState.PENDING and _token_forgotten(backend, requested_at):
         with db.write() as s:
-            s.execute(update(Bonus).where(where, Bonus.state == "pending").values(state="in_doubt"))
-        state = "in_doubt"
-    if state == "in_doubt":
+            s.execute(
+                update(Bonus)
+                .where(where, Bonus.state == BonusState.PENDING)
+                .values(state=BonusState.IN_DOUBT)
+            )
+        state = BonusState.IN_DOUBT
+    if state == BonusState.IN_DOUBT:
         raise ApiError(
             409,
             f"bonus {token} was asked for at {requested_at:%Y-%m-%d %H:%M} UTC and its payment "
@@ -378,12 +386,12 @@ def _settle_bonus(
             "again could pay it twice. Check the worker's bonuses on the platform; it is not "
             "sent again from here",
         )
-    if state == "pending" and not backend.repeat_pay_is_safe:
+    if state == BonusState.PENDING and not backend.repeat_pay_is_safe:
         try:
             made = backend.set_up_bonus(who, amount, reason)
         except ReviewRefused as refused:  # nothing was set up: the intent goes
             with db.write() as s:
-                s.execute(delete(Bonus).where(where, Bonus.state == "pending"))
+                s.execute(delete(Bonus).where(where, Bonus.state == BonusState.PENDING))
             raise ApiError(409, str(refused)) from None
         except ReviewUnavailable as error:
             raise ApiError(502, f"{error}. Send the same request again (same token)") from None
@@ -394,7 +402,7 @@ def _settle_bonus(
             s.execute(
                 update(Bonus)
                 .where(where, Bonus.setup_id.is_(None))
-                .values(setup_id=made, state="set_up")
+                .values(setup_id=made, state=BonusState.SET_UP)
             )
             setup_id = s.scalar(select(Bonus.setup_id).where(where))
     if not backend.repeat_pay_is_safe:
@@ -402,13 +410,13 @@ def _settle_bonus(
         with db.write() as s:
             claimed = s.scalar(
                 update(Bonus)
-                .where(where, Bonus.state == "set_up")
-                .values(state="paying")
+                .where(where, Bonus.state == BonusState.SET_UP)
+                .values(state=BonusState.PAYING)
                 .returning(Bonus.id)
             )
         if claimed is None:
             row = _wait_for(db, lambda s: s.scalar(select(Bonus).where(where)), _is_paid)
-            if row is not None and row.state == "paid":
+            if row is not None and row.state == BonusState.PAID:
                 return False
             raise ApiError(
                 502,
@@ -423,9 +431,9 @@ def _settle_bonus(
     except ReviewRefused as refused:
         with db.write() as s:
             if backend.repeat_pay_is_safe:
-                s.execute(delete(Bonus).where(where, Bonus.state == "pending"))
+                s.execute(delete(Bonus).where(where, Bonus.state == BonusState.PENDING))
             else:  # the set-up stands; a retry pays it
-                s.execute(update(Bonus).where(where).values(state="set_up"))
+                s.execute(update(Bonus).where(where).values(state=BonusState.SET_UP))
         raise ApiError(409, str(refused)) from None
     except ReviewUnavailable as error:
         retry = (
@@ -435,7 +443,7 @@ def _settle_bonus(
         )
         raise ApiError(502, f"{error}. The bonus is recorded as unsettled: {retry}") from None
     with db.write() as s:
-        s.execute(update(Bonus).where(where).values(state="paid", paid_at=utcnow()))
+        s.execute(update(Bonus).where(where).values(state=BonusState.PAID, paid_at=utcnow()))
     return True
 
 
@@ -450,7 +458,7 @@ def _token_forgotten(backend: ReviewBackend, requested_at: datetime) -> bool:
 
 
 def _is_paid(row: Bonus) -> bool:
-    return row.state == "paid"
+    return row.state == BonusState.PAID
 
 
 def reconcile_bonuses(db: Database, backend: ReviewBackend) -> list[str]:
@@ -460,7 +468,10 @@ def reconcile_bonuses(db: Database, backend: ReviewBackend) -> list[str]:
     with db.read() as s:
         rows = s.execute(
             select(Bonus.participant_id, Bonus.unique_token, Bonus.amount_cents, Bonus.reason)
-            .where(Bonus.backend == backend.name, Bonus.state.in_(("pending", "set_up")))
+            .where(
+                Bonus.backend == backend.name,
+                Bonus.state.in_((BonusState.PENDING, BonusState.SET_UP)),
+            )
             .order_by(Bonus.id)
         ).all()
     settled = []

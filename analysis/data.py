@@ -48,6 +48,7 @@ from analysis.selection import (
     flagged_participants,
     keep_finished,
 )
+from server.app.storage.vocabulary import UpdateStatus
 
 # A policy can be exactly optimal; exact scoring can overshoot 1.0 by rounding only.
 RETURN_TOLERANCE = 1e-6
@@ -316,7 +317,7 @@ def _validate_evaluations(
     # they are checked like the others but have no evaluation to analyse.
     failed = pd.Series(False, index=frame.index)
     if "status" in frame.columns:
-        failed = frame["status"].astype(str).str.strip().str.lower().eq("failed")
+        failed = frame["status"].astype(str).str.strip().str.lower().eq(UpdateStatus.FAILED)
         if failed.any():
             frame = frame.copy()
             frame.loc[failed, "normalized_return"] = "0"

@@ -17,6 +17,7 @@ from server.app.storage.vocabulary import (
     FINISHED_STATUSES,
     EpisodeEnd,
     EpisodeKind,
+    ExclusionMark,
     ParticipantStatus,
 )
 
@@ -229,7 +230,9 @@ def excluded_participants(
             participants["excluded"].astype(str).str.strip().str.lower().isin(cells.TRUE_WORDS)
         )
     if "status" in participants.columns:
-        marked |= participants["status"].astype(str).str.strip().str.lower() == "excluded"
+        marked |= (
+            participants["status"].astype(str).str.strip().str.lower() == ExclusionMark.EXCLUDED
+        )
     return set(participants.loc[marked, "participant_id"].astype(str).str.strip())
 
 

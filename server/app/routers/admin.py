@@ -52,6 +52,7 @@ from server.app.storage.vocabulary import (
     IN_PROGRESS,
     BonusState,
     ErasedBy,
+    ExclusionMark,
     ParticipantStatus,
     ReviewDecision,
     SessionKind,
@@ -244,7 +245,11 @@ def exclude(
         now = utcnow()
         p.excluded_at = now
         p.exclusion_reason = body.reason
-        s.add(StatusChange(participant_id=p.id, status="excluded", at=now, note=body.reason))
+        s.add(
+            StatusChange(
+                participant_id=p.id, status=ExclusionMark.EXCLUDED, at=now, note=body.reason
+            )
+        )
     with state.db.read() as s:
         return _participant_detail(s, participant_id)
 
@@ -263,7 +268,11 @@ def include(
             raise ApiError(409, f"participant {participant_id} is not excluded")
         p.excluded_at = None
         p.exclusion_reason = None
-        s.add(StatusChange(participant_id=p.id, status="included", at=utcnow(), note=reason))
+        s.add(
+            StatusChange(
+                participant_id=p.id, status=ExclusionMark.INCLUDED, at=utcnow(), note=reason
+            )
+        )
     with state.db.read() as s:
         return _participant_detail(s, participant_id)
 

@@ -150,7 +150,7 @@ class StatusChange(Base):
 
     id: Mapped[int] = mapped_column(BigId, primary_key=True)
     participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), index=True)
-    status: Mapped[str] = mapped_column(String(16))  # ParticipantStatus
+    status: Mapped[str] = mapped_column(String(16))  # ParticipantStatus or ExclusionMark
     at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     note: Mapped[str | None] = mapped_column(Text)
 

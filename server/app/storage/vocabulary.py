@@ -57,6 +57,15 @@ FINISHED_STATUSES = (ParticipantStatus.COMPLETED, ParticipantStatus.SUBMITTED)
 
 
 @unique
+class ExclusionMark(Vocabulary):
+    """The experimenter's marks that ``status_changes.status`` records beside the statuses
+    (exclusion leaves the status as it is: ``participants.excluded_at``)."""
+
+    EXCLUDED = "excluded"
+    INCLUDED = "included"  # an exclusion undone
+
+
+@unique
 class SessionKind(Vocabulary):
     """What a learning session is for (``learning_sessions.kind``)."""
 

@@ -35,6 +35,7 @@ STORED = {
         "returned",
         "abandoned",
     ],
+    v.ExclusionMark: ["excluded", "included"],
     v.SessionKind: ["tutorial", "study"],
     v.SessionStatus: ["pending", "active", "finished"],
     v.Mode: ["idle", "demonstrate", "agent"],

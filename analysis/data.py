@@ -52,6 +52,7 @@ from analysis.selection import (
     keep_finished,
     rejected_participants,
 )
+from server.app.storage.vocabulary import UpdateStatus
 
 # The tables the participant flow reads (``load_tables``' ``tables``).
 FLOW_TABLES = ("participants", "sessions", "reviews", "quality", "erasures")
@@ -373,7 +374,7 @@ def _validate_evaluations(
     # they are checked like the others but have no evaluation to analyse.
     failed = pd.Series(False, index=frame.index)
     if "status" in frame.columns:
-        failed = frame["status"].astype(str).str.strip().str.lower().eq("failed")
+        failed = frame["status"].astype(str).str.strip().str.lower().eq(UpdateStatus.FAILED)
         if failed.any():
             frame = frame.copy()
             frame.loc[failed, "normalized_return"] = "0"

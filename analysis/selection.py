@@ -13,24 +13,31 @@ import pandas as pd
 from analysis import cells
 from analysis.columns import EPISODE_COLUMNS, EPISODES_FILE
 from analysis.options import InputError
+from server.app.storage.vocabulary import (
+    FINISHED_STATUSES,
+    EpisodeEnd,
+    EpisodeKind,
+    ExclusionMark,
+    ParticipantStatus,
+)
 
 # Participant statuses of those who completed the study (the server's flow statuses).
-COMPLETED_STATUSES = ("completed", "submitted")
+COMPLETED_STATUSES = FINISHED_STATUSES
 
 
 # Every other status the server gives a participant, as the notes name it: why the participant
 # did not finish. A status missing here is named as it is ("status 'x'"); a new status of the
 # server gets its entry here (tests/analysis/test_sessions.py checks that each has one).
-UNFINISHED_REASONS = {
-    "returned": "returned the task",
-    "abandoned": "timed out",
-    "declined": "declined consent",
-    "arrived": "still in the study",
-    "consented": "still in the study",
-    "tutorial": "still in the study",
-    "teaching": "still in the study",
-    "questionnaire": "still in the study",
-    "waiting": "waiting for a place (never started)",
+UNFINISHED_REASONS: dict[str, str] = {
+    ParticipantStatus.RETURNED: "returned the task",
+    ParticipantStatus.ABANDONED: "timed out",
+    ParticipantStatus.DECLINED: "declined consent",
+    ParticipantStatus.ARRIVED: "still in the study",
+    ParticipantStatus.CONSENTED: "still in the study",
+    ParticipantStatus.TUTORIAL: "still in the study",
+    ParticipantStatus.TEACHING: "still in the study",
+    ParticipantStatus.QUESTIONNAIRE: "still in the study",
+    ParticipantStatus.WAITING: "waiting for a place (never started)",
 }
 
 
@@ -157,7 +164,11 @@ def empty_episodes(episodes: pd.DataFrame, source: str = EPISODES_FILE) -> pd.Se
     reason, _ = cells.raw(episodes, "end_reason")
     actions, _ = cells.raw(episodes, "actions")
     return (
-        (kind == "agent") & (reason == "goal") & (actions == "1") & ~start_missing & (start == end)
+        (kind == EpisodeKind.AGENT)
+        & (reason == EpisodeEnd.GOAL)
+        & (actions == "1")
+        & ~start_missing
+        & (start == end)
     )
 
 
@@ -224,7 +235,9 @@ def excluded_participants(
             participants["excluded"].astype(str).str.strip().str.lower().isin(cells.TRUE_WORDS)
         )
     if "status" in participants.columns:
-        marked |= participants["status"].astype(str).str.strip().str.lower() == "excluded"
+        marked |= (
+            participants["status"].astype(str).str.strip().str.lower() == ExclusionMark.EXCLUDED
+        )
     return set(participants.loc[marked, "participant_id"].astype(str).str.strip())
 
 

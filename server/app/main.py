@@ -22,7 +22,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from server.app.config import StudyConfig, load_study_config
 from server.app.errors import ApiError, InvalidInput, TurnedAway
-from server.app.participants import tokens
+from server.app.participants import statuses
 from server.app.rights.scrub import scrub
 from server.app.routers import (
     admin,
@@ -281,7 +281,7 @@ async def _sweep_forever(state: ServerState) -> None:
     replace platform ids past ``scrub_identifiers_after_days`` by their pseudonyms."""
     while True:
         try:
-            marked = await asyncio.to_thread(tokens.mark_abandoned, state.db, state.settings)
+            marked = await asyncio.to_thread(statuses.mark_abandoned, state.db, state.settings)
             if marked:
                 log.info("%d participant(s) marked abandoned", marked)
         except Exception:

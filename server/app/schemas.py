@@ -28,10 +28,21 @@ from pydantic_core import PydanticCustomError
 from server.app.platform_registry import PlatformName, arrival_parameters
 from server.app.platforms.base import ID_PATTERN as ID_PATTERN
 from server.app.platforms.review import MAX_BONUS, RejectionCategory, message_text, parse_amount
+from server.app.storage import vocabulary as v
 
 MAX_SEQ = 1_000_000_000
 
-Mode = Literal["idle", "demonstrate", "agent"]
+# The API's literals of the stored vocabularies (``storage.vocabulary``), member by member: the
+# OpenAPI schema lists the same strings as the database holds (tests/app/test_schemas.py checks
+# that each lists its whole vocabulary, or the part the API answers with).
+Mode = Literal[v.Mode.IDLE, v.Mode.DEMONSTRATE, v.Mode.AGENT]
+SessionKind = Literal[v.SessionKind.TUTORIAL, v.SessionKind.STUDY]
+SessionStatus = Literal[v.SessionStatus.PENDING, v.SessionStatus.ACTIVE, v.SessionStatus.FINISHED]
+EpisodeKind = Literal[v.EpisodeKind.DEMONSTRATION, v.EpisodeKind.AGENT]
+# A check the page is shown: the one being taken, or its outcome (never a pending one).
+CheckShown = Literal[v.CheckStatus.ACTIVE, v.CheckStatus.PASSED, v.CheckStatus.FAILED]
+ReviewDecision = Literal[v.ReviewDecision.APPROVED, v.ReviewDecision.REJECTED]
+ReviewState = Literal[v.ReviewState.PENDING, v.ReviewState.DONE]
 Move = Literal["UP", "DOWN", "LEFT", "RIGHT"]
 
 
@@ -205,12 +216,12 @@ class ParticipantBrief(BaseModel):
 
 class SessionSummary(BaseModel):
     session_id: int
-    kind: Literal["tutorial", "study"]
+    kind: SessionKind
     position: int | None = Field(description="0.. among the study's agents; None: tutorial.")
     domain: str
     environment: str
     colour: Colour
-    status: Literal["pending", "active", "finished"]
+    status: SessionStatus
     opened: bool = Field(description="The participant began teaching it (past its introduction).")
 
 
@@ -229,7 +240,7 @@ class AttentionCheckView(BaseModel):
     star: tuple[int, int] = Field(description="Where the star is: [row, column].")
     moves_made: int
     moves_allowed: int
-    status: Literal["active", "passed", "failed"]
+    status: CheckShown
 
 
 class AttentionMoveRequest(SeqRequest):
@@ -267,7 +278,7 @@ class ArrivalResponse(BaseModel):
 
 class EpisodeState(BaseModel):
     index: int
-    kind: Literal["demonstration", "agent"]
+    kind: EpisodeKind
     task: int
     actions: int
 
@@ -282,7 +293,7 @@ class Learning(BaseModel):
 
 class TeachingState(BaseModel):
     session_id: int
-    status: Literal["pending", "active", "finished"]
+    status: SessionStatus
     task: int
     mode: Mode
     agent: dict[str, Any] | None = Field(description="The agent's cell and feature.")
@@ -419,13 +430,11 @@ class BonusRequest(Body):
 
 
 class ReviewView(BaseModel):
-    decision: Literal["approved", "rejected"]
+    decision: ReviewDecision
     message: str | None
     rejection_category: str | None
     backend: str
-    state: Literal["pending", "done"] = Field(
-        description="pending: recorded, not yet confirmed by the platform."
-    )
+    state: ReviewState = Field(description="pending: recorded, not yet confirmed by the platform.")
     decided_at: datetime | None
 
 

@@ -419,6 +419,7 @@ def wait_for_learners(db: Database, err: TextIO, log_path: Path, participants: i
     from sqlalchemy import func, select
 
     from server.app.storage.models import LearnerUpdate
+    from server.app.storage.vocabulary import UpdateStatus
     from server.simulation.progress import Progress
 
     def counts() -> tuple[int, int, int]:
@@ -428,7 +429,11 @@ def wait_for_learners(db: Database, err: TextIO, log_path: Path, participants: i
                     select(LearnerUpdate.status, func.count()).group_by(LearnerUpdate.status)
                 ).all()
             )
-        return int(sum(rows.values())), int(rows.get("pending", 0)), int(rows.get("failed", 0))
+        return (
+            int(sum(rows.values())),
+            int(rows.get(UpdateStatus.PENDING, 0)),
+            int(rows.get(UpdateStatus.FAILED, 0)),
+        )
 
     _, pending, _ = counts()
     if pending:

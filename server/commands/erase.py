@@ -20,11 +20,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from server.app.errors import ApiError
-    from server.app.rights.erasure import PARTICIPANTS, erase, find_participant
+    from server.app.rights.erasure import erase, find_participant
     from server.app.rights.pseudonyms import installation_secret, participant_pseudonyms
     from server.app.settings import SettingsError, load_settings
     from server.app.storage import db as database
     from server.app.storage.records import Record
+    from server.app.storage.tables import PARTICIPANTS
+    from server.app.storage.vocabulary import ErasedBy
 
     def fail(message: str, code: int = 1) -> int:
         print(f"bam-study erase: {message}", file=sys.stderr)
@@ -63,7 +65,9 @@ def run(args: argparse.Namespace) -> int:
                 print("nothing erased")
                 return 1
         with db.transaction() as c:
-            erased = erase(c, int(row["id"]), "experimenter", installation_secret(c, configured))
+            erased = erase(
+                c, int(row["id"]), ErasedBy.EXPERIMENTER, installation_secret(c, configured)
+            )
         db.forget_removed()
     except ApiError as error:
         return fail(error.message)

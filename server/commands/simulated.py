@@ -28,6 +28,7 @@ import httpx
 import numpy as np
 
 from server.app.participants.tokens import TOKEN_HEADER
+from server.app.storage.vocabulary import CheckStatus, Mode, ParticipantStatus, SessionKind
 from server.domains import make as make_environment
 from server.domains.base import ACTIONS
 from server.teacher import Teacher
@@ -319,10 +320,10 @@ class SimulatedParticipant:
             finish = self.teach(current)
             self.run.sessions += 1
             current = finish["participant"]["current_session_id"]
-            if current is None and finish["participant"]["status"] == "teaching":
+            if current is None and finish["participant"]["status"] == ParticipantStatus.TEACHING:
                 finish = self.attention_check()  # between two agents
                 current = finish["participant"]["current_session_id"]
-        if finish["participant"]["status"] == "questionnaire":
+        if finish["participant"]["status"] == ParticipantStatus.QUESTIONNAIRE:
             answers = self.questionnaire_answers()
             finish = self.act("/api/participant/questionnaire", "questionnaire", answers=answers)
         code = finish["participant"]["completion"]["code"]
@@ -340,7 +341,7 @@ class SimulatedParticipant:
             self._arrive_from_prolific(self.prolific)
         else:
             self._arrive_from_mturk()
-        if self.run.status == "waiting":  # the study is full: as the page does
+        if self.run.status == ParticipantStatus.WAITING:  # the study is full: as the page does
             while not (place := self.request("POST", "/api/participant/place", "place"))[
                 "admitted"
             ]:
@@ -454,7 +455,7 @@ class SimulatedParticipant:
         if self.plan.kind == "idle":
             time.sleep(self.plan.idle_seconds)
         base = f"/api/sessions/{session_id}"
-        tutorial = view["summary"]["kind"] == "tutorial"
+        tutorial = view["summary"]["kind"] == SessionKind.TUTORIAL
         rounds = (
             1
             if tutorial
@@ -498,8 +499,8 @@ class SimulatedParticipant:
                 "/api/participant/attention-check/move", "attention_move", action=action
             )
             check = data["check"]
-            if check["status"] != "active":
-                self.run.failed_checks += check["status"] == "failed"
+            if check["status"] != CheckStatus.ACTIVE:
+                self.run.failed_checks += check["status"] == CheckStatus.FAILED
                 return data
 
     def demonstrate(self, base: str, env: Any, teacher: Teacher, task: int) -> int:
@@ -507,7 +508,7 @@ class SimulatedParticipant:
         data = self.act(f"{base}/reset", "reset")
         state = data["session"]["agent"]["state"]
         if self.rng.random() < self.plan.idle_move_probability:
-            self.act(f"{base}/mode", "mode", mode="idle")
+            self.act(f"{base}/mode", "mode", mode=Mode.IDLE)
             for _ in range(int(self.rng.integers(1, 4))):
                 move = ACTIONS[int(self.rng.integers(1, len(ACTIONS)))]
                 self._pause(self.plan.think_seconds)
@@ -519,7 +520,7 @@ class SimulatedParticipant:
         else:
             return state  # every start drawn was a goal: nothing to demonstrate
         # (On the goal, turning a mode on puts the agent at a random start first.)
-        data = self.act(f"{base}/mode", "mode", mode="demonstrate")
+        data = self.act(f"{base}/mode", "mode", mode=Mode.DEMONSTRATE)
         state = data["session"]["agent"]["state"]
         for _ in range(env.horizon):
             action = teacher.next_action(task, state)
@@ -536,7 +537,7 @@ class SimulatedParticipant:
     def agent_try(self, base: str, env: Any, teacher: Teacher, task: int) -> int:
         self._pause(self.plan.episode_pause_seconds)
         state = self.act(f"{base}/reset", "reset")["session"]["agent"]["state"]
-        self.act(f"{base}/mode", "mode", mode="agent")
+        self.act(f"{base}/mode", "mode", mode=Mode.AGENT)
         steps = self.plan.max_agent_steps or env.horizon
         for _ in range(steps):
             self._pause(self.plan.agent_step_seconds)

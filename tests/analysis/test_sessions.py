@@ -284,7 +284,7 @@ def test_every_participant_status_of_the_server_is_completed_or_has_a_reason() -
     """A status the server gives a participant is either completion or a reason, in the note,
     for not finishing; a new status needs its entry in UNFINISHED_REASONS."""
     from analysis.selection import COMPLETED_STATUSES, UNFINISHED_REASONS
-    from server.app.participants.tokens import STATUSES
+    from server.app.storage.vocabulary import ParticipantStatus as STATUSES
 
     assert set(COMPLETED_STATUSES) <= set(STATUSES)
     assert set(STATUSES) - set(COMPLETED_STATUSES) == set(UNFINISHED_REASONS)

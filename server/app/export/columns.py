@@ -21,6 +21,7 @@ from typing import Any, Literal
 from server.app.export import quality
 from server.app.export.read import Context
 from server.app.rights.pseudonyms import ASSIGNMENT, WORKER
+from server.app.storage.vocabulary import ParticipantStatus
 from server.domains import make as make_environment
 from server.domains.base import ACTIONS
 from server.names import learner_names_prose
@@ -50,18 +51,8 @@ class Column:
         return value
 
 
-STATUS_COLUMNS = (
-    "arrived",
-    "consented",
-    "declined",
-    "tutorial",
-    "teaching",
-    "questionnaire",
-    "completed",
-    "submitted",
-    "returned",
-    "abandoned",
-)
+# The first time of each status, in the vocabulary's order (waiting has no column).
+STATUS_COLUMNS = tuple(s for s in ParticipantStatus if s is not ParticipantStatus.WAITING)
 
 
 def _pseudonymised(name: str, prefix: str, description: str, owner: str) -> Column:

@@ -28,6 +28,7 @@ from sqlalchemy import select
 from server.app.rights.pseudonyms import database_secret, participant_pseudonyms
 from server.app.storage.db import Database
 from server.app.storage.models import Episode, Event, LearnerUpdate, LearningSession, Participant
+from server.app.storage.vocabulary import EpisodeKind, Observed, UpdateStatus
 from server.domains.base import STAY
 from server.rl.datasets import Dataset, DatasetEpisode, DatasetError
 
@@ -84,7 +85,7 @@ def study_datasets(
         episodes = s.scalars(select(Episode).order_by(Episode.session_id, Episode.index)).all()
         done = s.execute(
             select(LearnerUpdate.session_id, LearnerUpdate.update_index).where(
-                LearnerUpdate.status == "done"
+                LearnerUpdate.status == UpdateStatus.DONE
             )
         ).all()
         events = s.execute(
@@ -127,7 +128,7 @@ def study_datasets(
             assert secret is not None
             worker, _ = participant_pseudonyms(participant, secret)
         acting = -1
-        if episode.kind == "agent":
+        if episode.kind == EpisodeKind.AGENT:
             # The agent acts on its latest done update; all of those up to the episode's
             # index were done before its first step, and none after it could be.
             acting = max((i for i in updates.get(session.id, []) if i <= episode.index), default=-1)
@@ -135,7 +136,8 @@ def study_datasets(
             _dataset_episode(episode, session, taken, worker or "", acting)
         )
         count = counts.setdefault(
-            session.environment, {"participants": set(), "demonstration": 0, "agent": 0}
+            session.environment,
+            {"participants": set(), EpisodeKind.DEMONSTRATION: 0, EpisodeKind.AGENT: 0},
         )
         count["participants"].add(session.participant_id)
         count[episode.kind] += 1
@@ -165,8 +167,8 @@ def study_datasets(
                 "exported_at": when,
                 "participants": len(counts[environment]["participants"]),
                 "episodes": len(found),
-                "demonstrations": counts[environment]["demonstration"],
-                "agent_episodes": counts[environment]["agent"],
+                "demonstrations": counts[environment][EpisodeKind.DEMONSTRATION],
+                "agent_episodes": counts[environment][EpisodeKind.AGENT],
                 "excluded_participants": "included" if include_excluded else "left out",
                 "pseudonymised": pseudonymize,
                 "infos": INFOS,
@@ -186,7 +188,7 @@ def _steps_by_episode(events: Iterable[Any]) -> dict[tuple[int, int], list[Step]
     steps: dict[tuple[int, int], list[Step]] = {}
     latest_agent_step: dict[int, Step] = {}
     for event in events:
-        if event.record in ("demonstration", "agent_step"):
+        if event.record in (Observed.DEMONSTRATION, Observed.AGENT_STEP):
             step = {
                 "state": event.state,
                 "action": event.action,
@@ -195,9 +197,9 @@ def _steps_by_episode(events: Iterable[Any]) -> dict[tuple[int, int], list[Step]
                 "synthetic_stay": False,
             }
             steps.setdefault((event.session_id, event.episode_index), []).append(step)
-            if event.record == "agent_step":
+            if event.record == Observed.AGENT_STEP:
                 latest_agent_step[event.session_id] = step
-        elif event.record == "feedback":
+        elif event.record == Observed.FEEDBACK:
             latest = latest_agent_step.get(event.session_id)
             if latest is None:
                 raise DatasetError(
@@ -244,6 +246,7 @@ def _dataset_episode(
             "session": [int(session.id)] * length,
             "episode": [int(episode.id)] * length,
             "learner": [session.learner] * length,
-            "learner_update": [-1] + [acting if episode.kind == "agent" else -1] * len(taken),
+            "learner_update": [-1]
+            + [acting if episode.kind == EpisodeKind.AGENT else -1] * len(taken),
         },
     )

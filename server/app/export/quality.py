@@ -19,6 +19,7 @@ from typing import Any
 
 import pandas as pd
 
+from server.app.storage.vocabulary import CheckStatus, Observed
 from server.domains import make as make_environment
 from server.domains.base import ACTIONS
 from server.teacher import TIE_TOLERANCE, Teacher
@@ -131,9 +132,11 @@ def quality_table(
     checks = tables.get("attention_checks")  # an export made before the checks has none
     if checks is None:
         checks = pd.DataFrame(columns=["participant_id", "outcome"])
-    taken = checks[checks["outcome"].isin(["passed", "failed"])]
+    taken = checks[checks["outcome"].isin([CheckStatus.PASSED, CheckStatus.FAILED])]
     checks_taken = taken.groupby("participant_id").size().to_dict()
-    checks_failed = taken[taken["outcome"] == "failed"].groupby("participant_id").size().to_dict()
+    checks_failed = (
+        taken[taken["outcome"] == CheckStatus.FAILED].groupby("participant_id").size().to_dict()
+    )
     seen = tables["events"].assign(at=pd.to_datetime(tables["events"]["created_at"]))
     rows: list[dict[str, Any]] = []
     for participant_id, own_minutes in minutes.items():
@@ -149,16 +152,16 @@ def quality_table(
         latest_agent: dict[int, tuple[int, int, int]] = {}
         for event in mine.itertuples(index=False):
             environment = sessions[event.session_id]
-            if event.record == "demonstration":
+            if event.record == Observed.DEMONSTRATION:
                 action = ACTIONS.index(event.action)
                 demonstrated.append(_optimal(environment, event.task, event.state, action))
-            elif event.record == "agent_step":
+            elif event.record == Observed.AGENT_STEP:
                 latest_agent[event.session_id] = (
                     int(event.task),
                     int(event.state),
                     ACTIONS.index(event.action),
                 )
-            elif event.record == "feedback" and event.session_id in latest_agent:
+            elif event.record == Observed.FEEDBACK and event.session_id in latest_agent:
                 task, state, action = latest_agent[event.session_id]
                 advantage = _advantage(environment, task, state, action)
                 if abs(advantage) > TIE_TOLERANCE:  # every move as good: no right answer

@@ -32,6 +32,7 @@ from server.app.storage.models import (
     QuestionnaireAnswer,
     StatusChange,
 )
+from server.app.storage.vocabulary import EpisodeKind, Observed, ParticipantStatus, UpdateStatus
 
 
 @dataclass(frozen=True)
@@ -102,7 +103,7 @@ def read_study(db: Database) -> Study:
             episodes=s.scalars(select(Episode).order_by(Episode.id)).all(),
             updates=s.execute(
                 select(*_UPDATE_COLUMNS)
-                .where(LearnerUpdate.status != "pending")
+                .where(LearnerUpdate.status != UpdateStatus.PENDING)
                 .order_by(LearnerUpdate.session_id, LearnerUpdate.update_index)
             ).all(),
             events=s.execute(select(*_EVENT_COLUMNS).order_by(Event.id)).all(),
@@ -150,7 +151,9 @@ class Context:
         by_participant = study_sessions_by_participant(study.sessions)
         ctx.figures = {
             p.id: participant_figures(
-                p, by_participant.get(p.id, []), ctx.first_at.get(p.id, {}).get("completed")
+                p,
+                by_participant.get(p.id, []),
+                ctx.first_at.get(p.id, {}).get(ParticipantStatus.COMPLETED),
             )
             for p in study.participants
         }
@@ -186,18 +189,18 @@ def _session_counts(study: Study) -> dict[int, SessionCounts]:
         if event.session_id is None:
             continue
         c = of(event.session_id)
-        if event.record == "demonstration":
+        if event.record == Observed.DEMONSTRATION:
             c.demonstrated_actions += 1
-        elif event.record == "agent_step":
+        elif event.record == Observed.AGENT_STEP:
             c.agent_actions += 1
-        elif event.record == "feedback":
+        elif event.record == Observed.FEEDBACK:
             c.feedback_given += 1
     for episode in study.episodes:
         if episode.ended_at is not None:
             c = of(episode.session_id)
-            if episode.kind == "demonstration":
+            if episode.kind == EpisodeKind.DEMONSTRATION:
                 c.demonstrations += 1
-            elif episode.kind == "agent":
+            elif episode.kind == EpisodeKind.AGENT:
                 c.agent_episodes += 1
             else:
                 raise ValueError(f"episode {episode.id} has an unknown kind {episode.kind!r}")

@@ -34,6 +34,7 @@ from server.app.export.quality import quality_table
 from server.app.export.read import Context, read_study
 from server.app.rights.pseudonyms import database_secret
 from server.app.storage.db import Database, open_study_database
+from server.app.storage.vocabulary import SessionKind
 
 
 def table_frame(columns: Sequence[Column], rows: Iterable[Any], context: Context) -> pd.DataFrame:
@@ -63,16 +64,16 @@ def export_tables(
     context = Context.of(study, pseudonymize, secret)
     files: dict[str, tuple[Sequence[Column], Iterable[Any]]] = {
         "participants": (PARTICIPANTS, study.participants),
-        "sessions": (SESSIONS, (x for x in study.sessions if x.kind == "study")),
+        "sessions": (SESSIONS, (x for x in study.sessions if x.kind == SessionKind.STUDY)),
         "tutorial_sessions": (
             TUTORIAL_SESSIONS,
-            (x for x in study.sessions if x.kind == "tutorial"),
+            (x for x in study.sessions if x.kind == SessionKind.TUTORIAL),
         ),
         "episodes": (EPISODES, study.episodes),
         "events": (EVENTS, study.events),
         "evaluations": (
             EVALUATIONS,
-            (u for u in study.updates if context.session(u.session_id).kind == "study"),
+            (u for u in study.updates if context.session(u.session_id).kind == SessionKind.STUDY),
         ),
         "status_changes": (STATUS_CHANGES, study.changes),
         "questionnaire_answers": (QUESTIONNAIRE_ANSWERS, study.answers),

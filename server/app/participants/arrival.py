@@ -14,30 +14,23 @@ from sqlalchemy.exc import IntegrityError
 from server.app import platform_registry as registry
 from server.app.config import StudyConfig
 from server.app.errors import ApiError, TurnedAway
-from server.app.participants.tokens import (
-    ADD_TOKEN,
-    IN_PROGRESS,
-    PARTICIPANTS,
-    advisory_lock_key,
-    new_token,
-    participant_by_token,
-    reactivate,
-    restore_status,
-    set_status,
-)
+from server.app.participants.statuses import reactivate, restore_status, set_status
+from server.app.participants.tokens import ADD_TOKEN, new_token, participant_by_token
 from server.app.platforms.base import ArrivalIds
 from server.app.schemas import (
     ArrivalRequest,
 )
 from server.app.settings import Settings
-from server.app.storage.db import Database
-from server.app.storage.models import (
-    Erasure,
-    utcnow,
-)
-from server.app.storage.records import Record, add, load, load_all, table_of
+from server.app.storage.db import Database, advisory_lock_key
+from server.app.storage.models import utcnow
+from server.app.storage.records import Record, add, load, load_all
+from server.app.storage.tables import ERASURES, PARTICIPANTS
+from server.app.storage.vocabulary import IN_PROGRESS, ParticipantStatus
 
-ERASURES = table_of(Erasure)
+# A worker's participations that no longer count: the task returned, or consent declined.
+NOT_COUNTED = (ParticipantStatus.RETURNED, ParticipantStatus.DECLINED)
+# Participations going on (an abandoned participant may come back).
+GOING_ON = (*IN_PROGRESS, ParticipantStatus.ABANDONED)
 
 
 def classify_arrival(
@@ -140,7 +133,7 @@ def _arrive(
             order_by=PARTICIPANTS.c.id,
         )
         existing = min(candidates, key=lambda p: p.worker_id != ids.worker_id, default=None)
-        coming_back = existing is None or existing.status == "returned"
+        coming_back = existing is None or existing.status == ParticipantStatus.RETURNED
         if (
             coming_back
             and not study.allow_repeat_workers
@@ -160,9 +153,9 @@ def _arrive(
                 PARTICIPANTS.c.platform == ids.name,
                 PARTICIPANTS.c.assignment_id == ids.assignment_id,
                 ~same_worker(worker),
-                PARTICIPANTS.c.status.not_in(("returned", "declined")),
+                PARTICIPANTS.c.status.not_in(NOT_COUNTED),
             )
-            if existing is not None and existing.status == "returned" and others:
+            if existing is not None and existing.status == ParticipantStatus.RETURNED and others:
                 raise TurnedAway(
                     "You returned this task",
                     "You returned this task, and its assignment went to another worker, who "
@@ -170,14 +163,14 @@ def _arrive(
                     f"{platform.display_name}: you will get an assignment of your own.",
                     409,
                 )
-            in_progress = [p for p in others if p.status in (*IN_PROGRESS, "abandoned")]
+            in_progress = [p for p in others if p.status in GOING_ON]
             mark_returned(c, in_progress, now, "assignment taken by another worker")
         if existing is None:
             return Arrival(*_create(c, ids, now, room), False)
-        if platform.released is not None and existing.status == "returned":
+        if platform.released is not None and existing.status == ParticipantStatus.RETURNED:
             # Released on the platform's word: the place went to another.
             raise TurnedAway(platform.released.title, platform.released.message)
-        if existing.status in ("abandoned", "returned"):
+        if existing.status in (ParticipantStatus.ABANDONED, ParticipantStatus.RETURNED):
             restore_status(c, existing, now)
         token = None
         if current is None or current.id != existing.id:
@@ -204,7 +197,7 @@ def _took_part(c: Connection, ids: ArrivalIds, other_than: int | None) -> bool:
         .where(
             PARTICIPANTS.c.platform == ids.name,
             same_worker(ids.worker_id or ""),
-            PARTICIPANTS.c.status.not_in(("returned", "declined")),
+            PARTICIPANTS.c.status.not_in(NOT_COUNTED),
         )
     )
     if other_than is not None:
@@ -220,7 +213,7 @@ def same_worker(worker_id: str) -> ColumnElement[bool]:
 
 def mark_returned(c: Connection, participants: list[Record], now: datetime, note: str) -> None:
     for participant in participants:
-        set_status(c, participant, "returned", now, note=note)
+        set_status(c, participant, ParticipantStatus.RETURNED, now, note=note)
         participant.save(c)
 
 
@@ -233,13 +226,15 @@ def return_assignment(c: Connection, worker_id: str, assignment_id: str) -> None
         PARTICIPANTS.c.platform == "mturk",
         same_worker(worker_id),
         PARTICIPANTS.c.assignment_id == assignment_id,
-        PARTICIPANTS.c.status.in_((*IN_PROGRESS, "abandoned")),
+        PARTICIPANTS.c.status.in_(GOING_ON),
     )
     mark_returned(c, going_on, utcnow(), "returned the HIT")
 
 
 def _create(c: Connection, ids: ArrivalIds, now: datetime, room: Room | None) -> tuple[Record, str]:
-    status = "arrived" if room is None or room(c, now) else "waiting"
+    status = (
+        ParticipantStatus.ARRIVED if room is None or room(c, now) else ParticipantStatus.WAITING
+    )
     submit_to = registry.platform(ids.name).submit_to(c, ids)
     token, token_hash = new_token()
     participant_id = add(

@@ -16,27 +16,34 @@ from server.app.config import AttentionChecks, StudyConfig
 from server.app.errors import ApiError
 from server.app.participants import tokens
 from server.app.participants.completion import complete
-from server.app.participants.tokens import (
-    CHECKS,
-    IN_PROGRESS,
-    LOCK_DOMAIN_ASSIGNMENT,
-    PARTICIPANTS,
-    SESSIONS,
-    set_status,
-)
+from server.app.participants.statuses import set_status
 from server.app.participants.transaction import Transaction
+from server.app.storage.db import advisory_lock_key
 from server.app.storage.records import Record, add, load, load_all
+from server.app.storage.tables import CHECKS, PARTICIPANTS, SESSIONS
+from server.app.storage.vocabulary import (
+    FINISHED_STATUSES,
+    IN_PROGRESS,
+    CheckStatus,
+    Mode,
+    ParticipantStatus,
+    SessionKind,
+    SessionStatus,
+)
 from server.domains import make as make_environment
+
+DOMAIN_LOCK_KEY = advisory_lock_key("bam-study domain assignment")
+LOCK_DOMAIN_ASSIGNMENT = select(func.pg_advisory_xact_lock(DOMAIN_LOCK_KEY))
 
 
 def consent(transaction: Transaction, agree: bool) -> None:
     participant = transaction.participant
-    if participant.status == "waiting":
+    if participant.status == ParticipantStatus.WAITING:
         raise ApiError(409, "the study is full at the moment: wait for a place first")
-    if participant.status != "arrived":
+    if participant.status != ParticipantStatus.ARRIVED:
         raise ApiError(409, f"consent was already answered (status {participant.status})")
     if not agree:
-        set_status(transaction.c, participant, "declined", transaction.now)
+        set_status(transaction.c, participant, ParticipantStatus.DECLINED, transaction.now)
         return
     draws = participant_draws(transaction.settings.seed, participant.id)
     participant.domain = choose_domain(
@@ -49,7 +56,7 @@ def consent(transaction: Transaction, agree: bool) -> None:
     set_status(
         transaction.c,
         participant,
-        "consented",
+        ParticipantStatus.CONSENTED,
         transaction.now,
         note=f"domain {participant.domain}",
     )
@@ -101,7 +108,7 @@ def choose_domain(
             p.domain.in_(names),
             p.excluded_at.is_(None),
             or_(
-                p.status.in_(("completed", "submitted")),
+                p.status.in_(FINISHED_STATUSES),
                 and_(p.status.in_(IN_PROGRESS), p.last_seen_at >= since),
             ),
         )
@@ -123,7 +130,7 @@ def create_sessions(
     if study.tutorial.enabled:
         rows.append(
             {
-                "kind": "tutorial",
+                "kind": SessionKind.TUTORIAL,
                 "position": None,
                 "environment": domain.tutorial_environment,
                 "learner": study.tutorial.learner,
@@ -139,7 +146,7 @@ def create_sessions(
             colour = study.colours[position]
             rows.append(
                 {
-                    "kind": "study",
+                    "kind": SessionKind.STUDY,
                     "position": position,
                     "environment": environment,
                     "learner": learner,
@@ -174,7 +181,7 @@ def create_sessions(
             start_cell=start,
             star_cell=star,
             moves_allowed=checks.moves,
-            status="pending",
+            status=CheckStatus.PENDING,
             cell=start,
             moves=[],
         )
@@ -204,7 +211,7 @@ def _fixed(cell: tuple[int, int] | str) -> tuple[int, int] | None:
 def start(transaction: Transaction) -> Record:
     """After consent and the instructions: the first learning session begins."""
     participant = transaction.participant
-    if participant.status != "consented":
+    if participant.status != ParticipantStatus.CONSENTED:
         raise ApiError(409, f"cannot start now (status {participant.status})")
     first = _next_session(transaction.c, participant.id, -1)
     if first is None:
@@ -228,16 +235,20 @@ def _next_session(c: Connection, participant_id: int, after: int) -> Record | No
 def activate(transaction: Transaction, session: Record) -> None:
     """The session becomes the one being taught; its untrained learner is prepared (update 0)."""
     env = make_environment(session.environment)
-    session.status = "active"
+    session.status = SessionStatus.ACTIVE
     session.started_at = transaction.now
     session.task = 0
-    session.mode = "idle"
+    session.mode = Mode.IDLE
     session.state = initial_state(session)
     session.demonstrated = [0] * len(env.tasks)
     session.updates_requested = 0
     transaction.track(session)
     transaction.queue_update(session)
-    status = "tutorial" if session.kind == "tutorial" else "teaching"
+    status = (
+        ParticipantStatus.TUTORIAL
+        if session.kind == SessionKind.TUTORIAL
+        else ParticipantStatus.TEACHING
+    )
     if transaction.participant.status != status:
         set_status(transaction.c, transaction.participant, status, transaction.now)
 
@@ -272,10 +283,10 @@ def advance(transaction: Transaction, finished: Record) -> Record | None:
         CHECKS,
         CHECKS.c.participant_id == transaction.participant.id,
         CHECKS.c.after_ordinal == finished.ordinal,
-        CHECKS.c.status == "pending",
+        CHECKS.c.status == CheckStatus.PENDING,
     )
     if check is not None:
-        check.status = "active"
+        check.status = CheckStatus.ACTIVE
         check.started_at = transaction.now
         transaction.track(check)
         return None
@@ -289,7 +300,9 @@ def continue_after(transaction: Transaction, ordinal: int) -> Record | None:
         activate(transaction, following)
         return following
     if transaction.study.questionnaire.questions:
-        set_status(transaction.c, transaction.participant, "questionnaire", transaction.now)
+        set_status(
+            transaction.c, transaction.participant, ParticipantStatus.QUESTIONNAIRE, transaction.now
+        )
     else:
         complete(transaction)
     return None

@@ -16,10 +16,11 @@ from sqlalchemy import Connection, func, select
 
 from server.app.errors import ApiError
 from server.app.participants import assignment, views
-from server.app.participants.tokens import CHECKS
 from server.app.participants.transaction import Transaction
 from server.app.schemas import AttentionCheckView
 from server.app.storage.records import Record, load
+from server.app.storage.tables import CHECKS
+from server.app.storage.vocabulary import CheckStatus
 from server.domains.base import ACTIONS
 
 # Row and column steps of each arrow, on a grid drawn with row 0 at the top.
@@ -37,7 +38,9 @@ def step(cell: int, size: int, action: str) -> int:
 
 def active_check(c: Connection, participant_id: int) -> Record | None:
     """The participant's check being taken, if any."""
-    return load(c, CHECKS, CHECKS.c.participant_id == participant_id, CHECKS.c.status == "active")
+    return load(
+        c, CHECKS, CHECKS.c.participant_id == participant_id, CHECKS.c.status == CheckStatus.ACTIVE
+    )
 
 
 def view(c: Connection, check: Any) -> AttentionCheckView:
@@ -62,10 +65,10 @@ def move(transaction: Transaction, action: str) -> Record:
     check.moves = [*check.moves, action]
     transaction.event.update(state=cell, action=ACTIONS.index(action), next_state=next_cell)
     if next_cell == check.star_cell:
-        check.status = "passed"
+        check.status = CheckStatus.PASSED
     elif len(check.moves) >= check.moves_allowed:
-        check.status = "failed"
-    if check.status != "active":
+        check.status = CheckStatus.FAILED
+    if check.status != CheckStatus.ACTIVE:
         check.finished_at = transaction.now
         transaction.flush()
         assignment.continue_after(transaction, check.after_ordinal)

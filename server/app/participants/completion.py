@@ -11,19 +11,22 @@ from server.app import platform_registry as registry
 from server.app.config import LikertQuestion, Question, StudyConfig, TextQuestion
 from server.app.errors import ApiError, InvalidInput
 from server.app.participants import tokens
-from server.app.participants.tokens import ANSWERS, CODE_ALPHABET, set_status
+from server.app.participants.statuses import set_status
+from server.app.participants.tokens import CODE_ALPHABET
 from server.app.participants.transaction import Transaction
 from server.app.schemas import (
     Completion,
 )
 from server.app.storage.records import add
+from server.app.storage.tables import ANSWERS
+from server.app.storage.vocabulary import FINISHED_STATUSES, ParticipantStatus
 
 
 def answer_questionnaire(transaction: Transaction, answers: dict[str, int | str]) -> None:
     """Store the answers to the post-study questionnaire (all of them valid, every required
     question answered: 422 otherwise, nothing stored), then the participant has completed."""
     status = transaction.participant.status
-    if status != "questionnaire":
+    if status != ParticipantStatus.QUESTIONNAIRE:
         raise ApiError(409, f"the questionnaire is not being answered now (status {status})")
     questions = {question.id: question for question in transaction.study.questionnaire.questions}
     unknown = sorted(set(answers) - set(questions))
@@ -89,14 +92,14 @@ def complete(transaction: Transaction) -> None:
     participant.completion_code = fixed or "".join(
         tokens.SYSTEM_RANDOM.choice(CODE_ALPHABET) for _ in range(10)
     )
-    set_status(transaction.c, participant, "completed", transaction.now)
+    set_status(transaction.c, participant, ParticipantStatus.COMPLETED, transaction.now)
 
 
 def reach_tutorial_step(transaction: Transaction, step: int) -> None:
     """The page's tutorial reached ``step``; the step kept never goes back (another tab may be
     behind)."""
     participant = transaction.participant
-    if participant.status != "tutorial":
+    if participant.status != ParticipantStatus.TUTORIAL:
         raise ApiError(409, f"the tutorial is not in progress (status {participant.status})")
     participant.tutorial_step = max(int(participant.tutorial_step), step)
 
@@ -104,11 +107,11 @@ def reach_tutorial_step(transaction: Transaction, step: int) -> None:
 def submission(transaction: Transaction) -> None:
     """The page reports that it sends the participant's submission to the platform."""
     status = transaction.participant.status
-    if status == "submitted":
+    if status == ParticipantStatus.SUBMITTED:
         raise ApiError(409, "the submission was already recorded")
-    if status != "completed":
+    if status != ParticipantStatus.COMPLETED:
         raise ApiError(409, f"the study is not completed yet (status {status})")
-    set_status(transaction.c, transaction.participant, "submitted", transaction.now)
+    set_status(transaction.c, transaction.participant, ParticipantStatus.SUBMITTED, transaction.now)
 
 
 def completion(participant: Any, study: StudyConfig) -> Completion | None:
@@ -116,8 +119,12 @@ def completion(participant: Any, study: StudyConfig) -> Completion | None:
     until the completion is committed. A participant who declined consent goes back with the
     platform's no-consent code, if it has one (Prolific's NO_CONSENT)."""
     platform = registry.platform(participant.platform)
-    code = platform.no_consent_code(study) if participant.status == "declined" else None
-    if code is None and participant.status in ("completed", "submitted"):
+    code = (
+        platform.no_consent_code(study)
+        if participant.status == ParticipantStatus.DECLINED
+        else None
+    )
+    if code is None and participant.status in FINISHED_STATUSES:
         code = participant.completion_code
     if code is None:
         return None

@@ -2,7 +2,7 @@
 
 At most ``max_active_participants`` (the study file; default: the capacity the server
 measured, ``server.app.updates.capacity``) participants are in the study at once: arrived and
-not yet finished (``tokens.IN_PROGRESS``), seen in the last ``BAM_ACTIVE_MINUTES``. A new
+not yet finished (``vocabulary.IN_PROGRESS``), seen in the last ``BAM_ACTIVE_MINUTES``. A new
 arrival beyond it is stored with the status ``waiting`` and sees the waiting page, which asks
 for a place (``admit``) every few seconds; the first in line goes in as soon as a place frees.
 A waiting participant has no domain yet (it is drawn at consent), so the balanced assignment
@@ -20,21 +20,16 @@ from typing import Literal
 from sqlalchemy import Connection, and_, func, select
 
 from server.app.participants.arrival import Room
-from server.app.participants.tokens import (
-    IN_PROGRESS,
-    PARTICIPANTS,
-    UPDATES,
-    advisory_lock_key,
-    set_status,
-)
+from server.app.participants.statuses import set_status
 from server.app.schemas import QueueView
 from server.app.state import ServerState
-from server.app.storage.db import Database
+from server.app.storage.db import Database, advisory_lock_key
 from server.app.storage.models import utcnow
 from server.app.storage.records import load
+from server.app.storage.tables import PARTICIPANTS, UPDATES
+from server.app.storage.vocabulary import IN_PROGRESS, ParticipantStatus, UpdateStatus
 from server.app.updates.queue import QueueState
 
-WAITING = "waiting"
 LINE_SECONDS = 60.0  # a waiting page asks every few seconds: silent this long, it was closed
 ASK_SECONDS = 3  # how often the waiting page asks (also its Retry-After)
 _LOCK = select(func.pg_advisory_xact_lock(advisory_lock_key("bam-study places")))
@@ -83,7 +78,7 @@ def waiting_count(c: Connection, now: datetime, before: int | None = None) -> in
     arrived before participant ``before`` only if given."""
     p = PARTICIPANTS.c
     since = now - timedelta(seconds=LINE_SECONDS)
-    condition = and_(p.status == WAITING, p.last_seen_at >= since)
+    condition = and_(p.status == ParticipantStatus.WAITING, p.last_seen_at >= since)
     if before is not None:
         condition = and_(condition, p.id < before)
     return int(c.scalar(select(func.count()).where(condition)) or 0)
@@ -107,13 +102,13 @@ def admit(db: Database, participant_id: int, limit: int | None, active_minutes: 
         current = load(c, PARTICIPANTS, PARTICIPANTS.c.id == participant_id)
         assert current is not None
         active = active_count(c, now, active_minutes)
-        if current.status != WAITING:
+        if current.status != ParticipantStatus.WAITING:
             return Place(True, 0, active, limit)
         ahead = waiting_count(c, now, before=int(current.id))
         admitted = limit is None or active + ahead < limit
         current.last_seen_at = now
         if admitted:
-            set_status(c, current, "arrived", now, note="a place freed")
+            set_status(c, current, ParticipantStatus.ARRIVED, now, note="a place freed")
         current.save(c)
         return Place(admitted, 0 if admitted else ahead, active + int(admitted), limit)
 
@@ -128,7 +123,9 @@ def queue_view(state: ServerState, queue: QueueState | None) -> QueueView:
     with state.db.connect() as c:
         active = active_count(c, now, state.settings.active_minutes)
         waiting = waiting_count(c, now)
-        pending = int(c.scalar(select(func.count()).where(UPDATES.c.status == "pending")) or 0)
+        pending = int(
+            c.scalar(select(func.count()).where(UPDATES.c.status == UpdateStatus.PENDING)) or 0
+        )
     limit_from: Literal["study file", "capacity"] | None = None
     if state.study.max_active_participants is not None:
         limit_from = "study file"

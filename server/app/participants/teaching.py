@@ -28,7 +28,6 @@ from sqlalchemy import Connection, bindparam, update
 
 from server.app.errors import ApiError, LearnerBusy
 from server.app.participants import assignment, views
-from server.app.participants.tokens import SESSIONS
 from server.app.participants.transaction import Transaction
 from server.app.schemas import (
     EpisodeState,
@@ -38,13 +37,21 @@ from server.app.schemas import (
     SessionView,
     TeachingState,
 )
-from server.app.storage.models import Episode
-from server.app.storage.records import Record, add, get, table_of
+from server.app.storage.records import Record, add, get
+from server.app.storage.tables import EPISODES, SESSIONS
+from server.app.storage.vocabulary import (
+    EpisodeEnd,
+    EpisodeKind,
+    LastAction,
+    Mode,
+    Observed,
+    SessionKind,
+    SessionStatus,
+)
 from server.domains import make as make_environment
 from server.domains.base import ACTIONS, STAY, Environment
 
 ACTION_INDEX = {name: index for index, name in enumerate(ACTIONS)}
-EPISODES = table_of(Episode)
 _END_EPISODE = (
     update(EPISODES)
     .where(
@@ -83,9 +90,9 @@ def own_session(c: Connection, participant: Any, session_id: int) -> Record:
 def session_for(transaction: Transaction, session_id: int) -> Record:
     """The participant's session ``session_id`` being taught, tracked for writing back."""
     session = own_session(transaction.c, transaction.participant, session_id)
-    if session.status == "pending":
+    if session.status == SessionStatus.PENDING:
         raise ApiError(409, "this agent's turn has not come yet")
-    if session.status == "finished":
+    if session.status == SessionStatus.FINISHED:
         raise ApiError(409, "this agent is finished: go on with the next one")
     return transaction.track(session)
 
@@ -93,9 +100,9 @@ def session_for(transaction: Transaction, session_id: int) -> Record:
 def teaching_state(session: Any, env: Environment) -> TeachingState:
     missing = [env.tasks[k].name for k, n in enumerate(session.demonstrated) if n == 0]
     blocked = None
-    if session.status != "active":
+    if session.status != SessionStatus.ACTIVE:
         blocked = "this agent is not being taught"
-    elif session.kind == "study" and missing:
+    elif session.kind == SessionKind.STUDY and missing:
         blocked = (
             f"every task needs at least one demonstrated move first; not yet: {', '.join(missing)}"
         )
@@ -103,7 +110,9 @@ def teaching_state(session: Any, env: Environment) -> TeachingState:
     if session.open_episode is not None:
         episode = EpisodeState(
             index=session.open_episode,
-            kind="demonstration" if session.mode == "demonstrate" else "agent",
+            kind=EpisodeKind.DEMONSTRATION
+            if session.mode == Mode.DEMONSTRATE
+            else EpisodeKind.AGENT,
             task=session.task,
             actions=session.episode_actions,
         )
@@ -119,7 +128,7 @@ def teaching_state(session: Any, env: Environment) -> TeachingState:
         demonstrated=list(session.demonstrated),
         can_finish=blocked is None,
         finish_blocked=blocked,
-        can_give_feedback=session.last_action == "agent",
+        can_give_feedback=session.last_action == LastAction.AGENT,
         learning=learning(session),
     )
 
@@ -136,7 +145,7 @@ def respond(
 ) -> RequestOutcome:
     env = make_environment(session.environment)
     if current is None:
-        current = session.id if session.status == "active" else None
+        current = session.id if session.status == SessionStatus.ACTIVE else None
     return RequestOutcome(
         seq=transaction.seq,
         kind=transaction.event["kind"],
@@ -149,7 +158,11 @@ def respond(
 def session_view(c: Connection, participant: Any, study: Any, session_id: int) -> SessionView:
     session = own_session(c, participant, session_id)
     env = make_environment(session.environment)
-    current = session.id if session.status == "active" else views.current_session_id(c, participant)
+    current = (
+        session.id
+        if session.status == SessionStatus.ACTIVE
+        else views.current_session_id(c, participant)
+    )
     return SessionView(
         summary=views.summary(session),
         environment=environment_description(session.environment, study.reveal_gravity),
@@ -159,12 +172,12 @@ def session_view(c: Connection, participant: Any, study: Any, session_id: int) -
 
 
 # -- episodes -------------------------------------------------------------------------------
-def _observe(transaction: Transaction, session: Record, record: str, **columns: Any) -> None:
+def _observe(transaction: Transaction, session: Record, record: Observed, **columns: Any) -> None:
     """What the learner observes from this request (see ``updates.records_of``)."""
     transaction.event.update(record=record, task=session.task, **columns)
 
 
-def _open_episode(transaction: Transaction, session: Record, kind: str) -> None:
+def _open_episode(transaction: Transaction, session: Record, kind: EpisodeKind) -> None:
     if session.open_episode is not None:
         return
     session.open_episode = session.episodes
@@ -182,13 +195,13 @@ def _open_episode(transaction: Transaction, session: Record, kind: str) -> None:
 
 
 def close_episode(
-    transaction: Transaction, session: Record, env: Environment, reason: str, stay: bool
+    transaction: Transaction, session: Record, env: Environment, reason: EpisodeEnd, stay: bool
 ) -> int | None:
     """End the open episode (if any) and queue the learner's update; returns its index."""
     if session.open_episode is None:
         return None
     event = transaction.event
-    if stay and session.mode == "demonstrate":
+    if stay and session.mode == Mode.DEMONSTRATE:
         # The synthetic STAY: people cannot demonstrate staying at the goal.
         event["stay_state"] = env.step(session.state, STAY, transaction.rng(session.seed))
         event["task"] = session.task
@@ -217,7 +230,7 @@ def close_episode(
 def _leave_goal(transaction: Transaction, session: Record, env: Environment) -> bool:
     """With a mode on and no episode open, an agent on the selected task's goal goes to a
     random start of the task first (module docstring); returns whether it did."""
-    if session.mode == "idle" or session.open_episode is not None:
+    if session.mode == Mode.IDLE or session.open_episode is not None:
         return False
     if not env.is_goal(session.task, int(session.state)):
         return False
@@ -256,19 +269,19 @@ def set_task(transaction: Transaction, session_id: int, task: int) -> RequestOut
     state = int(session.state)
     queued = None
     if task != session.task:
-        queued = close_episode(transaction, session, env, "task", stay=False)
+        queued = close_episode(transaction, session, env, EpisodeEnd.TASK, stay=False)
         session.task = task
         session.last_action = None  # feedback belongs to the task selected when it is given
     return _switched(transaction, session, env, state, queued)
 
 
-def set_mode(transaction: Transaction, session_id: int, mode: str) -> RequestOutcome:
+def set_mode(transaction: Transaction, session_id: int, mode: Mode) -> RequestOutcome:
     session = session_for(transaction, session_id)
     env = make_environment(session.environment)
     state = int(session.state)
     queued = None
     if mode != session.mode:
-        queued = close_episode(transaction, session, env, "mode", stay=False)
+        queued = close_episode(transaction, session, env, EpisodeEnd.MODE, stay=False)
         session.mode = mode
     return _switched(transaction, session, env, state, queued)
 
@@ -276,7 +289,7 @@ def set_mode(transaction: Transaction, session_id: int, mode: str) -> RequestOut
 def move(transaction: Transaction, session_id: int, name: str) -> RequestOutcome:
     """An arrow key: a demonstrated action (demonstrate mode) or a move alone (idle mode)."""
     session = session_for(transaction, session_id)
-    if session.mode == "agent":
+    if session.mode == Mode.AGENT:
         raise ApiError(409, "the agent is acting on its own: stop it before moving it")
     env = make_environment(session.environment)
     act = ACTION_INDEX[name]
@@ -284,33 +297,35 @@ def move(transaction: Transaction, session_id: int, name: str) -> RequestOutcome
     next_state = env.step(state, act, transaction.rng(session.seed))
     transaction.event.update(mode=session.mode, state=state, action=act, next_state=next_state)
     outcome = Outcome(state=state, action=name, next_state=next_state)
-    if session.mode == "idle":
+    if session.mode == Mode.IDLE:
         session.state = next_state
-        _observe(transaction, session, "transition")
+        _observe(transaction, session, Observed.IDLE_MOVE)
         session.idle_moves += 1
-        session.last_action = "idle"
+        session.last_action = LastAction.IDLE
         return respond(transaction, session, outcome)
-    _open_episode(transaction, session, "demonstration")  # starts where the first move starts
+    _open_episode(
+        transaction, session, EpisodeKind.DEMONSTRATION
+    )  # starts where the first move starts
     session.state = next_state
-    _observe(transaction, session, "demonstration", episode_index=session.open_episode)
+    _observe(transaction, session, Observed.DEMONSTRATION, episode_index=session.open_episode)
     session.episode_actions += 1
     session.actions += 1
     demonstrated = list(session.demonstrated)
     demonstrated[session.task] += 1
     session.demonstrated = demonstrated
-    session.last_action = "demonstration"
+    session.last_action = LastAction.DEMONSTRATION
     if env.is_goal(session.task, next_state):
         outcome.goal_reached = True
-        outcome.update_queued = close_episode(transaction, session, env, "goal", stay=True)
-        outcome.episode_ended = "goal"
-        session.mode = "idle"
+        outcome.update_queued = close_episode(transaction, session, env, EpisodeEnd.GOAL, stay=True)
+        outcome.episode_ended = EpisodeEnd.GOAL
+        session.mode = Mode.IDLE
     return respond(transaction, session, outcome)
 
 
 def agent_step(transaction: Transaction, session_id: int) -> RequestOutcome:
     """One step of the agent on its learner's greedy policy (waits for its pending update)."""
     session = session_for(transaction, session_id)
-    if session.mode != "agent":
+    if session.mode != Mode.AGENT:
         raise ApiError(409, "let the agent try first (mode agent)")
     if session.updates_processed < session.updates_requested:
         raise LearnerBusy(session.id, session.updates_requested)
@@ -321,32 +336,34 @@ def agent_step(transaction: Transaction, session_id: int) -> RequestOutcome:
     state = int(session.state)
     act = int(policy[session.task, state])
     next_state = env.step(state, act, transaction.rng(session.seed))
-    _open_episode(transaction, session, "agent")
+    _open_episode(transaction, session, EpisodeKind.AGENT)
     transaction.event.update(mode=session.mode, state=state, action=act, next_state=next_state)
-    _observe(transaction, session, "agent_step", feedback=0, episode_index=session.open_episode)
+    _observe(
+        transaction, session, Observed.AGENT_STEP, feedback=0, episode_index=session.open_episode
+    )
     session.state = next_state
     session.episode_actions += 1
     session.actions += 1
-    session.last_action = "agent"
+    session.last_action = LastAction.AGENT
     outcome = Outcome(state=state, action=ACTIONS[act], next_state=next_state)
     reason = None
     if env.is_goal(session.task, next_state):
         outcome.goal_reached = True
-        reason = "goal"
+        reason = EpisodeEnd.GOAL
     elif session.episode_actions >= env.horizon:
-        reason = "horizon"
+        reason = EpisodeEnd.HORIZON
     if reason is not None:
         outcome.update_queued = close_episode(transaction, session, env, reason, stay=False)
         outcome.episode_ended = reason
-        session.mode = "idle"
+        session.mode = Mode.IDLE
     return respond(transaction, session, outcome)
 
 
 def feedback(transaction: Transaction, session_id: int, value: int) -> RequestOutcome:
     session = session_for(transaction, session_id)
-    if session.last_action != "agent":
+    if session.last_action != LastAction.AGENT:
         raise ApiError(409, "there is no agent action to give feedback on")
-    _observe(transaction, session, "feedback", feedback=value)
+    _observe(transaction, session, Observed.FEEDBACK, feedback=value)
     transaction.event.update(mode=session.mode, state=session.state, next_state=session.state)
     return respond(transaction, session, Outcome(feedback=value))
 
@@ -355,7 +372,7 @@ def reset(transaction: Transaction, session_id: int) -> RequestOutcome:
     """A random start of the selected task (the study's start distribution, never its goal)."""
     session = session_for(transaction, session_id)
     env = make_environment(session.environment)
-    queued = close_episode(transaction, session, env, "reset", stay=False)
+    queued = close_episode(transaction, session, env, EpisodeEnd.RESET, stay=False)
     state = int(session.state)
     session.state = assignment.random_start(env.name, session.task, transaction.rng(session.seed))
     session.last_action = None
@@ -381,11 +398,13 @@ def end_episode(transaction: Transaction, session_id: int) -> RequestOutcome:
         raise ApiError(409, "no episode in progress")
     env = make_environment(session.environment)
     transaction.event.update(
-        state=session.state, next_state=session.state, task=session.task, mode="idle"
+        state=session.state, next_state=session.state, task=session.task, mode=Mode.IDLE
     )
-    queued = close_episode(transaction, session, env, "end", stay=True)
-    session.mode = "idle"
-    return respond(transaction, session, Outcome(episode_ended="end", update_queued=queued))
+    queued = close_episode(transaction, session, env, EpisodeEnd.END, stay=True)
+    session.mode = Mode.IDLE
+    return respond(
+        transaction, session, Outcome(episode_ended=EpisodeEnd.END, update_queued=queued)
+    )
 
 
 def open_session(transaction: Transaction, session_id: int) -> RequestOutcome:
@@ -409,11 +428,11 @@ def finish_session(transaction: Transaction, session_id: int) -> RequestOutcome:
     transaction.event.update(
         state=session.state, next_state=session.state, task=session.task, mode=session.mode
     )
-    queued = close_episode(transaction, session, env, "finish", stay=False)
-    session.status = "finished"
+    queued = close_episode(transaction, session, env, EpisodeEnd.FINISH, stay=False)
+    session.status = SessionStatus.FINISHED
     session.finished_at = transaction.now
     session.completed = True
-    session.mode = "idle"
+    session.mode = Mode.IDLE
     following = assignment.advance(transaction, session)
     return respond(
         transaction,

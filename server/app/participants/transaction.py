@@ -16,18 +16,13 @@ from datetime import datetime
 from typing import Any
 
 import numpy as np
-from sqlalchemy import Connection
+from sqlalchemy import Connection, bindparam, select
 
 from server.app import platform_registry as registry
 from server.app.config import StudyConfig
 from server.app.errors import ApiError
-from server.app.participants.tokens import (
-    EVENTS,
-    STORED_EVENT,
-    UPDATES,
-    participant_for,
-    reactivate,
-)
+from server.app.participants.statuses import reactivate
+from server.app.participants.tokens import participant_for
 from server.app.schemas import (
     SeqRequest,
 )
@@ -37,6 +32,13 @@ from server.app.storage.models import (
     utcnow,
 )
 from server.app.storage.records import Record, add
+from server.app.storage.tables import EVENTS, UPDATES
+from server.app.storage.vocabulary import ParticipantStatus, UpdateStatus
+
+# Prepared: the event a retried request's sequence number stored.
+STORED_EVENT = select(EVENTS.c.request_hash, EVENTS.c.response).where(
+    EVENTS.c.participant_id == bindparam("participant_id"), EVENTS.c.seq == bindparam("seq")
+)
 
 
 class LazyGenerator:
@@ -158,9 +160,9 @@ def perform(
                 f"{participant.next_seq} (an earlier request has not arrived)",
             )
         released = registry.platform(participant.platform).released
-        if participant.status == "returned" and released is not None:
+        if participant.status == ParticipantStatus.RETURNED and released is not None:
             raise ApiError(409, released.detail)
-        if participant.status == "returned":
+        if participant.status == ParticipantStatus.RETURNED:
             raise ApiError(
                 409,
                 "this task was returned (its assignment may have gone to another worker); "
@@ -188,7 +190,7 @@ def perform(
                 UPDATES,
                 session_id=queued.session_id,
                 update_index=queued.update_index,
-                status="pending",
+                status=UpdateStatus.PENDING,
                 through_event_id=event_id,
                 episodes=queued.episodes,
                 actions=queued.actions,

@@ -8,7 +8,6 @@ from sqlalchemy import Connection, select
 
 from server.app.config import StudyConfig
 from server.app.participants.completion import completion
-from server.app.participants.tokens import CHECKS, SESSIONS
 from server.app.schemas import (
     AttentionCheckView,
     ParticipantBrief,
@@ -17,12 +16,14 @@ from server.app.schemas import (
     SessionSummary,
 )
 from server.app.storage.records import load_all
+from server.app.storage.tables import CHECKS, SESSIONS
+from server.app.storage.vocabulary import CheckStatus, SessionKind, SessionStatus
 
 
 def current_session_id(c: Connection, participant: Any) -> int | None:
     return c.scalar(
         select(SESSIONS.c.id).where(
-            SESSIONS.c.participant_id == participant.id, SESSIONS.c.status == "active"
+            SESSIONS.c.participant_id == participant.id, SESSIONS.c.status == SessionStatus.ACTIVE
         )
     )
 
@@ -53,9 +54,9 @@ def participant_state(c: Connection, participant: Any, study: StudyConfig) -> Pa
     sessions = load_all(
         c, SESSIONS, SESSIONS.c.participant_id == participant.id, order_by=SESSIONS.c.ordinal
     )
-    study_sessions = [x for x in sessions if x.kind == "study"]
-    reached = [x for x in study_sessions if x.status != "pending"]
-    current = next((x.id for x in sessions if x.status == "active"), None)
+    study_sessions = [x for x in sessions if x.kind == SessionKind.STUDY]
+    reached = [x for x in study_sessions if x.status != SessionStatus.PENDING]
+    current = next((x.id for x in sessions if x.status == SessionStatus.ACTIVE), None)
     return ParticipantState(
         participant_id=participant.id,
         platform=participant.platform,
@@ -74,7 +75,7 @@ def participant_state(c: Connection, participant: Any, study: StudyConfig) -> Pa
 def attention_check(c: Connection, participant: Any) -> AttentionCheckView | None:
     """The attention check being taken (``participants.attention``), if any."""
     checks = load_all(c, CHECKS, CHECKS.c.participant_id == participant.id)
-    active = next((x for x in checks if x.status == "active"), None)
+    active = next((x for x in checks if x.status == CheckStatus.ACTIVE), None)
     return None if active is None else check_view(active, len(checks))
 
 

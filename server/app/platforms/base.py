@@ -30,9 +30,10 @@ if TYPE_CHECKING:
     from sqlalchemy import Connection, Table
 
     from server.app.config import StudyConfig
-    from server.app.platforms.review import Decision, ReviewBackend
+    from server.app.platforms.review import ReviewBackend
     from server.app.settings import Settings
     from server.app.storage.db import Database
+    from server.app.storage.vocabulary import ReviewDecision
 
 ID_PATTERN = r"^[A-Za-z0-9_\-]{1,128}$"
 
@@ -136,7 +137,7 @@ class Platform(Protocol):
         """422 for a rejection the platform would refuse."""
         ...
 
-    def status_after(self, decision: Decision) -> str | None:
+    def status_after(self, decision: ReviewDecision) -> str | None:
         """The platform's status of the submission once ``decision`` is taken (None: none)."""
         ...
 
@@ -205,7 +206,7 @@ class BasePlatform:
     def check_rejection(self, message: str | None, category: str | None) -> None:
         return None
 
-    def status_after(self, decision: Decision) -> str | None:
+    def status_after(self, decision: ReviewDecision) -> str | None:
         return None
 
     def bonus_budget_cents(self, study: StudyConfig) -> int | None:

@@ -16,7 +16,6 @@ from server.app.errors import ApiError
 from server.app.platforms.base import ID_PATTERN, ArrivalIds, BasePlatform, Handing, Rows
 from server.app.platforms.review import (
     AlreadyDone,
-    Decision,
     Reviewed,
     ReviewRefused,
     ReviewUnavailable,
@@ -26,6 +25,7 @@ from server.app.storage.db import Database
 from server.app.storage.models import utcnow
 from server.app.storage.records import table_of
 from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus, ReplicaSubmission
+from server.app.storage.vocabulary import ReplicaAssignmentStatus, ReviewDecision
 
 if TYPE_CHECKING:
     from server.app.config import StudyConfig
@@ -41,6 +41,15 @@ ALREADY_PAID = re.compile(r"already (exists|been (processed|granted|sent))|idemp
 # How long MTurk remembers a UniqueRequestToken (its API reference: "The unique token expires
 # after 24 hours"): a SendBonus resent after it could pay the bonus again.
 MTURK_TOKEN_MEMORY = timedelta(hours=24)
+# An assignment's AssignmentStatus that is a decision, as ours (the replica stores ours).
+MTURK_DECISIONS = {"Approved": ReviewDecision.APPROVED, "Rejected": ReviewDecision.REJECTED}
+DECISIONS = tuple(ReviewDecision)
+# A replica assignment whose work was submitted (and perhaps reviewed): a bonus may be paid.
+REVIEWABLE = (
+    ReplicaAssignmentStatus.SUBMITTED,
+    ReplicaAssignmentStatus.APPROVED,
+    ReplicaAssignmentStatus.REJECTED,
+)
 
 
 class MTurkReplicaBackend:
@@ -70,10 +79,10 @@ class MTurkReplicaBackend:
         assert isinstance(row, ReplicaAssignment)
         return row
 
-    def _decide(self, assignment_id: str, status: Decision, message: str | None) -> None:
+    def _decide(self, assignment_id: str, status: ReviewDecision, message: str | None) -> None:
         with self.db.write() as s:
             row = self._latest(s, assignment_id)
-            if row.status != "submitted":
+            if row.status != ReplicaAssignmentStatus.SUBMITTED:
                 raise ReviewRefused(
                     f"assignment {assignment_id} is {row.status}: only a submitted assignment "
                     "can be approved or rejected"
@@ -83,15 +92,15 @@ class MTurkReplicaBackend:
             row.requester_feedback = message
 
     def approve(self, who: Reviewed, message: str | None) -> None:
-        self._decide(who.assignment_id, "approved", message)
+        self._decide(who.assignment_id, ReviewDecision.APPROVED, message)
 
     def reject(self, who: Reviewed, message: str, category: str | None) -> None:
-        self._decide(who.assignment_id, "rejected", message)
+        self._decide(who.assignment_id, ReviewDecision.REJECTED, message)
 
-    def decision_of(self, who: Reviewed) -> Decision | None:
+    def decision_of(self, who: Reviewed) -> ReviewDecision | None:
         with self.db.read() as s:
             status = self._latest(s, who.assignment_id).status
-        return status if status in ("approved", "rejected") else None  # type: ignore[return-value]
+        return ReviewDecision(status) if status in DECISIONS else None
 
     def set_up_bonus(self, who: Reviewed, amount: str, reason: str) -> str | None:
         return None
@@ -112,7 +121,7 @@ class MTurkReplicaBackend:
                 row = self._latest(s, assignment_id)
                 if row.worker_id != worker_id:
                     raise ReviewRefused(f"assignment {assignment_id} is not worker {worker_id}'s")
-                if row.status not in ("submitted", "approved", "rejected"):
+                if row.status not in REVIEWABLE:
                     raise ReviewRefused(
                         f"assignment {assignment_id} is {row.status}: a bonus is paid for "
                         "submitted work"
@@ -168,10 +177,10 @@ class MTurkClientBackend:
     def reject(self, who: Reviewed, message: str, category: str | None) -> None:
         self._call("reject_assignment", AssignmentId=who.assignment_id, RequesterFeedback=message)
 
-    def decision_of(self, who: Reviewed) -> Decision | None:
+    def decision_of(self, who: Reviewed) -> ReviewDecision | None:
         answer = self._call("get_assignment", AssignmentId=who.assignment_id) or {}
         status = answer.get("Assignment", {}).get("AssignmentStatus")
-        return {"Approved": "approved", "Rejected": "rejected"}.get(status)  # type: ignore[return-value]
+        return MTURK_DECISIONS.get(status)
 
     def set_up_bonus(self, who: Reviewed, amount: str, reason: str) -> str | None:
         return None

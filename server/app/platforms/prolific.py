@@ -19,11 +19,11 @@ import httpx
 
 from server.app.config import StudyConfig
 from server.app.platforms.review import (
-    Decision,
     Reviewed,
     ReviewRefused,
     ReviewUnavailable,
 )
+from server.app.storage.vocabulary import ReviewDecision
 
 # Prolific's submission statuses (the submission object's ``status``).
 SUBMISSION_STATUSES = (
@@ -37,6 +37,8 @@ SUBMISSION_STATUSES = (
     "SCREENED OUT",
     "PARTIALLY APPROVED",
 )
+# The statuses that are a decision, as ours.
+PROLIFIC_DECISIONS = {"APPROVED": ReviewDecision.APPROVED, "REJECTED": ReviewDecision.REJECTED}
 RETRIED = frozenset({429, 500, 502, 503, 504})
 NO_CONSENT_REASON = "You did not consent to take part: please return the study."
 
@@ -333,9 +335,9 @@ class ProlificBackend:
             rejection_category=category,
         )
 
-    def decision_of(self, who: Reviewed) -> Decision | None:
+    def decision_of(self, who: Reviewed) -> ReviewDecision | None:
         status = self.client.submission(self._study(who), who.assignment_id).get("status")
-        return {"APPROVED": "approved", "REJECTED": "rejected"}.get(str(status))  # type: ignore[return-value]
+        return PROLIFIC_DECISIONS.get(str(status))
 
     def set_up_bonus(self, who: Reviewed, amount: str, reason: str) -> str | None:
         self._check_currency(self._study(who))

@@ -29,13 +29,14 @@ from server.app.platforms.prolific_replica import (
     is_replica_study,
     workspace_of,
 )
-from server.app.platforms.review import PROLIFIC_MIN_MESSAGE, Decision
+from server.app.platforms.review import PROLIFIC_MIN_MESSAGE
 from server.app.storage.records import table_of
 from server.app.storage.replica_models import (
     ProlificReplicaBonusSetup,
     ProlificReplicaPayment,
     ProlificReplicaSubmission,
 )
+from server.app.storage.vocabulary import ReviewDecision
 
 if TYPE_CHECKING:
     from server.app.config import StudyConfig
@@ -157,9 +158,9 @@ class Prolific(BasePlatform):
                 "a rejection on Prolific needs one of Prolific's rejection categories",
             )
 
-    def status_after(self, decision: Decision) -> str | None:
+    def status_after(self, decision: ReviewDecision) -> str | None:
         # Prolific's status of the submission is now ours (its webhook says it again).
-        return "APPROVED" if decision == "approved" else "REJECTED"
+        return "APPROVED" if decision == ReviewDecision.APPROVED else "REJECTED"
 
     def bonus_budget_cents(self, study: StudyConfig) -> int | None:
         budget = study.prolific.bonus_budget if study.prolific is not None else None

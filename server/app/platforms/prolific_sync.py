@@ -38,13 +38,19 @@ from server.app.storage.models import (
     StatusChange,
     utcnow,
 )
+from server.app.storage.vocabulary import ParticipantStatus, SessionStatus
 
 RELEASED = ("RETURNED", "TIMED-OUT")
 # Flow statuses a RETURNED or TIMED-OUT submission leaves as they are: the flow had ended, or
 # the participant had finished, which Prolific allows past the time limit ("Participants can
 # still complete their submission if they go over the time limit"); such a finisher stays
 # reviewable, marked with Prolific's status.
-NOT_RELEASED = ("returned", "declined", "completed", "submitted")
+NOT_RELEASED = (
+    ParticipantStatus.RETURNED,
+    ParticipantStatus.DECLINED,
+    ParticipantStatus.COMPLETED,
+    ParticipantStatus.SUBMITTED,
+)
 # A webhook older (or newer) than this is refused: a replay of a captured request.
 WEBHOOK_MAX_AGE_SECONDS = 300
 
@@ -129,21 +135,22 @@ def _apply_status(
     _keep_times(p, status, at, record)
     if status in RELEASED and p.status not in NOT_RELEASED:
         now = utcnow()
-        p.status = "returned"
+        p.status = ParticipantStatus.RETURNED
         s.add(
             StatusChange(
                 participant_id=p.id,
-                status="returned",
+                status=ParticipantStatus.RETURNED,
                 at=now,
                 note=f"Prolific: submission {status}; the place went back to Prolific",
             )
         )
         for session in s.scalars(
             select(LearningSession).where(
-                LearningSession.participant_id == p.id, LearningSession.status == "active"
+                LearningSession.participant_id == p.id,
+                LearningSession.status == SessionStatus.ACTIVE,
             )
         ):
-            session.status = "finished"
+            session.status = SessionStatus.FINISHED
             session.finished_at = now
     return APPLIED
 

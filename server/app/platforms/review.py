@@ -46,8 +46,11 @@ from server.app import platform_registry as registry
 from server.app.errors import ApiError, InvalidInput
 from server.app.storage.db import Database
 from server.app.storage.models import AssignmentReview, Bonus, Installation, Participant, utcnow
-
-Decision = Literal["approved", "rejected"]
+from server.app.storage.vocabulary import (
+    BonusState,
+    ReviewDecision,
+    ReviewState,
+)
 
 # The largest bonus the dashboard pays at once, in the study's currency (docs/running-a-study.md).
 MAX_BONUS = Decimal(100)
@@ -125,7 +128,7 @@ class ReviewBackend(Protocol):
 
     def reject(self, who: Reviewed, message: str, category: str | None) -> None: ...
 
-    def decision_of(self, who: Reviewed) -> Decision | None:
+    def decision_of(self, who: Reviewed) -> ReviewDecision | None:
         """The platform's decision on the submission now (None: not decided)."""
         ...
 
@@ -227,7 +230,7 @@ def review_submission(
     db: Database,
     backend: ReviewBackend,
     participant_id: int,
-    decision: Decision,
+    decision: ReviewDecision,
     message: str | None,
     category: str | None = None,
 ) -> None:
@@ -240,7 +243,7 @@ def review_submission(
             "a rejection needs a message: the platform shows the participant why",
         )
     platform = registry.platform(backend.platform)
-    if decision == "rejected":
+    if decision == ReviewDecision.REJECTED:
         platform.check_rejection(message, category)
 
     def read(s: Any) -> AssignmentReview | None:
@@ -261,7 +264,7 @@ def review_submission(
                         message=message,
                         rejection_category=category,
                         backend=backend.name,
-                        state="pending",
+                        state=ReviewState.PENDING,
                         requested_at=utcnow(),
                     )
                 )
@@ -279,14 +282,14 @@ def review_submission(
                 f"submission {who.assignment_id} was already {earlier_decision}: a decision "
                 "is final",
             )
-        if earlier_state == "done":
+        if earlier_state == ReviewState.DONE:
             return
         # A duplicate: let the request that holds the intent settle it, then reconcile.
-        row = _wait_for(db, read, lambda r: r.state == "done")
-        if row is not None and row.state == "done":
+        row = _wait_for(db, read, lambda r: r.state == ReviewState.DONE)
+        if row is not None and row.state == ReviewState.DONE:
             return
     try:
-        if decision == "approved":
+        if decision == ReviewDecision.APPROVED:
             backend.approve(who, message)
         else:
             backend.reject(who, message or "", category)
@@ -303,7 +306,7 @@ def review_submission(
                 s.execute(
                     delete(AssignmentReview).where(
                         AssignmentReview.participant_id == participant_id,
-                        AssignmentReview.state == "pending",
+                        AssignmentReview.state == ReviewState.PENDING,
                     )
                 )
             raise ApiError(409, str(refused)) from None
@@ -318,9 +321,9 @@ def review_submission(
             update(AssignmentReview)
             .where(
                 AssignmentReview.participant_id == participant_id,
-                AssignmentReview.state == "pending",
+                AssignmentReview.state == ReviewState.PENDING,
             )
-            .values(state="done", decided_at=utcnow())
+            .values(state=ReviewState.DONE, decided_at=utcnow())
         )
         status = platform.status_after(decision)
         if status is not None:
@@ -375,22 +378,22 @@ def pay_bonus(
                         reason=reason,
                         unique_token=unique_token,
                         backend=backend.name,
-                        state="pending",
+                        state=BonusState.PENDING,
                         requested_at=utcnow(),
                     )
                 )
             elif not same(earlier):
                 raise ApiError(409, f"the request token {unique_token} was used for another bonus")
-            elif earlier.state == "paid":
+            elif earlier.state == BonusState.PAID:
                 return False
     except IntegrityError:  # a concurrent request with this token recorded its intent first
-        earlier = _wait_for(db, read, lambda r: r.state == "paid")
+        earlier = _wait_for(db, read, lambda r: r.state == BonusState.PAID)
         assert earlier is not None
         if not same(earlier):
             raise ApiError(
                 409, f"the request token {unique_token} was used for another bonus"
             ) from None
-        if earlier.state == "paid":
+        if earlier.state == BonusState.PAID:
             return False
     return _settle_bonus(db, backend, who, unique_token, money(cents), reason)
 
@@ -450,7 +453,7 @@ def _settle_bonus(
         row = s.scalar(select(Bonus).where(where))
         assert row is not None
         setup_id, state, requested_at = row.setup_id, row.state, row.requested_at
-    if state == "pending" and _token_forgotten(backend, requested_at):
+    if state == BonusState.PENDING and _token_forgotten(backend, requested_at):
         with db.write() as s:
             s.execute(update(Bonus).where(where, Bonus.state == "pending").values(state="in_doubt"))
         state = "in_doubt"
@@ -472,7 +475,7 @@ def _settle_bonus(
             made = backend.set_up_bonus(who, amount, reason)
         except ReviewRefused as refused:  # nothing was set up: the intent goes
             with db.write() as s:
-                s.execute(delete(Bonus).where(where, Bonus.state == "pending"))
+                s.execute(delete(Bonus).where(where, Bonus.state == BonusState.PENDING))
             raise ApiError(409, str(refused)) from None
         except ReviewUnavailable as error:
             raise ApiError(502, f"{error}. Send the same request again (same token)") from None
@@ -483,7 +486,7 @@ def _settle_bonus(
             s.execute(
                 update(Bonus)
                 .where(where, Bonus.setup_id.is_(None))
-                .values(setup_id=made, state="set_up")
+                .values(setup_id=made, state=BonusState.SET_UP)
             )
     if not backend.repeat_pay_is_safe:
         # The one request that moves the bonus from set_up to paying calls pay.
@@ -524,7 +527,7 @@ def _settle_bonus(
         status = 502 if isinstance(error, ReviewUnavailable) else 409
         raise ApiError(status, f"{error}. {_unsettled_message(row, token)}") from None
     with db.write() as s:
-        s.execute(update(Bonus).where(where).values(state="paid", paid_at=utcnow()))
+        s.execute(update(Bonus).where(where).values(state=BonusState.PAID, paid_at=utcnow()))
     return True
 
 

@@ -28,18 +28,12 @@ from server.app.rights.pseudonyms import (
     pseudonym,
 )
 from server.app.storage.db import Database
-from server.app.storage.models import (
-    Erasure,
-    LearningSession,
-    Participant,
-    utcnow,
-)
-from server.app.storage.records import Record, add, table_of
+from server.app.storage.models import Participant, utcnow
+from server.app.storage.records import Record, add
+from server.app.storage.tables import ERASURES, PARTICIPANTS
+from server.app.storage.vocabulary import ErasedBy
 
-ERASED_BY = ("participant", "experimenter")
-PARTICIPANTS = table_of(Participant)
-SESSIONS = table_of(LearningSession)
-ERASURES = table_of(Erasure)
+ERASED_BY = tuple(ErasedBy)
 
 
 class Erased(BaseModel):
@@ -87,7 +81,7 @@ def find_participant(c: Connection, who: str, secret: str) -> Any:
 
 
 def erase(
-    c: Connection, participant_id: int, by: str, secret: str, now: datetime | None = None
+    c: Connection, participant_id: int, by: ErasedBy, secret: str, now: datetime | None = None
 ) -> Erased:
     """Erase the participant ``participant_id`` in the transaction ``c`` (see the module
     docstring); ``by`` is ``participant`` or ``experimenter``. Raises ``ApiError`` 404 for an
@@ -143,7 +137,7 @@ def erase(
 
 
 def erase_participant(
-    db: Database, participant_id: int, by: str, configured_secret: str | None = None
+    db: Database, participant_id: int, by: ErasedBy, configured_secret: str | None = None
 ) -> Erased:
     """``erase`` in a write transaction of its own, then what it deleted out of the files."""
     with db.transaction() as c:

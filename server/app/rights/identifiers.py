@@ -17,10 +17,8 @@ from typing import Any
 from sqlalchemy import JSON, Connection, MetaData, String, Table, Text, select, update
 
 from server.app import platform_registry as registry
-from server.app.storage.models import Base, Participant
-from server.app.storage.records import table_of
-
-PARTICIPANTS = table_of(Participant)
+from server.app.storage.models import Base
+from server.app.storage.tables import PARTICIPANTS
 
 
 def study_rows(participant_id: int, metadata: MetaData = Base.metadata) -> list[tuple[Table, Any]]:

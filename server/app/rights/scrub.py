@@ -32,10 +32,8 @@ from server.app.rights.pseudonyms import (
     pseudonym,
 )
 from server.app.storage.db import Database
-from server.app.storage.models import Participant, utcnow
-from server.app.storage.records import table_of
-
-PARTICIPANTS = table_of(Participant)
+from server.app.storage.models import utcnow
+from server.app.storage.tables import PARTICIPANTS
 
 
 def with_ids() -> list[str]:

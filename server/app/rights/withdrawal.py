@@ -12,6 +12,7 @@ from server.app.participants.tokens import participant_for
 from server.app.platform_registry import PlatformName
 from server.app.rights.erasure import erase, installation_secret
 from server.app.storage.db import Database
+from server.app.storage.vocabulary import ErasedBy
 
 
 class Withdrawal(BaseModel):
@@ -28,7 +29,7 @@ def withdraw(db: Database, token: str | None, study: StudyConfig, secret: str | 
     """Erase the token's participant (401 for an unknown token: nothing to erase)."""
     with db.transaction() as c:
         participant = participant_for(c, token, lock=not db.is_sqlite)
-        erase(c, participant.id, "participant", installation_secret(c, secret))
+        erase(c, participant.id, ErasedBy.PARTICIPANT, installation_secret(c, secret))
     db.forget_removed()
     leaving = registry.platform(participant.platform).withdrawal(participant, study)
     return Withdrawal(

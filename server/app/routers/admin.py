@@ -14,7 +14,7 @@ from server.app.deps import AdminDep, RowId, StateDep
 from server.app.errors import ApiError
 from server.app.export.files import export_zip
 from server.app.export.tables import export_tables
-from server.app.participants import assignment, places, teaching, tokens
+from server.app.participants import assignment, places, teaching
 from server.app.platforms import prolific_sync, review
 from server.app.rights.erasure import Erased, erase_participant
 from server.app.schemas import (
@@ -50,6 +50,17 @@ from server.app.storage.models import (
     utcnow,
 )
 from server.app.storage.replica_models import ReplicaAssignment, ReplicaSubmission
+from server.app.storage.vocabulary import (
+    IN_PROGRESS,
+    ErasedBy,
+    ExclusionMark,
+    ParticipantStatus,
+    ReviewDecision,
+    SessionStatus,
+    UpdateStatus,
+)
+
+STATUSES = tuple(ParticipantStatus)
 
 router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
 
@@ -59,7 +70,7 @@ def _last_returns(s: Session, session_ids: list[int]) -> dict[int, float | None]
         return {}
     latest = (
         select(LearnerUpdate.session_id, func.max(LearnerUpdate.update_index).label("index"))
-        .where(LearnerUpdate.session_id.in_(session_ids), LearnerUpdate.status == "done")
+        .where(LearnerUpdate.session_id.in_(session_ids), LearnerUpdate.status == UpdateStatus.DONE)
         .group_by(LearnerUpdate.session_id)
         .subquery()
     )
@@ -139,7 +150,10 @@ def _admin_participant(
 def _completed_at(s: Session, participant_ids: list[int]) -> dict[int, Any]:
     rows = s.execute(
         select(StatusChange.participant_id, func.min(StatusChange.at))
-        .where(StatusChange.participant_id.in_(participant_ids), StatusChange.status == "completed")
+        .where(
+            StatusChange.participant_id.in_(participant_ids),
+            StatusChange.status == ParticipantStatus.COMPLETED,
+        )
         .group_by(StatusChange.participant_id)
     )
     return {participant_id: at for participant_id, at in rows}
@@ -151,8 +165,8 @@ def list_participants(
     status: Annotated[str | None, Query(description="Only this status.")] = None,
 ) -> list[AdminParticipant]:
     """Every participant with status, domain, progress and time spent."""
-    if status is not None and status not in tokens.STATUSES:
-        raise ApiError(400, f"unknown status {status!r}; valid: {', '.join(tokens.STATUSES)}")
+    if status is not None and status not in STATUSES:
+        raise ApiError(400, f"unknown status {status!r}; valid: {', '.join(STATUSES)}")
     with state.db.read() as s:
         query = select(Participant).order_by(Participant.id)
         if status is not None:
@@ -242,7 +256,11 @@ def exclude(
         now = utcnow()
         p.excluded_at = now
         p.exclusion_reason = body.reason
-        s.add(StatusChange(participant_id=p.id, status="excluded", at=now, note=body.reason))
+        s.add(
+            StatusChange(
+                participant_id=p.id, status=ExclusionMark.EXCLUDED, at=now, note=body.reason
+            )
+        )
     with state.db.read() as s:
         return _participant_detail(s, participant_id)
 
@@ -261,7 +279,11 @@ def include(
             raise ApiError(409, f"participant {participant_id} is not excluded")
         p.excluded_at = None
         p.exclusion_reason = None
-        s.add(StatusChange(participant_id=p.id, status="included", at=utcnow(), note=reason))
+        s.add(
+            StatusChange(
+                participant_id=p.id, status=ExclusionMark.INCLUDED, at=utcnow(), note=reason
+            )
+        )
     with state.db.read() as s:
         return _participant_detail(s, participant_id)
 
@@ -271,14 +293,14 @@ def erase(participant_id: RowId, state: StateDep) -> Erased:
     """Erase the participant on their request: every row of theirs, in every table, in one
     transaction; one audit row (``erasures.csv``) keeps when, the pseudonyms and the counts."""
     secret = state.settings.secret.get_secret_value() if state.settings.secret else None
-    return erase_participant(state.db, participant_id, "experimenter", secret)
+    return erase_participant(state.db, participant_id, ErasedBy.EXPERIMENTER, secret)
 
 
 @router.post("/participants/{participant_id}/approval", response_model=AdminParticipantDetail)
 def approve(participant_id: RowId, body: ReviewRequest, state: StateDep) -> AdminParticipantDetail:
     """Approve the participant's submitted work on their platform (``BAM_REVIEW_BACKEND``),
     once; a repeat answers the same."""
-    return _decide(participant_id, "approved", body, state)
+    return _decide(participant_id, ReviewDecision.APPROVED, body, state)
 
 
 @router.post("/approvals", response_model=BulkApprovalView)
@@ -290,7 +312,9 @@ def approve_many(body: BulkApprovalRequest, state: StateDep) -> BulkApprovalView
     refused: dict[int, str] = {}
     for participant_id in dict.fromkeys(body.participant_ids):
         try:
-            _decide(participant_id, "approved", ReviewRequest(message=body.message), state)
+            _decide(
+                participant_id, ReviewDecision.APPROVED, ReviewRequest(message=body.message), state
+            )
         except ApiError as error:
             refused[participant_id] = error.message
         else:
@@ -302,7 +326,7 @@ def approve_many(body: BulkApprovalRequest, state: StateDep) -> BulkApprovalView
 def reject(participant_id: RowId, body: ReviewRequest, state: StateDep) -> AdminParticipantDetail:
     """Reject the participant's submitted work, with a message (on Prolific: a category and a
     message of at least 100 characters), once."""
-    return _decide(participant_id, "rejected", body, state)
+    return _decide(participant_id, ReviewDecision.REJECTED, body, state)
 
 
 def _backend_for(state: ServerState, participant_id: int) -> review.ReviewBackend:
@@ -315,7 +339,7 @@ def _backend_for(state: ServerState, participant_id: int) -> review.ReviewBacken
 
 
 def _decide(
-    participant_id: int, decision: review.Decision, body: ReviewRequest, state: ServerState
+    participant_id: int, decision: ReviewDecision, body: ReviewRequest, state: ServerState
 ) -> AdminParticipantDetail:
     backend = _backend_for(state, participant_id)
     review.review_submission(
@@ -405,7 +429,7 @@ def list_sessions(
         query = select(LearningSession).order_by(LearningSession.id)
         if live:
             query = query.join(Participant).where(
-                LearningSession.status == "active", Participant.status.in_(tokens.IN_PROGRESS)
+                LearningSession.status == SessionStatus.ACTIVE, Participant.status.in_(IN_PROGRESS)
             )
         return _admin_sessions(s, list(s.scalars(query)))
 

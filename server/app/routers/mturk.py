@@ -38,6 +38,7 @@ from server.app.storage.replica_models import (
     ReplicaHit,
     ReplicaSubmission,
 )
+from server.app.storage.vocabulary import ReplicaAssignmentStatus
 
 router = APIRouter(prefix="/mturk", tags=["mturk replica"], include_in_schema=False)
 
@@ -66,9 +67,9 @@ def reusable_assignment_id(s: Session, hit_id: str) -> str | None:
         .where(ReplicaAssignment.hit_id == hit_id)
         .order_by(ReplicaAssignment.id)
     ).all()
-    taken = {row.assignment_id for row in rows if row.status != "returned"}
+    taken = {row.assignment_id for row in rows if row.status != ReplicaAssignmentStatus.RETURNED}
     for row in rows:
-        if row.status == "returned" and row.assignment_id not in taken:
+        if row.status == ReplicaAssignmentStatus.RETURNED and row.assignment_id not in taken:
             return str(row.assignment_id)
     return None
 
@@ -156,7 +157,7 @@ def accept(
             select(ReplicaAssignment).where(
                 ReplicaAssignment.hit_id == hit.hit_id,
                 ReplicaAssignment.worker_id == worker,
-                ReplicaAssignment.status != "returned",
+                ReplicaAssignment.status != ReplicaAssignmentStatus.RETURNED,
             )
         ).first()
         if row is None:
@@ -164,13 +165,13 @@ def accept(
                 hit_id=hit.hit_id,
                 assignment_id=reusable_assignment_id(s, hit.hit_id) or new_id(),
                 worker_id=worker,
-                status="accepted",
+                status=ReplicaAssignmentStatus.ACCEPTED,
                 accepted_at=utcnow(),
             )
             s.add(row)
             s.flush()
         row_id, status, assignment_id = row.id, row.status, row.assignment_id
-    if status != "accepted":
+    if status != ReplicaAssignmentStatus.ACCEPTED:
         return hit_page(
             request,
             state,
@@ -190,7 +191,7 @@ def work(row_id: RowId, request: Request, state: StateDep) -> Response:
         hit = s.scalar(select(ReplicaHit).where(ReplicaHit.hit_id == row.hit_id)) if row else None
     if row is None or hit is None:
         return notice(request, "No such assignment", f"There is no assignment {row_id}.", 404)
-    if row.status != "accepted":
+    if row.status != ReplicaAssignmentStatus.ACCEPTED:
         return notice(
             request,
             f"This assignment was {row.status}",
@@ -227,9 +228,9 @@ def return_hit(row_id: RowId, request: Request, state: StateDep) -> Response:
         return login_redirect("/mturk")
     with state.db.write() as s:
         row = s.get(ReplicaAssignment, row_id)
-        if row is None or row.status != "accepted":
+        if row is None or row.status != ReplicaAssignmentStatus.ACCEPTED:
             return notice(request, "Cannot return", "This assignment is not being worked on.", 409)
-        row.status = "returned"
+        row.status = ReplicaAssignmentStatus.RETURNED
         row.returned_at = utcnow()
         # The study hears of it at once, so that the replica and the study agree on who holds
         # the assignment when it goes to the next worker (or back to this one).
@@ -270,11 +271,11 @@ async def external_submit(request: Request, state: StateDep) -> Response:
             .order_by(ReplicaAssignment.id.desc())
             .limit(1)
         )
-        if row is None or row.status != "accepted":
+        if row is None or row.status != ReplicaAssignmentStatus.ACCEPTED:
             what = "is not accepted by any worker" if row is None else f"was {row.status}"
             return notice(request, "Submission refused", f"Assignment {assignment_id} {what}.", 409)
         now = utcnow()
-        row.status = "submitted"
+        row.status = ReplicaAssignmentStatus.SUBMITTED
         row.submitted_at = now
         s.add(
             ReplicaSubmission(

@@ -19,6 +19,7 @@ from server.app.platform_registry import arrival_parameters
 from server.app.routers.common import arrive, notice, sentence, templates
 from server.app.schemas import ArrivalRequest, ArrivalResponse
 from server.app.state import ServerState
+from server.app.storage.vocabulary import ParticipantStatus
 
 router = APIRouter(tags=["pages"])
 
@@ -50,7 +51,7 @@ def study_page(request: Request, state: StateDep) -> Response:
     if arrival.preview:
         return templates.TemplateResponse(request, "preview.html", {"study": state.study.public()})
     assert arrival.participant is not None
-    if arrival.participant.status == places.WAITING:
+    if arrival.participant.status == ParticipantStatus.WAITING:
         page = waiting_page(request, state, arrival.participant.participant_id, arrival.token)
     else:
         page = study_page_of(request, state, arrival)

@@ -28,6 +28,7 @@ from server.app.schemas import (
     TaskRequest,
 )
 from server.app.state import ServerState
+from server.app.storage.vocabulary import Mode
 
 router = APIRouter(prefix="/api/sessions", tags=["teaching"])
 
@@ -79,7 +80,7 @@ async def read_learning(
         with state.db.connect() as c:
             participant = tokens.participant_for(c, token)
             session = teaching.own_session(c, participant, session_id)
-            return teaching.learning(session), session.mode == "agent"
+            return teaching.learning(session), session.mode == Mode.AGENT
 
     learning, agent_mode = await state.run_db(read)
     if learning.pending and wait > 0 and state.updates is not None:
@@ -114,7 +115,7 @@ async def select_mode(
     def handle(transaction: Transaction) -> RequestOutcome:
         response = teaching.set_mode(transaction, session_id, body.mode)
         learning = response.session.learning if response.session is not None else None
-        if body.mode == "agent" and learning is not None and learning.pending:
+        if body.mode == Mode.AGENT and learning is not None and learning.pending:
             # The agent's turn is next: its pending updates are awaited from now on.
             expected.append(awaited_update(learning))
         return response

@@ -14,6 +14,7 @@ participants run in parallel.
 
 from __future__ import annotations
 
+import hashlib
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -36,6 +37,11 @@ MIGRATIONS = ROOT / "migrations"
 
 class SchemaError(RuntimeError):
     """The database schema is not at the version this code needs."""
+
+
+def advisory_lock_key(name: str) -> int:
+    """A PostgreSQL advisory lock key: the first 8 bytes of sha256(name)."""
+    return int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "big", signed=True)
 
 
 SQLITE_SYNCHRONOUS = ("full", "normal")

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from datetime import datetime
 
 from server.app.storage.models import LearningSession, Participant
+from server.app.storage.vocabulary import SessionKind
 
 
 @dataclass(frozen=True)
@@ -22,7 +23,7 @@ def study_sessions_by_participant(
     """Each participant's study sessions (tutorials left out), in one pass over the sessions."""
     grouped: dict[int, list[LearningSession]] = {}
     for session in sessions:
-        if session.kind == "study":
+        if session.kind == SessionKind.STUDY:
             grouped.setdefault(session.participant_id, []).append(session)
     return grouped
 

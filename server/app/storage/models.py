@@ -36,6 +36,15 @@ from sqlalchemy import (
 from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
+from server.app.storage.vocabulary import (
+    BonusState,
+    CheckStatus,
+    Mode,
+    ReviewState,
+    SessionStatus,
+    UpdateStatus,
+)
+
 # Autoincrementing 64-bit ids (SQLite only autoincrements INTEGER PRIMARY KEY).
 BigId = BigInteger().with_variant(Integer(), "sqlite")
 
@@ -102,7 +111,7 @@ class Participant(Base):
     assignment_id: Mapped[str | None] = mapped_column(String(128))  # assignmentId or SESSION_ID
     hit_id: Mapped[str | None] = mapped_column(String(128))  # hitId or STUDY_ID
     submit_to: Mapped[str | None] = mapped_column(String(512))  # turkSubmitTo
-    status: Mapped[str] = mapped_column(String(16))
+    status: Mapped[str] = mapped_column(String(16))  # ParticipantStatus
     domain: Mapped[str | None] = mapped_column(String(32))
     next_seq: Mapped[int] = mapped_column(Integer, default=1)
     completion_code: Mapped[str | None] = mapped_column(String(32))
@@ -147,7 +156,7 @@ class StatusChange(Base):
 
     id: Mapped[int] = mapped_column(BigId, primary_key=True)
     participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), index=True)
-    status: Mapped[str] = mapped_column(String(16))
+    status: Mapped[str] = mapped_column(String(16))  # ParticipantStatus or ExclusionMark
     at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     note: Mapped[str | None] = mapped_column(Text)
 
@@ -161,7 +170,7 @@ class LearningSession(Base):
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), index=True)
     ordinal: Mapped[int] = mapped_column(Integer)  # order of the participant's sessions
-    kind: Mapped[str] = mapped_column(String(16))  # study or tutorial
+    kind: Mapped[str] = mapped_column(String(16))  # SessionKind
     position: Mapped[int | None] = mapped_column(Integer)  # 0.. among study sessions
     domain: Mapped[str] = mapped_column(String(32))
     environment: Mapped[str] = mapped_column(String(32))
@@ -169,7 +178,7 @@ class LearningSession(Base):
     colour_name: Mapped[str] = mapped_column(String(40))
     colour_hex: Mapped[str] = mapped_column(String(7))
     seed: Mapped[int] = mapped_column(BigInteger)
-    status: Mapped[str] = mapped_column(String(16), default="pending")  # pending/active/finished
+    status: Mapped[str] = mapped_column(String(16), default=SessionStatus.PENDING)
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     # When the participant began teaching it, past its introduction page (None: not yet).
     opened_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
@@ -177,11 +186,11 @@ class LearningSession(Base):
     completed: Mapped[bool] = mapped_column(Boolean, default=False)
     # The live state of teaching.
     task: Mapped[int] = mapped_column(Integer, default=0)
-    mode: Mapped[str] = mapped_column(String(16), default="idle")  # idle/demonstrate/agent
+    mode: Mapped[str] = mapped_column(String(16), default=Mode.IDLE)
     state: Mapped[int | None] = mapped_column(Integer)
     open_episode: Mapped[int | None] = mapped_column(Integer)  # index of the open episode
     episode_actions: Mapped[int] = mapped_column(Integer, default=0)
-    last_action: Mapped[str | None] = mapped_column(String(16))  # demonstration/agent/idle
+    last_action: Mapped[str | None] = mapped_column(String(16))  # LastAction
     demonstrated: Mapped[list[int]] = mapped_column(JSON, default=list)  # actions per task
     episodes: Mapped[int] = mapped_column(Integer, default=0)  # episodes ended
     actions: Mapped[int] = mapped_column(Integer, default=0)  # actions in episodes
@@ -200,13 +209,13 @@ class Episode(Base):
     id: Mapped[int] = mapped_column(BigId, primary_key=True)
     session_id: Mapped[int] = mapped_column(ForeignKey("learning_sessions.id"))
     index: Mapped[int] = mapped_column(Integer)
-    kind: Mapped[str] = mapped_column(String(16))  # demonstration or agent
+    kind: Mapped[str] = mapped_column(String(16))  # EpisodeKind
     task: Mapped[int] = mapped_column(Integer)
     start_state: Mapped[int] = mapped_column(Integer)
     end_state: Mapped[int | None] = mapped_column(Integer)
     started_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     ended_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
-    end_reason: Mapped[str | None] = mapped_column(String(16))
+    end_reason: Mapped[str | None] = mapped_column(String(16))  # EpisodeEnd
     actions: Mapped[int] = mapped_column(Integer, default=0)
     update_index: Mapped[int | None] = mapped_column(Integer)
 
@@ -232,15 +241,15 @@ class Event(Base):
     kind: Mapped[str] = mapped_column(String(24))
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     task: Mapped[int | None] = mapped_column(Integer)
-    mode: Mapped[str | None] = mapped_column(String(16))
+    mode: Mapped[str | None] = mapped_column(String(16))  # Mode
     state: Mapped[int | None] = mapped_column(Integer)
     action: Mapped[int | None] = mapped_column(Integer)
     next_state: Mapped[int | None] = mapped_column(Integer)
     feedback: Mapped[int | None] = mapped_column(Integer)
     episode_index: Mapped[int | None] = mapped_column(Integer)
-    record: Mapped[str | None] = mapped_column(String(16))
+    record: Mapped[str | None] = mapped_column(String(16))  # Observed
     stay_state: Mapped[int | None] = mapped_column(Integer)
-    episode_end: Mapped[str | None] = mapped_column(String(16))  # why an episode ended here
+    episode_end: Mapped[str | None] = mapped_column(String(16))  # EpisodeEnd, here
     request_hash: Mapped[str] = mapped_column(String(64))
     response: Mapped[str] = mapped_column(Text)
 
@@ -261,7 +270,7 @@ class LearnerUpdate(Base):
     id: Mapped[int] = mapped_column(BigId, primary_key=True)
     session_id: Mapped[int] = mapped_column(ForeignKey("learning_sessions.id"))
     update_index: Mapped[int] = mapped_column(Integer)
-    status: Mapped[str] = mapped_column(String(16), default="pending")  # pending/done/failed
+    status: Mapped[str] = mapped_column(String(16), default=UpdateStatus.PENDING)
     through_event_id: Mapped[int] = mapped_column(BigInteger, default=0)
     episodes: Mapped[int] = mapped_column(Integer)  # cumulative episodes
     actions: Mapped[int] = mapped_column(Integer)  # cumulative actions
@@ -297,8 +306,7 @@ class AttentionCheck(Base):
     start_cell: Mapped[int] = mapped_column(Integer)
     star_cell: Mapped[int] = mapped_column(Integer)
     moves_allowed: Mapped[int] = mapped_column(Integer)
-    # pending, active (being taken), passed or failed
-    status: Mapped[str] = mapped_column(String(16), default="pending")
+    status: Mapped[str] = mapped_column(String(16), default=CheckStatus.PENDING)
     cell: Mapped[int] = mapped_column(Integer)  # where the robot is
     moves: Mapped[list[str]] = mapped_column(JSON, default=list)  # the arrows, in order
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
@@ -338,11 +346,11 @@ class AssignmentReview(Base):
     # The MTurk assignmentId or the Prolific submission id (SESSION_ID).
     assignment_id: Mapped[str] = mapped_column(String(128), unique=True)
     worker_id: Mapped[str] = mapped_column(String(128))  # workerId or PROLIFIC_PID
-    decision: Mapped[str] = mapped_column(String(16))  # approved or rejected
+    decision: Mapped[str] = mapped_column(String(16))  # ReviewDecision
     message: Mapped[str | None] = mapped_column(Text)  # shown to the participant
     rejection_category: Mapped[str | None] = mapped_column(String(32))  # Prolific's category
     backend: Mapped[str] = mapped_column(String(24))  # mturk, mturk-replica, prolific, ...
-    state: Mapped[str] = mapped_column(String(16), default="done")  # pending or done
+    state: Mapped[str] = mapped_column(String(16), default=ReviewState.DONE)
     requested_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     decided_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
 
@@ -366,7 +374,7 @@ class Bonus(Base):
     reason: Mapped[str] = mapped_column(Text)  # shown to the participant
     unique_token: Mapped[str] = mapped_column(String(64), unique=True)
     backend: Mapped[str] = mapped_column(String(24))
-    state: Mapped[str] = mapped_column(String(16), default="paid")
+    state: Mapped[str] = mapped_column(String(16), default=BonusState.PAID)
     setup_id: Mapped[str | None] = mapped_column(String(64))  # Prolific's bulk bonus payment id
     requested_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     pay_sent_at: Mapped[datetime | None] = mapped_column(UTCDateTime())  # Prolific's pay sent
@@ -393,7 +401,7 @@ class Erasure(Base):
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     erased_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
-    erased_by: Mapped[str] = mapped_column(String(16))  # participant or experimenter
+    erased_by: Mapped[str] = mapped_column(String(16))  # ErasedBy
     participant_id: Mapped[int] = mapped_column(Integer)
     platform: Mapped[str] = mapped_column(String(16))
     worker_pseudonym: Mapped[str | None] = mapped_column(String(32))  # w_ + salted hash

@@ -16,8 +16,6 @@ from sqlalchemy.orm import Mapped, mapped_column
 
 from server.app.storage.models import Base, UTCDateTime, utcnow
 
-ASSIGNMENT_STATUSES = ("accepted", "returned", "submitted", "approved", "rejected")
-
 
 class ReplicaHit(Base):
     """The study listed as a HIT (one per database, made when the replica is first opened)."""
@@ -42,7 +40,7 @@ class ReplicaAssignment(Base):
     assignment_id: Mapped[str] = mapped_column(String(64))
     worker_id: Mapped[str] = mapped_column(String(128))
     # accepted, returned, submitted, then approved or rejected by the requester
-    status: Mapped[str] = mapped_column(String(16))
+    status: Mapped[str] = mapped_column(String(16))  # ReplicaAssignmentStatus
     accepted_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     returned_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     submitted_at: Mapped[datetime | None] = mapped_column(UTCDateTime())

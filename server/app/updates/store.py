@@ -12,6 +12,7 @@ from sqlalchemy import func, select
 
 from server.app.storage.db import Database
 from server.app.storage.models import Event, LearnerUpdate, LearningSession, utcnow
+from server.app.storage.vocabulary import UpdateStatus
 from server.app.updates.worker import records_of
 from server.domains import definition
 
@@ -39,7 +40,7 @@ class UpdateStore:
             return list(
                 s.scalars(
                     select(LearnerUpdate.session_id)
-                    .where(LearnerUpdate.status == "pending")
+                    .where(LearnerUpdate.status == UpdateStatus.PENDING)
                     .group_by(LearnerUpdate.session_id)
                     .order_by(func.min(LearnerUpdate.queued_at))
                 )
@@ -56,7 +57,10 @@ class UpdateStore:
         with self.db.read() as s:
             update = s.scalar(
                 select(LearnerUpdate)
-                .where(LearnerUpdate.session_id == session_id, LearnerUpdate.status == "pending")
+                .where(
+                    LearnerUpdate.session_id == session_id,
+                    LearnerUpdate.status == UpdateStatus.PENDING,
+                )
                 .order_by(LearnerUpdate.update_index)
                 .limit(1)
             )
@@ -69,7 +73,7 @@ class UpdateStore:
                 select(LearnerUpdate.through_event_id, LearnerUpdate.learner_state)
                 .where(
                     LearnerUpdate.session_id == session_id,
-                    LearnerUpdate.status == "done",
+                    LearnerUpdate.status == UpdateStatus.DONE,
                     LearnerUpdate.learner_state.is_not(None),
                     LearnerUpdate.update_index < update.update_index,
                 )
@@ -114,7 +118,7 @@ class UpdateStore:
             session = s.get(LearningSession, job.session_id)
             if update is None or session is None:
                 return False  # the participant was erased while the update ran
-            update.status = "done"
+            update.status = UpdateStatus.DONE
             update.finished_at = utcnow()
             update.attempts += 1 + deaths
             if deaths:
@@ -143,7 +147,7 @@ class UpdateStore:
             update.error = error
             if retry and update.attempts < MAX_ATTEMPTS:
                 return True
-            update.status = "failed"
+            update.status = UpdateStatus.FAILED
             update.finished_at = utcnow()
             session.updates_processed = max(session.updates_processed, job.update_index)
             return session.updates_requested > session.updates_processed

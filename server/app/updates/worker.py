@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from server.app.storage.vocabulary import Observed
 from server.app.updates.policies import encode
 from server.domains import register_all
 from server.domains.base import STAY
@@ -128,16 +129,16 @@ def run_update(job: dict[str, Any]) -> dict[str, Any]:
 
 def records_of(rows: Any) -> list[Observation]:
     """Learner observations from event rows (record, task, state, action, next_state,
-    feedback, stay_state); the events' ``transition`` is an idle move."""
+    feedback, stay_state); see ``Observed``."""
     records: list[Observation] = []
     for row in rows:
-        if row.record == "demonstration":
+        if row.record == Observed.DEMONSTRATION:
             records.append(DemonstrationStep(row.task, row.state, row.action, row.next_state))
-        elif row.record == "agent_step":
+        elif row.record == Observed.AGENT_STEP:
             records.append(AgentStep(row.task, row.state, row.action, row.next_state))
-        elif row.record == "transition":
+        elif row.record == Observed.IDLE_MOVE:
             records.append(IdleMove(row.state, row.action, row.next_state))
-        elif row.record == "feedback":
+        elif row.record == Observed.FEEDBACK:
             records.append(Feedback(row.feedback))
         if row.stay_state is not None:
             records.append(DemonstrationStep(row.task, row.next_state, STAY, row.stay_state))

@@ -17,7 +17,7 @@ from sqlalchemy import func, select, update
 
 from server.app.config import StudyConfig
 from server.app.participants import assignment, tokens
-from server.app.participants.tokens import mark_abandoned
+from server.app.participants.statuses import mark_abandoned
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import LearningSession, StatusChange, utcnow
@@ -135,7 +135,7 @@ def test_domain_assignment_holds_its_lock_until_the_transaction_ends(db: Databas
         with db.transaction() as c:
             assignment.lock_domain_assignment(c)
         return
-    try_lock = select(func.pg_try_advisory_xact_lock(tokens.DOMAIN_LOCK_KEY))
+    try_lock = select(func.pg_try_advisory_xact_lock(assignment.DOMAIN_LOCK_KEY))
     with db.transaction() as c:
         assignment.lock_domain_assignment(c)
         with db.transaction() as other:

@@ -17,7 +17,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy import update
 
 from server.app.main import create_app
-from server.app.participants.tokens import mark_abandoned
+from server.app.participants.statuses import mark_abandoned
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Participant as ParticipantRow

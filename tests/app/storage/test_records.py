@@ -12,15 +12,10 @@ import pytest
 from sqlalchemy import Connection, Table, bindparam, insert, select
 from sqlalchemy.exc import IntegrityError, InvalidRequestError
 
-from server.app.participants.tokens import (
-    EVENTS,
-    PARTICIPANTS,
-    SESSIONS,
-    UPDATES,
-    participant_by_token,
-)
+from server.app.participants.tokens import participant_by_token
 from server.app.storage.db import Database
 from server.app.storage.records import add, fetch_one, get
+from server.app.storage.tables import EVENTS, PARTICIPANTS, SESSIONS, UPDATES
 
 WHEN = datetime(2026, 11, 27, 13, 45, 6, 123456, tzinfo=UTC)
 SESSION = {

@@ -44,7 +44,7 @@ STAGE_LABELS = {
 # Statuses of a participant still in the study after consent (the server's flow statuses).
 IN_STUDY = ("consented", "tutorial", "teaching", "questionnaire")
 # The statuses a participant can end in before consent, and after it (the server's
-# ``participants.tokens.STATUSES``); "returned" and "abandoned" can be either.
+# ``storage.vocabulary.ParticipantStatus``); "returned" and "abandoned" can be either.
 BEFORE_CONSENT = ("waiting", "declined", "arrived", "returned", "abandoned")
 AFTER_CONSENT = ("returned", "abandoned", *IN_STUDY, *COMPLETED_STATUSES)
 

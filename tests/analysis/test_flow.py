@@ -346,11 +346,12 @@ def test_without_participant_statuses_there_is_no_flow(
 
 
 def test_every_status_of_the_server_has_its_place_in_the_flow() -> None:
-    from server.app.participants.tokens import STATUSES
+    from server.app.storage.vocabulary import ParticipantStatus
 
-    assert set(BEFORE_CONSENT) | set(AFTER_CONSENT) == set(STATUSES)
+    statuses = set(ParticipantStatus)
+    assert set(BEFORE_CONSENT) | set(AFTER_CONSENT) == statuses
     # The export's participants.csv says the same statuses.
-    assert set(STATUSES) == set(STATUS_COLUMNS) | {"waiting"}
+    assert statuses == set(STATUS_COLUMNS) | {"waiting"}
 
 
 def test_an_unknown_or_impossible_status_still_ends_in_one_box(tmp_path: Path) -> None:

@@ -1,7 +1,8 @@
 """``bam-study prolific``: make the study on Prolific from the study file and run it there
-(publish, pause, add places, see its submissions), through Prolific's API
-(``BAM_PROLIFIC_API_URL``, ``BAM_PROLIFIC_TOKEN``) or, with ``--replica URL``, through the
-Prolific replica of a running study server (its ``/prolific/api/v1``, ``BAM_ADMIN_TOKEN``).
+(publish, pause, add places, see its submissions and their counts per status), through
+Prolific's API (``BAM_PROLIFIC_API_URL``, ``BAM_PROLIFIC_TOKEN``) or, with ``--replica URL``,
+through the Prolific replica of a running study server (its ``/prolific/api/v1``,
+``BAM_ADMIN_TOKEN``).
 
 A refusal (Prolific's 4xx) is printed as one line with Prolific's message and exit status 1;
 bad arguments or a study file that cannot run on Prolific get exit status 2. No token is ever
@@ -94,6 +95,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
         ),
         ("stop", "Stop the study for good (COMPLETED): no one new takes part."),
         ("status", "The study's status, places and submissions per status."),
+        (
+            "counts",
+            "The study's submissions per Prolific status and in all, as Prolific counts them "
+            "(one call: GET /studies/{id}/submissions/counts/).",
+        ),
     ):
         sub = action(name, help_text)
         sub.add_argument("study_id", metavar="STUDY_ID", type=study_id)
@@ -218,6 +224,21 @@ def status(client: ProlificClient, study_id: str) -> None:
             print(f"  {name:<18} {counts[name]}")
 
 
+def counts(client: ProlificClient, study_id: str) -> None:
+    """Prolific's count of the study's submissions per status: each status it counts (in
+    the order of its submission statuses, then any other), then the total."""
+    from server.app.platforms.prolific import SUBMISSION_STATUSES
+
+    counted = client.submission_counts(study_id)
+    total = counted.pop("TOTAL", sum(counted.values()))
+    known = [name for name in SUBMISSION_STATUSES if name in counted]
+    print(f"study {study_id}")
+    print(f"{'status':<20}{'submissions':>11}")
+    for name in (*known, *sorted(set(counted) - set(known))):
+        print(f"{name:<20}{counted[name]:>11}")
+    print(f"{'TOTAL':<20}{total:>11}")
+
+
 # Prolific's documented minimum hourly pay, in cents (researcher help: £6 / $8 an hour).
 LEAST_HOURLY_REWARD = {"GBP": 600, "USD": 800}
 
@@ -326,6 +347,8 @@ def run(args: argparse.Namespace) -> int:
         try:
             if args.action == "status":
                 status(client, args.study_id)
+            elif args.action == "counts":
+                counts(client, args.study_id)
             elif args.action == "add-places":
                 add_places(client, args.study_id, args.places)
             elif args.action == "publish":

@@ -612,3 +612,71 @@ def test_the_replica_gives_a_draft_without_a_maximum_time_the_largest(db: Databa
     assert client.create_study(fields)["maximum_allowed_time"] == 24 * 60 - 1
     fields["maximum_allowed_time"] = 73
     assert client.create_study(fields)["maximum_allowed_time"] == 73
+
+
+def take_part(server: str, study_id: str, finish: bool) -> str:
+    """A replica participant takes a place in the study (a new PROLIFIC_PID), and completes it
+    with the study's code when ``finish``; their submission id."""
+    with httpx.Client(base_url=server, headers={"Authorization": f"Bearer {ADMIN_TOKEN}"}) as who:
+        taken = who.post(f"/prolific/studies/{study_id}/take-part")
+        assert taken.status_code == 303, taken.text
+        submission = re.search(r"SESSION_ID=([0-9a-f]{24})", taken.headers["location"])
+        assert submission is not None
+        if finish:
+            assert who.get("/prolific/submissions/complete?cc=C1A2B3C4").status_code == 200
+        return submission.group(1)
+
+
+def test_counts_prints_prolifics_count_of_the_studys_submissions_per_status(
+    server: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("BAM_ADMIN_TOKEN", ADMIN_TOKEN)
+    client = ProlificClient(f"{server}/prolific/api/v1", ADMIN_TOKEN)
+    study = study_config(completion=COMPLETION, prolific=PROLIFIC)
+    made = client.create_study(draft_study(study, max_concurrent=3, base_url=server))
+    other = client.create_study(draft_study(study, max_concurrent=3, base_url=server))
+    for study_id in (made["id"], other["id"]):
+        client.transition_study(study_id, "PUBLISH")
+    take_part(server, made["id"], finish=True)
+    take_part(server, made["id"], finish=True)
+    returned = take_part(server, made["id"], finish=False)
+    take_part(server, other["id"], finish=False)  # another study's: not counted
+    with httpx.Client(base_url=server, headers={"Authorization": f"Bearer {ADMIN_TOKEN}"}) as who:
+        assert who.post(f"/prolific/submissions/{returned}/return").status_code == 303
+
+    counted = client.submission_counts(made["id"])
+    assert counted == {
+        "ACTIVE": 0,
+        "APPROVED": 0,
+        "AWAITING REVIEW": 2,
+        "REJECTED": 0,
+        "RESERVED": 0,
+        "RETURNED": 1,
+        "TIMED-OUT": 0,
+        "PARTIALLY APPROVED": 0,
+        "SCREENED OUT": 0,
+        "TOTAL": 3,
+    }
+    # The same as counting the listed submissions one by one.
+    listed = [s["status"] for s in client.submissions(made["id"])]
+    assert {k: v for k, v in counted.items() if v and k != "TOTAL"} == {
+        status: listed.count(status) for status in set(listed)
+    }
+
+    status, out, err = run_command(["prolific", "counts", made["id"], "--replica", server], capsys)
+    assert status == 0, err
+    lines = out.strip().splitlines()
+    assert lines[0] == f"study {made['id']}"
+    assert re.fullmatch(r"status\s+submissions", lines[1])
+    rows = dict(line.rsplit(None, 1) for line in lines[2:])
+    assert rows == {k: str(v) for k, v in counted.items()}
+    assert lines[-1].split() == ["TOTAL", "3"]
+    # In the order of Prolific's submission statuses.
+    assert [line.rsplit(None, 1)[0] for line in lines[2:5]] == ["RESERVED", "ACTIVE", "TIMED-OUT"]
+
+    status, out, err = run_command(["prolific", "counts", "a" * 24, "--replica", server], capsys)
+    assert status == 1 and out == ""
+    assert f"Study {'a' * 24} not found" in err and "(404)" in err
+    status, _, err = run_command(["prolific", "counts", "not-a-study"], capsys)
+    assert status == 2 and "is not a Prolific study id" in err
+    client.close()

@@ -225,6 +225,18 @@ class ProlificClient:
                 return
             page += 1
 
+    def submission_counts(self, study_id: str) -> dict[str, int]:
+        """The study's submissions per status, and their ``TOTAL``, in one call
+        (``GET /studies/{id}/submissions/counts/``)."""
+        body = self.request("GET", f"studies/{study_id}/submissions/counts/")
+        if not isinstance(body, dict) or not all(
+            isinstance(n, (int, float)) and not isinstance(n, bool) for n in body.values()
+        ):
+            raise ProlificUnavailable(
+                f"Prolific's counts of study {study_id}'s submissions are not numbers per status"
+            )
+        return {str(status): round(n) for status, n in body.items()}
+
     def submission(self, study_id: str, submission_id: str) -> dict[str, Any]:
         body = dict(self.request("GET", f"submissions/{submission_id}/"))
         if body.get("study_id") not in (None, study_id):

@@ -10,7 +10,8 @@ server (the dashboard's reviews on a rehearsal). As on Prolific:
   codes and their actions, devices, filters, submissions_config, times), and published, paused
   and started with transitions; after publishing its places can only go up, and at most its
   max_concurrent_submissions take part at once;
-- submissions are listed for one study (``?study=`` is required), page by page;
+- submissions are listed for one study (``?study=`` is required), page by page, and counted
+  per status (``/studies/{id}/submissions/counts/``);
 - a completion code with the REQUEST_RETURN action (our NO_CONSENT code) completes the
   submission (AWAITING REVIEW) with ``return_requested`` set; it is RETURNED only if the
   participant then returns it (``routers/prolific.py``);
@@ -484,6 +485,35 @@ def list_submissions(s: Session, query: dict[str, str]) -> tuple[int, Any]:
     }
 
 
+# The statuses ``GET /studies/{id}/submissions/counts/`` counts (its SubmissionsCountResponse).
+COUNTED_STATUSES = (
+    "ACTIVE",
+    "APPROVED",
+    "AWAITING REVIEW",
+    "REJECTED",
+    "RESERVED",
+    "RETURNED",
+    "TIMED-OUT",
+    "PARTIALLY APPROVED",
+    "SCREENED OUT",
+)
+
+
+def submission_counts(s: Session, study_id: str) -> tuple[int, Any]:
+    """``GET /studies/{id}/submissions/counts/``: the study's submissions per status (each of
+    Prolific's, 0 where none) and their ``TOTAL``."""
+    _study(s, study_id)
+    counted = dict(
+        s.execute(
+            select(ProlificReplicaSubmission.status, func.count())
+            .where(ProlificReplicaSubmission.study_id == study_id)
+            .group_by(ProlificReplicaSubmission.status)
+        ).all()
+    )
+    counts = {status: int(counted.get(status, 0)) for status in COUNTED_STATUSES}
+    return 200, {**counts, "TOTAL": int(sum(counted.values()))}
+
+
 def transition_submission(s: Session, submission_id: str, body: dict[str, Any]) -> tuple[int, Any]:
     row = _submission(s, submission_id)
     action = body.get("action")
@@ -603,6 +633,7 @@ ROUTES: list[tuple[str, re.Pattern[str], str]] = [
     ("GET", re.compile(r"studies/(?P<id>[0-9a-f]{24})/"), "get_study"),
     ("PATCH", re.compile(r"studies/(?P<id>[0-9a-f]{24})/"), "update_study"),
     ("POST", re.compile(r"studies/(?P<id>[0-9a-f]{24})/transition/"), "transition_study"),
+    ("GET", re.compile(r"studies/(?P<id>[0-9a-f]{24})/submissions/counts/"), "submission_counts"),
     ("GET", re.compile(r"submissions/"), "list_submissions"),
     ("POST", re.compile(r"submissions/bulk-approve/"), "bulk_approve"),
     ("POST", re.compile(r"submissions/bonus-payments/"), "set_up_bonuses"),
@@ -655,6 +686,8 @@ def handle(
                 return transition_study(s, ident, body)
             if name == "list_submissions":
                 return list_submissions(s, query)
+            if name == "submission_counts":
+                return submission_counts(s, ident)
             if name == "bulk_approve":
                 return bulk_approve(s, body)
             if name == "set_up_bonuses":

@@ -798,7 +798,7 @@ def test_message_sends_through_prolific_and_keeps_each_message_until_the_partici
     status, out, err = run_command(["db", "scrub"], capsys)
     assert status == 0, err
     with db.read() as s:
-        assert s.scalars(select(Message.worker_id)).all() != [second]
+        assert s.scalars(select(Message.worker_id)).all() == [messages["worker_id"].iloc[2]]
     assert list(export_tables(db)["messages"]["worker_id"]) == list(messages["worker_id"][2:])
     client.close()
 

@@ -1,7 +1,8 @@
 """``bam-study prolific``: make the study on Prolific from the study file and run it there
-(publish, pause, add places, see its submissions), through Prolific's API
-(``BAM_PROLIFIC_API_URL``, ``BAM_PROLIFIC_TOKEN``) or, with ``--replica URL``, through the
-Prolific replica of a running study server (its ``/prolific/api/v1``, ``BAM_ADMIN_TOKEN``).
+(publish, pause, add places, see its submissions and their counts per status), through
+Prolific's API (``BAM_PROLIFIC_API_URL``, ``BAM_PROLIFIC_TOKEN``) or, with ``--replica URL``,
+through the Prolific replica of a running study server (its ``/prolific/api/v1``,
+``BAM_ADMIN_TOKEN``).
 
 A refusal (Prolific's 4xx) is printed as one line with Prolific's message and exit status 1;
 bad arguments or a study file that cannot run on Prolific get exit status 2. No token is ever
@@ -53,6 +54,28 @@ def positive(text: str) -> int:
     return value
 
 
+def submission_status(text: str) -> str:
+    """A Prolific submission status, spelt as Prolific does (AWAITING REVIEW) or as its list's
+    filter does (AWAITING_REVIEW), in any case."""
+    from server.app.platforms.prolific import SUBMISSION_STATUSES
+
+    def key(name: str) -> str:
+        return re.sub(r"[ _-]+", "_", name.strip().upper())
+
+    spelt = {key(name): name for name in SUBMISSION_STATUSES}
+    if key(text) not in spelt:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a Prolific submission status: one of {', '.join(spelt)}"
+        )
+    return spelt[key(text)]
+
+
+def message_body(text: str) -> str:
+    if not text.strip():
+        raise argparse.ArgumentTypeError("the message is empty")
+    return text
+
+
 def configure(parser: argparse.ArgumentParser) -> None:
     actions = parser.add_subparsers(dest="action", metavar="ACTION")
     actions.required = True
@@ -94,6 +117,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
         ),
         ("stop", "Stop the study for good (COMPLETED): no one new takes part."),
         ("status", "The study's status, places and submissions per status."),
+        (
+            "counts",
+            "The study's submissions per Prolific status and in all, as Prolific counts them "
+            "(one call: GET /studies/{id}/submissions/counts/).",
+        ),
     ):
         sub = action(name, help_text)
         sub.add_argument("study_id", metavar="STUDY_ID", type=study_id)
@@ -107,6 +135,26 @@ def configure(parser: argparse.ArgumentParser) -> None:
     places = action("add-places", "Raise the study's places to N (places only go up).")
     places.add_argument("study_id", metavar="STUDY_ID", type=study_id)
     places.add_argument("places", metavar="N", type=positive, help="the new number of places")
+    message = action(
+        "message",
+        "Send a message through Prolific's messages API to participants of the study: those "
+        "named (--to), or everyone whose submission is in a status (--status). Each recipient "
+        "must be a participant of the study in the database (BAM_DATABASE_URL), where each "
+        "message Prolific takes is stored (messages.csv in the export; erased with the "
+        "participant).",
+    )
+    message.add_argument("--study", required=True, type=study_id, metavar="STUDY_ID")
+    recipients = message.add_mutually_exclusive_group(required=True)
+    recipients.add_argument("--to", nargs="+", metavar="PID", help="participants' PROLIFIC_PIDs")
+    recipients.add_argument(
+        "--status",
+        type=submission_status,
+        metavar="STATUS",
+        help="everyone whose submission of the study has this Prolific status (AWAITING_REVIEW "
+        "or 'AWAITING REVIEW', APPROVED, ACTIVE, ...), as Prolific lists them",
+    )
+    message.add_argument("--body", required=True, type=message_body, help="the message")
+    message.add_argument("--database-url", help="overrides BAM_DATABASE_URL")
 
 
 def client_for(args: argparse.Namespace, settings: Settings) -> ProlificClient:
@@ -218,6 +266,21 @@ def status(client: ProlificClient, study_id: str) -> None:
             print(f"  {name:<18} {counts[name]}")
 
 
+def counts(client: ProlificClient, study_id: str) -> None:
+    """Prolific's count of the study's submissions per status: each status it counts (in
+    the order of its submission statuses, then any other), then the total."""
+    from server.app.platforms.prolific import SUBMISSION_STATUSES
+
+    counted = client.submission_counts(study_id)
+    total = counted.pop("TOTAL", sum(counted.values()))
+    known = [name for name in SUBMISSION_STATUSES if name in counted]
+    print(f"study {study_id}")
+    print(f"{'status':<20}{'submissions':>11}")
+    for name in (*known, *sorted(set(counted) - set(known))):
+        print(f"{name:<20}{counted[name]:>11}")
+    print(f"{'TOTAL':<20}{total:>11}")
+
+
 # Prolific's documented minimum hourly pay, in cents (researcher help: £6 / $8 an hour).
 LEAST_HOURLY_REWARD = {"GBP": 600, "USD": 800}
 
@@ -309,12 +372,126 @@ def add_places(client: ProlificClient, study_id: str, places: int) -> None:
     print(f"study {study_id}: {done['total_available_places']} places")
 
 
+# Recipients per call: Prolific's bulk messages take a few thousand at most.
+MESSAGE_BATCH = 1000
+
+
+def message(args: argparse.Namespace, settings: Settings) -> None:
+    """Send the message to the recipients through Prolific and store each one it took (one
+    row per recipient in ``messages``); nothing is stored for a message it refused."""
+    from sqlalchemy import select
+
+    from server.app.storage import db as database
+    from server.app.storage.models import Message, Participant, utcnow
+
+    try:
+        db = database.Database.from_url(settings.database_url)
+    except Exception as error:
+        raise Refused(f"cannot open the database (BAM_DATABASE_URL): {error}") from None
+    try:
+        current, head = database.current_revision(db.engine), database.head_revision()
+        if current != head:
+            raise Refused(
+                f"the database is at schema {current or 'none'}, not {head}: run "
+                "`bam-study db upgrade` first; nothing was sent"
+            )
+        client = client_for(args, settings)
+        try:
+            if args.to:
+                wanted = list(dict.fromkeys(args.to))
+            else:
+                wanted = list(
+                    dict.fromkeys(
+                        str(s["participant_id"])
+                        for s in client.submissions(args.study)
+                        if s.get("status") == args.status
+                    )
+                )
+                if not wanted:
+                    print(f"no submission of study {args.study} is {args.status}: nothing sent")
+                    return
+            with db.read() as s:
+                found = s.execute(
+                    select(Participant.worker_id, Participant.id)
+                    .where(
+                        Participant.platform == "prolific",
+                        Participant.hit_id == args.study,
+                        Participant.worker_id.in_(wanted),
+                    )
+                    .order_by(Participant.id)
+                ).all()
+            ours = {str(worker): int(number) for worker, number in found}  # the newest wins
+            missing = [who for who in wanted if who not in ours]
+            if missing and args.to:
+                raise Refused(
+                    f"{', '.join(missing)}: no participant of study {args.study} in the "
+                    "database (an unknown PROLIFIC_PID, another study's, or one erased or "
+                    "scrubbed); nothing was sent"
+                )
+            if missing:
+                print(
+                    f"bam-study prolific message: {len(missing)} submission(s) that are "
+                    f"{args.status} belong to no participant in the database (erased, or never "
+                    "arrived): not messaged",
+                    file=sys.stderr,
+                )
+            recipients = [who for who in wanted if who in ours]
+            if not recipients:
+                print(f"no participant of study {args.study} to message: nothing sent")
+                return
+            backend = "prolific-replica" if args.replica else "prolific"
+            sent = 0
+            for start in range(0, len(recipients), MESSAGE_BATCH):
+                batch = recipients[start : start + MESSAGE_BATCH]
+                try:
+                    answer = client.send_message(args.study, batch, args.body)
+                except Exception:
+                    if sent:
+                        print(
+                            f"bam-study prolific message: sent to {sent} participant(s) before "
+                            "the refusal below (stored in messages)",
+                            file=sys.stderr,
+                        )
+                    raise
+                now = utcnow()
+                try:
+                    with db.write() as s:
+                        s.add_all(
+                            Message(
+                                participant_id=ours[who],
+                                worker_id=who,
+                                study_id=args.study,
+                                body=args.body,
+                                backend=backend,
+                                sent_with="messages" if len(batch) == 1 else "messages/bulk",
+                                answer_status=answer,
+                                sent_at=now,
+                            )
+                            for who in batch
+                        )
+                except Exception as error:
+                    raise Refused(
+                        f"Prolific took the message to {sent + len(batch)} participant(s), but "
+                        f"the last {len(batch)} could not be stored in messages: {error}"
+                    ) from None
+                sent += len(batch)
+        finally:
+            client.close()
+    finally:
+        db.dispose()
+    print(
+        f"sent to {sent} participant(s) of study {args.study} (Prolific answered {answer}); "
+        "stored in messages"
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     from server.app.platforms.review import ReviewRefused, ReviewUnavailable
     from server.app.settings import SettingsError, load_settings
 
+    flags = {"database_url": ("--database-url", getattr(args, "database_url", None))}
     try:
-        settings = load_settings()
+        settings = load_settings(flags)
     except SettingsError as error:
         print(f"bam-study prolific: {error}", file=sys.stderr)
         return 2
@@ -322,10 +499,15 @@ def run(args: argparse.Namespace) -> int:
         if args.action == "create":
             create(args, settings)
             return 0
+        if args.action == "message":
+            message(args, settings)
+            return 0
         client = client_for(args, settings)
         try:
             if args.action == "status":
                 status(client, args.study_id)
+            elif args.action == "counts":
+                counts(client, args.study_id)
             elif args.action == "add-places":
                 add_places(client, args.study_id, args.places)
             elif args.action == "publish":

@@ -20,6 +20,8 @@ import pytest
 from sqlalchemy import select
 
 from server.app.config import DEFAULT_STUDY_CONFIG, StudyConfigError, load_study_config
+from server.app.export.columns import DICTIONARY
+from server.app.export.tables import export_tables
 from server.app.main import create_app
 from server.app.platforms.prolific import (
     NO_CONSENT_REASON,
@@ -30,7 +32,7 @@ from server.app.platforms.prolific import (
 from server.app.platforms.prolific_replica import ReplicaTransport
 from server.app.settings import Settings
 from server.app.storage.db import Database
-from server.app.storage.models import Participant
+from server.app.storage.models import Message, Participant, utcnow
 from server.app.storage.replica_models import ProlificReplicaSubmission
 from server.commands import prolific as prolific_command
 from server.commands.main import main
@@ -612,3 +614,228 @@ def test_the_replica_gives_a_draft_without_a_maximum_time_the_largest(db: Databa
     assert client.create_study(fields)["maximum_allowed_time"] == 24 * 60 - 1
     fields["maximum_allowed_time"] = 73
     assert client.create_study(fields)["maximum_allowed_time"] == 73
+
+
+def take_part(server: str, study_id: str, finish: bool, arrive: bool = False) -> tuple[str, str]:
+    """A replica participant takes a place in the study (a new PROLIFIC_PID), arrives at the
+    study server through the study's link when ``arrive``, and completes the submission with
+    the study's code when ``finish``; their PROLIFIC_PID and submission id."""
+    with httpx.Client(base_url=server, headers={"Authorization": f"Bearer {ADMIN_TOKEN}"}) as who:
+        taken = who.post(f"/prolific/studies/{study_id}/take-part")
+        assert taken.status_code == 303, taken.text
+        link = taken.headers["location"]
+        pid = re.search(r"PROLIFIC_PID=([0-9a-f]{24})", link)
+        submission = re.search(r"SESSION_ID=([0-9a-f]{24})", link)
+        assert pid is not None and submission is not None
+        if arrive:
+            ids = {"PROLIFIC_PID": pid[1], "STUDY_ID": study_id, "SESSION_ID": submission[1]}
+            arrived = httpx.post(f"{server}/api/arrivals", json=ids)
+            assert arrived.status_code == 201, arrived.text
+        if finish:
+            assert who.get("/prolific/submissions/complete?cc=C1A2B3C4").status_code == 200
+        return pid[1], submission[1]
+
+
+def test_counts_prints_prolifics_count_of_the_studys_submissions_per_status(
+    server: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("BAM_ADMIN_TOKEN", ADMIN_TOKEN)
+    client = ProlificClient(f"{server}/prolific/api/v1", ADMIN_TOKEN)
+    study = study_config(completion=COMPLETION, prolific=PROLIFIC)
+    made = client.create_study(draft_study(study, max_concurrent=3, base_url=server))
+    other = client.create_study(draft_study(study, max_concurrent=3, base_url=server))
+    for study_id in (made["id"], other["id"]):
+        client.transition_study(study_id, "PUBLISH")
+    take_part(server, made["id"], finish=True)
+    take_part(server, made["id"], finish=True)
+    _, returned = take_part(server, made["id"], finish=False)
+    take_part(server, other["id"], finish=False)  # another study's: not counted
+    with httpx.Client(base_url=server, headers={"Authorization": f"Bearer {ADMIN_TOKEN}"}) as who:
+        assert who.post(f"/prolific/submissions/{returned}/return").status_code == 303
+
+    counted = client.submission_counts(made["id"])
+    assert counted == {
+        "ACTIVE": 0,
+        "APPROVED": 0,
+        "AWAITING REVIEW": 2,
+        "REJECTED": 0,
+        "RESERVED": 0,
+        "RETURNED": 1,
+        "TIMED-OUT": 0,
+        "PARTIALLY APPROVED": 0,
+        "SCREENED OUT": 0,
+        "TOTAL": 3,
+    }
+    # The same as counting the listed submissions one by one.
+    listed = [s["status"] for s in client.submissions(made["id"])]
+    assert {k: v for k, v in counted.items() if v and k != "TOTAL"} == {
+        status: listed.count(status) for status in set(listed)
+    }
+
+    status, out, err = run_command(["prolific", "counts", made["id"], "--replica", server], capsys)
+    assert status == 0, err
+    lines = out.strip().splitlines()
+    assert lines[0] == f"study {made['id']}"
+    assert re.fullmatch(r"status\s+submissions", lines[1])
+    rows = dict(line.rsplit(None, 1) for line in lines[2:])
+    assert rows == {k: str(v) for k, v in counted.items()}
+    assert lines[-1].split() == ["TOTAL", "3"]
+    # In the order of Prolific's submission statuses.
+    assert [line.rsplit(None, 1)[0] for line in lines[2:5]] == ["RESERVED", "ACTIVE", "TIMED-OUT"]
+
+    status, out, err = run_command(["prolific", "counts", "a" * 24, "--replica", server], capsys)
+    assert status == 1 and out == ""
+    assert f"Study {'a' * 24} not found" in err and "(404)" in err
+    status, _, err = run_command(["prolific", "counts", "not-a-study"], capsys)
+    assert status == 2 and "is not a Prolific study id" in err
+    client.close()
+
+
+def test_message_sends_through_prolific_and_keeps_each_message_until_the_participant_is_erased(
+    server: str,
+    db: Database,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    monkeypatch.setenv("BAM_ADMIN_TOKEN", ADMIN_TOKEN)
+    monkeypatch.setenv("BAM_DATABASE_URL", db.engine.url.render_as_string(hide_password=False))
+    client = ProlificClient(f"{server}/prolific/api/v1", ADMIN_TOKEN)
+    study = study_config(completion=COMPLETION, prolific=PROLIFIC)
+    made = client.create_study(draft_study(study, max_concurrent=3, base_url=server))
+    study_id = made["id"]
+    client.transition_study(study_id, "PUBLISH")
+    # Two finish (AWAITING REVIEW), one is still taking part; all three arrived at the server.
+    first, _ = take_part(server, study_id, finish=True, arrive=True)
+    second, _ = take_part(server, study_id, finish=True, arrive=True)
+    working, _ = take_part(server, study_id, finish=False, arrive=True)
+    replica = ["--replica", server]
+
+    def stored() -> list[tuple[str, str, str, int, str]]:
+        with db.read() as s:
+            rows = s.scalars(select(Message).order_by(Message.id)).all()
+            return [(m.worker_id, m.body, m.sent_with, m.answer_status, m.backend) for m in rows]
+
+    # One participant: POST /messages/; Prolific keeps it, and so do we.
+    thanks = "Thank you for teaching the robots! Your submission will be reviewed today."
+    status, out, err = run_command(
+        ["prolific", "message", "--study", study_id, "--to", first, "--body", thanks, *replica],
+        capsys,
+    )
+    assert status == 0, err
+    assert out.strip() == (
+        f"sent to 1 participant(s) of study {study_id} (Prolific answered 204); stored in messages"
+    )
+    [kept] = client.messages_with(first)
+    assert (kept["body"], kept["data"]["study_id"]) == (thanks, study_id)
+    assert stored() == [(first, thanks, "messages", 204, "prolific-replica")]
+
+    # Everyone awaiting review: one bulk call, to the two who finished and not the third.
+    later = "A bonus follows within two days."
+    everyone = ["--status", "AWAITING_REVIEW", "--body", later]
+    status, out, err = run_command(
+        ["prolific", "message", "--study", study_id, *everyone, *replica], capsys
+    )
+    assert status == 0, err
+    assert out.startswith(f"sent to 2 participant(s) of study {study_id}"), out
+    assert [m["body"] for m in client.messages_with(first)] == [thanks, later]
+    assert [m["body"] for m in client.messages_with(second)] == [later]
+    assert client.messages_with(working) == []
+    assert stored()[1:] == [
+        (first, later, "messages/bulk", 204, "prolific-replica"),
+        (second, later, "messages/bulk", 204, "prolific-replica"),
+    ]
+
+    # Refused before anything is sent: an unknown participant (among known ones), an empty
+    # message, a status Prolific does not have. Nothing is sent or stored.
+    unknown = "f" * 24
+    for argv, code, said in (
+        (["--to", second, unknown, "--body", later], 1, f"{unknown}: no participant of study"),
+        (["--to", second, "--body", "  "], 2, "the message is empty"),
+        (["--status", "FINISHED", "--body", later], 2, "is not a Prolific submission status"),
+    ):
+        status, out, err = run_command(
+            ["prolific", "message", "--study", study_id, *argv, *replica], capsys
+        )
+        assert (status, out) == (code, ""), err
+        assert said in err.strip().splitlines()[-1], err
+    assert len(stored()) == 3 and client.messages_with(unknown) == []
+    assert [m["body"] for m in client.messages_with(second)] == [later]
+
+    # One of ours whom Prolific refuses (no submission of the study on Prolific): its refusal
+    # in one line, exit 1, nothing stored.
+    stranger = {"PROLIFIC_PID": "e" * 24, "STUDY_ID": study_id, "SESSION_ID": "d" * 24}
+    assert httpx.post(f"{server}/api/arrivals", json=stranger).status_code == 201
+    status, out, err = run_command(
+        ["prolific", "message", "--study", study_id, "--to", "e" * 24, "--body", later, *replica],
+        capsys,
+    )
+    assert (status, out) == (1, "")
+    assert "Prolific refused POST /messages/ (400)" in err and "has no submission in study" in err
+    assert len(stored()) == 3
+
+    # Exported, the ids pseudonymised as in participants.csv.
+    tables = export_tables(db)
+    messages = tables["messages"]
+    assert list(messages.columns) == list(DICTIONARY["messages"])
+    participants = tables["participants"].set_index("participant_id")
+    assert list(messages["body"]) == [thanks, later, later]
+    assert list(messages["prolific_answer"]) == [204, 204, 204]
+    for _, row in messages.iterrows():
+        assert row["worker_id"].startswith("w_") and row["study_id"] == study_id
+        assert participants.loc[row["participant_id"], "worker_id"] == row["worker_id"]
+    first_pseudonym = messages["worker_id"].iloc[0]
+
+    # Erased with the participant: their two rows go, and the audit row counts them.
+    status, out, err = run_command(["erase", first, "--yes"], capsys)
+    assert status == 0, err
+    assert "messages 2" in out
+    assert [row[0] for row in stored()] == [second]
+    erasures = export_tables(db)["erasures"]
+    assert list(erasures["messages_rows"]) == [2]
+    assert list(erasures["worker_id"]) == [first_pseudonym]
+    # Scrubbed like the other ids: the raw PROLIFIC_PID is replaced by its pseudonym.
+    status, out, err = run_command(["db", "scrub"], capsys)
+    assert status == 0, err
+    with db.read() as s:
+        assert s.scalars(select(Message.worker_id)).all() == [messages["worker_id"].iloc[2]]
+    assert list(export_tables(db)["messages"]["worker_id"]) == list(messages["worker_id"][2:])
+    client.close()
+
+
+def test_the_replica_messages_every_recipient_or_none_and_lists_what_it_sent(db: Database) -> None:
+    client = replica_client(db)
+    made = client.create_study(
+        draft_study(study_config(completion=COMPLETION, prolific=PROLIFIC), 3)
+    )
+    took_part, stranger = "a" * 24, "b" * 24
+    with db.write() as s:
+        s.add(
+            ProlificReplicaSubmission(
+                id="1" * 24,
+                study_id=made["id"],
+                participant_id=took_part,
+                status="AWAITING REVIEW",
+                started_at=utcnow(),
+            )
+        )
+    # One recipient without a submission of the study: the bulk message goes to no one.
+    with pytest.raises(ProlificRefused, match=f"Participant {stranger} has no submission"):
+        client.send_message(made["id"], [took_part, stranger], "Hello")
+    with pytest.raises(ProlificRefused, match="body: This field may not be blank"):
+        client.send_message(made["id"], [took_part], "  ")
+    with pytest.raises(ProlificRefused, match=f"Study {'c' * 24} not found"):
+        client.send_message("c" * 24, [took_part], "Hello")
+    assert client.messages_with(took_part) == []
+    assert client.send_message(made["id"], [took_part, took_part], "Hello") == 204
+    [sent] = client.messages_with(took_part)
+    assert (sent["body"], sent["type"], sent["data"]) == (
+        "Hello",
+        "message",
+        {"study_id": made["id"]},
+    )
+    with pytest.raises(ProlificRefused, match="user_id or created_after is required"):
+        client.request("GET", "messages/")
+    since = client.request("GET", "messages/", params={"created_after": "2026-01-01T00:00:00Z"})
+    assert [m["id"] for m in since["results"]] == [sent["id"]]
+    client.close()

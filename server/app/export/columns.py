@@ -456,6 +456,38 @@ BONUSES = (
 )
 
 
+MESSAGES = (
+    Column(
+        "message_id",
+        "Message number (database id): one recipient of one message.",
+        INT,
+        lambda m, ctx: m.id,
+    ),
+    Column("participant_id", "The participant messaged.", INT),
+    _pseudonymised(
+        "worker_id",
+        WORKER,
+        "The Prolific participant messaged (pseudonymised as in participants.csv).",
+        owner="participant_id",
+    ),
+    Column("study_id", "The Prolific STUDY_ID the message was about."),
+    Column("body", "The message as sent (bam-study prolific message)."),
+    Column("backend", "Where it was sent: prolific or prolific-replica."),
+    Column(
+        "sent_with",
+        "Prolific's call: messages (to one participant) or messages/bulk (the same message "
+        "to several in one call).",
+    ),
+    Column(
+        "prolific_answer",
+        "Prolific's HTTP status for the call (204: sent); a message it refused is not stored.",
+        INT,
+        lambda m, ctx: m.answer_status,
+    ),
+    Column("sent_at", "When Prolific took the message (UTC).", TIME),
+)
+
+
 def _cell(name: str, description: str, of: str, part: int) -> Column:
     """The row (``part`` 0) or column (1) of an attention check's cell ``of``."""
     return Column(name, description, INT, lambda x, ctx: divmod(getattr(x, of), x.size)[part])
@@ -511,6 +543,7 @@ ERASED_TABLES = (
     "participant_tokens",
     "assignment_reviews",
     "bonuses",
+    "messages",
     "mturk_replica_assignments",
     "mturk_replica_submissions",
     "mturk_replica_bonuses",
@@ -572,6 +605,7 @@ FILES: dict[str, tuple[Column, ...]] = {
     "questionnaire_answers": QUESTIONNAIRE_ANSWERS,
     "reviews": REVIEWS,
     "bonuses": BONUSES,
+    "messages": MESSAGES,
     "attention_checks": ATTENTION_CHECKS,
     "erasures": ERASURES,
     "quality": QUALITY,

@@ -27,6 +27,8 @@ DESCRIPTIONS = {
     "reviews": "One row per submitted MTurk assignment or Prolific submission the "
     "experimenter approved or rejected.",
     "bonuses": "One row per bonus the experimenter paid (or asked the platform to pay).",
+    "messages": "One row per participant messaged through Prolific (bam-study prolific "
+    "message), for each message Prolific took; a refused message has none.",
     "attention_checks": "One row per instructional attention check of a participant (the "
     "study file's [attention_checks]; none without it): move the robot to the star.",
     "quality": "One row per participant who completed: quality checks built for teaching "

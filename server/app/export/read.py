@@ -28,6 +28,7 @@ from server.app.storage.models import (
     Event,
     LearnerUpdate,
     LearningSession,
+    Message,
     Participant,
     QuestionnaireAnswer,
     StatusChange,
@@ -44,6 +45,7 @@ class Study:
     answers: Sequence[QuestionnaireAnswer]
     reviews: Sequence[AssignmentReview]
     bonuses: Sequence[Bonus]
+    messages: Sequence[Message]
     erasures: Sequence[Erasure]
     checks: Sequence[AttentionCheck]
     sessions: Sequence[LearningSession]
@@ -93,6 +95,7 @@ def read_study(db: Database) -> Study:
             answers=s.scalars(select(QuestionnaireAnswer).order_by(QuestionnaireAnswer.id)).all(),
             reviews=s.scalars(select(AssignmentReview).order_by(AssignmentReview.id)).all(),
             bonuses=s.scalars(select(Bonus).order_by(Bonus.id)).all(),
+            messages=s.scalars(select(Message).order_by(Message.id)).all(),
             erasures=s.scalars(select(Erasure).order_by(Erasure.id)).all(),
             checks=s.scalars(
                 select(AttentionCheck).order_by(

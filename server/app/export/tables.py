@@ -22,6 +22,7 @@ from server.app.export.columns import (
     EVALUATIONS,
     EVENTS,
     INT,
+    MESSAGES,
     PARTICIPANTS,
     QUESTIONNAIRE_ANSWERS,
     REVIEWS,
@@ -79,6 +80,7 @@ def export_tables(
         "questionnaire_answers": (QUESTIONNAIRE_ANSWERS, study.answers),
         "reviews": (REVIEWS, study.reviews),
         "bonuses": (BONUSES, study.bonuses),
+        "messages": (MESSAGES, study.messages),
         "attention_checks": (ATTENTION_CHECKS, study.checks),
         "erasures": (ERASURES, study.erasures),
     }

@@ -99,9 +99,17 @@ class ProlificClient:
         self._http.close()
 
     def request(
-        self, method: str, path: str, *, retry: bool = True, creates: bool = False, **kwargs: Any
+        self,
+        method: str,
+        path: str,
+        *,
+        retry: bool = True,
+        creates: bool = False,
+        with_status: bool = False,
+        **kwargs: Any,
     ) -> Any:
-        """Prolific's JSON answer (None for an empty one). ``retry=False`` for a call that must
+        """Prolific's JSON answer (None for an empty one; with ``with_status``, the answer's
+        status code and it). ``retry=False`` for a call that must
         not be sent twice (``pay``): a failure then is reported, never resent. ``creates`` for
         a call that makes something (a draft study, a bonus set-up): resent only where
         Prolific cannot have acted (a 429, a connection that never opened); after a 5xx or a
@@ -139,7 +147,8 @@ class ProlificClient:
                         f"({response.status_code}): {_message(response)}",
                     )
                 else:
-                    return response.json() if response.content else None
+                    answer = response.json() if response.content else None
+                    return (response.status_code, answer) if with_status else answer
             self.sleep(wait)
             wait *= 2
         raise AssertionError("unreachable")  # pragma: no cover
@@ -227,6 +236,18 @@ class ProlificClient:
                 return
             page += 1
 
+    def submission_counts(self, study_id: str) -> dict[str, int]:
+        """The study's submissions per status, and their ``TOTAL``, in one call
+        (``GET /studies/{id}/submissions/counts/``)."""
+        body = self.request("GET", f"studies/{study_id}/submissions/counts/")
+        if not isinstance(body, dict) or not all(
+            isinstance(n, (int, float)) and not isinstance(n, bool) for n in body.values()
+        ):
+            raise ProlificUnavailable(
+                f"Prolific's counts of study {study_id}'s submissions are not numbers per status"
+            )
+        return {str(status): round(n) for status, n in body.items()}
+
     def submission(self, study_id: str, submission_id: str) -> dict[str, Any]:
         body = dict(self.request("GET", f"submissions/{submission_id}/"))
         if body.get("study_id") not in (None, study_id):
@@ -255,6 +276,33 @@ class ProlificClient:
                 "submissions/bulk-approve/",
                 json={"submission_ids": submission_ids[start : start + 1000]},
             )
+
+    # -- messages -------------------------------------------------------------------------
+    def send_message(self, study_id: str, recipients: list[str], body: str) -> int:
+        """Send ``body`` about the study to each participant of ``recipients``: one with
+        ``POST /messages/``, several with ``POST /messages/bulk/``; Prolific's status code
+        (204: sent). Resent only where Prolific cannot have sent it (a 429, no connection)."""
+        if len(recipients) == 1:
+            status, _ = self.request(
+                "POST",
+                "messages/",
+                json={"recipient_id": recipients[0], "body": body, "study_id": study_id},
+                creates=True,
+                with_status=True,
+            )
+        else:
+            status, _ = self.request(
+                "POST",
+                "messages/bulk/",
+                json={"ids": recipients, "body": body, "study_id": study_id},
+                creates=True,
+                with_status=True,
+            )
+        return int(status)
+
+    def messages_with(self, user_id: str) -> list[dict[str, Any]]:
+        """The messages between the researcher and ``user_id`` (Prolific keeps 30 days)."""
+        return list(self.request("GET", "messages/", params={"user_id": user_id})["results"])
 
     # -- bonuses --------------------------------------------------------------------------
     def set_up_bonuses(self, study_id: str, bonuses: list[tuple[str, str]]) -> dict[str, Any]:

@@ -33,6 +33,7 @@ from server.app.platforms.review import PROLIFIC_MIN_MESSAGE
 from server.app.storage.records import table_of
 from server.app.storage.replica_models import (
     ProlificReplicaBonusSetup,
+    ProlificReplicaMessage,
     ProlificReplicaPayment,
     ProlificReplicaSubmission,
 )
@@ -53,6 +54,7 @@ AUTO_APPROVAL = timedelta(days=21)
 PROLIFIC_SUBMISSIONS = table_of(ProlificReplicaSubmission)
 PROLIFIC_PAYMENTS = table_of(ProlificReplicaPayment)
 PROLIFIC_BONUS_SETUPS = table_of(ProlificReplicaBonusSetup)
+PROLIFIC_MESSAGES = table_of(ProlificReplicaMessage)
 
 
 class Prolific(BasePlatform):
@@ -174,8 +176,10 @@ class Prolific(BasePlatform):
             PROLIFIC_BONUS_SETUPS.c.study_id == participant.hit_id
         )
         payments, submissions = PROLIFIC_PAYMENTS.c, PROLIFIC_SUBMISSIONS.c
+        messages = PROLIFIC_MESSAGES.c
         return [
             (PROLIFIC_PAYMENTS, and_(payments.participant_id == worker, payments.setup_id.in_(setups))),
+            (PROLIFIC_MESSAGES, and_(messages.recipient_id == worker, messages.study_id == participant.hit_id)),
             (PROLIFIC_SUBMISSIONS, and_(submissions.id == submission, submissions.participant_id == worker)),
         ]  # fmt: skip
 

@@ -10,7 +10,8 @@ server (the dashboard's reviews on a rehearsal). As on Prolific:
   codes and their actions, devices, filters, submissions_config, times), and published, paused
   and started with transitions; after publishing its places can only go up, and at most its
   max_concurrent_submissions take part at once;
-- submissions are listed for one study (``?study=`` is required), page by page;
+- submissions are listed for one study (``?study=`` is required), page by page, and counted
+  per status (``/studies/{id}/submissions/counts/``);
 - a completion code with the REQUEST_RETURN action (our NO_CONSENT code) completes the
   submission (AWAITING REVIEW) with ``return_requested`` set; it is RETURNED only if the
   participant then returns it (``routers/prolific.py``);
@@ -21,6 +22,8 @@ server (the dashboard's reviews on a rehearsal). As on Prolific:
 - bonuses are set up (``csv_bonuses``: participant or submission id, amount in the currency)
   and paid with ``pay``, which is not idempotent: a second ``pay`` pays again; a submission
   lists the bonuses paid on it (``bonus_payments``);
+- messages (``POST /messages/``, ``/messages/bulk/``) go only to participants with a
+  submission in the study named, are kept, and are listed with ``GET /messages/?user_id=``;
 - the one workspace (``Workspace``: its currency, the funds put in it) has a balance that the
   rewards of approved submissions and the bonuses paid take from, with Prolific's fee, and that
   published studies hold their places' cost from; the study cost calculator and the reward
@@ -29,10 +32,12 @@ server (the dashboard's reviews on a rehearsal). As on Prolific:
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 import secrets
 from dataclasses import dataclass
+from datetime import datetime, timedelta
 from decimal import Decimal, InvalidOperation
 from typing import Any
 from urllib.parse import parse_qs
@@ -49,6 +54,7 @@ from server.app.storage.db import Database
 from server.app.storage.models import utcnow
 from server.app.storage.replica_models import (
     ProlificReplicaBonusSetup,
+    ProlificReplicaMessage,
     ProlificReplicaPayment,
     ProlificReplicaStudy,
     ProlificReplicaSubmission,
@@ -86,9 +92,13 @@ DEVICES = ("desktop", "tablet", "mobile")
 PLACEHOLDERS = ("{{%PROLIFIC_PID%}}", "{{%STUDY_ID%}}", "{{%SESSION_ID%}}")
 
 
-# The replica's one workspace and project: every study is made in them.
+# The replica's one workspace and project: every study is made in them; its one researcher
+# (the sender of every message).
 WORKSPACE_ID = "5e0f000000000000000000a1"
 PROJECT_ID = "5e0f000000000000000000b1"
+RESEARCHER_ID = "5e0f000000000000000000c1"
+# GET /messages/ lists "up to the last 30 days of messages".
+MESSAGES_KEPT = timedelta(days=30)
 # Prolific's service fee on rewards and bonuses (VAT: none).
 SERVICE_FEE = Decimal("0.333")
 # Prolific's minimum hourly pay and the pay it recommends, in cents (researcher help).
@@ -484,6 +494,35 @@ def list_submissions(s: Session, query: dict[str, str]) -> tuple[int, Any]:
     }
 
 
+# The statuses ``GET /studies/{id}/submissions/counts/`` counts (its SubmissionsCountResponse).
+COUNTED_STATUSES = (
+    "ACTIVE",
+    "APPROVED",
+    "AWAITING REVIEW",
+    "REJECTED",
+    "RESERVED",
+    "RETURNED",
+    "TIMED-OUT",
+    "PARTIALLY APPROVED",
+    "SCREENED OUT",
+)
+
+
+def submission_counts(s: Session, study_id: str) -> tuple[int, Any]:
+    """``GET /studies/{id}/submissions/counts/``: the study's submissions per status (each of
+    Prolific's, 0 where none) and their ``TOTAL``."""
+    _study(s, study_id)
+    counted = dict(
+        s.execute(
+            select(ProlificReplicaSubmission.status, func.count())
+            .where(ProlificReplicaSubmission.study_id == study_id)
+            .group_by(ProlificReplicaSubmission.status)
+        ).all()
+    )
+    counts = {status: int(counted.get(status, 0)) for status in COUNTED_STATUSES}
+    return 200, {**counts, "TOTAL": int(sum(counted.values()))}
+
+
 def transition_submission(s: Session, submission_id: str, body: dict[str, Any]) -> tuple[int, Any]:
     row = _submission(s, submission_id)
     action = body.get("action")
@@ -598,11 +637,119 @@ def pay_bonuses(s: Session, setup_id: str) -> tuple[int, Any]:
     return 202, None
 
 
+# -- messages ---------------------------------------------------------------------------------
+def _message_text(body: dict[str, Any]) -> str:
+    text = body.get("body")
+    if not isinstance(text, str) or not text.strip():
+        raise Refusal(400, "body: This field may not be blank.")
+    return text
+
+
+def _recipients(s: Session, study_id: Any, ids: list[Any]) -> list[str]:
+    """The recipients, each a participant with a submission in the study (Prolific lets a
+    researcher message only those who took part in their studies), or a refusal naming the
+    first who is not."""
+    if not isinstance(study_id, str) or not study_id:
+        raise Refusal(400, "study_id: This field is required.")
+    _study(s, study_id)
+    if not ids or not all(isinstance(i, str) and i for i in ids):
+        raise Refusal(400, "recipient ids: a participant id is required.")
+    taken = set(
+        s.scalars(
+            select(ProlificReplicaSubmission.participant_id).where(
+                ProlificReplicaSubmission.study_id == study_id,
+                ProlificReplicaSubmission.participant_id.in_(ids),
+            )
+        )
+    )
+    for who in ids:
+        if who not in taken:
+            raise Refusal(
+                400,
+                f"Participant {who} has no submission in study {study_id}: you can message "
+                "only participants who took part in your studies.",
+            )
+    return list(dict.fromkeys(ids))
+
+
+def _send(s: Session, study_id: str, recipients: list[str], text: str) -> tuple[int, Any]:
+    now = utcnow()
+    for who in recipients:
+        s.add(
+            ProlificReplicaMessage(
+                id=new_id(),
+                sender_id=RESEARCHER_ID,
+                recipient_id=who,
+                study_id=study_id,
+                body=text,
+                sent_at=now,
+            )
+        )
+    return 204, None
+
+
+def send_message(s: Session, body: dict[str, Any]) -> tuple[int, Any]:
+    """``POST /messages/`` ``{recipient_id, body, study_id}``: 204, the message sent."""
+    text = _message_text(body)
+    recipients = _recipients(s, body.get("study_id"), [body.get("recipient_id")])
+    return _send(s, body["study_id"], recipients, text)
+
+
+def bulk_message(s: Session, body: dict[str, Any]) -> tuple[int, Any]:
+    """``POST /messages/bulk/`` ``{ids, body, study_id}``: 204, sent to every one of them, or
+    refused (400) and sent to none."""
+    text = _message_text(body)
+    ids = body.get("ids")
+    if not isinstance(ids, list):
+        raise Refusal(400, "ids: a list of participant ids is required.")
+    recipients = _recipients(s, body.get("study_id"), ids)
+    return _send(s, body["study_id"], recipients, text)
+
+
+def message_view(row: ProlificReplicaMessage) -> dict[str, Any]:
+    channel = hashlib.sha256(f"{row.sender_id}:{row.recipient_id}".encode()).hexdigest()[:24]
+    return {
+        "id": row.id,
+        "sender_id": row.sender_id,
+        "body": row.body,
+        "sent_at": row.sent_at.isoformat(),
+        "type": "message",
+        "channel_id": channel,
+        "data": {"study_id": row.study_id},
+    }
+
+
+def list_messages(s: Session, query: dict[str, str]) -> tuple[int, Any]:
+    """``GET /messages/?user_id=`` (the messages with that participant) or ``?created_after=``
+    (all messages since then), of the last 30 days, oldest first."""
+    since = utcnow() - MESSAGES_KEPT
+    where = [ProlificReplicaMessage.sent_at >= since]
+    if query.get("user_id"):
+        where.append(ProlificReplicaMessage.recipient_id == query["user_id"])
+    elif query.get("created_after"):
+        try:
+            after = datetime.fromisoformat(query["created_after"].replace("Z", "+00:00"))
+        except ValueError:
+            raise Refusal(400, "created_after: a date and time in ISO 8601.") from None
+        if after.tzinfo is None:
+            after = after.replace(tzinfo=since.tzinfo)
+        where.append(ProlificReplicaMessage.sent_at > after)
+    else:
+        raise Refusal(400, "user_id or created_after is required.")
+    rows = s.scalars(
+        select(ProlificReplicaMessage)
+        .where(*where)
+        .order_by(ProlificReplicaMessage.sent_at, ProlificReplicaMessage.id)
+    ).all()
+    return 200, {"results": [message_view(row) for row in rows]}
+
+
 ROUTES: list[tuple[str, re.Pattern[str], str]] = [
     ("POST", re.compile(r"studies/"), "create_study"),
     ("GET", re.compile(r"studies/(?P<id>[0-9a-f]{24})/"), "get_study"),
     ("PATCH", re.compile(r"studies/(?P<id>[0-9a-f]{24})/"), "update_study"),
     ("POST", re.compile(r"studies/(?P<id>[0-9a-f]{24})/transition/"), "transition_study"),
+    ("GET", re.compile(r"studies/(?P<id>[0-9a-f]{24})/submissions/counts/"), "submission_counts"),
     ("GET", re.compile(r"submissions/"), "list_submissions"),
     ("POST", re.compile(r"submissions/bulk-approve/"), "bulk_approve"),
     ("POST", re.compile(r"submissions/bonus-payments/"), "set_up_bonuses"),
@@ -613,6 +760,9 @@ ROUTES: list[tuple[str, re.Pattern[str], str]] = [
     ("GET", re.compile(r"workspaces/(?P<id>[0-9a-f]{24})/balance/"), "get_balance"),
     ("POST", re.compile(r"study-cost-calculator/"), "study_cost"),
     ("GET", re.compile(r"reward-recommendations/"), "reward_recommendations"),
+    ("POST", re.compile(r"messages/"), "send_message"),
+    ("GET", re.compile(r"messages/"), "list_messages"),
+    ("POST", re.compile(r"messages/bulk/"), "bulk_message"),
 ]
 
 
@@ -655,6 +805,8 @@ def handle(
                 return transition_study(s, ident, body)
             if name == "list_submissions":
                 return list_submissions(s, query)
+            if name == "submission_counts":
+                return submission_counts(s, ident)
             if name == "bulk_approve":
                 return bulk_approve(s, body)
             if name == "set_up_bonuses":
@@ -675,6 +827,12 @@ def handle(
                 return study_cost(body)
             if name == "reward_recommendations":
                 return reward_recommendations(query)
+            if name == "send_message":
+                return send_message(s, body)
+            if name == "bulk_message":
+                return bulk_message(s, body)
+            if name == "list_messages":
+                return list_messages(s, query)
             return pay_bonuses(s, ident)
     except Refusal as refused:
         return refused.status, error_body(refused.status, refused.detail)

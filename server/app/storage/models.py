@@ -381,6 +381,25 @@ class Bonus(Base):
     paid_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
 
 
+class Message(Base):
+    """A message sent to a participant through Prolific's messages API (``bam-study prolific
+    message``), one row per recipient, written once Prolific took it: a message it refused is
+    not stored."""
+
+    __tablename__ = "messages"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), index=True)
+    worker_id: Mapped[str] = mapped_column(String(128))  # the recipient's PROLIFIC_PID
+    study_id: Mapped[str] = mapped_column(String(128))  # the STUDY_ID the message is about
+    body: Mapped[str] = mapped_column(Text)
+    backend: Mapped[str] = mapped_column(String(24))  # prolific or prolific-replica
+    # Prolific's call (messages: one recipient; messages/bulk: several) and its answer (204).
+    sent_with: Mapped[str] = mapped_column(String(32))
+    answer_status: Mapped[int] = mapped_column(Integer)
+    sent_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
 class ProlificEvent(Base):
     """A Prolific webhook event applied (``X-Event-ID``): delivery is at-least-once, so each
     event is applied once."""

@@ -139,3 +139,17 @@ class ProlificReplicaPayment(Base):
     participant_id: Mapped[str] = mapped_column(String(24))
     amount: Mapped[int] = mapped_column(Integer)  # cents
     paid_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class ProlificReplicaMessage(Base):
+    """A message the researcher sent (``POST /messages/`` or ``/messages/bulk/``), one row per
+    recipient, as Prolific lists them (``GET /messages/?user_id=``)."""
+
+    __tablename__ = "prolific_replica_messages"
+
+    id: Mapped[str] = mapped_column(String(24), primary_key=True)
+    sender_id: Mapped[str] = mapped_column(String(24))
+    recipient_id: Mapped[str] = mapped_column(String(24), index=True)  # PROLIFIC_PID
+    study_id: Mapped[str] = mapped_column(String(24))
+    body: Mapped[str] = mapped_column(Text)
+    sent_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)

@@ -273,7 +273,7 @@ def test_every_line_of_a_text_cell_is_guarded_and_its_line_breaks_quoted(brk: st
 
 def test_a_value_read_from_a_field_that_is_not_there_raises() -> None:
     """A misspelt field fails the export instead of leaving its column empty."""
-    study = Study(*([()] * 11))
+    study = Study(*([()] * 12))
     context = Context.of(study, pseudonymize=False, secret=None)
     row = SimpleNamespace(participant_id=3, rows={"events": 2})
     assert table_frame((Column("participant_id", "", INT),), [row], context).iloc[0, 0] == 3

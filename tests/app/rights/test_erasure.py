@@ -305,6 +305,7 @@ def test_a_table_added_with_a_key_to_a_participant_is_erased_without_a_word_else
         "events",
         "learner_updates",
         "learning_sessions",
+        "messages",
         "participant_tokens",
         "questionnaire_answers",
         "status_changes",

@@ -106,7 +106,10 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     names = [name for domain in study.domains for name in domain.environments]
     print(f"{args.study}: no problems; {len(names)} environment(s): {', '.join(names)}")
-    rates = calibrate(study.learners)
+    from server.learners.compile_notice import compile_notice
+
+    with compile_notice(sys.stderr, PROG):
+        rates = calibrate(study.learners)
     warnings = 0
     for name in names:
         env = domains.make(name)

@@ -13,9 +13,13 @@ from __future__ import annotations
 import argparse
 import shlex
 import sys
+from contextlib import nullcontext
 from pathlib import Path
 
+from server.learners.compile_notice import compile_notice
 from server.simulation.config import EXPERIMENTS, ConfigError, RunConfig
+
+PROG = "bam-study simulate"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -169,7 +173,12 @@ def run(args: argparse.Namespace) -> int:
             f"{count(config.rounds, 'round')} each) on {backend.describe()}",
             file=sys.stderr,
         )
-        outcome = run_jobs(config, args.out, backend)
+        # A cluster's workers have caches of their own.
+        notice = (
+            nullcontext() if args.scheduler else compile_notice(sys.stderr, PROG, "the first jobs")
+        )
+        with notice:
+            outcome = run_jobs(config, args.out, backend)
     except KeyboardInterrupt:
         print(
             f"bam-study simulate: stopped; finished jobs are kept in {args.out}: run the same "

@@ -579,6 +579,10 @@ def _settle_from_record(db: Database, backend: ReviewBackend, who: Reviewed, tok
     on_record = sum(1 for cents in listed if round(cents) == row.amount_cents)
     confirmed = sum(1 for r in sent if r.state == "paid")
     doubtful = [r.id for r in sent if r.state != "paid"]
+    if row.id not in doubtful:
+        # Settled by a concurrent request between the two reads (PostgreSQL's read committed
+        # lets each statement see what committed meanwhile): answer as it left it.
+        return _as_settled(db, where, token)
     # The 2xx ones will all be on the record: at least this many doubtful ones were paid.
     if doubtful.index(row.id) < on_record - confirmed:
         paid = True
@@ -605,12 +609,18 @@ def _settle_from_record(db: Database, backend: ReviewBackend, who: Reviewed, tok
             .returning(Bonus.id)
         )
     if done is None:
-        with db.read() as s:
-            now_row = s.scalar(select(Bonus).where(where))
-        if now_row is not None and now_row.state == "paid":
-            return True
-        raise ApiError(409, _unsettled_message(now_row, token))
+        return _as_settled(db, where, token)
     return paid
+
+
+def _as_settled(db: Database, where: Any, token: str) -> bool:
+    """A bonus another request settled first: True where it is paid now, else 409 saying
+    what it waits for."""
+    with db.read() as s:
+        now_row = s.scalar(select(Bonus).where(where))
+    if now_row is not None and now_row.state == "paid":
+        return True
+    raise ApiError(409, _unsettled_message(now_row, token))
 
 
 def _unsettled_message(row: Any, token: str, on_record: bool | None = None) -> str:

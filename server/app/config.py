@@ -329,8 +329,9 @@ class Completion(_Strict):
         None,
         pattern=r"^[A-Za-z0-9_\-]{1,64}$",
         description="The study's Prolific NO_CONSENT completion code: a participant who declines "
-        "consent or withdraws is sent to prolific_url with it, so that Prolific asks them to "
-        "return the submission (without it, the page asks them to return it themselves).",
+        "consent is sent to prolific_url with it, and one who withdraws is given a button "
+        "there, so that Prolific asks them to return the submission (without it, the page asks "
+        "them to return it themselves).",
     )
     prolific_url: str = Field(
         "https://app.prolific.com/submissions/complete?cc={code}",

@@ -3,7 +3,10 @@
     bam-study check server/examples/office-study.toml --out /tmp/office-check
 
 Prints every problem of the study file (its maps' with their line and column, trapped starts
-among them: ``server.domains.reachability``) and stops there (exit status 1) if it has any;
+among them: ``server.domains.reachability``) and stops there (exit status 2) if it has any;
+a Prolific study (completion mode ``prolific``) that loads but that Prolific would refuse or
+that speaks of MTurk to Prolific's participants (``prolific_problems``) stops there too
+(exit status 1);
 else, for each environment the study teaches, its size (width x height), a drawing in the map's
 letters (and a PNG in ``--out``: ``server.domains.figure``), each task's optimal return, its
 traps (starts and reachable states from which its goal can never be reached; a warning for
@@ -15,14 +18,17 @@ per learner on the paper's doorway, with a warning where it exceeds ``UPDATE_SEC
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 if TYPE_CHECKING:
+    from server.app.config import StudyConfig
     from server.domains.base import Environment
 
 PROG = "bam-study check"
@@ -30,6 +36,12 @@ PROG = "bam-study check"
 # longer wait than this, several participants at once, is more than the server can take.
 UPDATE_SECONDS_CAPACITY = 2.0
 CALIBRATION_ENVIRONMENT = "doorway"
+# Words a Prolific participant would not understand: MTurk's own (a worker, a HIT, the requester).
+MTURK_WORDING = re.compile(
+    r"\b(Mechanical Turk|MTurk|Amazon Turk|HITs?|worker ?ID|workerId|requester)\b", re.IGNORECASE
+)
+# Study-file tables whose strings are not shown to participants as text.
+NOT_PARTICIPANT_TEXT = ("completion", "environments", "domains", "colours", "learner_settings")
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -101,6 +113,22 @@ def run(args: argparse.Namespace) -> int:
     except StudyConfigError as error:  # a file that cannot be used: 2, as serve answers it
         print(f"{PROG}: {error}", file=sys.stderr)
         return 2
+    if study.completion.mode == "prolific":
+        from server.app.settings import SettingsError, load_settings
+
+        try:
+            currency = load_settings().prolific_currency
+        except SettingsError as error:
+            print(f"{PROG}: {error}", file=sys.stderr)
+            return 2
+        problems = prolific_problems(study, currency)
+        if problems:
+            print(
+                f"{PROG}: {args.study}: {len(problems)} problem(s) for Prolific:", file=sys.stderr
+            )
+            for problem in problems:
+                print(f"  {problem}", file=sys.stderr)
+            return 1
     study.register_environments()
     out = args.out if args.out is not None else Path(f"{args.study.stem}-check")
     out.mkdir(parents=True, exist_ok=True)
@@ -169,3 +197,54 @@ def print_traps(env: Environment) -> int:
                 f"the goal: {traps.named(env, traps.reachable)}"
             )
     return warnings
+
+
+def texts(value: Any, path: str = "") -> Iterator[tuple[str, str]]:
+    """(where, text) for every string of a study file's dumped content."""
+    if isinstance(value, str):
+        yield path, value
+    elif isinstance(value, dict):
+        for key, item in value.items():
+            yield from texts(item, f"{path}.{key}" if path else str(key))
+    elif isinstance(value, list | tuple):
+        for index, item in enumerate(value):
+            yield from texts(item, f"{path}.{index}")
+
+
+def prolific_problems(study: StudyConfig, currency: str) -> list[str]:
+    """What Prolific would refuse in a Prolific study that loads, or what would mislead its
+    participants: no ``[prolific]`` table (``prolific create`` has nothing to make), a reward
+    below Prolific's minimum hourly pay in the workspace's ``currency`` (£6 / $8 an hour for
+    the estimated time; ``prolific publish`` refuses it too), and MTurk's wording in the texts
+    participants read. (A maximum time below Prolific's floor is refused when the file is
+    loaded: ``ProlificStudy``.)"""
+    from server.commands.prolific import LEAST_HOURLY_REWARD, amount
+
+    problems = []
+    prolific = study.prolific
+    if prolific is None:
+        problems.append(
+            "no [prolific] table: `bam-study prolific create` needs the study's name, "
+            "description, places, reward, times and public_url"
+        )
+    else:
+        hourly = prolific.reward_cents * 60 / prolific.estimated_minutes
+        least = LEAST_HOURLY_REWARD[currency]
+        if hourly < least:
+            problems.append(
+                f"prolific.reward: {amount(prolific.reward_cents, currency)} for an estimated "
+                f"{prolific.estimated_minutes} minutes is {amount(hourly, currency)} an hour, "
+                f"below Prolific's minimum of {amount(least, currency)} an hour (at least "
+                f"{amount(-(-least * prolific.estimated_minutes // 60), currency)}); "
+                "BAM_PROLIFIC_CURRENCY is the workspace's currency"
+            )
+    dumped = study.model_dump(mode="json", exclude=set(NOT_PARTICIPANT_TEXT))
+    for where, text in texts(dumped):
+        found = sorted({m.group(0) for m in MTURK_WORDING.finditer(text)})
+        if found:
+            problems.append(
+                f"{where}: speaks of MTurk ({', '.join(repr(f) for f in found)}) to Prolific's "
+                "participants: say Prolific, your Prolific ID, return the study, message the "
+                "researcher through Prolific"
+            )
+    return problems

@@ -220,3 +220,52 @@ def test_the_review_shows_the_ground_the_quality_checks_suggest(
     expect(detail.locator('[data-quality="attention-checks"]')).to_have_text(
         "Attention checks failed: 1 of 1"
     )
+
+
+def test_reject_asks_first_and_the_opened_participant_is_scrolled_to_and_focused(
+    page: Page, server: LiveServer
+) -> None:
+    """Reject, like Approve and Pay, asks before it sends (dismissed: nothing is sent). Opening
+    a participant, by mouse or by keyboard, brings their detail panel (below the table, out of
+    sight in a 1024 x 640 window) into view and puts the focus on its heading."""
+    page.set_viewport_size({"width": 1024, "height": 640})
+    submit_a_hit(page, server, "WREJECT")
+    page.goto(f"{server.url}/dashboard")
+    row = page.locator('#participants tr[data-participant]:has-text("WREJECT")')
+    heading = page.locator("#detail h2")
+    expect(row).to_be_visible()
+    page.evaluate("() => window.scrollTo(0, 0)")
+    row.click()
+    expect(heading).to_be_focused()
+    expect(heading).to_be_in_viewport()
+    page.wait_for_function(
+        "() => Math.abs(document.querySelector('#detail').getBoundingClientRect().top) < 2"
+    )
+
+    detail = page.locator("#detail")
+    feedback = "The submission is empty: no task was taught, so it cannot be approved, sorry."
+    page.get_by_label("Feedback to the worker (needed to reject)").fill(feedback)
+    asked: list[str] = []
+    page.once("dialog", lambda dialog: (asked.append(dialog.message), dialog.dismiss()))
+    detail.locator('[data-action="reject"]').click()
+    expect(detail.locator('[data-action="reject"]')).to_be_enabled()
+    reviews = (
+        "SELECT r.decision FROM assignment_reviews r JOIN participants p "
+        "ON p.id = r.participant_id WHERE p.worker_id = 'WREJECT'"
+    )
+    assert server.query(reviews) == []
+    assert asked == [
+        "Reject this submission? A decision is final: the participant is not paid for it."
+    ]
+    page.once("dialog", lambda dialog: (asked.append(dialog.message), dialog.accept()))
+    detail.locator('[data-action="reject"]').click()
+    expect(detail.locator('[data-review="rejected"]')).to_contain_text(feedback)
+    assert len(asked) == 2
+    assert [tuple(r) for r in server.query(reviews)] == [("rejected",)]
+
+    # By keyboard: the row, Enter, and the focus is on the panel's heading, in view.
+    page.evaluate("() => window.scrollTo(0, 0)")
+    row.focus()
+    page.keyboard.press("Enter")
+    expect(heading).to_be_focused()
+    expect(heading).to_be_in_viewport()

@@ -461,3 +461,96 @@ def test_a_command_waiting_for_its_servers_warm_up_says_why_and_how_long() -> No
         "  ... 16 s, 1 of 2 update processes ready",
         "  ... 32 s, 1 of 2 update processes ready",
     ]
+
+
+def test_the_example_prolific_study_passes_check(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv("BAM_PROLIFIC_CURRENCY", raising=False)  # GBP, the example's
+    monkeypatch.setattr(check, "calibrate", lambda names: dict.fromkeys(names, 1e-9))
+    study = EXAMPLES / "prolific-study.toml"
+    assert main(["check", str(study), "--out", str(tmp_path)]) == 0
+    captured = capsys.readouterr()
+    assert "no problems; 2 environment(s): two-rooms, doorway" in captured.out
+    assert captured.err == ""
+
+
+def prolific_copy(folder: Path, *replacements: tuple[str, str]) -> Path:
+    """The example Prolific study with each (old, new) replaced (each old must be there)."""
+    text = (EXAMPLES / "prolific-study.toml").read_text()
+    for old, new in replacements:
+        assert old in text, old
+        text = text.replace(old, new)
+    path = folder / "broken-prolific-study.toml"
+    path.write_text(text)
+    return path
+
+
+def test_check_refuses_a_prolific_study_prolific_would_refuse_or_that_speaks_of_mturk(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv("BAM_PROLIFIC_CURRENCY", raising=False)
+    monkeypatch.setattr(check, "calibrate", lambda names: dict.fromkeys(names, 1e-9))
+    out = tmp_path / "out"
+    study = prolific_copy(
+        tmp_path,
+        ("reward = 4.50", "reward = 2.50"),
+        ("return your submission on Prolific", "return the HIT on Mechanical Turk"),
+        ("Your Prolific ID is used", "Your worker ID is used"),
+    )
+    assert main(["check", str(study), "--out", str(out)]) == 1
+    error = capsys.readouterr().err
+    assert (
+        "prolific.reward: 2.50 GBP for an estimated 30 minutes is 5.00 GBP an hour, below "
+        "Prolific's minimum of 6.00 GBP an hour (at least 3.00 GBP)"
+    ) in error
+    assert "consent: speaks of MTurk ('HIT', 'Mechanical Turk', 'worker ID')" in error
+    assert "2 problem(s) for Prolific" in error
+    assert not out.exists()
+
+    # The minimum is the workspace currency's: 3.50 for 30 minutes is enough in GBP, not USD.
+    cheaper = prolific_copy(tmp_path, ("reward = 4.50", "reward = 3.50"))
+    assert main(["check", str(cheaper), "--out", str(out)]) == 0
+    capsys.readouterr()
+    monkeypatch.setenv("BAM_PROLIFIC_CURRENCY", "USD")
+    assert main(["check", str(cheaper), "--out", str(tmp_path / "out-usd")]) == 1
+    assert "7.00 USD an hour, below Prolific's minimum of 8.00 USD an hour" in (
+        capsys.readouterr().err
+    )
+    monkeypatch.delenv("BAM_PROLIFIC_CURRENCY")
+
+    # A maximum time below Prolific's floor: the file itself is refused, as `serve` refuses it.
+    hurried = prolific_copy(tmp_path, ("maximum_minutes = 90", "maximum_minutes = 31"))
+    assert main(["check", str(hurried), "--out", str(tmp_path / "out-hurried")]) == 2
+    assert "below Prolific's least maximum time for estimated_minutes 30: 73" in (
+        capsys.readouterr().err
+    )
+
+    # No [prolific] table: nothing for `prolific create` to make.
+    text = (EXAMPLES / "prolific-study.toml").read_text()
+    bare = tmp_path / "bare-prolific-study.toml"
+    bare.write_text(text[: text.index("\n[prolific]\n")] + text[text.index("\n[[domains]]") :])
+    assert main(["check", str(bare), "--out", str(tmp_path / "out-bare")]) == 1
+    assert "no [prolific] table" in capsys.readouterr().err
+
+
+def test_check_finds_the_default_study_s_mturk_wording_when_it_runs_on_prolific(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The paper's study file switched to Prolific as it stands: its consent speaks of MTurk."""
+    monkeypatch.delenv("BAM_PROLIFIC_CURRENCY", raising=False)
+    default = Path(__file__).resolve().parents[2] / "server" / "config" / "study.toml"
+    prolific = (EXAMPLES / "prolific-study.toml").read_text()
+    table = prolific[prolific.index("\n[prolific]\n") : prolific.index("\n[[domains]]")]
+    study = tmp_path / "study.toml"
+    study.write_text(
+        default.read_text().replace(
+            'mode = "mturk"', 'mode = "prolific"\nprolific_code = "C7K2M9QX"'
+        )
+        + "\n"
+        + table
+    )
+    assert main(["check", str(study), "--out", str(tmp_path / "out")]) == 1
+    error = capsys.readouterr().err
+    assert "consent: speaks of MTurk (" in error and "'Mechanical Turk'" in error
+    assert "'HIT'" in error and "'requester'" in error

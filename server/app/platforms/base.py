@@ -12,7 +12,8 @@ A platform says:
   (``awaits_decision``) and when the platform approves it by itself (``auto_approval_at``), its own rules for a rejection (``check_rejection``) and its status of
   the submission after a decision (``status_after``, kept in ``participants.platform_status``);
 - the rows of its local replica that hold a participant's turn (``own_replica_rows``) or name
-  them among others (``shared_replica_rows``), for erasure and scrubbing.
+  them among others (``shared_replica_rows``), for scrubbing (erasure leaves them: the
+  platform keeps its record).
 
 The platforms are found by name in ``server.app.platform_registry.PLATFORMS``.
 """

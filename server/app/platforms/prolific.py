@@ -40,7 +40,10 @@ SUBMISSION_STATUSES = (
 # The statuses that are a decision, as ours.
 PROLIFIC_DECISIONS = {"APPROVED": ReviewDecision.APPROVED, "REJECTED": ReviewDecision.REJECTED}
 RETRIED = frozenset({429, 500, 502, 503, 504})
-NO_CONSENT_REASON = "You did not consent to take part: please return the study."
+# Shown by Prolific to a participant who declined consent or withdrew (our NO_CONSENT code).
+NO_CONSENT_REASON = (
+    "You did not consent to take part, or you withdrew your consent: please return the study."
+)
 
 
 class ProlificRefused(ReviewRefused):

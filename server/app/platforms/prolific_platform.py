@@ -100,8 +100,12 @@ class Prolific(BasePlatform):
         code = self.no_consent_code(study)
         if code is None:
             return Leaving(self.done)
+        # Our page says what happened; its link takes the NO_CONSENT code to Prolific's
+        # completion URL, where the code's REQUEST_RETURN asks the participant to return.
         return Leaving(
-            "Your data has been deleted. Taking you back to Prolific\u2026",
+            "Your data has been deleted. Your submission stays on Prolific until you return it: "
+            "go back to Prolific with the button below, where you are asked to return it, and "
+            "press \u201cReturn\u201d there, so that you are not counted as having taken part.",
             self.handing(participant, study, code).redirect_url,
         )
 

@@ -554,6 +554,15 @@ def requests_return(code: dict[str, Any]) -> bool:
     return any(isinstance(a, dict) and a.get("action") == "REQUEST_RETURN" for a in actions)
 
 
+def return_reason(code: dict[str, Any]) -> str:
+    """The return reason of the code's REQUEST_RETURN action ('' without one)."""
+    actions = code.get("actions") or []
+    for action in actions:
+        if isinstance(action, dict) and action.get("action") == "REQUEST_RETURN":
+            return str(action.get("return_reason") or "")
+    return ""
+
+
 def bulk_approve(s: Session, body: dict[str, Any]) -> tuple[int, Any]:
     ids = body.get("submission_ids")
     if not isinstance(ids, list) or not ids or not all(isinstance(i, str) for i in ids):

@@ -4,6 +4,13 @@ table lost. The audit row holds no personal data: the pseudonyms are those of th
 that copies exported before can be cleaned.
 
 Erasure is the one exception to the append-only event log (docs/guarantees.md).
+
+The local platform replicas' rows (a Prolific submission, an MTurk assignment, their payments)
+are the platform's record, not ours: Prolific and MTurk keep theirs when a study erases a
+participant, so the replicas keep theirs too, under the platform's ids, and their status
+changes only as the platform's would (a withdrawn Prolific participant's NO_CONSENT code
+completes the submission with a return requested; returning it is theirs to do). Scrubbing
+(``scrub``) still replaces the replicas' ids by pseudonyms once they expire.
 """
 
 from __future__ import annotations
@@ -15,12 +22,7 @@ from pydantic import BaseModel, Field
 from sqlalchemy import Connection, delete, select
 
 from server.app.errors import ApiError
-from server.app.rights.identifiers import (
-    own_replica_rows,
-    rewrite_ids,
-    shared_replica_rows,
-    study_rows,
-)
+from server.app.rights.identifiers import study_rows
 from server.app.rights.pseudonyms import (
     WORKER,
     installation_secret,
@@ -101,20 +103,10 @@ def erase(
     statements: list[tuple[str, Any]] = [
         (table.name, delete(table).where(where)) for table, where in study_rows(participant_id)
     ]
-    # The local platform replica's rows of this participant's turn.
-    statements += [
-        (table.name, delete(table).where(where)) for table, where in own_replica_rows(record)
-    ]
     statements.append(("participants", delete(Participant).where(Participant.id == participant_id)))
     rows = {}
     for name, statement in statements:
         rows[name] = int(c.execute(statement.execution_options(synchronize_session=False)).rowcount)
-    if participant["identifiers_scrubbed_at"] is None:
-        # Rows that name them among others keep the others' ids, theirs under a pseudonym.
-        named = {participant["worker_id"]: worker, participant["assignment_id"]: assignment}
-        raw_ids = {raw: str(alias) for raw, alias in named.items() if raw and alias}
-        for shared, where in shared_replica_rows(record):
-            rewrite_ids(c, shared, where, raw_ids)
     erasure_id = add(
         c,
         ERASURES,

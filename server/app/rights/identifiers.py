@@ -4,9 +4,9 @@ participant (``study_rows``), and the rows of the local platform replicas (MTurk
 Prolific's) that hold their turn (each platform's ``own_replica_rows`` and
 ``shared_replica_rows``).
 
-The replicas stand in for the platforms, which keep their own copies; on a server that uses a
-replica, its rows are this server's data, so erasure removes them and scrubbing replaces their
-ids, as for the study's own rows.
+The replicas stand in for the platforms, which keep their own records: erasure removes the
+study's rows and leaves the replicas' (a participant erased here is still a submission on
+Prolific and an assignment on MTurk); scrubbing replaces the ids in both once they expire.
 """
 
 from __future__ import annotations
@@ -50,14 +50,14 @@ def study_rows(participant_id: int, metadata: MetaData = Base.metadata) -> list[
 
 def own_replica_rows(participant: Any) -> list[tuple[Table, Any]]:
     """(table, condition) for the replica rows of the participant's turn alone, children before
-    parents: erasure deletes them. ``participant`` is a participants row."""
+    parents: scrubbing replaces their ids. ``participant`` is a participants row."""
     return registry.platform(participant.platform).own_replica_rows(participant)
 
 
 def shared_replica_rows(participant: Any) -> list[tuple[Table, Any]]:
     """(table, condition) for replica rows that name the participant among others (a Prolific
-    bonus set-up's CSV, one line per participant): erasure and scrubbing replace the
-    participant's ids in them, and keep the others'."""
+    bonus set-up's CSV, one line per participant): scrubbing replaces the participant's ids
+    in them, and keeps the others'."""
     return registry.platform(participant.platform).shared_replica_rows(participant)
 
 

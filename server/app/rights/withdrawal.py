@@ -21,7 +21,9 @@ class Withdrawal(BaseModel):
     platform: PlatformName
     message: str
     redirect_url: str | None = Field(
-        None, description="Prolific with a NO_CONSENT code: send the participant here."
+        None,
+        description="Prolific with a NO_CONSENT code: the page's link back to Prolific (the "
+        "code's completion URL, where Prolific asks the participant to return the submission).",
     )
 
 

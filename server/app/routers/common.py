@@ -49,9 +49,27 @@ def format_time(moment: datetime | None) -> str:
 templates.env.filters["utc"] = format_time
 
 
-def notice(request: Request, title: str, message: str, status_code: int) -> Response:
+def notice(
+    request: Request,
+    title: str,
+    message: str,
+    status_code: int,
+    form: tuple[str, str, str] | None = None,
+) -> Response:
+    """A page that says one thing; ``form`` (its action, name and button label) adds one
+    button that posts there."""
+    action, name, label = form or (None, None, None)
     return templates.TemplateResponse(
-        request, "notice.html", {"title": title, "message": message}, status_code=status_code
+        request,
+        "notice.html",
+        {
+            "title": title,
+            "message": message,
+            "form_action": action,
+            "form_name": name,
+            "form_label": label,
+        },
+        status_code=status_code,
     )
 
 

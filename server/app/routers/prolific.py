@@ -37,6 +37,7 @@ from server.app.platforms.prolific_replica import (
     new_id,
     places_taken,
     requests_return,
+    return_reason,
     status_event,
     submission_view,
     taking_part,
@@ -302,14 +303,25 @@ def complete(
             # As Prolific: the submission is completed and the participant asked to return
             # it; it is RETURNED only if they do (and approved after 21 days if they never do).
             row.return_requested = row.completed_at
-        status = row.status
+        status, submission_id = row.status, row.id
         view = submission_view(row)
     notify(background, request, state, view)
+    if asked:
+        # As Prolific's page for such a code: the researcher's reason, and the way to return.
+        return notice(
+            request,
+            "Return requested",
+            f"Completion code {cc} accepted: the submission is {status}, and the researcher "
+            f"asks you to return it: \u201c{return_reason(codes[cc])}\u201d Returning it "
+            "cancels its reward; a submission never returned is approved, and paid, "
+            "automatically after 21 days.",
+            200,
+            form=(f"{REPLICA_PATH}/submissions/{submission_id}/return", "return", "Return"),
+        )
     return notice(
         request,
         "Submission recorded",
-        f"Completion code {cc} accepted: the submission is {status}."
-        + (" You are asked to return it: Return, beside it on /prolific." if asked else ""),
+        f"Completion code {cc} accepted: the submission is {status}.",
         200,
     )
 

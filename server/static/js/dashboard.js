@@ -63,7 +63,7 @@ async function loadParticipants() {
       h("td", {}, `${p.agents_finished} / ${p.agents}`),
       h("td", {}, p.minutes.toFixed(1)),
       h("td", { class: "mono" }, p.completion_code ?? ""));
-    const open = () => showParticipant(p.participant_id);
+    const open = () => showParticipant(p.participant_id, { reveal: true });
     row.addEventListener("click", open);
     row.addEventListener("keydown", (event) => event.key === "Enter" && open());
     return row;
@@ -99,7 +99,11 @@ async function loadSubmissions() {
     : [h("tr", {}, h("td", { colspan: 4, class: "muted" }, "Nothing submitted to the replica yet."))]));
 }
 
-async function showParticipant(id) {
+/** Fill the detail panel with participant ``id``; with ``reveal`` (the experimenter opened them),
+ * scroll the panel into view and move the focus to its heading: it sits below the table, often
+ * out of sight, and a keyboard user would otherwise stay on the row. A refresh after a decision
+ * leaves the page where it is. */
+async function showParticipant(id, { reveal = false } = {}) {
   selected = id;
   for (const row of document.querySelectorAll("#participants tr[data-participant]")) {
     row.classList.toggle("selected", Number(row.dataset.participant) === id);
@@ -108,7 +112,7 @@ async function showParticipant(id) {
   const detail = $("#detail");
   const sessions = h("div", { class: "sessions" });
   detail.replaceChildren(
-    h("div", { class: "card-head" }, h("h2", {}, `Participant ${p.participant_id}`), badge(p.status)),
+    h("div", { class: "card-head" }, h("h2", { id: "detail-heading", tabindex: -1 }, `Participant ${p.participant_id}`), badge(p.status)),
     h("div", { class: "detail-grid" },
       h("div", {},
         h("p", {}, h("strong", {}, "Worker "), h("span", { class: "mono" }, p.worker_id ?? "(none)")),
@@ -122,6 +126,11 @@ async function showParticipant(id) {
         h("ol", { class: "history" }, p.status_changes.map((c) => h("li", {}, badge(c.status), " ", time(c.at), c.note ? ` (${c.note})` : "")))),
       sessions));
   detail.hidden = false;
+  if (reveal) {
+    const still = window.matchMedia("(prefers-reduced-motion: reduce)").matches;
+    $("#detail-heading").focus({ preventScroll: true });
+    detail.scrollIntoView({ behavior: still ? "auto" : "smooth", block: "start" });
+  }
   for (const session of p.sessions) {
     const card = h("div", { class: "session-card", "data-session": session.session_id },
       h("h3", {}, h("span", { class: "colour-dot", title: session.colour, style: `background: ${session.colour_hex}` }),
@@ -309,6 +318,8 @@ function reviewSection(p) {
         feedback.focus();
         return;
       }
+      // As Approve and Pay: a decision is final, so it is asked first.
+      if (!window.confirm("Reject this submission? A decision is final: the participant is not paid for it.")) return;
       send("rejection", { message: text, rejection_category: prolific ? category.value : null }, [approve, reject], message);
     });
     const checked = p.status === "completed" || p.status === "submitted";

@@ -68,8 +68,11 @@ withdrawConfirm.addEventListener("click", async () => {
   }
   withdrawBar.hidden = true;
   withdrawDialog.close();
-  show(sheet(h("h1", {}, "Your data has been deleted"), h("p", { "data-withdrawn": done.platform }, done.message)));
-  if (done.redirect_url) window.location.assign(done.redirect_url);
+  // No redirect of its own: the participant reads what happened, then goes back to the platform.
+  const back = done.redirect_url
+    ? [h("p", {}, h("a", { class: "btn primary big", href: done.redirect_url, target: "_top", "data-action": "leave-platform" }, "Back to Prolific"))]
+    : [];
+  show(sheet(h("h1", {}, "Your data has been deleted"), h("p", { "data-withdrawn": done.platform }, done.message), ...back));
 });
 
 function show(...children) {

@@ -1,10 +1,11 @@
 """Erasing a participant: every row of theirs goes, in every table, in one transaction, with one
 audit row (``erasures``) and nothing personal in it; every row of the other participants stays
-exactly as it was; the export and the Minari datasets leave them out and list the erasure; the
+exactly as it was; the platform replicas keep their records (as MTurk and Prolific do); the export and the Minari datasets leave them out and list the erasure; the
 balanced assignment no longer counts them."""
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from pathlib import Path
 from typing import Any
 
@@ -97,10 +98,13 @@ def snapshot(db: Database) -> dict[str, list[dict[str, Any]]]:
         }
 
 
-def text_in_database(db: Database) -> str:
-    """Every text cell of every table, joined (JSON columns as their text)."""
+def text_in_database(db: Database, leave_out: Collection[str] = ()) -> str:
+    """Every text cell of every table but those named in ``leave_out``, joined (JSON columns as
+    their text)."""
     cells: list[str] = []
-    for rows in snapshot(db).values():
+    for table, rows in snapshot(db).items():
+        if table in leave_out:
+            continue
         for row in rows:
             cells += [str(value) for value in row.values() if isinstance(value, str | dict)]
     return "\n".join(cells)
@@ -140,9 +144,19 @@ def test_an_erasure_removes_every_row_of_the_participant_and_no_other(
             return bool(row["participant_id"] == second)
         if "session_id" in row:
             return row["session_id"] in sessions
-        if "worker_id" in row:  # the replica's rows
-            return bool(row["worker_id"] == "WORKERTWO")
         return False
+
+    replica_tables = {name for name in before if name.startswith("mturk_replica_")}
+    named = {
+        name
+        for name in replica_tables
+        if any(row.get("worker_id") == "WORKERTWO" for row in before[name])
+    }
+    assert named == {
+        "mturk_replica_assignments",
+        "mturk_replica_submissions",
+        "mturk_replica_bonuses",
+    }
 
     removed = {
         table: sum(theirs(table, row) for row in rows)
@@ -161,9 +175,6 @@ def test_an_erasure_removes_every_row_of_the_participant_and_no_other(
         "participant_tokens",
         "assignment_reviews",
         "bonuses",
-        "mturk_replica_assignments",
-        "mturk_replica_submissions",
-        "mturk_replica_bonuses",
     }
 
     erased = erase_participant(db, second, "experimenter")
@@ -174,7 +185,11 @@ def test_an_erasure_removes_every_row_of_the_participant_and_no_other(
     assert before.pop("erasures") == []
     for table, rows in before.items():
         assert after[table] == [row for row in rows if not theirs(table, row)], table
+    # MTurk keeps its assignment (submitted, bonus paid): so does the replica, unchanged.
+    for table in replica_tables:
+        assert after[table] == before[table], table
     assert {table: count for table, count in erased.rows.items() if count} == removed
+    assert not set(erased.rows) & replica_tables
     assert audit["rows"] == erased.rows
     assert (audit["participant_id"], audit["erased_by"], audit["platform"]) == (
         second,
@@ -183,7 +198,7 @@ def test_an_erasure_removes_every_row_of_the_participant_and_no_other(
     )
     assert audit["worker_pseudonym"] == pseudonym(secret, "WORKERTWO", "w")
     assert audit["assignment_pseudonym"] == pseudonym(secret, assignment, "a")
-    left = text_in_database(db)
+    left = text_in_database(db, leave_out=replica_tables)
     assert "WORKERTWO" not in left and assignment not in left and "second remark" not in left
 
     # The export leaves them out and lists the erasure, under the export's own pseudonyms.

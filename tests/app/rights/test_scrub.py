@@ -17,9 +17,9 @@ from server.app.export.minari import StudyFile, study_datasets
 from server.app.export.tables import export_tables
 from server.app.rights.scrub import scrub
 from server.app.storage.db import Database
-from server.app.storage.models import Participant, utcnow
+from server.app.storage.models import Erasure, Participant, utcnow
 from server.commands.main import main
-from tests.app.rights.test_erasure import replica_worker, text_in_database
+from tests.app.rights.test_erasure import replica_worker, snapshot, text_in_database
 from tests.app.rights.test_erasure import study as study
 from tests.support.server import ADMIN_TOKEN, wait_for_updates
 
@@ -123,8 +123,10 @@ def test_the_prolific_replica_s_rows_are_scrubbed_and_erased(
     client: TestClient, db: Database
 ) -> None:
     """The replica's rows hold a PROLIFIC_PID as text (``participant_id``) and in a bonus
-    set-up's CSV: erasure removes the participant's submission and payments and leaves their
-    pseudonym in the set-up; scrubbing leaves no raw PID or SESSION_ID anywhere."""
+    set-up's CSV. Erasure leaves them as they were: Prolific keeps its submission, its payment
+    and its bonus set-up when a study erases a participant, so the replica does (our own rows
+    name the participant no more). Scrubbing leaves no raw PID or SESSION_ID of a participant
+    we still have anywhere."""
     from server.app.storage.replica_models import (
         ProlificReplicaBonusSetup,
         ProlificReplicaPayment,
@@ -145,23 +147,36 @@ def test_the_prolific_replica_s_rows_are_scrubbed_and_erased(
     (kept, kept_session, _), (erased, erased_session, erased_study) = people
     url = db.engine.url.render_as_string(hide_password=False)
 
+    replica = {
+        ProlificReplicaSubmission.__tablename__,
+        ProlificReplicaPayment.__tablename__,
+        ProlificReplicaBonusSetup.__tablename__,
+    }
+    before = {name: rows for name, rows in snapshot(db).items() if name in replica}
     assert main(["erase", "--database-url", url, str(erased), "--yes"]) == 0
+    assert {name: rows for name, rows in snapshot(db).items() if name in replica} == before
     with db.read() as s:
-        assert list(s.scalars(select(ProlificReplicaSubmission.id))) == [kept_session]
-        assert list(s.scalars(select(ProlificReplicaPayment.participant_id))) == [pids[kept]]
+        assert set(s.scalars(select(ProlificReplicaSubmission.id))) == {
+            kept_session,
+            erased_session,
+        }
+        assert set(s.scalars(select(ProlificReplicaPayment.participant_id))) == set(pids.values())
         setup = s.scalars(
             select(ProlificReplicaBonusSetup).where(
                 ProlificReplicaBonusSetup.study_id == erased_study["id"]
             )
         ).one()
-    assert pids[erased] not in setup.csv_bonuses and "w_" in setup.csv_bonuses
-    assert pids[erased] not in text_in_database(db) and erased_session not in text_in_database(db)
+        (audit,) = s.scalars(select(Erasure))
+    assert pids[erased] in setup.csv_bonuses
+    assert not replica & set(audit.rows)  # the audit row counts only rows that went
+    ours = text_in_database(db, leave_out=replica)
+    assert pids[erased] not in ours and erased_session not in ours
 
     assert pids[kept] in text_in_database(db)
     assert main(["db", "scrub", "--database-url", url]) == 0
     text = text_in_database(db)
     assert pids[kept] not in text and kept_session not in text
     with db.read() as s:
-        # The rows stay, under pseudonyms: the replica still knows one submission and payment.
-        assert s.scalar(select(func.count()).select_from(ProlificReplicaSubmission)) == 1
-        assert list(s.scalars(select(ProlificReplicaPayment.amount))) == [40]
+        # The rows stay, the kept one's under pseudonyms: the replica still knows both.
+        assert s.scalar(select(func.count()).select_from(ProlificReplicaSubmission)) == 2
+        assert list(s.scalars(select(ProlificReplicaPayment.amount))) == [40, 40]

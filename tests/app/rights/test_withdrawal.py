@@ -22,6 +22,7 @@ from tests.support.server import (
     new_participant,
     study_config,
 )
+from tests.support.server import Participant as ApiParticipant
 
 MTURK_RETURN, PROLIFIC_RETURN = MTURK.done, PROLIFIC.done
 
@@ -164,3 +165,48 @@ def test_bam_study_erase_by_worker_id_and_pseudonym(
     assert [who for who, _ in erasures(db)] == [ids["WORKERA"], ids["WORKERB"], ids["WORKERC"]]
     with db.read() as s:
         assert s.scalar(select(func.count()).select_from(Erasure)) == 3
+
+
+def test_a_worker_who_withdraws_can_still_return_the_hit_on_the_replica(
+    client: TestClient, db: Database
+) -> None:
+    """MTurk keeps the assignment of a worker a study erases, and the worker is told to return
+    the HIT: the replica keeps it (accepted) so that Return works there, and the return changes
+    nothing of ours (nobody is left to mark)."""
+    from server.app.storage.replica_models import ReplicaAssignment
+
+    accepted = client.post(
+        "/mturk/accept", data={"workerId": "WWITHDRAWS"}, headers=ADMIN, follow_redirects=False
+    )
+    assert accepted.status_code == 303, accepted.text
+    with db.read() as s:
+        row = s.scalars(
+            select(ReplicaAssignment).where(ReplicaAssignment.worker_id == "WWITHDRAWS")
+        ).one()
+        row_id, link = (
+            row.id,
+            {
+                "assignmentId": row.assignment_id,
+                "hitId": row.hit_id,
+                "workerId": "WWITHDRAWS",
+                "turkSubmitTo": "http://testserver",
+            },
+        )
+    client.cookies.clear()
+    arrived = client.post("/api/arrivals", json=link)
+    assert arrived.status_code == 201, arrived.text
+    worker = ApiParticipant(client, arrived.json()["token"])
+    worker.act("/api/participant/consent", agree=True)
+    withdrawn = client.post("/api/participant/withdrawal", headers=worker.headers)
+    assert withdrawn.json()["message"] == MTURK_RETURN
+    assert participants(db) == []
+    with db.read() as s:
+        kept = s.get(ReplicaAssignment, row_id)
+        assert kept is not None and kept.status == "accepted"
+
+    returned = client.post(f"/mturk/work/{row_id}/return", headers=ADMIN, follow_redirects=False)
+    assert returned.status_code == 303, returned.text
+    with db.read() as s:
+        kept = s.get(ReplicaAssignment, row_id)
+        assert kept is not None and kept.status == "returned"
+    assert participants(db) == [] and len(erasures(db)) == 1

@@ -4,22 +4,29 @@ and when it took it (each event applied once, an older one never over a newer on
 
 from __future__ import annotations
 
+import time
+from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
+import httpx
 import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
+from server.app.config import StudyConfig
+from server.app.main import create_app
 from server.app.platforms import prolific_sync
+from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import ProlificEvent, ProlificStudy
-from tests.app.platforms.test_prolific import ADMIN
+from tests.app.platforms.test_prolific import ADMIN, draft
 
 # The server with BAM_PROLIFIC_WEBHOOK_SECRET set, and a study that finishes on Prolific.
 from tests.app.platforms.test_prolific_sync import client as client
 from tests.app.platforms.test_prolific_sync import send, teaching
 from tests.app.platforms.test_prolific_sync import settings as settings
 from tests.app.platforms.test_prolific_sync import study as study
+from tests.support.server import ADMIN_TOKEN, live
 
 STUDY = "a" * 24
 
@@ -47,7 +54,7 @@ def stored(db: Database, study_id: str = STUDY) -> ProlificStudy | None:
         return s.get(ProlificStudy, study_id)
 
 
-def studies(client: TestClient) -> dict[str, dict[str, Any]]:
+def studies(client: httpx.Client) -> dict[str, dict[str, Any]]:
     answer = client.get("/api/admin/prolific-studies", headers=ADMIN)
     assert answer.status_code == 200, answer.text
     return {view["study_id"]: view for view in answer.json()}
@@ -138,3 +145,55 @@ def test_a_high_return_rate_is_shown_with_our_share_of_returns_and_their_reasons
     }
     # The warning does not touch the study's status.
     assert studies(client)[STUDY]["status"] is None
+
+
+def test_the_replica_sends_signed_study_status_changes_that_the_server_keeps(
+    db: Database, settings: Settings, study: StudyConfig, executor: ProcessPoolExecutor
+) -> None:
+    """Published, paused, started, filled by its one place, stopped: each change reaches the
+    server as a signed ``study.status.change``, the last one kept."""
+    app = create_app(settings, study, db=db, executor=executor)
+    token = {"Authorization": f"Token {ADMIN_TOKEN}"}
+
+    def seen() -> list[str]:
+        with db.read() as s:
+            events = s.scalar(
+                select(func.count())
+                .select_from(ProlificEvent)
+                .where(ProlificEvent.event_type == "study.status.change")
+            )
+            row = s.get(ProlificStudy, created["id"])
+            return [str(events), row.status if row else ""]
+
+    def wait_for(events: int, status: str) -> None:
+        deadline = time.monotonic() + 60
+        while seen() != [str(events), status]:
+            assert time.monotonic() < deadline, seen()
+            time.sleep(0.05)
+
+    with live(app) as base, httpx.Client(base_url=base, headers=ADMIN) as browser:
+        made = draft(1)
+        made["external_study_url"] = (
+            f"{base}/study?PROLIFIC_PID={{{{%PROLIFIC_PID%}}}}&STUDY_ID={{{{%STUDY_ID%}}}}"
+            "&SESSION_ID={{%SESSION_ID%}}"
+        )
+        created = browser.post("/prolific/api/v1/studies/", json=made, headers=token).json()
+        assert seen() == ["0", ""]  # a draft sends nothing
+        path = f"/prolific/api/v1/studies/{created['id']}/transition/"
+        for events, (action, status) in enumerate(
+            (("PUBLISH", "ACTIVE"), ("PAUSE", "PAUSED"), ("START", "ACTIVE")), start=1
+        ):
+            moved = browser.post(path, json={"action": action}, headers=token)
+            assert moved.status_code == 200 and moved.json()["status"] == status, moved.text
+            wait_for(events, status)
+        # A refused transition changes nothing and sends nothing.
+        refused = browser.post(path, json={"action": "PUBLISH"}, headers=token)
+        assert refused.status_code == 400
+        # The one place taken: AWAITING REVIEW.
+        entered = browser.post(f"/prolific/studies/{created['id']}/take-part")
+        assert entered.status_code == 303, entered.text
+        wait_for(4, "AWAITING REVIEW")
+        stopped = browser.post(path, json={"action": "STOP"}, headers=token)
+        assert stopped.json()["status"] == "COMPLETED"
+        wait_for(5, "COMPLETED")
+        assert studies(browser)[created["id"]]["status"] == "COMPLETED"

@@ -13,7 +13,12 @@ REQUEST_RETURN action) is AWAITING REVIEW with ``return_requested`` set: the par
 to return it, and Prolific approves it by itself 21 days after its completion if they never do.
 Both times are kept (``platform_completed_at``, ``platform_return_requested_at``): from
 Prolific's record of the submission in a poll, and, from the webhook (whose body has the status
-only), from the event's time."""
+only), from the event's time.
+
+The study's own events are kept per study (``ProlificStudy``): ``study.status.change`` its
+Prolific status and when it took it (ordered by the event's time, as a submission's status),
+``study.has_high_return_rate`` Prolific's warning, which the dashboard shows beside our own
+count of the study's returns (``returns_of``)."""
 
 from __future__ import annotations
 

@@ -357,7 +357,8 @@ def complete(
 
 @router.post("/webhook")
 async def webhook(request: Request, state: StateDep) -> Response:
-    """Prolific's ``submission.status.change`` webhook (``BAM_PROLIFIC_WEBHOOK_SECRET``): a
+    """Prolific's webhook (``BAM_PROLIFIC_WEBHOOK_SECRET``) for ``submission.status.change``,
+    ``study.status.change`` and ``study.has_high_return_rate`` (``prolific_sync``): a
     forged, unsigned or old request is refused (401) and changes nothing; a redelivered event
     is answered 200 and applied once."""
     secret = state.settings.prolific_webhook_secret

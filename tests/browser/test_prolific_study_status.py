@@ -120,4 +120,18 @@ def test_the_dashboard_shows_the_studys_status_and_a_high_return_rate(
     table = page.locator("#participants").bounding_box()
     assert top is not None and table is not None and top["y"] < table["y"]
     assert axe_violations(page) == []
+    # A change on Prolific while the page is open shows at its next refresh.
+    with httpx.Client(base_url=server.url, timeout=60) as http:
+        deliver(
+            http,
+            {
+                "resource_id": study,
+                "event_type": "study.status.change",
+                "metadata": {},
+                "status": "ACTIVE",
+            },
+            "ev-started",
+        )
+    expect(line.locator('[data-study-status="ACTIVE"]')).to_have_text("ACTIVE", timeout=15000)
+    expect(warning).to_be_visible()
     watch.check()

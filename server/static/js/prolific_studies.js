@@ -32,12 +32,19 @@ function line(study) {
     study.high_return_rate ? warning(study) : null);
 }
 
+// What is shown, so that a refresh with nothing new leaves the page (and the alert) alone.
+let shown = null;
+
 async function refresh() {
   try {
     const studies = await getJSON("/api/admin/prolific-studies");
+    const text = JSON.stringify(studies);
+    if (text === shown) return;
+    shown = text;
     section.querySelector(".studies").replaceChildren(...studies.map(line));
     section.hidden = studies.length === 0;
   } catch (error) {
+    shown = null;
     section.querySelector(".studies").replaceChildren(h("p", { class: "muted" }, `could not update: ${error.message}`));
     section.hidden = false;
   }

@@ -639,3 +639,29 @@ class ReplicaRecords(BaseModel):
 
     assignments: list[ReplicaAssignmentView]
     submissions: list[ReplicaSubmissionView]
+
+
+class HighReturnRateView(BaseModel):
+    """Prolific's ``study.has_high_return_rate`` warning beside our own count of the returns."""
+
+    warned_at: datetime = Field(description="When Prolific raised the warning (its last one).")
+    metadata: dict[str, Any] = Field(description="The event's metadata, as Prolific sent it.")
+    arrived: int = Field(description="Our participants of the study (each took a place).")
+    returned: int = Field(
+        description="Of them, those whose submission was RETURNED or TIMED-OUT, or whom the "
+        "study released."
+    )
+    share_returned: float | None = Field(description="returned / arrived (none: no one arrived).")
+    reasons: dict[str, int] = Field(
+        description="Why they returned, as far as our records say: 'returned on Prolific', "
+        "'timed out', and, among those, 'had declined consent'."
+    )
+
+
+class ProlificStudyView(BaseModel):
+    """A Prolific study as its events (``study.status.change``) and our participants show it."""
+
+    study_id: str
+    status: str | None = Field(description="Prolific's status of the study (none: no event yet).")
+    status_at: datetime | None = Field(description="When the study took that status.")
+    high_return_rate: HighReturnRateView | None

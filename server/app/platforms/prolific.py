@@ -37,6 +37,16 @@ SUBMISSION_STATUSES = (
     "SCREENED OUT",
     "PARTIALLY APPROVED",
 )
+# Prolific's study statuses (the study object's ``status``; ``study.status.change``).
+STUDY_STATUSES = (
+    "UNPUBLISHED",
+    "PUBLISHING",
+    "SCHEDULED",
+    "ACTIVE",
+    "PAUSED",
+    "AWAITING REVIEW",
+    "COMPLETED",
+)
 # The statuses that are a decision, as ours.
 PROLIFIC_DECISIONS = {"APPROVED": ReviewDecision.APPROVED, "REJECTED": ReviewDecision.REJECTED}
 RETRIED = frozenset({429, 500, 502, 503, 504})

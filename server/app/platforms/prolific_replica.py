@@ -108,6 +108,15 @@ PUBLISHED = ("ACTIVE", "PAUSED", "AWAITING REVIEW")
 
 
 @dataclass(frozen=True)
+class StudyChange:
+    """A replica study took a new status (Prolific sends ``study.status.change``)."""
+
+    study_id: str
+    status: str
+    at: datetime
+
+
+@dataclass(frozen=True)
 class Workspace:
     """The replica's workspace: its currency and the funds put in it, in cents."""
 
@@ -782,8 +791,10 @@ def handle(
     query: dict[str, str],
     raw: bytes,
     workspace: Workspace = Workspace(),
+    changes: list[StudyChange] | None = None,
 ) -> tuple[int, Any]:
-    """Prolific's answer (status, JSON body) to one request under ``/api/v1/``."""
+    """Prolific's answer (status, JSON body) to one request under ``/api/v1/``; a study's change
+    of status is added to ``changes`` (for its ``study.status.change`` webhook)."""
     path = path.lstrip("/")
     known = [(m, name, p.fullmatch(path)) for m, p, name in ROUTES]
     matches = [(m, name, found) for m, name, found in known if found]
@@ -808,10 +819,14 @@ def handle(
                 return create_study(s, body)
             if name == "get_study":
                 return 200, study_view(s, _study(s, ident))
-            if name == "update_study":
-                return update_study(s, ident, body)
-            if name == "transition_study":
-                return transition_study(s, ident, body)
+            if name in ("update_study", "transition_study"):
+                before = _study(s, ident).status
+                change = update_study if name == "update_study" else transition_study
+                answer = change(s, ident, body)
+                study = _study(s, ident)
+                if changes is not None and study.status != before:
+                    changes.append(StudyChange(study.id, study.status, utcnow()))
+                return answer
             if name == "list_submissions":
                 return list_submissions(s, query)
             if name == "submission_counts":
@@ -898,4 +913,29 @@ def status_event(
         "X-Prolific-Request-Timestamp": stamp,
         "X-Event-ID": secrets.token_hex(16),
         "X-Timestamp": stamp,  # when the status changed: the replica sends at once
+    }, body
+
+
+def study_status_event(
+    secret: str, change: StudyChange, timestamp: int
+) -> tuple[dict[str, str], bytes]:
+    """The replica's ``study.status.change`` webhook, with Prolific's body (the study's id as
+    ``resource_id``, its new status, ``metadata``), signed as its submission events are; its
+    ``X-Timestamp`` is the change's own time, to the microsecond, so that two changes in one
+    second keep their order."""
+    body = json.dumps(
+        {
+            "resource_id": change.study_id,
+            "event_type": "study.status.change",
+            "metadata": {},
+            "status": change.status,
+        }
+    ).encode()
+    stamp = str(timestamp)
+    return {
+        "Content-Type": "application/json",
+        "X-Prolific-Request-Signature": signature(secret, stamp, body),
+        "X-Prolific-Request-Timestamp": stamp,
+        "X-Event-ID": secrets.token_hex(16),
+        "X-Timestamp": change.at.isoformat(),
     }, body

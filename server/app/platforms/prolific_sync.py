@@ -13,7 +13,12 @@ REQUEST_RETURN action) is AWAITING REVIEW with ``return_requested`` set: the par
 to return it, and Prolific approves it by itself 21 days after its completion if they never do.
 Both times are kept (``platform_completed_at``, ``platform_return_requested_at``): from
 Prolific's record of the submission in a poll, and, from the webhook (whose body has the status
-only), from the event's time."""
+only), from the event's time.
+
+The study's own events are kept per study (``ProlificStudy``): ``study.status.change`` its
+Prolific status and when it took it (ordered by the event's time, as a submission's status),
+``study.has_high_return_rate`` Prolific's warning, which the dashboard shows beside our own
+count of the study's returns (``returns_of``)."""
 
 from __future__ import annotations
 
@@ -21,7 +26,7 @@ import base64
 import hashlib
 import hmac
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from datetime import UTC, datetime
 from typing import Any
 
@@ -29,12 +34,13 @@ from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from server.app.platforms.prolific import SUBMISSION_STATUSES, ProlificClient
+from server.app.platforms.prolific import STUDY_STATUSES, SUBMISSION_STATUSES, ProlificClient
 from server.app.storage.db import Database
 from server.app.storage.models import (
     LearningSession,
     Participant,
     ProlificEvent,
+    ProlificStudy,
     StatusChange,
     utcnow,
 )
@@ -207,37 +213,127 @@ def event_time(header: str | None) -> datetime | None:
     return moment.replace(tzinfo=UTC) if moment.tzinfo is None else moment.astimezone(UTC)
 
 
+# The events the webhook applies; Prolific's other one, ``study.progress.change`` (a body with
+# the study's id only), is answered and ignored: the poll and the submission events say more.
+SUBMISSION_EVENT = "submission.status.change"
+STUDY_STATUS_EVENT = "study.status.change"
+HIGH_RETURN_RATE_EVENT = "study.has_high_return_rate"
+APPLIED_EVENTS = (SUBMISSION_EVENT, STUDY_STATUS_EVENT, HIGH_RETURN_RATE_EVENT)
+
+
 def apply_webhook(
     db: Database, event_id: str, payload: dict[str, Any], happened_at: datetime | None = None
 ) -> str:
-    """Apply one ``submission.status.change`` event once; what was done. The event's id and
-    its effect are committed in one transaction: a failure between the two leaves neither, so
-    Prolific's redelivery applies it (an id committed alone would answer "already applied"
-    and lose the change). ``happened_at`` (``event_time``) orders the events: one older than
-    the status stored leaves it; without it the event counts as happening on arrival."""
+    """Apply one event (``APPLIED_EVENTS``) once; what was done. The event's id and its effect
+    are committed in one transaction: a failure between the two leaves neither, so Prolific's
+    redelivery applies it (an id committed alone would answer "already applied" and lose the
+    change). ``happened_at`` (``event_time``) orders the events: one older than the status
+    stored leaves it; without it the event counts as happening on arrival. ValueError for a
+    status Prolific does not have (nothing is written)."""
     event_type = str(payload.get("event_type", ""))
-    if event_type != "submission.status.change":
+    if event_type not in APPLIED_EVENTS:
         return f"event {event_type!r} ignored"
-    submission_id = payload.get("resource_id")
+    resource_id = payload.get("resource_id")
+    if not isinstance(resource_id, str) or not resource_id:
+        return "no resource_id"
+    at = happened_at or utcnow()
+    if event_type == HIGH_RETURN_RATE_EVENT:
+        metadata = payload.get("metadata")
+        return _once(
+            db,
+            event_id,
+            event_type,
+            lambda s: _warn_high_return_rate(
+                s, resource_id, at, metadata if isinstance(metadata, dict) else {}
+            ),
+        )
     status = payload.get("status")
-    if not isinstance(submission_id, str) or not isinstance(status, str):
-        return "no submission or status"
+    if not isinstance(status, str):
+        return "no status"
+    if event_type == STUDY_STATUS_EVENT:
+        if status not in STUDY_STATUSES:
+            raise ValueError(f"unknown Prolific study status {status!r}")
+        return _once(
+            db, event_id, event_type, lambda s: _apply_study_status(s, resource_id, status, at)
+        )
     if status in TRANSIENT_STATUSES:
         return f"status {status} is transient: the submission's status is kept"
     study_id = payload.get("study_id")
+    return _once(
+        db,
+        event_id,
+        event_type,
+        lambda s: _apply_status(
+            s, study_id if isinstance(study_id, str) else None, resource_id, status, at
+        ),
+    )
+
+
+def _once(db: Database, event_id: str, event_type: str, apply: Callable[[Session], str]) -> str:
+    """Record the event's id and apply it in one transaction; "already applied" for an id seen."""
     try:
         with db.write() as s:
             s.add(ProlificEvent(event_id=event_id, event_type=event_type, received_at=utcnow()))
             s.flush()  # a redelivered id fails here, before anything else is written
-            outcome = _apply_status(
-                s,
-                study_id if isinstance(study_id, str) else None,
-                submission_id,
-                status,
-                happened_at or utcnow(),
-            )
+            outcome = apply(s)
     except IntegrityError:
         return "already applied"
     if outcome == UNKNOWN:
         return "not a participant of this study"
     return "applied" if outcome == APPLIED else f"not applied: {OLDER}"
+
+
+def _study(s: Session, study_id: str) -> ProlificStudy:
+    """The study's row, locked (made on its first event)."""
+    row = s.get(ProlificStudy, study_id, with_for_update=True)
+    if row is not None:
+        return row
+    try:
+        with s.begin_nested():  # two first events at once: the second's insert fails here
+            row = ProlificStudy(study_id=study_id)
+            s.add(row)
+    except IntegrityError:
+        row = s.get(ProlificStudy, study_id, with_for_update=True, populate_existing=True)
+        assert row is not None
+    return row
+
+
+def _apply_study_status(s: Session, study_id: str, status: str, at: datetime) -> str:
+    row = _study(s, study_id)
+    if row.status_at is not None and at < row.status_at:
+        return OLDER
+    row.status, row.status_at = status, at
+    return APPLIED
+
+
+def _warn_high_return_rate(
+    s: Session, study_id: str, at: datetime, metadata: dict[str, Any]
+) -> str:
+    row = _study(s, study_id)
+    if row.high_return_rate_at is not None and at < row.high_return_rate_at:
+        return OLDER
+    row.high_return_rate_at, row.high_return_rate_metadata = at, metadata
+    return APPLIED
+
+
+def returns_of(s: Session, study_id: str) -> dict[str, int]:
+    """Our own count of the study's returns: ``arrived`` (our participants of the study),
+    ``returned`` (their submission RETURNED or TIMED-OUT, or released by the study) and why:
+    ``returned on Prolific``, ``timed out``, ``had declined consent`` (among the returned)."""
+    rows = s.execute(
+        select(Participant.status, Participant.platform_status).where(
+            Participant.platform == "prolific", Participant.hit_id == study_id
+        )
+    ).all()
+    returned = [
+        (status, prolific)
+        for status, prolific in rows
+        if prolific in RELEASED or status == ParticipantStatus.RETURNED
+    ]
+    return {
+        "arrived": len(rows),
+        "returned": len(returned),
+        "returned on Prolific": sum(prolific == "RETURNED" for _, prolific in returned),
+        "timed out": sum(prolific == "TIMED-OUT" for _, prolific in returned),
+        "had declined consent": sum(status == ParticipantStatus.DECLINED for status, _ in returned),
+    }

@@ -29,6 +29,8 @@ from server.app.schemas import (
     BulkApprovalRequest,
     BulkApprovalView,
     ExclusionRequest,
+    HighReturnRateView,
+    ProlificStudyView,
     QueueView,
     ReplicaAssignmentView,
     ReplicaRecords,
@@ -46,6 +48,7 @@ from server.app.storage.models import (
     LearnerUpdate,
     LearningSession,
     Participant,
+    ProlificStudy,
     StatusChange,
     utcnow,
 )
@@ -561,3 +564,42 @@ def mturk_replica(state: StateDep) -> ReplicaRecords:
             for x in submissions
         ],
     )
+
+
+@router.get("/prolific-studies", response_model=list[ProlificStudyView])
+def prolific_studies(state: StateDep) -> list[ProlificStudyView]:
+    """Each Prolific study with an event or a participant of ours: Prolific's status of it
+    (``study.status.change``) and its high-return-rate warning, beside our count of returns."""
+    with state.db.read() as s:
+        known = {row.study_id: row for row in s.scalars(select(ProlificStudy))}
+        ids = set(known) | set(
+            s.scalars(
+                select(Participant.hit_id).where(
+                    Participant.platform == "prolific", Participant.hit_id.is_not(None)
+                )
+            )
+        )
+        views = []
+        for study_id in sorted(i for i in ids if i):
+            row = known.get(study_id)
+            warning = None
+            if row is not None and row.high_return_rate_at is not None:
+                counts = prolific_sync.returns_of(s, study_id)
+                arrived, returned = counts.pop("arrived"), counts.pop("returned")
+                warning = HighReturnRateView(
+                    warned_at=row.high_return_rate_at,
+                    metadata=dict(row.high_return_rate_metadata or {}),
+                    arrived=arrived,
+                    returned=returned,
+                    share_returned=returned / arrived if arrived else None,
+                    reasons=counts,
+                )
+            views.append(
+                ProlificStudyView(
+                    study_id=study_id,
+                    status=row.status if row else None,
+                    status_at=row.status_at if row else None,
+                    high_return_rate=warning,
+                )
+            )
+    return views

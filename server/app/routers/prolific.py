@@ -31,6 +31,7 @@ from server.app.deps import StateDep, is_admin
 from server.app.platforms.prolific_replica import (
     PLACEHOLDERS,
     REPLICA_PATH,
+    StudyChange,
     concurrency_limit,
     error_body,
     handle,
@@ -39,6 +40,7 @@ from server.app.platforms.prolific_replica import (
     requests_return,
     return_reason,
     status_event,
+    study_status_event,
     submission_view,
     taking_part,
     workspace_of,
@@ -89,8 +91,35 @@ def notify(
         )
 
 
+def send_study_event(url: str, secret: str, change: StudyChange) -> None:
+    """POST the signed ``study.status.change`` webhook (a failure is logged)."""
+    headers, body = study_status_event(secret, change, int(time.time()))
+    try:
+        httpx.post(url, content=body, headers=headers, timeout=10).raise_for_status()
+    except httpx.HTTPError as error:
+        log.warning("the Prolific replica's webhook to %s failed: %s", url, error)
+
+
+def notify_study(
+    background: BackgroundTasks, request: Request, state: ServerState, changes: list[StudyChange]
+) -> None:
+    """With BAM_PROLIFIC_WEBHOOK_SECRET set, the replica sends each study's new status to this
+    server's webhook, in order, after answering."""
+    secret = state.settings.prolific_webhook_secret
+    if secret is not None:
+        for change in changes:
+            background.add_task(
+                send_study_event,
+                f"{own_origin(request)}/prolific/webhook",
+                secret.get_secret_value(),
+                change,
+            )
+
+
 @router.api_route("/api/v1/{path:path}", methods=["GET", "POST", "PATCH"])
-async def api(path: str, request: Request, state: StateDep) -> Response:
+async def api(
+    path: str, request: Request, state: StateDep, background: BackgroundTasks
+) -> Response:
     expected = admin_token(state.settings)
     given = request.headers.get("Authorization", "")
     if expected is None or not secrets.compare_digest(given.encode(), f"Token {expected}".encode()):
@@ -98,9 +127,11 @@ async def api(path: str, request: Request, state: StateDep) -> Response:
     raw = await request.body()
     query = dict(request.query_params)
     workspace = workspace_of(state.settings)
+    changes: list[StudyChange] = []
     status, body = await state.run_db(
-        lambda: handle(state.db, request.method, path, query, raw, workspace)
+        lambda: handle(state.db, request.method, path, query, raw, workspace, changes)
     )
+    notify_study(background, request, state, changes)
     if body is None:
         return Response(status_code=status)
     return JSONResponse(body, status_code=status)
@@ -172,8 +203,11 @@ def researcher_view(request: Request, state: StateDep) -> Response:
 
 
 @router.post("/studies/{study_id}/take-part")
-def take_part(study_id: str, request: Request, state: StateDep) -> Response:
-    """A new participant (a generated PROLIFIC_PID) takes a place and is sent to the study."""
+def take_part(
+    study_id: str, request: Request, state: StateDep, background: BackgroundTasks
+) -> Response:
+    """A new participant (a generated PROLIFIC_PID) takes a place and is sent to the study;
+    the last place taken makes the study AWAITING REVIEW (its webhook sent)."""
     if not is_admin(request, state):
         return login_redirect("/prolific")
     time_out_overdue(state)
@@ -188,7 +222,10 @@ def take_part(study_id: str, request: Request, state: StateDep) -> Response:
                 request, "Not open", f"Study {study_id} is {study.status}: it takes no one.", 409
             )
         if places_taken(s, study.id) >= study.total_available_places:
+            # A full study sent START without more places: AWAITING REVIEW again.
             study.status = "AWAITING REVIEW"
+            full = StudyChange(study.id, "AWAITING REVIEW", utcnow())
+            notify_study(background, request, state, [full])
             return notice(request, "Full", "Every place of this study is taken.", 409)
         limit = concurrency_limit(study)
         if limit is not None and taking_part(s, study.id) >= limit:
@@ -209,10 +246,14 @@ def take_part(study_id: str, request: Request, state: StateDep) -> Response:
         )
         s.add(submission)
         s.flush()
+        filled = None
         if places_taken(s, study.id) >= study.total_available_places:
             study.status = "AWAITING REVIEW"  # as Prolific: no free place left
+            filled = StudyChange(study.id, study.status, utcnow())
         url = study_url(study, submission)
         pid = submission.participant_id
+    if filled is not None:
+        notify_study(background, request, state, [filled])
     response = RedirectResponse(url, status_code=303)
     response.set_cookie(PID_COOKIE, pid, httponly=True, samesite="lax")
     return response
@@ -328,7 +369,8 @@ def complete(
 
 @router.post("/webhook")
 async def webhook(request: Request, state: StateDep) -> Response:
-    """Prolific's ``submission.status.change`` webhook (``BAM_PROLIFIC_WEBHOOK_SECRET``): a
+    """Prolific's webhook (``BAM_PROLIFIC_WEBHOOK_SECRET``) for ``submission.status.change``,
+    ``study.status.change`` and ``study.has_high_return_rate`` (``prolific_sync``): a
     forged, unsigned or old request is refused (401) and changes nothing; a redelivered event
     is answered 200 and applied once."""
     secret = state.settings.prolific_webhook_secret

@@ -411,6 +411,21 @@ class ProlificEvent(Base):
     received_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
 
 
+class ProlificStudy(Base):
+    """What Prolific's study events said of a study (``study.status.change``,
+    ``study.has_high_return_rate``): its status and when it took it (the event's
+    ``X-Timestamp``, so an older event arriving late leaves a newer status), and the last
+    high-return-rate warning with the event's ``metadata`` as Prolific sent it."""
+
+    __tablename__ = "prolific_studies"
+
+    study_id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    status: Mapped[str | None] = mapped_column(String(24))
+    status_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    high_return_rate_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    high_return_rate_metadata: Mapped[dict[str, object] | None] = mapped_column(JSON)
+
+
 class Erasure(Base):
     """The audit row of one participant's erasure (``rights.erasure``): when, by whom, the
     participant's pseudonyms and how many rows each table lost; nothing else of theirs is

@@ -2,6 +2,8 @@
 tests/support/server.py, for every test folder: tests/app mirrors server/app room by room, and
 tests/commands, tests/browser and tests/analysis drive the same server."""
 
+import sys
+import time
 from collections.abc import Iterator
 
 import pytest
@@ -20,3 +22,25 @@ def _study_environments_forgotten() -> Iterator[None]:
     for spec in domains.registered():
         if spec not in before:
             domains.unregister(spec.name)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Before any test, in the process that runs them or hands them to workers (``-n``): the
+    learners' kernels compiled into numba's cache where it lacks them (a fresh clone), once.
+    Otherwise the first tests that start a server wait minutes for its update processes to
+    compile them, near their bounds on a slow machine, and workers side by side compile the
+    same kernels each."""
+    if hasattr(config, "workerinput"):  # a worker of ``-n``: its controller did it
+        return
+    from server.learners.compile_notice import COMPILE_TIME, kernels_cached
+
+    if kernels_cached():
+        return
+    from server.app.updates.compiling import one_warm_up_at_a_time
+    from server.app.updates.warmup import warm_up
+
+    print(f"compiling the learners' kernels before the tests ({COMPILE_TIME})", file=sys.stderr)
+    started = time.monotonic()
+    with one_warm_up_at_a_time():
+        warm_up()
+    print(f"compiled in {time.monotonic() - started:.0f} s", file=sys.stderr)

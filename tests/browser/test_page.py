@@ -130,10 +130,7 @@ def test_the_gravity_domain_hides_directions_and_a_reload_continues(
     page.reload()
     expect(page.locator('[data-testid="completion-code"]')).to_have_text(row.completion_code)
     watch.check()
-
-
-def test_screenshots_were_saved(screenshot_dir: Path) -> None:
-    """Runs after the others of this module: the gravity pages are in the screenshot folder."""
+    # The gravity pages are in the screenshot folder (BAM_SCREENSHOT_DIR: the docs' pictures).
     for name in ("tutorial-gravity.png", "teaching-gravity.png", "consent.png"):
         path = screenshot_dir / name
         assert path.is_file() and path.stat().st_size > 10_000, path

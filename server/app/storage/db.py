@@ -198,6 +198,7 @@ PLATFORM_ID_TABLES = (
     "participants",
     "assignment_reviews",
     "bonuses",
+    "messages",
     "mturk_replica_hits",
     "mturk_replica_assignments",
     "mturk_replica_submissions",
@@ -206,6 +207,7 @@ PLATFORM_ID_TABLES = (
     "prolific_replica_submissions",
     "prolific_replica_bonus_setups",
     "prolific_replica_payments",
+    "prolific_replica_messages",
 )
 
 

@@ -99,9 +99,12 @@ class LocalUpdates:
             # Python's exit handlers, and their semaphores would be reported leaked. Processes
             # still warming up (compiling, minutes on a first start) have no update to finish:
             # they are ended, or the stop would wait for their compile.
-            if not self.ready:
+            # Their jobs are then failed by the pool (BrokenProcessPool), not cancelled: a
+            # job cancelled while the pool breaks raises in Python 3.11's pool thread.
+            warming = not self.ready
+            if warming:
                 _end_processes(executor)
-            await asyncio.to_thread(executor.shutdown, wait=True, cancel_futures=True)
+            await asyncio.to_thread(executor.shutdown, wait=True, cancel_futures=not warming)
 
     async def run(
         self, payload: dict[str, Any], name: str, gate: ProcessGate, session_id: int
@@ -228,8 +231,9 @@ class LocalUpdates:
             except asyncio.CancelledError:
                 # The server stops: the jobs' answers (a broken pool's error, once its
                 # processes are ended) are nobody's, and asyncio would log each as lost.
+                # Not cancelled: that would cancel the pool's jobs too (above).
                 for answer in answers:
-                    answer.cancel()
+                    answer.add_done_callback(_read)
                 raise
             except Exception:  # a broken pool is replaced when an update finds it broken
                 await asyncio.sleep(0.5)
@@ -238,6 +242,12 @@ class LocalUpdates:
             "update processes ready after %.1f s: the server is ready",
             time.monotonic() - began,
         )
+
+
+def _read(answer: asyncio.Future[Any]) -> None:
+    """An answer nobody waits for any more, read so that asyncio does not log it as lost."""
+    if not answer.cancelled():
+        answer.exception()
 
 
 @contextlib.contextmanager

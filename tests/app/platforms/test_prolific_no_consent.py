@@ -104,7 +104,7 @@ def test_no_consent_completes_the_submission_and_only_the_participant_returns_it
     pid, submission = take_a_place(client, study_id)
     landed = hand_in(client, pid, "NOCONSNT")
     assert landed.status_code == 200 and "AWAITING REVIEW" in landed.text
-    assert "asked to return it" in landed.text
+    assert "asks you to return it" in landed.text
 
     seen = client.get(f"{API}/submissions/{submission}/", headers=TOKEN).json()
     assert seen["status"] == "AWAITING REVIEW" and seen["study_code"] == "NOCONSNT"

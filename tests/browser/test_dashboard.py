@@ -90,3 +90,21 @@ def test_the_replay_s_play_button_draws_its_pause_sign(page: Page, server: LiveS
     assert "⏸" not in play.inner_text()
     expect(play.locator('svg[data-icon="play"]')).to_have_count(1, timeout=10_000)  # the end
     watch.check()
+
+
+def test_a_row_of_capacity_figures_lines_up_in_a_small_window(
+    page: Page, server: LiveServer
+) -> None:
+    """At 1024x640 some tiles' labels take two lines: each row's figures still share a line."""
+    page.set_viewport_size({"width": 1024, "height": 640})
+    admin_login(page, server, "/dashboard")
+    tiles = page.locator("#queue > div")
+    expect(tiles).to_have_count(7)
+    rows: dict[int, list[float]] = {}
+    for tile in tiles.all():
+        box, figure = tile.bounding_box(), tile.locator("dd").bounding_box()
+        assert box is not None and figure is not None
+        rows.setdefault(round(box["y"]), []).append(figure["y"])
+    assert len(rows) >= 2  # the tiles wrap at this width
+    for tops in rows.values():
+        assert max(tops) - min(tops) < 1, rows

@@ -906,14 +906,8 @@ def status_event(
             "status": submission["status"],
         }
     ).encode()
-    stamp = str(timestamp)
-    return {
-        "Content-Type": "application/json",
-        "X-Prolific-Request-Signature": signature(secret, stamp, body),
-        "X-Prolific-Request-Timestamp": stamp,
-        "X-Event-ID": secrets.token_hex(16),
-        "X-Timestamp": stamp,  # when the status changed: the replica sends at once
-    }, body
+    # When the status changed: the replica sends at once.
+    return _signed(secret, body, timestamp, str(timestamp)), body
 
 
 def study_status_event(
@@ -931,11 +925,17 @@ def study_status_event(
             "status": change.status,
         }
     ).encode()
+    return _signed(secret, body, timestamp, change.at.isoformat()), body
+
+
+def _signed(secret: str, body: bytes, timestamp: int, event_time: str) -> dict[str, str]:
+    """A webhook's headers, as Prolific signs its deliveries: the signature of the timestamp
+    and the body, a new event id, and ``X-Timestamp`` (``event_time``: when it happened)."""
     stamp = str(timestamp)
     return {
         "Content-Type": "application/json",
         "X-Prolific-Request-Signature": signature(secret, stamp, body),
         "X-Prolific-Request-Timestamp": stamp,
         "X-Event-ID": secrets.token_hex(16),
-        "X-Timestamp": change.at.isoformat(),
-    }, body
+        "X-Timestamp": event_time,
+    }

@@ -323,9 +323,7 @@ def test_a_study_file_that_cannot_run_on_prolific_is_refused_before_anything_is_
 def server(db: Database, settings: Settings, executor: ProcessPoolExecutor) -> Iterator[str]:
     """A study server running the Prolific study (the study file's learners made fast), whose
     dashboard says it serves 2 participants at once."""
-    study = study_config(completion=COMPLETION, max_active_participants=2)
-    app = create_app(settings, study, db=db, executor=executor)
-    with live(app) as base:
+    with server_with(db, settings, executor) as base:
         yield base
 
 
@@ -428,7 +426,8 @@ def test_a_study_runs_on_the_replica_from_the_command_line(
 def server_with(
     db: Database, settings: Settings, executor: ProcessPoolExecutor, **changes: Any
 ) -> Iterator[str]:
-    """The study server with ``changes`` to its settings (its replica's currency, funds)."""
+    """The study server of ``server`` with ``changes`` to its settings (its replica's
+    currency, funds)."""
     study = study_config(completion=COMPLETION, max_active_participants=2)
     app = create_app(settings.model_copy(update=changes), study, db=db, executor=executor)
     with live(app) as base:

@@ -492,6 +492,19 @@ class FailingPay(httpx.BaseTransport):
         return httpx.Response(429, json={"error": {"detail": "Too many requests."}})
 
 
+def failing_pay(db: Database, fault: str) -> ProlificBackend:
+    """The replica's review backend, its ``pay`` going wrong once as ``fault`` says."""
+    return ProlificBackend(
+        ProlificClient(
+            "http://replica/prolific/api/v1",
+            ADMIN_TOKEN,
+            transport=FailingPay(ReplicaTransport(db, ADMIN_TOKEN), fault),
+        ),
+        "GBP",
+        name="prolific-replica",
+    )
+
+
 @pytest.mark.parametrize(
     ("fault", "status", "paid_by_it"),
     [("paid-429", 502, True), ("timeout", 502, True), ("paid-400", 409, True), ("429", 502, False)],
@@ -500,16 +513,7 @@ def test_a_prolific_bonus_whose_pay_failed_is_in_doubt_until_prolifics_record_se
     client: TestClient, db: Database, fault: str, status: int, paid_by_it: bool
 ) -> None:
     participant, _, _ = prolific_participant(client, db)
-    token = ADMIN_TOKEN
-    failing = ProlificBackend(
-        ProlificClient(
-            "http://replica/prolific/api/v1",
-            token,
-            transport=FailingPay(ReplicaTransport(db, token), fault),
-        ),
-        "GBP",
-        name="prolific-replica",
-    )
+    failing = failing_pay(db, fault)
     with pytest.raises(ApiError, match="is in doubt") as failed:
         review.pay_bonus(db, failing, participant, Decimal("1.25"), "Taught well", "tok-doubt")
     assert failed.value.status == status
@@ -552,15 +556,7 @@ def test_concurrent_resends_of_a_bonus_in_doubt_pay_it_once(
     client: TestClient, db: Database
 ) -> None:
     participant, _, _ = prolific_participant(client, db)
-    failing = ProlificBackend(
-        ProlificClient(
-            "http://replica/prolific/api/v1",
-            ADMIN_TOKEN,
-            transport=FailingPay(ReplicaTransport(db, ADMIN_TOKEN), "429"),
-        ),
-        "GBP",
-        name="prolific-replica",
-    )
+    failing = failing_pay(db, "429")
     with pytest.raises(ApiError, match="is in doubt"):
         review.pay_bonus(db, failing, participant, Decimal("3"), "Taught well", "tok-many")
     age(db, "tok-many", review.PAY_SETTLES_WITHIN)  # not on Prolific's record: unpaid
@@ -589,15 +585,7 @@ def test_the_reconciliation_settles_a_prolific_bonus_in_doubt_from_prolifics_rec
     client: TestClient, db: Database
 ) -> None:
     participant, _, _ = prolific_participant(client, db)
-    failing = ProlificBackend(
-        ProlificClient(
-            "http://replica/prolific/api/v1",
-            ADMIN_TOKEN,
-            transport=FailingPay(ReplicaTransport(db, ADMIN_TOKEN), "paid-429"),
-        ),
-        "GBP",
-        name="prolific-replica",
-    )
+    failing = failing_pay(db, "paid-429")
     # Two bonuses of the same amount: one paid (202), one in doubt that Prolific did pay.
     assert review.pay_bonus(db, client.app.state.server.review_backend("prolific"), participant, Decimal("2"), "First", "tok-a")  # type: ignore[attr-defined]  # fmt: skip
     with pytest.raises(ApiError, match="is in doubt"):

@@ -16,6 +16,8 @@ from typing import Any
 
 import httpx
 
+from server.learners.compile_notice import COMPILE_TIME
+
 
 def free_port() -> int:
     with socket.socket() as probe:
@@ -115,7 +117,7 @@ class WarmUpNotice:
         if self.said_at is None:
             print(
                 "the server's update processes are loading the learners' compiled kernels "
-                "(the first time on a machine, one of them compiles them: about two minutes; "
+                f"(the first time on a machine, one of them compiles them: {COMPILE_TIME}; "
                 "then a second or two)",
                 file=self.stream,
                 flush=True,

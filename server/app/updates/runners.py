@@ -21,6 +21,7 @@ from server.app.updates.pool import WorkerDied, new_executor
 from server.app.updates.queue import ProcessGate
 from server.app.updates.worker import run_update, worker_ready
 from server.cores import available_cores, share_threads
+from server.learners.compile_notice import COMPILE_TIME
 
 if TYPE_CHECKING:
     from server.app.updates.cluster import UpdateCluster
@@ -208,10 +209,10 @@ class LocalUpdates:
         began = time.monotonic()
         log.info(
             "waiting for %d update process(es) to load the learners' compiled kernels (where "
-            "numba's cache lacks them, as on a first start, they are compiled: about two "
-            "minutes, each process on a free core); "
-            "/api/health answers 503 until then",
+            "numba's cache lacks them, as on a first start, they are compiled: %s, each "
+            "process on a free core); /api/health answers 503 until then",
             self.workers,
+            COMPILE_TIME,
         )
         seen: set[int] = set()
         pool = self.executor

@@ -27,10 +27,10 @@ class BAM(PlannerLearner):
         # runs before L-BFGS-B (0: L-BFGS-B alone). Two reach at least the reference schedule's
         # value of equation (5) on average over whole runs, at about a third of its passes;
         # L-BFGS-B alone reaches less. The agents learn less well than with the reference
-        # schedule (docs/reproduction.md, "A faster optimiser"): a setting, not the default.
+        # schedule (docs/defaults.md, "A faster optimiser"): a setting, not the default.
         "warm_alternations": 0,
         # A warm update runs 7 of the 10 alternations (5 learn less in navigation, beyond
-        # the demonstrations experiment's chance: docs/reproduction.md, "Shorter warm updates").
+        # the demonstrations experiment's chance: docs/defaults.md, "Shorter warm updates").
         "warm_share": 0.7,
     }
     warm_up_settings = {"alternations": 1, **PlannerLearner.warm_up_settings}

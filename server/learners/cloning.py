@@ -48,7 +48,7 @@ class BehavioralCloning(Learner):
         # has none, but their rows are kept from shrinking to nothing under the prior only by
         # their gradient's rounding noise (which ours, centring each row, does not make); with
         # no floor our agent collapses from round 3 (doorway: 6% of the optimum after three
-        # rounds against 70% with the floor). Why: docs/reproduction.md, "Fidelity".
+        # rounds against 70% with the floor). Why: docs/fidelity.md.
         "variance_floor": VARIANCE_FLOOR,
         "steps": 200,
         "learning_rate": 0.01,
@@ -63,7 +63,7 @@ class BehavioralCloning(Learner):
         "tie_tolerance": 0.0,
         # True: an update's momentum steps in one compiled call, 3-4 times faster, the agents
         # as the NumPy steps' (the demonstrations and feedback experiments rerun with them:
-        # docs/reproduction.md, "Compiled cloning steps"), not to the last bit (a step's norm
+        # docs/defaults.md, "Compiled cloning steps"), not to the last bit (a step's norm
         # is summed in another order); False: step by step in NumPy, as the published
         # reproduction runs were made.
         "compiled_steps": True,

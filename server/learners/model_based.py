@@ -15,7 +15,7 @@ class ModelBasedIRL(PlannerLearner):
         **PlannerLearner.default_settings,
         "dynamics_steps": 200,
         "cost_steps": 200,
-        # A warm update runs 100 of the 200 cost steps (docs/reproduction.md, "Shorter warm
+        # A warm update runs 100 of the 200 cost steps (docs/defaults.md, "Shorter warm
         # updates"; 50 kept the curves too, nearer the edge in the farming environments).
         "warm_share": 0.5,
     }

@@ -71,23 +71,23 @@ COST_SETTINGS: dict[str, Any] = {
     # `warm_evaluations`. One such update reaches at least the value of one momentum update
     # from the same start at a twentieth of its passes, but over whole runs L-BFGS-B alone
     # ends lower; BAM's `warm_alternations` runs part of the momentum schedule first (see
-    # docs/reproduction.md, "A faster optimiser").
+    # docs/defaults.md, "A faster optimiser").
     "optimizer": "momentum",
     # The planner's passes: "float32" in single precision, Q and the gradients to about 1e-5
     # relative, the agents as the float64 passes' (the 50-agent demonstrations experiment:
-    # docs/reproduction.md, "Float32 passes"), an update 0-33% cheaper; "float64" in double
+    # docs/defaults.md, "Float32 passes"), an update 0-33% cheaper; "float64" in double
     # precision, as the published reproduction runs were made.
     "planner_precision": "float32",
     # True: an update's momentum cost steps, each task's (with per-task optimisers), in one
     # compiled call, the agents as the NumPy steps' (the demonstrations and feedback
-    # experiments rerun with them: docs/reproduction.md, "Compiled cost steps"), not to the
+    # experiments rerun with them: docs/defaults.md, "Compiled cost steps"), not to the
     # last bit (a step's norm is summed in another order, a feedback step's sigmoid takes the
     # C library's tanh); False: step by step in NumPy, as the published reproduction runs were
     # made.
     "compiled_steps": True,
     # True: an update's momentum steps on the dynamics parameters (BAM's dynamics steps
     # outside their planner passes; model-based IRL's whole dynamics fit) in compiled calls,
-    # the agents as the NumPy steps' (docs/reproduction.md, "Compiled dynamics steps"), not to
+    # the agents as the NumPy steps' (docs/defaults.md, "Compiled dynamics steps"), not to
     # the last bit (the C library's tanh, exp and log, sums in order); False: in NumPy, as the
     # runs before them were made.
     "compiled_dynamics_steps": True,
@@ -98,7 +98,7 @@ COST_SETTINGS: dict[str, Any] = {
     # before (a warm start); 1 is the authors' schedule on every update. A task's first fit
     # always runs the whole schedule. BAM's and model-based IRL's defaults are below 1 (their
     # classes): the 50-agent demonstrations experiment keeps their curves there
-    # (docs/reproduction.md, "Shorter warm updates").
+    # (docs/defaults.md, "Shorter warm updates").
     "warm_share": 1.0,
 }
 

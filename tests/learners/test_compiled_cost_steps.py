@@ -2,7 +2,7 @@
 default) against the NumPy steps: the same arithmetic but for the norm that clips a step and a
 feedback step's sigmoid, so the same costs, velocities and objective to rounding after a few
 steps (the steps' clipped momentum then carries rounding apart within a hundred steps, as any
-change of an update's last bits does: docs/reproduction.md, "Compiled cost steps"); the same
+change of an update's last bits does: docs/defaults.md, "Compiled cost steps"); the same
 bits on any split of the tasks over threads; errors refused as the NumPy steps refuse them."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Each aspect in which our learners, domains and teacher follow the paper authors' own
-implementation (docs/reproduction.md, "Fidelity"), pinned: the optimiser's clipping, the
+implementation (docs/fidelity.md), pinned: the optimiser's clipping, the
 model spaces and their priors, the farming cost cells, the authors' farming update, cloning,
 the action model's zero-variance rule, the gravity rule and the return's counting."""
 

@@ -85,7 +85,7 @@ def test_reference_optimisation_settings() -> None:
         200,
         200,
     )
-    # Warm updates run part of the schedule (docs/reproduction.md, "Shorter warm updates");
+    # Warm updates run part of the schedule (docs/defaults.md, "Shorter warm updates");
     # the global-cost learner, not run through its experiment so, the whole of it.
     assert planner.settings["warm_share"] == 0.7 and model_based.settings["warm_share"] == 0.5
     assert learners.make("global-cost", env).settings["warm_share"] == 1.0

@@ -81,6 +81,20 @@ def test_the_teaching_page_fits_a_small_window(
     assert in_view(page, ".board svg.grid")
     assert in_view(page, '[data-action="next"]')
     assert in_view(page, ".status")
+    # A task's name and its count each on one line, with the longest a study shows.
+    lines = page.eval_on_selector_all(
+        ".task-list button.task",
+        """(buttons) => buttons.map((b) => {
+             b.querySelector('.task-name').textContent = 'Crops field';
+             b.querySelector('.task-count').textContent = '✓ 128 moves shown';
+             return ['.task-name', '.task-count'].map((part) => {
+               const range = document.createRange();
+               range.selectNodeContents(b.querySelector(part));
+               return new Set([...range.getClientRects()].map((r) => Math.round(r.top))).size;
+             }); })""",
+    )
+    assert lines and all(each == [1, 1] for each in lines), lines
+    assert in_view(page, '[data-action="next"]')
     # Labels on the grid stay readable: their rendered size on screen.
     smallest = page.evaluate(
         """() => Math.min(...[...document.querySelectorAll('.board svg.grid text')]

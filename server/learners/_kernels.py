@@ -29,6 +29,10 @@ Conventions:
   loops' operations in their order), and any split of the tasks over threads computes the same
   bits. Nothing is compiled with ``fastmath``, and the passes and steps with NumPy's error
   model (no check of every division for a zero divisor: a Boltzmann normaliser is at least 1).
+- **No literal arguments between kernels.** A kernel that calls a pass with a constant
+  (``True``, ``0``) makes numba compile that pass again for the constant's literal type; such
+  calls pass ``np.bool_(True)`` and ``np.int64(0)``, which take the pass compiled for every
+  other caller (each pass compiled once per precision, not once per kind of caller).
 - **Error codes.** A compiled step returns 0 or a code of the one block in ``likelihoods.py``
   (``BAD_INDEX`` .. ``LAYOUT_CHANGED``); its caller raises it (``likelihoods.refuse`` for the
   likelihood's) or, for ``LAYOUT_CHANGED``, takes over.
@@ -1361,7 +1365,7 @@ def cost_steps_tasks(
                 soft_forward_tasks(
                     shifts, shifted_probability, shift_start, flat_rows, flat_next,
                     flat_probability, flat_start, rewards,
-                    pass_beta, horizon, True, q, values, jacobians, row, row + 1,
+                    pass_beta, horizon, np.bool_(True), q, values, jacobians, row, row + 1,
                 )  # fmt: skip
                 for s in range(num_plan):
                     for a in range(num_actions):
@@ -1652,7 +1656,8 @@ def _teacher_gradient(
     num_tasks = q.shape[0]
     soft_forward_tasks(
         shifts, shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
-        flat_start, rewards, pass_beta, horizon, True, q, values, jacobians, 0, num_tasks,
+        flat_start, rewards, pass_beta, horizon, np.bool_(True), q, values, jacobians,
+        np.int64(0), num_tasks,
     )  # fmt: skip
     q_data = q.astype(np.float64)
     no_values = np.empty(0)
@@ -1698,7 +1703,7 @@ def _teacher_gradient(
         dense_sources, dense_probabilities, targets, sources, probabilities, scatter, shifts,
         shifted_probability, shift_start, flat_rows, flat_next, flat_probability, flat_start,
         next_flat, width, values, jacobians, g_q, horizon, gradient_entries, entry_runs,
-        entry_slots, d_reward, d_probs, no_terms, num_tasks, no_sums, 0, num_tasks,
+        entry_slots, d_reward, d_probs, no_terms, num_tasks, no_sums, np.int64(0), num_tasks,
     )  # fmt: skip
     # Entries of a row that lead to one next state have one gradient (``distinct_entries``).
     for j in range(copies.shape[0]):

@@ -707,10 +707,11 @@ class StudyConfig(_Strict):
         None,
         description="The study on Prolific, for `bam-study prolific create` (the table below).",
     )
-    dataset: DatasetRelease | None = Field(
-        None,
+    dataset: DatasetRelease = Field(
+        DatasetRelease(),
         description="The study's data as a release: its title, licence, authors, citation and "
-        "the answers only its authors can give (the table below).",
+        "the answers only its authors can give (the table below); a key left out is listed "
+        "as not answered.",
     )
     max_environment_states: int = Field(
         DEFAULT_MAX_STATES,

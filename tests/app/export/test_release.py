@@ -24,7 +24,7 @@ import pandas as pd
 import pytest
 from fastapi.testclient import TestClient
 
-from server.app.config import DEFAULT_STUDY_CONFIG
+from server.app.config import DEFAULT_STUDY_CONFIG, load_study_config
 from server.app.export.columns import DICTIONARY, FILES
 from server.app.export.release import FOREIGN_KEYS, HUMAN_ANSWERS
 from server.app.export.release.feedback import FEEDBACK
@@ -195,8 +195,8 @@ def test_croissant_reads_every_record_set_with_the_csv_counts_and_its_rai_fields
     start, end = document["rai:dataCollectionTimeframe"]
     assert start == min(p["arrived_at"] for p in participants)
     assert end == max(p["last_seen_at"] for p in participants)
-    consent = DEFAULT_STUDY_CONFIG.read_text()
-    assert "Consent text participants agreed to" in document["rai:dataCollection"] and consent
+    consent = load_study_config(DEFAULT_STUDY_CONFIG).consent.strip()
+    assert f"Consent text participants agreed to: {consent}" in document["rai:dataCollection"]
     # The authors' answers, and the open questions listed, not invented.
     assert document["rai:annotatorDemographics"] == "Adults on MTurk in the United States."
     assert document["rai:dataBiases"] == "Crowd workers who chose a game-like task."

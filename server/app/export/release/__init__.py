@@ -88,6 +88,17 @@ FOREIGN_KEYS: tuple[ForeignKey, ...] = (
 )
 
 
+def unanswered(dataset: DatasetRelease | None) -> list[str]:
+    """The questions a study file's ``[dataset]`` table leaves open: each RAI field only a
+    person can answer, then the licence, address, citation and authors."""
+
+    def given(key: str) -> bool:
+        return dataset is not None and bool(getattr(dataset, key))
+
+    missing = [rai for rai, key in HUMAN_ANSWERS.items() if not given(key)]
+    return missing + [f"[dataset] {key}" for key in ABOUT_KEYS if not given(key)]
+
+
 @dataclass(frozen=True)
 class About:
     """What a release says of the study besides its tables: from the study file (its
@@ -133,10 +144,7 @@ class About:
         return given or ("interactive learning", "learning from demonstration", "human feedback")
 
     def unanswered(self) -> list[str]:
-        """The questions the study file's ``[dataset]`` table leaves open: each RAI field only
-        a person can answer, then the licence, address, citation and authors."""
-        missing = [rai for rai, key in HUMAN_ANSWERS.items() if not self.answer(key)]
-        return missing + [f"[dataset] {key}" for key in ABOUT_KEYS if not self.answer(key)]
+        return unanswered(self.dataset)
 
     # What the server knows.
     def status_counts(self) -> dict[str, int]:

@@ -596,6 +596,12 @@ class DatasetRelease(_Strict):
         pattern=r"^https?://\S+$",
         description="Where the dataset is published (http or https).",
     )
+    version: str | None = Field(
+        None,
+        min_length=1,
+        max_length=40,
+        description="The release's version (1.0.0), for a dataset published more than once.",
+    )
     authors: tuple[str, ...] = Field(
         (), description="The people who collected and curated the data, one string each."
     )

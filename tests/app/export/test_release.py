@@ -43,6 +43,7 @@ DATASET_TABLE = """
 title = "Teaching robots in grid worlds"
 license = "CC-BY-4.0"
 url = "https://example.org/bam-data"
+version = "1.0.0"
 authors = ["A. Author", "B. Author"]
 citation = "Author, A. and Author, B. (2026). Teaching robots in grid worlds."
 annotator_demographics = "Adults on MTurk in the United States."
@@ -173,6 +174,7 @@ def test_croissant_reads_every_record_set_with_the_csv_counts_and_its_rai_fields
     release: Path,
 ) -> None:
     dataset = check_croissant(release)
+    assert dataset.metadata.ctx.issues.warnings == set()  # every recommended field given
     document = json.loads((release / "croissant.json").read_text())
     participants = csv_rows(release / "participants.csv")
     # Every file of the distribution with its checksum.

@@ -34,6 +34,7 @@ CONTEXT: dict[str, Any] = {
     "data": {"@id": "cr:data", "@type": "@json"},
     "dataType": {"@id": "cr:dataType", "@type": "@vocab"},
     "dct": "http://purl.org/dc/terms/",
+    "equivalentProperty": "cr:equivalentProperty",
     "examples": {"@id": "cr:examples", "@type": "@json"},
     "extract": "cr:extract",
     "field": "cr:field",
@@ -53,6 +54,7 @@ CONTEXT: dict[str, Any] = {
     "regex": "cr:regex",
     "repeated": "cr:repeated",
     "replace": "cr:replace",
+    "samplingRate": "cr:samplingRate",
     "sc": "https://schema.org/",
     "separator": "cr:separator",
     "source": "cr:source",
@@ -118,7 +120,7 @@ def metadata(about: About, folder: Path) -> dict[str, Any]:
         "recordSet": [record_set(name) for name in FILES],
         **about.rai(),
     }
-    for key in ("license", "url"):
+    for key in ("license", "url", "version"):
         given = about.answer(key)
         if given:
             document[key] = given

@@ -93,6 +93,9 @@ def package(about: About, folder: Path) -> dict[str, Any]:
     url = about.answer("url")
     if url:
         descriptor["homepage"] = url
+    version = about.answer("version")
+    if version:
+        descriptor["version"] = version
     return descriptor
 
 

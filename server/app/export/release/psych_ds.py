@@ -80,7 +80,7 @@ def description(about: About) -> dict[str, Any]:
     }
     if about.authors:
         document["author"] = [{"@type": "Person", "name": name} for name in about.authors]
-    for key in ("citation", "license", "url"):
+    for key in ("citation", "license", "url", "version"):
         given = about.answer(key)
         if given:
             document[key] = given

@@ -16,6 +16,7 @@ from tests.app.export.test_release import (
     check_data_package,
     check_parquet,
     check_psych_ds,
+    hub_offline,  # noqa: F401  (the fixture: datasets and the Hub offline)
     row_counts,
 )
 
@@ -23,11 +24,7 @@ SMALL_DEMO = ("--participants", "2", "--concurrency", "2", "--rounds", "1", "--w
 
 
 @pytest.mark.slow
-def test_the_demo_writes_every_format_of_the_release(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    monkeypatch.setenv("HF_DATASETS_OFFLINE", "1")
-    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+def test_the_demo_writes_every_format_of_the_release(tmp_path: Path) -> None:
     assert main(["demo", "--out", str(tmp_path / "demo"), *SMALL_DEMO]) == 0
     export = tmp_path / "demo" / "export"
     counts = row_counts(export)

@@ -53,6 +53,19 @@ limitations = "Every participant of this test is simulated."
 EXCLUSION = "did not follow the instructions"
 
 
+@pytest.fixture(autouse=True)
+def hub_offline(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``datasets`` and the Hub's client offline, whenever they were imported: the tests read
+    local files only."""
+    import datasets.config
+    import huggingface_hub.constants
+
+    for name in ("HF_DATASETS_OFFLINE", "HF_HUB_OFFLINE"):
+        monkeypatch.setenv(name, "1")
+        monkeypatch.setattr(datasets.config, name, True)
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", True)
+
+
 @pytest.fixture(scope="module")
 def study(tmp_path_factory: pytest.TempPathFactory, executor: ProcessPoolExecutor) -> str:
     """A SQLite study database with two participants who taught every agent, the agents'
@@ -253,13 +266,9 @@ def check_parquet(out: Path, counts: dict[str, int]) -> dict[str, Any]:
     return loaded
 
 
-def test_parquet_on_the_hub_layout_reads_with_datasets(
-    release: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_parquet_on_the_hub_layout_reads_with_datasets(release: Path) -> None:
     import datasets
 
-    monkeypatch.setenv("HF_DATASETS_OFFLINE", "1")
-    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     loaded = check_parquet(release, row_counts(release))
     participants = loaded["participants"]
     assert participants.features["participant_id"].dtype == "int64"
@@ -380,10 +389,8 @@ def test_a_bad_dataset_table_is_refused_by_check(
 
 # Erasure
 def test_after_an_erasure_every_format_validates_without_the_participant(
-    study: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    study: str, tmp_path: Path
 ) -> None:
-    monkeypatch.setenv("HF_DATASETS_OFFLINE", "1")
-    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     copy = tmp_path / "copy.db"
     source = sqlite3.connect(study.removeprefix("sqlite:///"))
     target = sqlite3.connect(copy)

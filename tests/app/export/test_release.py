@@ -430,3 +430,10 @@ def test_after_an_erasure_every_format_validates_without_the_participant(
         in json.loads((out / "croissant.json").read_text())["rai:dataCollection"]
     )
     assert {key.file for key in FOREIGN_KEYS} <= set(FILES)
+
+
+def test_the_command_offers_every_release_format() -> None:
+    from server.app.export.release import RELEASE_FORMATS
+    from server.commands.export import FORMATS, RELEASE
+
+    assert RELEASE == RELEASE_FORMATS and set(RELEASE) < set(FORMATS)

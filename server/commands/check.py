@@ -12,7 +12,9 @@ letters (and a PNG in ``--out``: ``server.domains.figure``), each task's optimal
 traps (starts and reachable states from which its goal can never be reached; a warning for
 reachable ones), and each learner's expected update time on this machine, estimated from the
 environment's size (states x actions x horizon x tasks) and the processor time of one update
-per learner on the paper's doorway, with a warning where it exceeds ``UPDATE_SECONDS_CAPACITY``.
+per learner on the paper's doorway, with a warning where it exceeds ``UPDATE_SECONDS_CAPACITY``;
+and which questions of the data's release its ``[dataset]`` table leaves open (the export lists
+them as not answered).
 """
 
 from __future__ import annotations
@@ -41,7 +43,14 @@ MTURK_WORDING = re.compile(
     r"\b(Mechanical Turk|MTurk|Amazon Turk|HITs?|worker ?ID|workerId|requester)\b", re.IGNORECASE
 )
 # Study-file tables whose strings are not shown to participants as text.
-NOT_PARTICIPANT_TEXT = ("completion", "environments", "domains", "colours", "learner_settings")
+NOT_PARTICIPANT_TEXT = (
+    "completion",
+    "environments",
+    "domains",
+    "colours",
+    "learner_settings",
+    "dataset",  # the release's, for its readers
+)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -134,6 +143,7 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     names = [name for domain in study.domains for name in domain.environments]
     print(f"{args.study}: no problems; {len(names)} environment(s): {', '.join(names)}")
+    print_release(study)
     from server.learners.compile_notice import compile_notice
 
     with compile_notice(sys.stderr, PROG):
@@ -165,6 +175,18 @@ def run(args: argparse.Namespace) -> int:
     if warnings:
         print(f"\n{warnings} warning(s): see each WARNING above")
     return 0
+
+
+def print_release(study: StudyConfig) -> None:
+    """What the study's release (``bam-study export --format all``) will list as not answered
+    by the authors: the ``[dataset]`` table's open questions."""
+    from server.app.export.release import unanswered
+
+    missing = unanswered(study.dataset)
+    if missing:
+        print(f"release: not answered in [dataset], and listed as such: {', '.join(missing)}")
+    else:
+        print("release: [dataset] answers every question the export cannot")
 
 
 def print_traps(env: Environment) -> int:

@@ -2,8 +2,10 @@
 
 A study server starts on a new SQLite database in the output folder; simulated participants
 take the paper's study over HTTP (arrival, consent, tutorial, six agents each, completion);
-once every learner update has finished the data is exported and analysed, and Table 1 is
-printed. Everything stays in the folder: the database, the server's log, the export, the
+once every learner update has finished the data is exported (the CSVs, and the release
+formats: Croissant, a Frictionless data package, Psych-DS and Parquet with a Hugging Face
+card) and analysed, and Table 1 is printed. Everything stays in the folder: the database, the
+server's log, the export, the
 analysis, and the dashboard's sign-in token (``admin-token``, readable by its owner only, so
 that the command printed to open the dashboard shows where the token is, not the token).
 """
@@ -146,7 +148,10 @@ def run(args: argparse.Namespace) -> int:
     print()
     print(f"The study's database, server log, export and analysis are in {options.out}/:")
     print(f"  {options.out / 'study.sqlite'}   the database (`bam-study serve` can reopen it)")
-    print(f"  {options.out / 'export'}/         the CSV export with its data dictionary")
+    print(
+        f"  {options.out / 'export'}/         the CSV export with its data dictionary, "
+        "croissant.json, datapackage.json, psych-ds/ and hugging-face/"
+    )
     print(f"  {options.out / 'analysis'}/       Table 1, the appendix tables, comparisons, plots")
     print(f"  {options.out / TOKEN_FILE}     the dashboard's sign-in token (yours only)")
     print()
@@ -231,7 +236,8 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
     from analysis.report import write_outputs
     from analysis.results import analyze
     from analysis.tables import table1_markdown
-    from server.app.export.files import write_export
+    from server.app.config import load_study_config
+    from server.app.export.release import RELEASE_FORMATS, About, write_release
     from server.app.export.tables import export_tables
     from server.app.storage.db import Database, upgrade
     from server.commands.live import ServerProcess, WarmUpNotice
@@ -246,6 +252,7 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
     text = study_text(options)
     if options.platform == "prolific":
         text = on_prolific(text)
+    text = with_dataset(text)
     study.write_text(text + options.learner_settings)
     admin_token = write_admin_token(out)
     if options.study is not None:
@@ -315,7 +322,8 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
         tables = export_tables(db)
     finally:
         db.dispose()
-    write_export(tables, out / "export")
+    about = About(tables, load_study_config(study))
+    write_release(about, out / "export", ("csv", *RELEASE_FORMATS))
     try:
         read: dict[str, pd.DataFrame | None] = {}
         sessions, evaluations = load_export(out / "export", tables=read)
@@ -363,6 +371,23 @@ def on_prolific(text: str) -> str:
     if not re.search(r"^\[prolific\]", text, re.MULTILINE):
         text = text.rstrip("\n") + "\n" + PROLIFIC_TABLE.format(places=1000)
     return text
+
+
+# What the demo's release says that only its authors know: its participants are simulated.
+DEMO_DATASET = """
+[dataset]
+limitations = "Every participant of this dataset is simulated (bam-study demo): no person took \
+part, and its figures say nothing of people."
+"""
+
+
+def with_dataset(text: str) -> str:
+    """The study file's text with the demo's ``[dataset]`` table, unless it has one."""
+    import re
+
+    if re.search(r"^\[dataset\]", text, re.MULTILINE):
+        return text
+    return text.rstrip("\n") + "\n" + DEMO_DATASET
 
 
 def publish_on_replica(

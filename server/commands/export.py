@@ -1,5 +1,8 @@
-"""``bam-study export``: the study's data as CSV files with a data dictionary, or as Minari
-datasets (one per environment) for offline and imitation learning."""
+"""``bam-study export``: the study's data as CSV files with a data dictionary, as Minari
+datasets (one per environment) for offline and imitation learning, or as a release in the
+standards venues ask for (``server.app.export.release``): Croissant with its RAI fields, a
+Frictionless data package, a Psych-DS folder, Parquet with a Hugging Face dataset card, or
+all of them (``all``: beside the CSVs, the Psych-DS and Hugging Face folders under ``--out``)."""
 
 from __future__ import annotations
 
@@ -7,7 +10,8 @@ import argparse
 import sys
 from pathlib import Path
 
-FORMATS = ("csv", "minari")
+RELEASE = ("croissant", "datapackage", "psych-ds", "parquet")
+FORMATS = ("csv", "minari", *RELEASE, "all")
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -24,7 +28,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
         choices=FORMATS,
         default="csv",
         help="csv (default): the tables and data_dictionary.csv; minari: one Minari dataset "
-        "per environment with the participants' episodes",
+        "per environment with the participants' episodes; croissant or datapackage: the CSVs "
+        "with croissant.json or datapackage.json; psych-ds: a Psych-DS folder; parquet: "
+        "Parquet files with a Hugging Face dataset card; all: the CSVs, croissant.json and "
+        "datapackage.json, and the psych-ds/ and hugging-face/ folders",
     )
     parser.add_argument(
         "--no-pseudonymize",
@@ -41,7 +48,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--study",
         type=Path,
         help="the study file (default: BAM_STUDY_CONFIG, else the paper's study): the export "
-        "knows its own environments from it, and minari names it in the datasets' metadata",
+        "knows its own environments from it, minari names it in the datasets' metadata, and "
+        "the release formats read its [dataset] table, consent and payment",
     )
 
 
@@ -115,7 +123,10 @@ def run(args: argparse.Namespace) -> int:
                 print(f"{args.out / dataset_id}  ({len(dataset.episodes)} episodes)")
             return 0
         tables = export_tables(db, pseudonymize=args.pseudonymize, secret=secret)
-        written = write_export(tables, args.out)
+        if args.format == "csv":
+            written = write_export(tables, args.out)
+        else:
+            written = write_formats(args, tables, study_file or DEFAULT_STUDY_CONFIG)
     except Exception as error:
         hint = ""
         if study_file is None and str(error).startswith("unknown environment"):
@@ -128,3 +139,23 @@ def run(args: argparse.Namespace) -> int:
         rows = tables[path.stem].shape[0] if path.stem in tables else None
         print(f"{path}" + (f"  ({rows} rows)" if rows is not None else ""))
     return 0
+
+
+def write_formats(args: argparse.Namespace, tables: dict, study_file: Path) -> list[Path]:
+    """The release formats asked for, written with the study file's [dataset] table; says on
+    stderr which of the authors' answers it leaves open."""
+    from server.app.config import load_study_config
+    from server.app.export.release import About, write_release
+
+    study = load_study_config(study_file)
+    about = About(tables, study, pseudonymized=args.pseudonymize)
+    formats = ("csv", *RELEASE) if args.format == "all" else (args.format,)
+    written = write_release(about, args.out, formats)
+    unanswered = about.unanswered()
+    if unanswered:
+        print(
+            f"bam-study export: not answered in {study_file}'s [dataset] table, and listed as "
+            f"such: {', '.join(unanswered)}",
+            file=sys.stderr,
+        )
+    return written

@@ -473,6 +473,31 @@ def test_the_example_prolific_study_passes_check(
     captured = capsys.readouterr()
     assert "no problems; 2 environment(s): two-rooms, doorway" in captured.out
     assert captured.err == ""
+    # No [dataset] table: every question of the release is open.
+    assert (
+        "release: not answered in [dataset], and listed as such: rai:annotatorDemographics, "
+        "rai:dataBiases, rai:dataUseCases, rai:dataSocialImpact, [dataset] license, [dataset] "
+        "url, [dataset] citation, [dataset] authors\n"
+    ) in captured.out
+    answered = tmp_path / "answered.toml"
+    answered.write_text(study.read_text() + ANSWERED_DATASET)
+    assert main(["check", str(answered), "--out", str(tmp_path)]) == 0
+    assert (
+        "release: [dataset] answers every question the export cannot\n" in capsys.readouterr().out
+    )
+
+
+ANSWERED_DATASET = """
+[dataset]
+license = "CC0-1.0"
+url = "https://example.org/data"
+authors = ["A. Author"]
+citation = "Author, A. (2026). Data."
+annotator_demographics = "Adults on Prolific in the United Kingdom."
+biases = "People who chose a game-like study."
+use_cases = "Research on learning from people; not for judging individuals."
+social_impact = "None known."
+"""
 
 
 def prolific_copy(folder: Path, *replacements: tuple[str, str]) -> Path:

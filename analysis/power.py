@@ -113,6 +113,19 @@ def bank_blocks(bank: pd.DataFrame, first: str, second: str, threshold: float) -
     )
 
 
+def reach_shares(blocks: Blocks) -> tuple[float, float]:
+    """The shares of the bank's blocks in which each learner's session reached the threshold
+    (each domain weighted as a study of participants assigned in turn weights it)."""
+    first = second = 0.0
+    for both, only_first, only_second, count in zip(
+        blocks.both, blocks.first_only, blocks.second_only, blocks.blocks, strict=True
+    ):
+        total = max(1, int(count.sum()))
+        first += (both.sum() + only_first.sum()) / total
+        second += (both.sum() + only_second.sum()) / total
+    return first / len(blocks.domains), second / len(blocks.domains)
+
+
 @cache
 def _fisher_p(first: int, second: int, sessions: int) -> float:
     p = fisher_success(first, sessions, second, sessions).p_value

@@ -223,8 +223,9 @@ def simulate_session(job: SessionJob) -> dict[str, Any]:
 
 @dataclass(frozen=True)
 class BankPlan:
-    """What a bank is made of: the study's domains (name -> environments), its learners and
-    their settings, the participants simulated per domain, the population and the seed."""
+    """What a bank is made of: the study's domains (name -> environments), the learners
+    simulated, the settings of every learner of the study, the participants simulated per
+    domain, the population and the seed."""
 
     domains: tuple[tuple[str, tuple[str, ...]], ...]
     learners: tuple[str, ...]
@@ -256,22 +257,20 @@ class BankPlan:
         ]
 
     def identity(self) -> dict[str, Any]:
-        """What the journalled sessions depend on (not how many participants there are)."""
+        """What every journalled session depends on: not the learners compared nor how many
+        participants there are, so that a bank grows and serves any pair of the study's
+        learners (``settings`` names every learner of the study)."""
         return {
             "format": FORMAT_VERSION,
             "seed": self.seed,
             "domains": {name: list(envs) for name, envs in self.domains},
-            "learners": list(self.learners),
             "population": self.population.to_json(),
-            "settings": {
-                name: dict(values) for name, values in self.settings if name in self.learners
-            },
             "effective_settings": {
                 name: {
                     **learners.learner_class(name).default_settings,
-                    **dict(self.settings_of(name)),
+                    **dict(values),
                 }
-                for name in self.learners
+                for name, values in self.settings
             },
         }
 
@@ -287,11 +286,11 @@ def check_bank_folder(out: Path, plan: BankPlan) -> None:
         recorded = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as error:
         raise ConfigError(f"{path} is not a readable bank file: {error}") from None
-    if recorded != json.loads(json.dumps(plan.identity())):
+    expected = json.loads(json.dumps(plan.identity()))  # as the file reads back
+    if recorded != expected:
         changed = sorted(
-            key for key in set(recorded) | set(plan.identity())
-            if recorded.get(key) != json.loads(json.dumps(plan.identity())).get(key)
-        )  # fmt: skip
+            key for key in set(recorded) | set(expected) if recorded.get(key) != expected.get(key)
+        )
         raise ConfigError(
             f"--out {out} holds a bank simulated with other arguments ({', '.join(changed)} "
             "differ); use another folder, or delete this one to start over"

@@ -180,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         population=Population(rounds=args.rounds),
         settings=tuple(
-            (name, tuple(sorted(study.settings_of(name).items()))) for name in (first, second)
+            (name, tuple(sorted(study.settings_of(name).items()))) for name in study.learners
         ),
     )
     try:
@@ -215,7 +215,8 @@ def run(args: argparse.Namespace) -> int:
 
 def compute(args: argparse.Namespace, plan: BankPlan, workers: int) -> pd.DataFrame:
     """The bank (simulated where missing), the power table, its CSV and figures."""
-    from analysis.power import bank_blocks, power_table
+    from analysis.names import learner_display, threshold_label
+    from analysis.power import bank_blocks, power_table, reach_shares
     from analysis.power_bank import build_bank
     from analysis.power_plot import save_power_figure
     from server.learners.compile_notice import compile_notice
@@ -243,6 +244,11 @@ def compute(args: argparse.Namespace, plan: BankPlan, workers: int) -> pd.DataFr
         if bar:
             bar[0].finish()
     blocks = bank_blocks(bank, first, second, args.threshold)
+    shares = reach_shares(blocks)
+    print(
+        f"In the bank, {learner_display(first)} reached {threshold_label(args.threshold)}% in "
+        f"{shares[0]:.0%} of the sessions and {learner_display(second)} in {shares[1]:.0%}."
+    )
     studies = Progress(len(args.participants), stream=sys.stderr, label="study sizes")
     studies.start()
     table = power_table(

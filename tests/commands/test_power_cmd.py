@@ -33,6 +33,7 @@ def test_power_prints_the_table_and_the_answer_and_reuses_its_bank(
     )
     assert code == 0, err
     assert "Power to see BAM beat Behavioral Cloning at 80%" in printed
+    assert "In the bank, BAM reached 80% in " in printed
     answer = printed.strip().splitlines()[-1]
     assert answer.startswith(
         "80% power to see BAM beat Behavioral Cloning at 80% (exact McNemar mid-p, alpha 0.05):"
@@ -71,6 +72,11 @@ def test_power_prints_the_table_and_the_answer_and_reuses_its_bank(
     assert sorted((fresh / "power_bank.jsonl").read_text().splitlines()) == sorted(
         (out / "power_bank.jsonl").read_text().splitlines()
     )
+
+    # Another pair of the study's learners reuses the sessions of the learner they share.
+    code, _, err = power(capsys, "--compare", "bam", "model-based", *SMALL, "--out", out)
+    assert code == 0, err
+    assert "resuming: 4 of 8 sessions already done" in err
 
     # Another seed is another bank: not in this folder.
     code, _, err = power(capsys, *SMALL, "--seed", "1", "--out", out)

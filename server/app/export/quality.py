@@ -1,9 +1,10 @@
 """Quality checks built for teaching, one row per participant (``quality.csv``): how long they
 took against the other participants, their longest idle stretch, how many of their
 demonstrated moves were optimal, how often their + and - agreed with whether the agent's
-move was better or worse than average and whether they follow the paper's model of feedback
-better than random presses do, and how many instructional attention checks they failed. None rejects anybody by itself: each row says which ground a platform accepts for a
-rejection, if any (Prolific: ``FAILED_CHECK`` for failed instructional attention checks, more
+move was better or worse than average and whether the paper's model of feedback explains them
+better than random presses do, and how many instructional attention checks they failed. None
+rejects anybody by itself: each row says which ground a platform accepts for a rejection, if
+any (Prolific: ``FAILED_CHECK`` for failed instructional attention checks, more
 than one in a study of five minutes or more; ``TOO_QUICKLY`` only for exceptionally fast
 completion, three standard deviations below the mean; never for poor performance).
 
@@ -34,7 +35,7 @@ class Thresholds:
     idle_minutes: float = 5.0  # a gap this long between two requests
     demonstration_share: float = 0.7  # optimal demonstrated moves below this share
     # Flag the + and - whose log likelihood ratio, the paper's model of feedback against random
-    # presses, is below this (0: random presses explain them at least as well).
+    # presses, is at most this (0: random presses explain them at least as well).
     feedback_log_ratio: float = 0.0
     least_moves: int = 10  # fewer demonstrated moves (feedback signals): not judged
     # Prolific: a study of five minutes or more needs more than one failed attention check.

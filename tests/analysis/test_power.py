@@ -183,3 +183,25 @@ def test_first_reached_is_the_first_evaluation_at_or_above_the_threshold() -> No
     assert first_reached(curve, 0.8) == (1, 6)
     assert first_reached(curve, 0.9) == (2, 11)
     assert first_reached(curve, 0.99) is None
+
+
+def test_the_learners_of_a_block_are_taught_alike_and_a_participant_s_traits_are_kept() -> None:
+    """One participant's two sessions in an environment: the same traits, the same
+    demonstrations from the same starts and the same choice of agent tries (so the same
+    episodes after every update); the learners' own moves differ. Another participant differs."""
+    from analysis.power_bank import BankPlan, simulate_session
+
+    plan = BankPlan(
+        domains=(("navigation", ("two-rooms",)),),
+        learners=("bam", "cloning"),
+        participants=2,
+        seed=0,
+        population=Population(rounds=(1, 1)),
+    )
+    first, second, other, _ = plan.jobs()
+    assert first.traits == second.traits != other.traits
+    rows = [simulate_session(job) for job in (first, second, other)]
+    episodes = [[point[0] for point in row["curve"]] for row in rows]
+    assert episodes[0] == episodes[1]
+    assert rows[0]["curve"] != rows[1]["curve"]
+    assert simulate_session(first) == rows[0]  # the same streams, the same session

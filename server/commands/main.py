@@ -41,6 +41,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "server.commands.prolific",
         "Make the study on Prolific from the study file, publish, pause, add places, status.",
     ),
+    "power": (
+        "server.commands.power",
+        "How many participants a study needs: power by simulated teachers, against participants.",
+    ),
     "check": (
         "server.commands.check",
         "Check a study file before running it: problems, drawings, optimal returns, update times.",

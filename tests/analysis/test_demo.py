@@ -88,6 +88,11 @@ def test_the_demo_runs_a_whole_study(tmp_path: Path, capsys: pytest.CaptureFixtu
         assert list(group["update_index"]) == list(range(episodes + 1))
     summary = pd.read_csv(out / "analysis" / "sessions_summary.csv")
     assert len(summary) == 12
+    # The simulated participants give feedback as the paper's model of feedback does, and the
+    # feedback check agrees: none is flagged for it.
+    quality = pd.read_csv(out / "export" / "quality.csv")
+    assert (quality["feedback_log_likelihood_ratio"] > 0).all(), quality.to_string()
+    assert not quality["inconsistent_feedback"].any()
     # The participant flow: both arrived, consented, completed and were analysed.
     flow = pd.read_csv(out / "analysis" / "participant_flow.csv")
     stages = flow[flow["kind"] == "stage"].set_index("stage")["participants"].to_dict()

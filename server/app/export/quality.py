@@ -1,9 +1,10 @@
 """Quality checks built for teaching, one row per participant (``quality.csv``): how long they
 took against the other participants, their longest idle stretch, how many of their
-demonstrated moves were optimal, and how often their + and - agreed with whether the agent's
-move was better or worse than average, and how many instructional attention checks they
-failed. None rejects anybody by itself: each row says which ground a platform accepts for a
-rejection, if any (Prolific: ``FAILED_CHECK`` for failed instructional attention checks, more
+demonstrated moves were optimal, how often their + and - agreed with whether the agent's
+move was better or worse than average and whether the paper's model of feedback explains them
+better than random presses do, and how many instructional attention checks they failed. None
+rejects anybody by itself: each row says which ground a platform accepts for a rejection, if
+any (Prolific: ``FAILED_CHECK`` for failed instructional attention checks, more
 than one in a study of five minutes or more; ``TOO_QUICKLY`` only for exceptionally fast
 completion, three standard deviations below the mean; never for poor performance).
 
@@ -17,6 +18,7 @@ from dataclasses import dataclass
 from functools import cache
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from server.app.storage.vocabulary import CheckStatus, Observed
@@ -32,7 +34,9 @@ class Thresholds:
     fast_sd: float = 3.0  # completion this many s.d. below the others' mean
     idle_minutes: float = 5.0  # a gap this long between two requests
     demonstration_share: float = 0.7  # optimal demonstrated moves below this share
-    feedback_share: float = 0.7  # consistent feedback below this share
+    # Flag the + and - whose log likelihood ratio, the paper's model of feedback against random
+    # presses, is at most this (0: random presses explain them at least as well).
+    feedback_log_ratio: float = 0.0
     least_moves: int = 10  # fewer demonstrated moves (feedback signals): not judged
     # Prolific: a study of five minutes or more needs more than one failed attention check.
     long_study_minutes: float = 5.0
@@ -72,8 +76,13 @@ COLUMNS: dict[str, str] = {
     "move was better or worse than the average move there for the selected task under the "
     "true dynamics (+ for better, - for worse; signals on a move where every move is as good "
     "are not counted; empty with fewer than 10).",
-    "inconsistent_feedback": "True when consistent_feedback_share is below 0.7 (random + and "
-    "- score near 0.5).",
+    "feedback_log_likelihood_ratio": "How much better the paper's model of feedback (A-SABL, "
+    "epsilon 0.05 and alpha 1, on the true dynamics' Q) explains the participant's + and - than "
+    "random presses do: the sum over the signals counted in consistent_feedback_share of "
+    "log(p / 0.5), p the model's probability of that sign on that move; above 0 the model "
+    "explains them better (empty with fewer than 10 signals).",
+    "inconsistent_feedback": "True when feedback_log_likelihood_ratio is 0 or below: random + "
+    "and - explain the participant's at least as well as the paper's model of a teacher does.",
     "attention_checks": "Instructional attention checks the participant took (passed or "
     "failed; attention_checks.csv).",
     "failed_attention_checks": "Attention checks failed (the moves allowed used up before the "
@@ -112,6 +121,14 @@ def _advantage(environment: str, task: int, state: int, action: int) -> float:
     return float(row[action] - row.mean())
 
 
+def _sign_log_ratio(environment: str, advantage: float, feedback: int) -> float:
+    """log(p / 0.5), p the probability that a teacher of the paper's model (the simulated
+    teacher's A-SABL) gives this sign, given that they give one, on a move of this advantage."""
+    positive, negative = _teacher(environment).feedback_model.probabilities(np.array([advantage]))
+    given = positive[0] if feedback > 0 else negative[0]
+    return float(np.log(2 * given / (positive[0] + negative[0])))
+
+
 def _share(hits: list[bool], least: int) -> float | None:
     return round(sum(hits) / len(hits), 4) if len(hits) >= least else None
 
@@ -148,6 +165,7 @@ def quality_table(
         idle = float(times.diff().max().total_seconds() / 60) if len(times) > 1 else 0.0
         demonstrated: list[bool] = []
         consistent: list[bool] = []
+        log_ratio = 0.0
         mine = events[events["participant_id"] == participant_id].sort_values("event_id")
         latest_agent: dict[int, tuple[int, int, int]] = {}
         for event in mine.itertuples(index=False):
@@ -166,8 +184,10 @@ def quality_table(
                 advantage = _advantage(environment, task, state, action)
                 if abs(advantage) > TIE_TOLERANCE:  # every move as good: no right answer
                     consistent.append((advantage > 0) == (int(event.feedback) > 0))
+                    log_ratio += _sign_log_ratio(environment, advantage, int(event.feedback))
         demo_share = _share(demonstrated, thresholds.least_moves)
         feedback_share = _share(consistent, thresholds.least_moves)
+        feedback_ratio = round(log_ratio, 3) if feedback_share is not None else None
         row: dict[str, Any] = {
             "participant_id": participant_id,
             "minutes": own_minutes,
@@ -181,8 +201,9 @@ def quality_table(
             and demo_share < thresholds.demonstration_share,
             "feedback_signals": len(consistent),
             "consistent_feedback_share": feedback_share,
-            "inconsistent_feedback": feedback_share is not None
-            and feedback_share < thresholds.feedback_share,
+            "feedback_log_likelihood_ratio": feedback_ratio,
+            "inconsistent_feedback": feedback_ratio is not None
+            and feedback_ratio <= thresholds.feedback_log_ratio,
             "attention_checks": int(checks_taken.get(participant_id, 0)),
             "failed_attention_checks": int(checks_failed.get(participant_id, 0)),
         }

@@ -1365,7 +1365,7 @@ def cost_steps_tasks(
                 soft_forward_tasks(
                     shifts, shifted_probability, shift_start, flat_rows, flat_next,
                     flat_probability, flat_start, rewards,
-                    pass_beta, horizon, np.bool_(True), q, values, jacobians, row, row + 1,
+                    pass_beta, horizon, np.bool_(True), q, values, jacobians, row, row + 1,  # type: ignore[arg-type]  # a NumPy scalar: no literal
                 )  # fmt: skip
                 for s in range(num_plan):
                     for a in range(num_actions):
@@ -1656,8 +1656,8 @@ def _teacher_gradient(
     num_tasks = q.shape[0]
     soft_forward_tasks(
         shifts, shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
-        flat_start, rewards, pass_beta, horizon, np.bool_(True), q, values, jacobians,
-        np.int64(0), num_tasks,
+        flat_start, rewards, pass_beta, horizon, np.bool_(True), q, values, jacobians,  # type: ignore[arg-type]  # a NumPy scalar: no literal
+        np.int64(0), num_tasks,  # type: ignore[arg-type]  # a NumPy scalar: no literal
     )  # fmt: skip
     q_data = q.astype(np.float64)
     no_values = np.empty(0)
@@ -1703,7 +1703,7 @@ def _teacher_gradient(
         dense_sources, dense_probabilities, targets, sources, probabilities, scatter, shifts,
         shifted_probability, shift_start, flat_rows, flat_next, flat_probability, flat_start,
         next_flat, width, values, jacobians, g_q, horizon, gradient_entries, entry_runs,
-        entry_slots, d_reward, d_probs, no_terms, num_tasks, no_sums, np.int64(0), num_tasks,
+        entry_slots, d_reward, d_probs, no_terms, num_tasks, no_sums, np.int64(0), num_tasks,  # type: ignore[arg-type]  # a NumPy scalar: no literal
     )  # fmt: skip
     # Entries of a row that lead to one next state have one gradient (``distinct_entries``).
     for j in range(copies.shape[0]):

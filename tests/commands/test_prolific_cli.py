@@ -424,11 +424,15 @@ def test_a_study_runs_on_the_replica_from_the_command_line(
 
 @contextmanager
 def server_with(
-    db: Database, settings: Settings, executor: ProcessPoolExecutor, **changes: Any
+    db: Database,
+    settings: Settings,
+    executor: ProcessPoolExecutor,
+    admits: int = 2,
+    **changes: Any,
 ) -> Iterator[str]:
     """The study server of ``server`` with ``changes`` to its settings (its replica's
-    currency, funds)."""
-    study = study_config(completion=COMPLETION, max_active_participants=2)
+    currency, funds), admitting ``admits`` participants at once."""
+    study = study_config(completion=COMPLETION, max_active_participants=admits)
     app = create_app(settings.model_copy(update=changes), study, db=db, executor=executor)
     with live(app) as base:
         yield base
@@ -554,9 +558,21 @@ def test_the_replica_lets_in_no_more_than_max_concurrent_submissions_at_once(ser
     client.close()
 
 
+@pytest.fixture
+def one_at_once(db: Database, settings: Settings, executor: ProcessPoolExecutor) -> Iterator[str]:
+    """A server that admits one participant at once (the server holds its Prolific study's
+    concurrency to it)."""
+    with server_with(db, settings, executor, admits=1) as base:
+        yield base
+
+
 def test_simulated_participants_beyond_the_studys_concurrency_wait_their_turn(
-    server: str, db: Database, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+    one_at_once: str,
+    db: Database,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
 ) -> None:
+    server = one_at_once
     monkeypatch.setenv("BAM_ADMIN_TOKEN", ADMIN_TOKEN)
     client = ProlificClient(f"{server}/prolific/api/v1", ADMIN_TOKEN)
     study = study_config(completion=COMPLETION, prolific=PROLIFIC)

@@ -22,13 +22,15 @@ from typing import Any
 from sqlalchemy import select
 
 from server.app.platforms.prolific import ProlificClient
+from server.app.platforms.prolific_sync import record_study_status
 from server.app.platforms.review import ReviewRefused, ReviewUnavailable
 from server.app.storage.db import Database
 from server.app.storage.models import ProlificStudy, ProlificStudyChange, utcnow
 
-# An agent step that has waited this long for its learner's update: the queue makes agents
-# wait (an update takes a fraction of a second on an idle slot).
-PAUSE_WAIT_SECONDS = 3.0
+# An agent step that has waited this long for its learner's update, in two readings in a row
+# (``steady``): the queue makes agents wait (an update takes a fraction of a second on an idle
+# slot, and a single slow one is not a queue).
+PAUSE_WAIT_SECONDS = 5.0
 MAX_CONCURRENT = "max_concurrent_submissions"
 FOLLOWED = ("ACTIVE", "PAUSED")
 
@@ -46,9 +48,9 @@ class Load:
 
     @property
     def overloaded(self) -> bool:
-        return self.waiting > 0 or (
-            self.awaited > 0 and self.oldest_wait_seconds >= PAUSE_WAIT_SECONDS
-        )
+        # The server's line alone is not: it is Prolific sending more than the server admits,
+        # which the concurrency set to the limit ends.
+        return self.awaited > 0 and self.oldest_wait_seconds >= PAUSE_WAIT_SECONDS
 
     @property
     def drained(self) -> bool:
@@ -60,6 +62,19 @@ class Change:
     change: str  # MAX_CONCURRENT, PAUSE or START
     value: int | None
     reason: str
+
+
+def steady(previous: Load | None, now: Load) -> Load:
+    """``now``, its wait for updates only what the reading before also showed (none on the
+    first): a pause answers a queue that lasts, not a moment's."""
+    if previous is None:
+        return Load(now.limit, 0, 0.0, now.waiting)
+    return Load(
+        now.limit,
+        min(previous.awaited, now.awaited),
+        min(previous.oldest_wait_seconds, now.oldest_wait_seconds),
+        now.waiting,
+    )
 
 
 def concurrency_of(study: dict[str, Any]) -> int | None:
@@ -88,15 +103,17 @@ def changes_for(
         )
     if status == "ACTIVE" and load.overloaded:
         why = (
-            f"{load.waiting} participant(s) in the server's line for a place"
-            if load.waiting
-            else f"{load.awaited} participant(s) waiting for their agent's update, the longest "
+            f"{load.awaited} participant(s) waiting for their agent's update, the longest "
             f"{load.oldest_wait_seconds:.0f} s"
         )
         changes.append(Change("PAUSE", None, f"the update queue makes agents wait: {why}"))
     elif status == "PAUSED" and paused_by_us and load.drained:
         changes.append(
-            Change("START", None, "the update queue has drained (no one waits for an agent)")
+            Change(
+                "START",
+                None,
+                "the update queue has drained (no one waits for an agent or for a place)",
+            )
         )
     return changes
 
@@ -130,7 +147,8 @@ def follow(db: Database, client: ProlificClient, study_id: str, load: Load) -> l
                 assert change.value is not None
                 client.set_max_concurrent(study_id, change.value)
             else:
-                client.transition_study(study_id, change.change)
+                answer = client.transition_study(study_id, change.change)
+                record_study_status(db, study_id, str(answer.get("status")), utcnow())
         except (ReviewRefused, ReviewUnavailable) as error:
             outcome = str(error)
         else:

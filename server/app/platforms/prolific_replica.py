@@ -203,7 +203,19 @@ def _submissions(s: Session, study_id: str, statuses: tuple[str, ...]) -> int:
 
 
 def places_taken(s: Session, study_id: str) -> int:
-    return _submissions(s, study_id, HOLDING)
+    """The study's places held: a submission approved after it timed out (no completion code
+    reached the study) holds none, as on Prolific, where approving it makes the participant an
+    extra one."""
+    extra = s.scalar(
+        select(func.count())
+        .select_from(ProlificReplicaSubmission)
+        .where(
+            ProlificReplicaSubmission.study_id == study_id,
+            ProlificReplicaSubmission.status == "APPROVED",
+            ProlificReplicaSubmission.study_code.is_(None),
+        )
+    )
+    return _submissions(s, study_id, HOLDING) - int(extra or 0)
 
 
 def taking_part(s: Session, study_id: str) -> int:

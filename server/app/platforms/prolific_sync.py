@@ -340,6 +340,13 @@ def _apply_study_status(s: Session, study_id: str, status: str, at: datetime) ->
     return APPLIED
 
 
+def record_study_status(db: Database, study_id: str, status: str, at: datetime) -> None:
+    """Keep Prolific's answer to a change the server sent (its status then), as its event
+    would (an event stamped later still wins)."""
+    with db.write() as s:
+        _apply_study_status(s, study_id, status, at)
+
+
 def _warn_high_return_rate(
     s: Session, study_id: str, at: datetime, metadata: dict[str, Any]
 ) -> str:

@@ -31,7 +31,7 @@ from server.app.admin_auth import admin_token, client_address
 from server.app.deps import StateDep, is_admin
 from server.app.errors import ApiError
 from server.app.participants import places
-from server.app.platforms.prolific_capacity import Load, follow, followed_studies
+from server.app.platforms.prolific_capacity import Load, follow, followed_studies, steady
 from server.app.platforms.prolific_replica import (
     PLACEHOLDERS,
     REPLICA_PATH,
@@ -487,29 +487,37 @@ def server_load(state: ServerState, queue: QueueState | None) -> Load:
     )
 
 
-def follow_capacity(state: ServerState, queue: QueueState | None) -> None:
+def follow_capacity(
+    state: ServerState, queue: QueueState | None, previous: Load | None = None
+) -> Load:
     """One comparison of the server's load with each Prolific study it follows (a study
-    Prolific cannot be asked about is left for the next one)."""
+    Prolific cannot be asked about is left for the next one); ``previous``: the reading before,
+    which a wait for updates must have shown too (``steady``; None: this reading alone). The
+    reading, for the next."""
+    reading = server_load(state, queue)
+    load = reading if previous is None else steady(previous, reading)
     studies = followed_studies(state.db)
     if not studies:
-        return
-    load = server_load(state, queue)
+        return reading
     client = getattr(state.review_backend("prolific"), "client", None)
     if client is None:
-        return
+        return reading
     for study_id in studies:
         try:
             follow(state.db, client, study_id, load)
         except (ReviewRefused, ReviewUnavailable) as error:
             log.warning("could not hold Prolific study %s to the capacity: %s", study_id, error)
+    return reading
 
 
 async def follow_capacity_forever(state: ServerState) -> None:
-    """``follow_capacity`` every ``FOLLOW_SECONDS`` while the server runs."""
+    """``follow_capacity`` every ``FOLLOW_SECONDS`` while the server runs, each reading
+    judged with the one before (a wait must last two readings to pause a study)."""
+    previous: Load | None = Load(None, 0, 0.0, 0)  # before the first: no wait
     while True:
         await asyncio.sleep(FOLLOW_SECONDS)
         queue = state.updates.queue() if state.updates is not None else None
         try:
-            await asyncio.to_thread(follow_capacity, state, queue)
+            previous = await asyncio.to_thread(follow_capacity, state, queue, previous)
         except Exception:
             log.exception("could not hold the Prolific studies to the capacity")

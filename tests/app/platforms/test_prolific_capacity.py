@@ -21,6 +21,7 @@ from server.app.platforms.prolific_capacity import (
     Load,
     changes_for,
     follow,
+    steady,
 )
 from server.app.platforms.prolific_replica import ReplicaTransport
 from server.app.routers.prolific import follow_capacity
@@ -49,15 +50,16 @@ def test_the_rule_follows_the_limit_pauses_under_load_and_starts_only_its_own_pa
     short = Load(limit=2, awaited=3, oldest_wait_seconds=PAUSE_WAIT_SECONDS - 0.5, waiting=0)
     assert changes_for("ACTIVE", 2, short, False) == []  # a short wait is not a queue
     line = Load(limit=2, awaited=0, oldest_wait_seconds=0.0, waiting=1)
-    assert kinds(changes_for("ACTIVE", 2, line, False)) == [("PAUSE", None)]
-    assert (
-        "1 participant(s) in the server's line" in changes_for("ACTIVE", 2, line, False)[0].reason
-    )
+    assert changes_for("ACTIVE", 2, line, False) == []  # the concurrency ends the line
+    assert changes_for("PAUSED", 2, line, True) == []  # not drained while people wait
     assert kinds(changes_for("PAUSED", 2, CALM, True)) == [("START", None)]
     assert changes_for("PAUSED", 2, CALM, False) == []  # the researcher's pause stays
     assert changes_for("PAUSED", 2, BUSY, True) == []  # not drained yet
     for status in ("UNPUBLISHED", "SCHEDULED", "AWAITING REVIEW", "COMPLETED"):
         assert changes_for(status, 5, BUSY, True) == []
+    # A wait pauses only when two readings in a row show it.
+    assert steady(CALM, BUSY) == CALM and not steady(None, BUSY).overloaded
+    assert steady(BUSY, BUSY).overloaded
 
 
 def replica_client(db: Database) -> ProlificClient:
@@ -145,9 +147,12 @@ def test_the_server_holds_its_active_studies_to_its_load_and_the_dashboard_lists
     assert logged(db) == []  # no event said the study is active: not followed
     with db.write() as s:
         s.add(ProlificStudy(study_id=study_id, status="ACTIVE"))  # as its status event keeps it
-    follow_capacity(state, calm)
+    reading = follow_capacity(state, calm)
     assert client.get_study(study_id)["submissions_config"]["max_concurrent_submissions"] == 3
-    follow_capacity(state, QueueState(2, 2, 2, 10.0, 1, 0, 0))
+    busy = QueueState(2, 2, 2, 10.0, 1, 0, 0)
+    reading = follow_capacity(state, busy, reading)
+    assert client.get_study(study_id)["status"] == "ACTIVE"  # one reading of the wait: not yet
+    follow_capacity(state, busy, reading)
     assert client.get_study(study_id)["status"] == "PAUSED"
     [view] = server.get("/api/admin/prolific-studies", headers=ADMIN).json()
     assert [(c["change"], c["value"], c["outcome"]) for c in view["changes"]] == [

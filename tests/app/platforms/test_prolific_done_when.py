@@ -164,27 +164,8 @@ def test_a_prolific_study_from_create_to_export_as_prolific_behaves(
         f"{base}/api/admin/participants/{late.id}/approval", json={}, headers=ADMIN
     )
     assert approved.status_code == 200, approved.text
-    # Its bonus's pay answers 429 after paying: in doubt, settled from bonus_payments.
-    backend = state.review_backend("prolific")
-    state.reviews["prolific"] = ProlificBackend(
-        ProlificClient(
-            "http://replica/prolific/api/v1",
-            ADMIN_TOKEN,
-            transport=FailingPay(ReplicaTransport(db, ADMIN_TOKEN), "paid-429"),
-        ),
-        "GBP",
-        name="prolific-replica",
-    )
-    bonus = {"amount": "0.80", "reason": "Taught all six tasks", "unique_token": "late-bonus"}
-    doubt = httpx.post(
-        f"{base}/api/admin/participants/{late.id}/bonuses", json=bonus, headers=ADMIN
-    )
-    assert doubt.status_code == 502 and "is in doubt" in doubt.text
-    state.reviews["prolific"] = backend
-    settled = httpx.post(
-        f"{base}/api/admin/participants/{late.id}/bonuses", json=bonus, headers=ADMIN
-    )
-    assert [b["state"] for b in settled.json()["bonuses"]] == ["paid"]
+    # Approved, the timed-out finisher is paid their reward, as Prolific lets a researcher do.
+    wait_until(lambda: ours(db)[late.id][1] == "APPROVED", "the approval of the timed-out")
 
     # Two more fill the study (the decliner holds a place; the timed-out one gave theirs back).
     first = Person(base, study_id)
@@ -205,7 +186,9 @@ def test_a_prolific_study_from_create_to_export_as_prolific_behaves(
     wait_until(lambda: study_status(base, study_id) == "ACTIVE", "the start's status event")
 
     # Under load the server pauses the study by itself, and starts it once the queue drained.
-    follow_capacity(state, LOADED)
+    reading = follow_capacity(state, LOADED, follow_capacity(state, CALM))
+    assert client.get_study(study_id)["status"] == "ACTIVE"  # one reading of the wait: not yet
+    follow_capacity(state, LOADED, reading)
     assert client.get_study(study_id)["status"] == "PAUSED"
     wait_until(lambda: study_status(base, study_id) == "PAUSED", "the pause's status event")
     follow_capacity(state, CALM)
@@ -232,6 +215,28 @@ def test_a_prolific_study_from_create_to_export_as_prolific_behaves(
         timeout=120,
     )
     assert sorted(bulk.json()["approved"]) == sorted([first.id, last.id])
+    # Its bonus's pay answers 429 after paying: in doubt, settled from bonus_payments.
+    backend = state.review_backend("prolific")
+    state.reviews["prolific"] = ProlificBackend(
+        ProlificClient(
+            "http://replica/prolific/api/v1",
+            ADMIN_TOKEN,
+            transport=FailingPay(ReplicaTransport(db, ADMIN_TOKEN), "paid-429"),
+        ),
+        "GBP",
+        name="prolific-replica",
+    )
+    bonus = {"amount": "0.80", "reason": "Taught all six tasks", "unique_token": "first-bonus"}
+    doubt = httpx.post(
+        f"{base}/api/admin/participants/{first.id}/bonuses", json=bonus, headers=ADMIN
+    )
+    assert doubt.status_code == 502 and "is in doubt" in doubt.text
+    state.reviews["prolific"] = backend
+    settled = httpx.post(
+        f"{base}/api/admin/participants/{first.id}/bonuses", json=bonus, headers=ADMIN
+    )
+    assert [b["state"] for b in settled.json()["bonuses"]] == ["paid"]
+
     out = command(
         [
             "prolific",

@@ -27,7 +27,19 @@ server (the dashboard's reviews on a rehearsal). As on Prolific:
 - the one workspace (``Workspace``: its currency, the funds put in it) has a balance that the
   rewards of approved submissions and the bonuses paid take from, with Prolific's fee, and that
   published studies hold their places' cost from; the study cost calculator and the reward
-  recommendations answer as Prolific's.
+  recommendations answer as Prolific's;
+- a draft can be scheduled (SCHEDULE_PUBLISH with a ``publish_at`` in the future; published at
+  that time) and a published study's PATCH takes its places, ``internal_name`` and
+  ``submissions_config``;
+- webhooks: the workspace's one signing secret (``POST /hooks/secrets/``, a new one replaces
+  the old; made by the replica itself when it first signs an event), subscriptions made
+  disabled with an ``X-Hook-Secret`` that confirms them, and each delivery recorded with its
+  status (PENDING, SUCCEEDED, FAILED); with no subscription at all, events go to this server's
+  own webhook (``routers/prolific.py``), so a rehearsal needs no setting;
+- participant groups: made, listed, joined and left through the API or by a completion code's
+  ADD_TO_PARTICIPANT_GROUP / REMOVE_FROM_PARTICIPANT_GROUP, and the study filters
+  ``participant_group_blocklist``, ``participant_group_allowlist`` and
+  ``previous_studies_blocklist`` keep out whom they name.
 """
 
 from __future__ import annotations

@@ -1252,9 +1252,17 @@ def in_group(s: Session, group_ids: list[str], participant_id: str) -> bool:
 
 
 def barred(s: Session, study: ProlificReplicaStudy, participant_id: str) -> str | None:
-    """Why the study's filters keep the participant out (None: they may take part): a study of
-    ``previous_studies_blocklist`` taken, a group of ``participant_group_blocklist`` joined, or
+    """Why the study keeps the participant out (None: they may take part): a submission of it
+    already, a study of ``previous_studies_blocklist`` taken, a group of ``participant_group_blocklist`` joined, or
     no group of ``participant_group_allowlist``."""
+    again = s.scalar(
+        select(ProlificReplicaSubmission.id).where(
+            ProlificReplicaSubmission.study_id == study.id,
+            ProlificReplicaSubmission.participant_id == participant_id,
+        )
+    )
+    if again is not None:
+        return "they took part in it already (one submission per participant)"
     for item in study.fields.get("filters") or []:
         values = list(item.get("selected_values") or [])
         kind = item.get("filter_id")

@@ -289,6 +289,12 @@ def test_a_completion_code_adds_finishers_to_a_group_that_blocks_the_next_study(
         follow_redirects=False,
     )
     assert allowed.status_code == 303
+    again = browser.post(
+        f"/prolific/studies/{second}/take-part",
+        params={"participant_id": other},
+        follow_redirects=False,
+    )
+    assert again.status_code == 403 and "took part in it already" in again.text
     only = draft()
     only["filters"] = [{"filter_id": "participant_group_allowlist", "selected_values": [follow_up]}]
     third = published(client, only)

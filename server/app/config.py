@@ -416,6 +416,38 @@ class ProlificStudy(_Strict):
         description="Prolific study ids whose participants may not take part (a pilot, an "
         "earlier run of this study).",
     )
+    workspace_id: str | None = Field(
+        None,
+        pattern=PROLIFIC_ID,
+        description="The Prolific workspace whose participant groups the study uses (24 "
+        "hexadecimal digits); needed only with a group below when the account has several "
+        "workspaces.",
+    )
+    family_group: str | None = Field(
+        None,
+        min_length=1,
+        max_length=200,
+        description="The name of a participant group for the study's family (its pilot, its "
+        "runs): whoever finished a study of the family is in it and may not take part in the "
+        "next (participant_group_blocklist), and this study's finishers join it (the completion "
+        "code's ADD_TO_PARTICIPANT_GROUP). `bam-study prolific create` makes the group in the "
+        "workspace when it has none of that name.",
+    )
+    follow_up_group: str | None = Field(
+        None,
+        min_length=1,
+        max_length=200,
+        description="The name of a participant group that this study's finishers join (the "
+        "completion code's ADD_TO_PARTICIPANT_GROUP), for a follow-up study whose only_group it "
+        "is; made when the workspace has none of that name.",
+    )
+    only_group: str | None = Field(
+        None,
+        min_length=1,
+        max_length=200,
+        description="Only members of this participant group may take part "
+        "(participant_group_allowlist): a follow-up study of an earlier one's follow_up_group.",
+    )
     public_url: str = Field(
         description="The server's public https address, e.g. https://study.example.org: "
         "participants open {public_url}/study with Prolific's PROLIFIC_PID, STUDY_ID and "

@@ -198,11 +198,13 @@ def create_app(
         state.updates = manager
         await manager.start()
         sweeper = asyncio.ensure_future(_sweep_forever(state))
+        follower = asyncio.ensure_future(prolific.follow_capacity_forever(state))
         try:
             yield
         finally:
             sweeper.cancel()
-            await asyncio.gather(sweeper, return_exceptions=True)
+            follower.cancel()
+            await asyncio.gather(sweeper, follower, return_exceptions=True)
             await manager.stop()
             if own_cluster:
                 assert updates_cluster is not None

@@ -658,6 +658,16 @@ class HighReturnRateView(BaseModel):
     )
 
 
+class ProlificStudyChangeView(BaseModel):
+    """A change the server made to the study on Prolific by itself (its capacity)."""
+
+    at: datetime
+    change: str = Field(description="max_concurrent_submissions, PAUSE or START.")
+    value: int | None = Field(description="The new max_concurrent_submissions.")
+    reason: str
+    outcome: str = Field(description="done, or Prolific's refusal.")
+
+
 class ProlificStudyView(BaseModel):
     """A Prolific study as its events (``study.status.change``) and our participants show it."""
 
@@ -665,3 +675,8 @@ class ProlificStudyView(BaseModel):
     status: str | None = Field(description="Prolific's status of the study (none: no event yet).")
     status_at: datetime | None = Field(description="When the study took that status.")
     high_return_rate: HighReturnRateView | None
+    changes: list[ProlificStudyChangeView] = Field(
+        default_factory=list,
+        description="The server's own last changes to the study (its concurrency, pauses and "
+        "starts held to the capacity), newest first.",
+    )

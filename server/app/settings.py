@@ -143,7 +143,9 @@ class Settings(BaseSettings):
         None,
         description="The Prolific workspace's webhook signing secret, as POST /hooks/secrets/ "
         "gives it (one per workspace; a new one replaces the old), not the X-Hook-Secret that "
-        "confirms a subscription: /prolific/webhook accepts only events signed with it.",
+        "confirms a subscription. Not needed with `bam-study prolific hooks`, which makes the "
+        "secret and stores it in the database: /prolific/webhook accepts events signed with "
+        "this, with a stored one, or with the server's Prolific replica's own.",
     )
     mturk_endpoint_url: str = Field(
         "https://mturk-requester-sandbox.us-east-1.amazonaws.com",

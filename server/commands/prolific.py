@@ -14,7 +14,9 @@ from __future__ import annotations
 import argparse
 import re
 import sys
+import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -24,6 +26,7 @@ if TYPE_CHECKING:
     from server.app.config import StudyConfig
     from server.app.platforms.prolific import ProlificClient
     from server.app.settings import Settings
+    from server.app.storage.db import Database
 
 STUDY_ID = re.compile(r"[0-9a-f]{24}")
 
@@ -68,6 +71,27 @@ def submission_status(text: str) -> str:
             f"{text!r} is not a Prolific submission status: one of {', '.join(spelt)}"
         )
     return spelt[key(text)]
+
+
+# The events the server applies (``prolific_sync.APPLIED_EVENTS``), subscribed by ``hooks``.
+HOOK_EVENTS = ("submission.status.change", "study.status.change", "study.has_high_return_rate")
+
+
+def publish_time(text: str) -> str:
+    """An ISO 8601 time with its time zone, in the future."""
+    from datetime import UTC, datetime
+
+    try:
+        moment = datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an ISO 8601 time") from None
+    if moment.tzinfo is None:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} has no time zone: give one (2027-01-05T09:00+00:00)"
+        )
+    if moment <= datetime.now(UTC):
+        raise argparse.ArgumentTypeError(f"{text!r} is not in the future")
+    return moment.astimezone(UTC).isoformat()
 
 
 def message_body(text: str) -> str:
@@ -132,6 +156,29 @@ def configure(parser: argparse.ArgumentParser) -> None:
                 help="publish even though the hourly pay is below Prolific's minimum (the "
                 "balance and the currency are checked all the same)",
             )
+            sub.add_argument(
+                "--at",
+                type=publish_time,
+                metavar="WHEN",
+                help="schedule the publication instead (Prolific's SCHEDULE_PUBLISH) at this "
+                "time, ISO 8601 with its time zone (2027-01-05T09:00+00:00); the money is "
+                "checked now",
+            )
+    hooks = action(
+        "hooks",
+        "Set up Prolific's webhooks for the study's workspace: make the workspace's signing "
+        "secret (POST /hooks/secrets/, which replaces the old one) and store it in the "
+        "database (BAM_DATABASE_URL), where the server's /prolific/webhook reads it; subscribe "
+        f"{', '.join(HOOK_EVENTS)} at the server's address (that of the study's link) and "
+        "confirm each subscription; then list the subscriptions and their deliveries.",
+    )
+    hooks.add_argument("study_id", metavar="STUDY_ID", type=study_id)
+    hooks.add_argument(
+        "--list",
+        action="store_true",
+        help="only list the subscriptions and their deliveries (nothing made or stored)",
+    )
+    hooks.add_argument("--database-url", help="overrides BAM_DATABASE_URL")
     places = action("add-places", "Raise the study's places to N (places only go up).")
     places.add_argument("study_id", metavar="STUDY_ID", type=study_id)
     places.add_argument("places", metavar="N", type=positive, help="the new number of places")
@@ -172,22 +219,55 @@ def client_for(args: argparse.Namespace, settings: Settings) -> ProlificClient:
     return ProlificClient(settings.prolific_api_url, settings.prolific_token.get_secret_value())
 
 
-def server_limit(server: str, settings: Settings) -> int | None:
+# How long ``create`` waits for a running server to state its capacity (its first start
+# compiles the learners' kernels and times their updates: minutes), and how often it asks.
+CAPACITY_WAIT_SECONDS = 1200.0
+CAPACITY_ASK_SECONDS = 5.0
+
+
+def server_limit(
+    server: str,
+    settings: Settings,
+    get: Callable[..., httpx.Response] = httpx.get,
+    sleep: Callable[[float], None] = time.sleep,
+    clock: Callable[[], float] = time.monotonic,
+) -> int | None:
     """The participants the running server serves at once (its dashboard's queue: the study
-    file's limit or its measured capacity); None when it cannot say."""
+    file's limit or the capacity it measured, its own work included), waiting while it is
+    still measuring; None when no server answers there."""
     if settings.admin_token is None:
         return None
-    try:
-        answer = httpx.get(
-            f"{server.rstrip('/')}/api/admin/queue",
-            headers={"Authorization": f"Bearer {settings.admin_token.get_secret_value()}"},
-            timeout=10,
-        )
-        answer.raise_for_status()
-        limit = answer.json().get("limit")
-    except (httpx.HTTPError, ValueError, AttributeError):
-        return None
-    return limit if isinstance(limit, int) and limit >= 1 else None
+    deadline = clock() + CAPACITY_WAIT_SECONDS
+    said = False
+    while True:
+        try:
+            answer = get(
+                f"{server.rstrip('/')}/api/admin/queue",
+                headers={"Authorization": f"Bearer {settings.admin_token.get_secret_value()}"},
+                timeout=10,
+            )
+            answer.raise_for_status()
+            limit = answer.json().get("limit")
+        except (httpx.HTTPError, ValueError, AttributeError):
+            return None
+        if isinstance(limit, int) and limit >= 1:
+            return limit
+        # The server answers but has no capacity yet: what it states once measured is what
+        # it admits by, so it is waited for rather than measured here.
+        if clock() >= deadline:
+            raise Refused(
+                f"the server at {server} stated no capacity in {CAPACITY_WAIT_SECONDS:.0f} s "
+                "(still measuring?): give --max-concurrent N"
+            )
+        if not said:
+            print(
+                f"waiting for the server at {server} to state its capacity (it measures it "
+                "after its start)...",
+                file=sys.stderr,
+                flush=True,
+            )
+            said = True
+        sleep(CAPACITY_ASK_SECONDS)
 
 
 def measured_capacity(study: StudyConfig, settings: Settings) -> int:
@@ -242,12 +322,35 @@ def create(args: argparse.Namespace, settings: Settings) -> None:
         raise Refused(f"{args.study_file} has no [prolific] table (docs/study-file.md)", 2)
     client = client_for(args, settings)
     try:
+        limit = max_concurrent(args, study, settings)
         made = client.create_study(
-            draft_study(study, max_concurrent(args, study, settings), args.replica)
+            draft_study(study, limit, args.replica, participant_groups(client, study))
         )
     finally:
         client.close()
     print(made["id"])
+
+
+def participant_groups(client: ProlificClient, study: StudyConfig) -> dict[str, str]:
+    """The id of each participant group the ``[prolific]`` table names, by name, each made in
+    the workspace where it has none of that name."""
+    assert study.prolific is not None
+    prolific = study.prolific
+    names = [n for n in (prolific.family_group, prolific.follow_up_group, prolific.only_group) if n]
+    if not names:
+        return {}
+    workspace = prolific.workspace_id
+    if workspace is None:
+        listed = client.workspaces()
+        if len(listed) != 1:
+            raise Refused(
+                f"the account has {len(listed)} workspaces ("
+                + ", ".join(f"{w.get('id')} {w.get('title', '')!r}" for w in listed)
+                + "): name the study's in [prolific] workspace_id, for its participant groups",
+                2,
+            )
+        workspace = str(listed[0]["id"])
+    return {name: client.participant_group(workspace, name) for name in dict.fromkeys(names)}
 
 
 def status(client: ProlificClient, study_id: str) -> None:
@@ -292,17 +395,26 @@ def amount(cents: float, currency: str) -> str:
     return f"{sign}{abs(whole) // 100}.{abs(whole) % 100:02d} {currency}"
 
 
-def publish(client: ProlificClient, study_id: str, settings: Settings, force: bool) -> None:
+def publish(
+    client: ProlificClient, study_id: str, settings: Settings, force: bool, at: str | None = None
+) -> None:
     """Publish the study once the money is checked and shown: the workspace's currency is
     BAM_PROLIFIC_CURRENCY, the hourly pay is at least Prolific's minimum (unless ``force``),
     and the available balance covers the study's cost (its places' rewards with Prolific's
     fees and VAT, from Prolific's cost calculator)."""
     from server.app.platforms.review import ReviewRefused, ReviewUnavailable
 
+    def go() -> None:
+        if at is None:
+            done = client.transition_study(study_id, "PUBLISH")
+            print(f"study {study_id}: {done['status']}")
+        else:
+            done = client.schedule_publish(study_id, at)
+            print(f"study {study_id}: {done['status']} (to publish at {at})")
+
     study = client.get_study(study_id)
     if study.get("status") != "UNPUBLISHED":  # Prolific refuses it: nothing to pay for
-        done = client.transition_study(study_id, "PUBLISH")
-        print(f"study {study_id}: {done['status']}")
+        go()
         return
     workspace = client.workspace_of(study)
     balance = client.balance(workspace)  # the workspace's currency, read once
@@ -356,8 +468,7 @@ def publish(client: ProlificClient, study_id: str, settings: Settings, force: bo
             f"study's cost of {amount(cost, currency)}: add at least "
             f"{amount(cost - available, currency)} to it on Prolific; the study is not published"
         )
-    done = client.transition_study(study_id, "PUBLISH")
-    print(f"study {study_id}: {done['status']}")
+    go()
 
 
 def add_places(client: ProlificClient, study_id: str, places: int) -> None:
@@ -485,6 +596,94 @@ def message(args: argparse.Namespace, settings: Settings) -> None:
     )
 
 
+def hook_url(study: dict[str, Any]) -> str:
+    """The server's webhook: ``/prolific/webhook`` at the address of the study's link (where
+    participants reach the server)."""
+    from urllib.parse import urlsplit
+
+    link = urlsplit(str(study.get("external_study_url", "")))
+    base = link.path.rsplit("/study", 1)[0] if "/study" in link.path else ""
+    if not link.scheme or not link.netloc:
+        raise Refused(f"study {study.get('id')} has no study link to find the server's address by")
+    return f"{link.scheme}://{link.netloc}{base}/prolific/webhook"
+
+
+def hooks(args: argparse.Namespace, settings: Settings) -> None:
+    """Make the workspace's signing secret and store it, subscribe and confirm each event at
+    the server's webhook (those subscribed there already are kept), and list them with their
+    deliveries."""
+    # The database first: a secret Prolific made and the server cannot read would fail every
+    # event (the old one no longer signs).
+    db = None if args.list else study_database(settings)
+    client = client_for(args, settings)
+    try:
+        study = client.get_study(args.study_id)
+        workspace = client.workspace_of(study)
+        target = hook_url(study)
+        if db is not None:
+            secret = client.create_hook_secret(workspace)
+            store_hook_secret(db, workspace, secret)
+            print(
+                f"workspace {workspace}: a new signing secret, stored in the database (the "
+                "old one no longer signs)"
+            )
+            have = {
+                (s.get("event_type"), s.get("target_url")) for s in client.subscriptions(workspace)
+            }
+            for event_type in HOOK_EVENTS:
+                if (event_type, target) in have:
+                    continue
+                made = client.subscribe(workspace, event_type, target)
+                if not made.get("is_enabled"):
+                    raise Refused(f"Prolific did not confirm the subscription to {event_type}")
+        listed = client.subscriptions(workspace)
+        print(f"subscriptions of workspace {workspace}: {len(listed)}")
+        for subscription in listed:
+            events = client.hook_events(str(subscription["id"]))
+            counted = Counter(str(e.get("status")) for e in events)
+            tally = ", ".join(f"{n} {status}" for status, n in sorted(counted.items()))
+            print(
+                f"  {subscription['id']}  {subscription.get('event_type'):<28} "
+                f"{subscription.get('target_url')}  deliveries: {len(events)}"
+                + (f" ({tally})" if tally else "")
+            )
+    finally:
+        client.close()
+        if db is not None:
+            db.dispose()
+
+
+def study_database(settings: Settings) -> Database:
+    """The study's database (BAM_DATABASE_URL) at the current schema, or a refusal."""
+    from server.app.storage import db as database
+
+    try:
+        db = database.Database.from_url(settings.database_url)
+    except Exception as error:
+        raise Refused(f"cannot open the database (BAM_DATABASE_URL): {error}") from None
+    current, head = database.current_revision(db.engine), database.head_revision()
+    if current != head:
+        db.dispose()
+        raise Refused(
+            f"the database is at schema {current or 'none'}, not {head}: run `bam-study db "
+            "upgrade` first; nothing was sent"
+        )
+    return db
+
+
+def store_hook_secret(db: Database, workspace: str, secret: str) -> None:
+    """The workspace's secret where the server's webhook reads it (``prolific_webhook_secrets``,
+    one per workspace: a new one replaces the old)."""
+    from server.app.storage.models import ProlificWebhookSecret, utcnow
+
+    with db.write() as s:
+        row = s.get(ProlificWebhookSecret, workspace)
+        if row is None:
+            s.add(ProlificWebhookSecret(workspace_id=workspace, secret=secret, created_at=utcnow()))
+        else:
+            row.secret, row.created_at = secret, utcnow()
+
+
 def run(args: argparse.Namespace) -> int:
     from server.app.platforms.review import ReviewRefused, ReviewUnavailable
     from server.app.settings import SettingsError, load_settings
@@ -502,6 +701,9 @@ def run(args: argparse.Namespace) -> int:
         if args.action == "message":
             message(args, settings)
             return 0
+        if args.action == "hooks":
+            hooks(args, settings)
+            return 0
         client = client_for(args, settings)
         try:
             if args.action == "status":
@@ -511,7 +713,7 @@ def run(args: argparse.Namespace) -> int:
             elif args.action == "add-places":
                 add_places(client, args.study_id, args.places)
             elif args.action == "publish":
-                publish(client, args.study_id, settings, args.force)
+                publish(client, args.study_id, settings, args.force, args.at)
             else:
                 action = args.action.upper()  # publish, pause, start, stop
                 done = client.transition_study(args.study_id, action)

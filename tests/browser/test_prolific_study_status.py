@@ -135,3 +135,36 @@ def test_the_dashboard_shows_the_studys_status_and_a_high_return_rate(
     expect(line.locator('[data-study-status="ACTIVE"]')).to_have_text("ACTIVE", timeout=15000)
     expect(warning).to_be_visible()
     watch.check()
+
+
+def test_the_dashboard_lists_the_servers_own_changes_to_the_study(
+    page: Page, server: LiveServer
+) -> None:
+    """Each change the server made to its Prolific study by itself (the concurrency held to its
+    capacity, a pause under load) is listed under the study's line, newest first."""
+    study = "f" * 24
+    server.query(
+        "INSERT INTO prolific_studies (study_id, status) VALUES (:study, 'PAUSED')", study=study
+    )
+    for at, change, value, reason, outcome in (
+        ("2026-01-05 09:00:00+00", "max_concurrent_submissions", 3, "the server admits 3", "done"),
+        ("2026-01-05 09:10:00+00", "PAUSE", None, "the update queue makes agents wait", "done"),
+    ):
+        server.query(
+            "INSERT INTO prolific_study_changes (study_id, at, change, value, reason, outcome) "
+            "VALUES (:study, :at, :change, :value, :reason, :outcome)",
+            study=study,
+            at=at,
+            change=change,
+            value=value,
+            reason=reason,
+            outcome=outcome,
+        )
+    watch = Watch(server.url).attach(page)
+    admin_login(page, server, "/dashboard")
+    listed = page.locator(f'#prolific-studies [data-prolific-changes="{study}"] li')
+    expect(listed).to_have_count(2)
+    expect(listed.nth(0)).to_contain_text("paused (the update queue makes agents wait)")
+    expect(listed.nth(1)).to_contain_text("concurrency set to 3 (the server admits 3)")
+    assert axe_violations(page) == []
+    watch.check()

@@ -424,11 +424,15 @@ def test_a_study_runs_on_the_replica_from_the_command_line(
 
 @contextmanager
 def server_with(
-    db: Database, settings: Settings, executor: ProcessPoolExecutor, **changes: Any
+    db: Database,
+    settings: Settings,
+    executor: ProcessPoolExecutor,
+    admits: int = 2,
+    **changes: Any,
 ) -> Iterator[str]:
     """The study server of ``server`` with ``changes`` to its settings (its replica's
-    currency, funds)."""
-    study = study_config(completion=COMPLETION, max_active_participants=2)
+    currency, funds), admitting ``admits`` participants at once."""
+    study = study_config(completion=COMPLETION, max_active_participants=admits)
     app = create_app(settings.model_copy(update=changes), study, db=db, executor=executor)
     with live(app) as base:
         yield base
@@ -554,9 +558,21 @@ def test_the_replica_lets_in_no_more_than_max_concurrent_submissions_at_once(ser
     client.close()
 
 
+@pytest.fixture
+def one_at_once(db: Database, settings: Settings, executor: ProcessPoolExecutor) -> Iterator[str]:
+    """A server that admits one participant at once (the server holds its Prolific study's
+    concurrency to it)."""
+    with server_with(db, settings, executor, admits=1) as base:
+        yield base
+
+
 def test_simulated_participants_beyond_the_studys_concurrency_wait_their_turn(
-    server: str, db: Database, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+    one_at_once: str,
+    db: Database,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
 ) -> None:
+    server = one_at_once
     monkeypatch.setenv("BAM_ADMIN_TOKEN", ADMIN_TOKEN)
     client = ProlificClient(f"{server}/prolific/api/v1", ADMIN_TOKEN)
     study = study_config(completion=COMPLETION, prolific=PROLIFIC)
@@ -837,4 +853,230 @@ def test_the_replica_messages_every_recipient_or_none_and_lists_what_it_sent(db:
         client.request("GET", "messages/")
     since = client.request("GET", "messages/", params={"created_after": "2026-01-01T00:00:00Z"})
     assert [m["id"] for m in since["results"]] == [sent["id"]]
+    client.close()
+
+
+# -- hooks, participant groups, scheduled publishing, the server's capacity ---------------------
+def test_hooks_makes_the_secret_subscribes_confirms_and_the_webhook_checks_by_it(
+    server: str,
+    db: Database,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from server.app.platforms.prolific_replica import WORKSPACE_ID
+    from server.app.platforms.prolific_sync import signature
+    from server.app.storage.models import ProlificWebhookSecret
+
+    monkeypatch.setenv("BAM_ADMIN_TOKEN", ADMIN_TOKEN)
+    monkeypatch.setenv("BAM_DATABASE_URL", db.engine.url.render_as_string(hide_password=False))
+    client = ProlificClient(f"{server}/prolific/api/v1", ADMIN_TOKEN)
+    study = study_config(completion=COMPLETION, prolific=PROLIFIC)
+    study_id = client.create_study(draft_study(study, max_concurrent=3, base_url=server))["id"]
+    replica = ["--replica", server]
+
+    status, out, err = run_command(["prolific", "hooks", study_id, *replica], capsys)
+    assert status == 0, err
+    assert f"workspace {WORKSPACE_ID}: a new signing secret, stored in the database" in out
+    listed = client.subscriptions(WORKSPACE_ID)
+    assert sorted(s["event_type"] for s in listed) == [
+        "study.has_high_return_rate",
+        "study.status.change",
+        "submission.status.change",
+    ]
+    assert {s["target_url"] for s in listed} == {f"{server}/prolific/webhook"}
+    assert all(s["is_enabled"] for s in listed)
+    with db.read() as s:
+        [stored] = s.scalars(select(ProlificWebhookSecret)).all()
+    assert stored.workspace_id == WORKSPACE_ID
+    secrets_now = client.request("GET", "hooks/secrets/", params={"workspace_id": WORKSPACE_ID})
+    assert [x["value"] for x in secrets_now["results"]] == [stored.secret]
+    assert stored.secret not in out + err
+
+    # Publishing sends study.status.change to the subscription, which the server takes.
+    client.transition_study(study_id, "PUBLISH")
+    study_hook = next(s for s in listed if s["event_type"] == "study.status.change")
+
+    def succeeded() -> bool:
+        return [e["status"] for e in client.hook_events(study_hook["id"])] == ["SUCCEEDED"]
+
+    from tests.support.server import wait_until
+
+    wait_until(succeeded, "the study event's delivery")
+    status, out, err = run_command(["prolific", "hooks", study_id, "--list", *replica], capsys)
+    assert status == 0, err
+    assert re.search(
+        r"study\.status\.change\s+\S+/prolific/webhook  deliveries: 1 \(1 SUCCEEDED\)", out
+    ), out
+    assert "subscriptions of workspace" in out and "new signing secret" not in out
+
+    # The webhook takes an event signed with the stored secret; run again, the secret is
+    # replaced (the old one no longer signs) and no subscription is made twice.
+    body = b'{"event_type": "study.status.change", "resource_id": "%s", "status": "PAUSED"}' % (
+        study_id.encode()
+    )
+    import time
+
+    def send(secret: str, event: str) -> httpx.Response:
+        stamp = str(int(time.time()))
+        return httpx.post(
+            f"{server}/prolific/webhook",
+            content=body,
+            headers={
+                "X-Prolific-Request-Signature": signature(secret, stamp, body),
+                "X-Prolific-Request-Timestamp": stamp,
+                "X-Event-ID": event,
+            },
+        )
+
+    assert send(stored.secret, "e1").status_code == 200
+    status, out, err = run_command(["prolific", "hooks", study_id, *replica], capsys)
+    assert status == 0, err
+    assert len(client.subscriptions(WORKSPACE_ID)) == 3
+    with db.read() as s:
+        [renewed] = s.scalars(select(ProlificWebhookSecret)).all()
+    assert renewed.secret != stored.secret
+    assert send(renewed.secret, "e2").status_code == 200
+    assert send(stored.secret, "e3").status_code == 401
+
+    # A database the secret cannot be stored in: refused before Prolific makes a new one.
+    monkeypatch.setenv(
+        "BAM_DATABASE_URL", f"sqlite:///{Path(db.engine.url.database or '.').parent}/none/x.db"
+    )
+    status, out, err = run_command(["prolific", "hooks", study_id, *replica], capsys)
+    assert status != 0
+    with db.read() as s:
+        assert s.scalars(select(ProlificWebhookSecret.secret)).all() == [renewed.secret]
+    client.close()
+
+
+def test_create_waits_for_the_running_servers_capacity(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A server still measuring its capacity answers the queue with no limit: create asks
+    again until it states one, and sends that, never a capacity measured on its own."""
+    settings = Settings(admin_token=ADMIN_TOKEN)
+    answers = iter([None, None, 79])
+    waited: list[float] = []
+
+    def get(url: str, **_: Any) -> httpx.Response:
+        assert url == "http://127.0.0.1:9/api/admin/queue"
+        return httpx.Response(200, json={"limit": next(answers)}, request=httpx.Request("GET", url))
+
+    clock = iter(range(1000))
+    limit = prolific_command.server_limit(
+        "http://127.0.0.1:9", settings, get=get, sleep=waited.append, clock=lambda: next(clock)
+    )
+    assert limit == 79 and waited == [prolific_command.CAPACITY_ASK_SECONDS] * 2
+
+    # One that never states it: refused, with what to give instead.
+    def never(url: str, **_: Any) -> httpx.Response:
+        return httpx.Response(200, json={"limit": None}, request=httpx.Request("GET", url))
+
+    times = iter([0.0, 1.0, prolific_command.CAPACITY_WAIT_SECONDS + 1])
+    with pytest.raises(prolific_command.Refused, match="give --max-concurrent N"):
+        prolific_command.server_limit(
+            "http://127.0.0.1:9",
+            settings,
+            get=never,
+            sleep=waited.append,
+            clock=lambda: next(times),
+        )
+
+    # No server there: None (create then measures the capacity itself).
+    def down(url: str, **_: Any) -> httpx.Response:
+        raise httpx.ConnectError("refused")
+
+    assert prolific_command.server_limit("http://127.0.0.1:9", settings, get=down) is None
+
+
+def test_create_makes_the_familys_group_blocks_it_and_adds_the_finishers(
+    server: str,
+    db: Database,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from server.app.platforms.prolific_replica import WORKSPACE_ID
+
+    monkeypatch.setenv("BAM_ADMIN_TOKEN", ADMIN_TOKEN)
+    path = study_file(tmp_path, family_group="BAM teaching", follow_up_group="BAM follow-up")
+    replica = ["--replica", server]
+    status, out, err = run_command(["prolific", "create", str(path), *replica], capsys)
+    assert status == 0, err
+    first = out.strip()
+    client = ProlificClient(f"{server}/prolific/api/v1", ADMIN_TOKEN)
+    groups = {
+        g["name"]: g["id"]
+        for g in client.request(
+            "GET", "participant-groups/", params={"workspace_id": WORKSPACE_ID}
+        )["results"]
+    }
+    assert set(groups) == {"BAM teaching", "BAM follow-up"}
+    made = client.get_study(first)
+    assert {
+        "filter_id": "participant_group_blocklist",
+        "selected_values": [groups["BAM teaching"]],
+    } in made["filters"]
+    assert made["completion_codes"][0]["actions"] == [
+        {"action": "MANUALLY_REVIEW"},
+        {"action": "ADD_TO_PARTICIPANT_GROUP", "participant_group": groups["BAM teaching"]},
+        {"action": "ADD_TO_PARTICIPANT_GROUP", "participant_group": groups["BAM follow-up"]},
+    ]
+    client.transition_study(first, "PUBLISH")
+    finisher, _ = take_part(server, first, finish=True)
+    assert client.group_members(groups["BAM teaching"]) == [finisher]
+
+    # The next study of the family finds the same group (none made twice) and keeps the
+    # finisher out; a follow-up lets in only its group.
+    status, out, err = run_command(["prolific", "create", str(path), *replica], capsys)
+    second = out.strip()
+    assert status == 0 and second != first
+    listed = client.request("GET", "participant-groups/", params={"workspace_id": WORKSPACE_ID})
+    assert len(listed["results"]) == 2
+    client.transition_study(second, "PUBLISH")
+    with httpx.Client(base_url=server, headers={"Authorization": f"Bearer {ADMIN_TOKEN}"}) as who:
+        barred = who.post(
+            f"/prolific/studies/{second}/take-part", params={"participant_id": finisher}
+        )
+    assert barred.status_code == 403
+    follow_up = study_file(tmp_path, only_group="BAM follow-up", previous_studies_blocklist=None)
+    status, out, err = run_command(["prolific", "create", str(follow_up), *replica], capsys)
+    assert status == 0, err
+    assert client.get_study(out.strip())["filters"] == [
+        {"filter_id": "participant_group_allowlist", "selected_values": [groups["BAM follow-up"]]}
+    ]
+    client.close()
+
+
+def test_publish_at_schedules_the_study_after_the_money_checks(
+    server: str,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from datetime import UTC, datetime, timedelta
+
+    monkeypatch.setenv("BAM_ADMIN_TOKEN", ADMIN_TOKEN)
+    replica = ["--replica", server]
+    status, out, err = run_command(
+        ["prolific", "create", str(study_file(tmp_path)), *replica], capsys
+    )
+    study_id = out.strip()
+    when = (datetime.now(UTC) + timedelta(days=1)).replace(microsecond=0)
+    status, out, err = run_command(
+        ["prolific", "publish", study_id, "--at", when.isoformat(), *replica], capsys
+    )
+    assert status == 0, err
+    assert (
+        "balance" in out
+        and f"study {study_id}: SCHEDULED (to publish at {when.isoformat()})" in out
+    )
+    client = ProlificClient(f"{server}/prolific/api/v1", ADMIN_TOKEN)
+    assert client.get_study(study_id)["status"] == "SCHEDULED"
+    status, out, err = run_command(
+        ["prolific", "publish", study_id, "--at", "2020-01-01T00:00+00:00", *replica], capsys
+    )
+    assert status == 2 and "is not in the future" in err
+    status, out, err = run_command(
+        ["prolific", "publish", study_id, "--at", "2030-01-01T09:00", *replica], capsys
+    )
+    assert status == 2 and "has no time zone" in err
     client.close()

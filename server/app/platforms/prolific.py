@@ -119,10 +119,11 @@ class ProlificClient:
         retry: bool = True,
         creates: bool = False,
         with_status: bool = False,
+        with_headers: bool = False,
         **kwargs: Any,
     ) -> Any:
         """Prolific's JSON answer (None for an empty one; with ``with_status``, the answer's
-        status code and it). ``retry=False`` for a call that must
+        status code and it; with ``with_headers``, the answer's headers and it). ``retry=False`` for a call that must
         not be sent twice (``pay``): a failure then is reported, never resent. ``creates`` for
         a call that makes something (a draft study, a bonus set-up): resent only where
         Prolific cannot have acted (a 429, a connection that never opened); after a 5xx or a
@@ -161,6 +162,8 @@ class ProlificClient:
                     )
                 else:
                     answer = response.json() if response.content else None
+                    if with_headers:
+                        return response.headers, answer
                     return (response.status_code, answer) if with_status else answer
             self.sleep(wait)
             wait *= 2
@@ -182,6 +185,106 @@ class ProlificClient:
         return dict(
             self.request("PATCH", f"studies/{study_id}/", json={"total_available_places": places})
         )
+
+    def set_max_concurrent(self, study_id: str, limit: int) -> dict[str, Any]:
+        """The study's ``max_concurrent_submissions`` (its ``submissions_config``, which a
+        published study's PATCH takes)."""
+        return dict(
+            self.request(
+                "PATCH",
+                f"studies/{study_id}/",
+                json={"submissions_config": {"max_concurrent_submissions": limit}},
+            )
+        )
+
+    def schedule_publish(self, study_id: str, publish_at: str) -> dict[str, Any]:
+        """Publish the draft at ``publish_at`` (ISO 8601): Prolific's SCHEDULE_PUBLISH."""
+        return dict(
+            self.request(
+                "POST",
+                f"studies/{study_id}/transition/",
+                json={"action": "SCHEDULE_PUBLISH", "publish_at": publish_at},
+            )
+        )
+
+    # -- webhooks -------------------------------------------------------------------------
+    def create_hook_secret(self, workspace_id: str) -> str:
+        """A new signing secret for the workspace's webhooks (it replaces the old one)."""
+        made = self.request("POST", "hooks/secrets/", json={"workspace_id": workspace_id})
+        value = made.get("value") if isinstance(made, dict) else None
+        if not isinstance(value, str) or not value:
+            raise ProlificUnavailable("Prolific's answer to POST /hooks/secrets/ has no value")
+        return value
+
+    def subscribe(self, workspace_id: str, event_type: str, target_url: str) -> dict[str, Any]:
+        """Subscribe ``target_url`` to the event type and confirm it with the ``X-Hook-Secret``
+        Prolific answered; the subscription as Prolific confirmed it."""
+        headers, made = self.request(
+            "POST",
+            "hooks/subscriptions/",
+            json={"event_type": event_type, "target_url": target_url, "workspace_id": workspace_id},
+            creates=True,
+            with_headers=True,
+        )
+        # The reference gives a list (``results``), its guide an object with ``id``.
+        listed = made.get("results") if isinstance(made, dict) else None
+        detail = listed[0] if isinstance(listed, list) and listed else made
+        subscription = detail.get("id") if isinstance(detail, dict) else None
+        confirmation = headers.get("X-Hook-Secret")
+        if not isinstance(subscription, str) or not confirmation:
+            raise ProlificUnavailable(
+                f"Prolific's answer to subscribing {event_type} has no subscription id or "
+                "X-Hook-Secret to confirm it with"
+            )
+        return dict(
+            self.request(
+                "POST", f"hooks/subscriptions/{subscription}/", json={"secret": confirmation}
+            )
+        )
+
+    def subscriptions(self, workspace_id: str) -> list[dict[str, Any]]:
+        """The workspace's enabled subscriptions."""
+        body = self.request("GET", "hooks/subscriptions/", params={"workspace_id": workspace_id})
+        return list(body.get("results", []))
+
+    def hook_events(self, subscription_id: str) -> list[dict[str, Any]]:
+        """The deliveries of the subscription's events (each with its ``status``)."""
+        body = self.request("GET", f"hooks/subscriptions/{subscription_id}/events/")
+        return list(body.get("results", []))
+
+    # -- participant groups ---------------------------------------------------------------
+    def workspaces(self) -> list[dict[str, Any]]:
+        """The workspaces the account is a member of (``GET /workspaces/``)."""
+        return list(self.request("GET", "workspaces/").get("results", []))
+
+    def participant_group(self, workspace_id: str, name: str) -> str:
+        """The id of the workspace's participant group called ``name``, made if it has none."""
+        listed = self.request(
+            "GET", "participant-groups/", params={"workspace_id": workspace_id}
+        ).get("results", [])
+        for group in listed:
+            if group.get("name") == name and not group.get("is_deleted"):
+                return str(group["id"])
+        made = self.request(
+            "POST",
+            "participant-groups/",
+            json={"workspace_id": workspace_id, "name": name},
+            creates=True,
+        )
+        return str(made["id"])
+
+    def group_members(self, group_id: str) -> list[str]:
+        body = self.request("GET", f"participant-groups/{group_id}/participants/")
+        return [str(m["participant_id"]) for m in body.get("results", [])]
+
+    def add_to_group(self, group_id: str, participant_ids: list[str]) -> list[str]:
+        """Add participants to the group (members already in are left); its members."""
+        body = self.request(
+            "POST",
+            f"participant-groups/{group_id}/participants/",
+            json={"participant_ids": participant_ids},
+        )
+        return [str(m["participant_id"]) for m in body.get("results", [])]
 
     # -- money ----------------------------------------------------------------------------
     def workspace_of(self, study: dict[str, Any]) -> str:
@@ -417,13 +520,19 @@ class ProlificBackend:
 
 
 def draft_study(
-    study: StudyConfig, max_concurrent: int, base_url: str | None = None
+    study: StudyConfig,
+    max_concurrent: int,
+    base_url: str | None = None,
+    groups: dict[str, str] | None = None,
 ) -> dict[str, Any]:
     """The body of ``POST /studies/`` for the study file's ``[prolific]`` table: the study link
     of ``base_url`` (default: the public address) with Prolific's placeholders, the study's
     completion codes (COMPLETED for manual review; NO_CONSENT asking for a return), the
     reward in cents, desktop only (the teaching page needs arrow keys), and at most
-    ``max_concurrent`` participants at once (what the server can serve)."""
+    ``max_concurrent`` participants at once (what the server can serve). ``groups``: the id of
+    each participant group the table names (``family_group``, ``follow_up_group``,
+    ``only_group``), by name: the family's is blocked and joined, the follow-up's joined, the
+    only group's allowed."""
     prolific = study.prolific
     completion = study.completion
     if prolific is None:
@@ -466,11 +575,40 @@ def draft_study(
         "device_compatibility": ["desktop"],
         "submissions_config": {"max_concurrent_submissions": max_concurrent},
     }
+    filters: list[dict[str, Any]] = []
     if prolific.previous_studies_blocklist:
-        fields["filters"] = [
+        filters.append(
             {
                 "filter_id": "previous_studies_blocklist",
                 "selected_values": list(prolific.previous_studies_blocklist),
             }
-        ]
+        )
+    groups = groups or {}
+    named = (prolific.family_group, prolific.follow_up_group, prolific.only_group)
+    missing = [name for name in named if name is not None and name not in groups]
+    if missing:
+        raise ValueError(f"no participant group id for {', '.join(missing)}")
+    if prolific.family_group is not None:
+        filters.append(
+            {
+                "filter_id": "participant_group_blocklist",
+                "selected_values": [groups[prolific.family_group]],
+            }
+        )
+    if prolific.only_group is not None:
+        filters.append(
+            {
+                "filter_id": "participant_group_allowlist",
+                "selected_values": [groups[prolific.only_group]],
+            }
+        )
+    # The finishers (the COMPLETED code) join the family's group and the follow-up's.
+    joined = dict.fromkeys(
+        groups[name] for name in (prolific.family_group, prolific.follow_up_group) if name
+    )
+    codes[0]["actions"] += [
+        {"action": "ADD_TO_PARTICIPANT_GROUP", "participant_group": group} for group in joined
+    ]
+    if filters:
+        fields["filters"] = filters
     return fields

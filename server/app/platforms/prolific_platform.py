@@ -33,6 +33,7 @@ from server.app.platforms.review import PROLIFIC_MIN_MESSAGE
 from server.app.storage.records import table_of
 from server.app.storage.replica_models import (
     ProlificReplicaBonusSetup,
+    ProlificReplicaGroupMember,
     ProlificReplicaMessage,
     ProlificReplicaPayment,
     ProlificReplicaSubmission,
@@ -55,6 +56,7 @@ PROLIFIC_SUBMISSIONS = table_of(ProlificReplicaSubmission)
 PROLIFIC_PAYMENTS = table_of(ProlificReplicaPayment)
 PROLIFIC_BONUS_SETUPS = table_of(ProlificReplicaBonusSetup)
 PROLIFIC_MESSAGES = table_of(ProlificReplicaMessage)
+PROLIFIC_GROUP_MEMBERS = table_of(ProlificReplicaGroupMember)
 
 
 class Prolific(BasePlatform):
@@ -185,6 +187,7 @@ class Prolific(BasePlatform):
             (PROLIFIC_PAYMENTS, and_(payments.participant_id == worker, payments.setup_id.in_(setups))),
             (PROLIFIC_MESSAGES, and_(messages.recipient_id == worker, messages.study_id == participant.hit_id)),
             (PROLIFIC_SUBMISSIONS, and_(submissions.id == submission, submissions.participant_id == worker)),
+            (PROLIFIC_GROUP_MEMBERS, PROLIFIC_GROUP_MEMBERS.c.participant_id == worker),
         ]  # fmt: skip
 
     def shared_replica_rows(self, participant: Any) -> Rows:

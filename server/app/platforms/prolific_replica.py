@@ -27,7 +27,19 @@ server (the dashboard's reviews on a rehearsal). As on Prolific:
 - the one workspace (``Workspace``: its currency, the funds put in it) has a balance that the
   rewards of approved submissions and the bonuses paid take from, with Prolific's fee, and that
   published studies hold their places' cost from; the study cost calculator and the reward
-  recommendations answer as Prolific's.
+  recommendations answer as Prolific's;
+- a draft can be scheduled (SCHEDULE_PUBLISH with a ``publish_at`` in the future; published at
+  that time) and a published study's PATCH takes its places, ``internal_name`` and
+  ``submissions_config``;
+- webhooks: the workspace's one signing secret (``POST /hooks/secrets/``, a new one replaces
+  the old; made by the replica itself when it first signs an event), subscriptions made
+  disabled with an ``X-Hook-Secret`` that confirms them, and each delivery recorded with its
+  status (PENDING, SUCCEEDED, FAILED); with no subscription at all, events go to this server's
+  own webhook (``routers/prolific.py``), so a rehearsal needs no setting;
+- participant groups: made, listed, joined and left through the API or by a completion code's
+  ADD_TO_PARTICIPANT_GROUP / REMOVE_FROM_PARTICIPANT_GROUP, and the study filters
+  ``participant_group_blocklist``, ``participant_group_allowlist`` and
+  ``previous_studies_blocklist`` keep out whom they name.
 """
 
 from __future__ import annotations
@@ -37,7 +49,7 @@ import json
 import re
 import secrets
 from dataclasses import dataclass
-from datetime import datetime, timedelta
+from datetime import UTC, datetime, timedelta
 from decimal import Decimal, InvalidOperation
 from typing import Any
 from urllib.parse import parse_qs
@@ -54,10 +66,15 @@ from server.app.storage.db import Database
 from server.app.storage.models import utcnow
 from server.app.storage.replica_models import (
     ProlificReplicaBonusSetup,
+    ProlificReplicaGroupMember,
+    ProlificReplicaHookEvent,
+    ProlificReplicaHookSecret,
     ProlificReplicaMessage,
+    ProlificReplicaParticipantGroup,
     ProlificReplicaPayment,
     ProlificReplicaStudy,
     ProlificReplicaSubmission,
+    ProlificReplicaSubscription,
 )
 
 # Where this server serves the replica (its pages, its API under /api/v1, and the completion
@@ -65,6 +82,8 @@ from server.app.storage.replica_models import (
 REPLICA_PATH = "/prolific"
 STUDY_ACTIONS = {
     "PUBLISH": ({"UNPUBLISHED"}, "ACTIVE"),
+    "SCHEDULE_PUBLISH": ({"UNPUBLISHED"}, "SCHEDULED"),
+    "CANCEL_PUBLISH": ({"SCHEDULED"}, "UNPUBLISHED"),
     "PAUSE": ({"ACTIVE"}, "PAUSED"),
     "START": ({"PAUSED", "AWAITING REVIEW"}, "ACTIVE"),
     "STOP": ({"ACTIVE", "PAUSED", "AWAITING REVIEW"}, "COMPLETED"),
@@ -89,6 +108,17 @@ CODE_ACTIONS = (
     "FIXED_SCREEN_OUT_PAYMENT",
 )
 DEVICES = ("desktop", "tablet", "mobile")
+# Filters that name participant groups of the workspace.
+GROUP_FILTERS = ("participant_group_allowlist", "participant_group_blocklist")
+# What a published study's PATCH may change (the API reference's update-study).
+PUBLISHED_CHANGES = ("total_available_places", "internal_name", "submissions_config")
+# The webhooks' event types (GET /hooks/event-types/).
+EVENT_TYPES = (
+    "submission.status.change",
+    "study.status.change",
+    "study.progress.change",
+    "study.has_high_return_rate",
+)
 PLACEHOLDERS = ("{{%PROLIFIC_PID%}}", "{{%STUDY_ID%}}", "{{%SESSION_ID%}}")
 
 
@@ -160,7 +190,13 @@ def new_id() -> str:
 
 
 def error_body(status: int, detail: str) -> dict[str, Any]:
-    titles = {400: "Bad request", 401: "Unauthorized", 404: "Not found", 405: "Not allowed"}
+    titles = {
+        400: "Bad request",
+        401: "Unauthorized",
+        404: "Not found",
+        405: "Not allowed",
+        429: "Too many requests",
+    }
     return {"error": {"status": status, "title": titles.get(status, "Error"), "detail": detail}}
 
 
@@ -179,7 +215,19 @@ def _submissions(s: Session, study_id: str, statuses: tuple[str, ...]) -> int:
 
 
 def places_taken(s: Session, study_id: str) -> int:
-    return _submissions(s, study_id, HOLDING)
+    """The study's places held: a submission approved after it timed out (no completion code
+    reached the study) holds none, as on Prolific, where approving it makes the participant an
+    extra one."""
+    extra = s.scalar(
+        select(func.count())
+        .select_from(ProlificReplicaSubmission)
+        .where(
+            ProlificReplicaSubmission.study_id == study_id,
+            ProlificReplicaSubmission.status == "APPROVED",
+            ProlificReplicaSubmission.study_code.is_(None),
+        )
+    )
+    return _submissions(s, study_id, HOLDING) - int(extra or 0)
 
 
 def taking_part(s: Session, study_id: str) -> int:
@@ -316,6 +364,35 @@ def _check_filters(filters: Any) -> None:
                 raise Refusal(
                     400, "filters: previous_studies_blocklist: selected_values are study ids."
                 )
+        if item["filter_id"] in GROUP_FILTERS:
+            if not values or not all(re.fullmatch(r"[0-9a-f]{24}", v) for v in values):
+                raise Refusal(
+                    400, f"filters: {item['filter_id']}: selected_values are participant group ids."
+                )
+
+
+def _check_groups(s: Session, body: dict[str, Any]) -> None:
+    """Each participant group the study names (its group filters, its codes' group actions) is
+    a group of the workspace, not deleted."""
+    named = [
+        v
+        for item in body.get("filters", [])
+        if item["filter_id"] in GROUP_FILTERS
+        for v in item["selected_values"]
+    ]
+    for code in body.get("completion_codes", []):
+        for action in code.get("actions", []):
+            if action["action"] in ("ADD_TO_PARTICIPANT_GROUP", "REMOVE_FROM_PARTICIPANT_GROUP"):
+                group = action.get("participant_group")
+                if not isinstance(group, str) or not group:
+                    raise Refusal(
+                        400, f"completion_codes: {action['action']} needs a participant_group."
+                    )
+                named.append(group)
+    for group_id in named:
+        row = s.get(ProlificReplicaParticipantGroup, group_id)
+        if row is None or row.is_deleted:
+            raise Refusal(400, f"Participant group {group_id} not found in your workspace.")
 
 
 def _check_submissions_config(config: Any) -> None:
@@ -358,6 +435,7 @@ def create_study(s: Session, body: dict[str, Any]) -> tuple[int, Any]:
             f"of {estimated} (two minutes plus two times the estimated time plus two times its "
             "square root).",
         )
+    _check_groups(s, body)
     if body.get("project", PROJECT_ID) != PROJECT_ID:
         raise Refusal(400, f"project: no project {body.get('project')!r} in your workspace.")
     body = {**body, "project": PROJECT_ID}
@@ -427,18 +505,49 @@ def reward_recommendations(query: dict[str, str]) -> tuple[int, Any]:
 
 
 def update_study(s: Session, study_id: str, body: dict[str, Any]) -> tuple[int, Any]:
+    """``PATCH /studies/{id}/``: a published study takes its places (only up), its internal
+    name and its ``submissions_config`` (the concurrency, as the API reference's update-study
+    allows); a draft those and its scheduled ``publish_at``."""
     study = _study(s, study_id)
-    if set(body) - {"total_available_places"}:
-        raise Refusal(400, "Only total_available_places can be changed here.")
-    places = _positive_int(body, "total_available_places")
-    if study.status != "UNPUBLISHED" and places < study.total_available_places:
-        raise Refusal(400, "total_available_places: a published study's places can only go up.")
-    study.total_available_places = places
-    # As Prolific: more places reopen a full study, and "a completed study will become
-    # active again".
-    if study.status in ("AWAITING REVIEW", "COMPLETED") and places > places_taken(s, study.id):
-        study.status = "ACTIVE"
+    allowed = PUBLISHED_CHANGES + (("publish_at",) if study.status == "UNPUBLISHED" else ())
+    if not body or set(body) - set(allowed):
+        raise Refusal(400, f"Only {', '.join(allowed)} can be changed here.")
+    if "submissions_config" in body:
+        _check_submissions_config(body["submissions_config"])
+        config = study.fields.get("submissions_config") or {}
+        study.fields = {
+            **study.fields,
+            "submissions_config": {**config, **body["submissions_config"]},
+        }
+    if "internal_name" in body:
+        if not isinstance(body["internal_name"], str):
+            raise Refusal(400, "internal_name: a string.")
+        study.fields = {**study.fields, "internal_name": body["internal_name"]}
+    if "publish_at" in body:
+        study.fields = {**study.fields, "publish_at": _publish_at(body["publish_at"])}
+    if "total_available_places" in body:
+        places = _positive_int(body, "total_available_places")
+        if study.status != "UNPUBLISHED" and places < study.total_available_places:
+            raise Refusal(400, "total_available_places: a published study's places can only go up.")
+        study.total_available_places = places
+        # As Prolific: more places reopen a full study, and "a completed study will become
+        # active again".
+        if study.status in ("AWAITING REVIEW", "COMPLETED") and places > places_taken(s, study.id):
+            study.status = "ACTIVE"
     return 200, study_view(s, study)
+
+
+def _publish_at(value: Any) -> str:
+    """A scheduled publication's time: ISO 8601, in the future."""
+    try:
+        moment = datetime.fromisoformat(str(value).replace("Z", "+00:00"))
+    except ValueError:
+        raise Refusal(400, "publish_at: an ISO 8601 date and time.") from None
+    if moment.tzinfo is None:
+        moment = moment.replace(tzinfo=UTC)
+    if moment <= utcnow():
+        raise Refusal(400, "publish_at: a time in the future.")
+    return moment.astimezone(UTC).isoformat()
 
 
 def transition_study(s: Session, study_id: str, body: dict[str, Any]) -> tuple[int, Any]:
@@ -449,10 +558,31 @@ def transition_study(s: Session, study_id: str, body: dict[str, Any]) -> tuple[i
     sources, target = STUDY_ACTIONS[action]
     if study.status not in sources:
         raise Refusal(400, f"A study that is {study.status} cannot {action}.")
+    if action == "SCHEDULE_PUBLISH":
+        # "A publish_at field must be set either on the study or provided in this request."
+        given = body.get("publish_at") or study.fields.get("publish_at")
+        if not given:
+            raise Refusal(400, "publish_at: required to SCHEDULE_PUBLISH a study.")
+        study.fields = {**study.fields, "publish_at": _publish_at(given)}
     study.status = target
     if action == "PUBLISH":
         study.published_at = utcnow()
     return 200, study_view(s, study)
+
+
+def publish_due(s: Session) -> list[StudyChange]:
+    """Scheduled studies whose ``publish_at`` has come are published (ACTIVE) at that time; the
+    changes, for their ``study.status.change``."""
+    now = utcnow()
+    changes = []
+    for study in s.scalars(
+        select(ProlificReplicaStudy).where(ProlificReplicaStudy.status == "SCHEDULED")
+    ):
+        at = datetime.fromisoformat(str(study.fields.get("publish_at")))
+        if at <= now:
+            study.status, study.published_at = "ACTIVE", at
+            changes.append(StudyChange(study.id, "ACTIVE", at))
+    return changes
 
 
 def list_submissions(s: Session, query: dict[str, str]) -> tuple[int, Any]:
@@ -762,6 +892,409 @@ def list_messages(s: Session, query: dict[str, str]) -> tuple[int, Any]:
     return 200, {"results": [message_view(row) for row in rows]}
 
 
+# -- webhooks ---------------------------------------------------------------------------------
+def _workspace_id(value: Any) -> str:
+    if value != WORKSPACE_ID:
+        raise Refusal(400, f"workspace_id: {value!r} is not a workspace of yours.")
+    return WORKSPACE_ID
+
+
+def hook_secret(s: Session, make: bool = False) -> str | None:
+    """The workspace's signing secret; with ``make``, one is made when it has none (the
+    replica signs its webhooks with it, so that they need no setting)."""
+    row = s.scalar(
+        select(ProlificReplicaHookSecret).where(
+            ProlificReplicaHookSecret.workspace_id == WORKSPACE_ID
+        )
+    )
+    if row is None and make:
+        row = ProlificReplicaHookSecret(
+            id=new_id(),
+            workspace_id=WORKSPACE_ID,
+            value=secrets.token_urlsafe(32),
+            created_at=utcnow(),
+        )
+        s.add(row)
+        s.flush()
+    return row.value if row is not None else None
+
+
+def _secret_view(row: ProlificReplicaHookSecret) -> dict[str, Any]:
+    return {"id": row.id, "value": row.value, "workspace_id": row.workspace_id}
+
+
+def create_secret(s: Session, body: dict[str, Any]) -> tuple[int, Any]:
+    """``POST /hooks/secrets/``: a new secret for the workspace, which replaces the old one."""
+    workspace = _workspace_id(body.get("workspace_id"))
+    for old in s.scalars(
+        select(ProlificReplicaHookSecret).where(ProlificReplicaHookSecret.workspace_id == workspace)
+    ):
+        s.delete(old)
+    s.flush()
+    row = ProlificReplicaHookSecret(
+        id=new_id(), workspace_id=workspace, value=secrets.token_urlsafe(32), created_at=utcnow()
+    )
+    s.add(row)
+    return 201, _secret_view(row)
+
+
+def list_secrets(s: Session, query: dict[str, str]) -> tuple[int, Any]:
+    workspace = _workspace_id(query.get("workspace_id"))
+    rows = s.scalars(
+        select(ProlificReplicaHookSecret).where(ProlificReplicaHookSecret.workspace_id == workspace)
+    ).all()
+    return 200, {"results": [_secret_view(row) for row in rows]}
+
+
+def subscription_view(row: ProlificReplicaSubscription) -> dict[str, Any]:
+    return {
+        "id": row.id,
+        "event_type": row.event_type,
+        "target_url": row.target_url,
+        "is_enabled": row.is_enabled,
+        "workspace_id": row.workspace_id,
+    }
+
+
+def _subscription(s: Session, subscription_id: str) -> ProlificReplicaSubscription:
+    row = s.get(ProlificReplicaSubscription, subscription_id)
+    if row is None:
+        raise Refusal(404, f"Subscription {subscription_id} not found.")
+    return row
+
+
+def create_subscription(
+    s: Session, body: dict[str, Any], headers: dict[str, str] | None
+) -> tuple[int, Any]:
+    """``POST /hooks/subscriptions/``: made disabled, its ``X-Hook-Secret`` in the answer's
+    headers; it delivers once confirmed with that secret. The workspace needs a signing secret
+    first, as on Prolific."""
+    workspace = _workspace_id(body.get("workspace_id"))
+    event_type = body.get("event_type")
+    if event_type not in EVENT_TYPES:
+        raise Refusal(400, f"event_type: one of {', '.join(EVENT_TYPES)}.")
+    url = body.get("target_url")
+    if not isinstance(url, str) or not url.startswith(("https://", "http://")):
+        raise Refusal(400, "target_url: Enter a valid URL.")
+    if hook_secret(s) is None:
+        raise Refusal(
+            400, "Create a secret for your workspace (POST /hooks/secrets/) before subscribing."
+        )
+    row = ProlificReplicaSubscription(
+        id=new_id(),
+        workspace_id=workspace,
+        event_type=event_type,
+        target_url=url,
+        confirmation=secrets.token_hex(32),
+        is_enabled=False,
+        created_at=utcnow(),
+    )
+    s.add(row)
+    if headers is not None:
+        headers["X-Hook-Secret"] = row.confirmation
+    return 201, {"results": [subscription_view(row)]}
+
+
+def confirm_subscription(s: Session, subscription_id: str, body: dict[str, Any]) -> tuple[int, Any]:
+    """``POST /hooks/subscriptions/{id}/`` ``{secret}``: the ``X-Hook-Secret`` of its creation
+    enables it; another secret is refused."""
+    row = _subscription(s, subscription_id)
+    given = body.get("secret")
+    if not isinstance(given, str) or not secrets.compare_digest(
+        given.encode(), row.confirmation.encode()
+    ):
+        raise Refusal(400, "secret: not the X-Hook-Secret this subscription was created with.")
+    row.is_enabled = True
+    return 200, subscription_view(row)
+
+
+def list_subscriptions(s: Session, query: dict[str, str]) -> tuple[int, Any]:
+    """``GET /hooks/subscriptions/``: the enabled ones (``is_enabled=false``: the others)."""
+    enabled = query.get("is_enabled", "true") != "false"
+    where: list[Any] = [ProlificReplicaSubscription.is_enabled.is_(enabled)]
+    if query.get("workspace_id"):
+        where.append(ProlificReplicaSubscription.workspace_id == query["workspace_id"])
+    rows = s.scalars(
+        select(ProlificReplicaSubscription)
+        .where(*where)
+        .order_by(ProlificReplicaSubscription.created_at, ProlificReplicaSubscription.id)
+    ).all()
+    return 200, {"results": [subscription_view(row) for row in rows]}
+
+
+def event_view(row: ProlificReplicaHookEvent) -> dict[str, Any]:
+    return {
+        "id": row.id,
+        "datetime_created": row.created_at.isoformat(),
+        "datetime_updated": row.updated_at.isoformat(),
+        "event_type": row.event_type,
+        "resource_id": row.resource_id,
+        "status": row.status,
+        "target_url": row.target_url,
+        "payload": row.payload,
+    }
+
+
+def subscription_events(s: Session, subscription_id: str, query: dict[str, str]) -> tuple[int, Any]:
+    """``GET /hooks/subscriptions/{id}/events/``: its deliveries, oldest first."""
+    _subscription(s, subscription_id)
+    try:
+        offset, limit = int(query.get("offset", "0")), int(query.get("limit", "100"))
+    except ValueError:
+        raise Refusal(400, "offset and limit are whole numbers.") from None
+    where = [ProlificReplicaHookEvent.subscription_id == subscription_id]
+    if query.get("status"):
+        where.append(ProlificReplicaHookEvent.status == query["status"])
+    if query.get("resource_id"):
+        where.append(ProlificReplicaHookEvent.resource_id == query["resource_id"])
+    rows = s.scalars(
+        select(ProlificReplicaHookEvent)
+        .where(*where)
+        .order_by(ProlificReplicaHookEvent.created_at, ProlificReplicaHookEvent.id)
+        .offset(max(offset, 0))
+        .limit(max(min(limit, 1000), 1))
+    ).all()
+    return 200, {"results": [event_view(row) for row in rows]}
+
+
+@dataclass(frozen=True)
+class Delivery:
+    """One webhook to send: where, the body, and the event row that records it (None: the
+    replica's own server, with no subscription)."""
+
+    target_url: str
+    payload: dict[str, Any]
+    event_id: str | None
+
+
+def deliveries(
+    s: Session, event_type: str, resource_id: str, payload: dict[str, Any], own_url: str
+) -> list[Delivery]:
+    """Where the event goes: each enabled subscription to its type (its delivery recorded,
+    PENDING), or, with none at all in the workspace, this server's own webhook, so that a
+    rehearsal needs no subscription and no setting."""
+    subscribed = s.scalars(
+        select(ProlificReplicaSubscription).where(ProlificReplicaSubscription.is_enabled.is_(True))
+    ).all()
+    if not subscribed:
+        return [Delivery(own_url, payload, None)]
+    sent = []
+    now = utcnow()
+    for row in subscribed:
+        if row.event_type != event_type:
+            continue
+        event = ProlificReplicaHookEvent(
+            id=new_id(),
+            subscription_id=row.id,
+            event_type=event_type,
+            resource_id=resource_id,
+            status="PENDING",
+            target_url=row.target_url,
+            payload=payload,
+            created_at=now,
+            updated_at=now,
+        )
+        s.add(event)
+        sent.append(Delivery(row.target_url, payload, event.id))
+    return sent
+
+
+def delivered(db: Database, event_id: str | None, succeeded: bool) -> None:
+    """Record how the target answered a delivery (SUCCEEDED: 2xx)."""
+    if event_id is None:
+        return
+    with db.write() as s:
+        row = s.get(ProlificReplicaHookEvent, event_id)
+        if row is not None:
+            row.status = "SUCCEEDED" if succeeded else "FAILED"
+            row.updated_at = utcnow()
+
+
+# -- participant groups -----------------------------------------------------------------------
+def _group(s: Session, group_id: str) -> ProlificReplicaParticipantGroup:
+    row = s.get(ProlificReplicaParticipantGroup, group_id)
+    if row is None or row.is_deleted:
+        raise Refusal(404, f"Participant group {group_id} not found.")
+    return row
+
+
+def _members(s: Session, group_id: str) -> list[ProlificReplicaGroupMember]:
+    return list(
+        s.scalars(
+            select(ProlificReplicaGroupMember)
+            .where(ProlificReplicaGroupMember.group_id == group_id)
+            .order_by(
+                ProlificReplicaGroupMember.created_at, ProlificReplicaGroupMember.participant_id
+            )
+        )
+    )
+
+
+def group_view(s: Session, row: ProlificReplicaParticipantGroup) -> dict[str, Any]:
+    feeders = [
+        {"id": study.id, "name": study.name}
+        for study in s.scalars(select(ProlificReplicaStudy).order_by(ProlificReplicaStudy.id))
+        if row.id in _code_groups(study.fields)
+    ]
+    return {
+        "id": row.id,
+        "name": row.name,
+        "project_id": None,
+        "workspace_id": row.workspace_id,
+        "organisation_id": None,
+        "description": row.description,
+        "participant_count": len(_members(s, row.id)),
+        "is_deleted": row.is_deleted,
+        "feeder_studies": feeders,
+    }
+
+
+def _code_groups(fields: dict[str, Any]) -> set[str]:
+    """The groups the study's completion codes add to or remove from."""
+    return {
+        str(action.get("participant_group"))
+        for code in fields.get("completion_codes") or []
+        for action in code.get("actions") or []
+        if isinstance(action, dict)
+        and action.get("action") in ("ADD_TO_PARTICIPANT_GROUP", "REMOVE_FROM_PARTICIPANT_GROUP")
+    }
+
+
+def _participant_ids(body: dict[str, Any], name: str = "participant_ids") -> list[str]:
+    ids = body.get(name, [])
+    if not isinstance(ids, list) or not all(
+        isinstance(i, str) and re.fullmatch(r"[0-9a-f]{24}", i) for i in ids
+    ):
+        raise Refusal(400, f"{name}: a list of participant ids.")
+    return list(dict.fromkeys(ids))
+
+
+def add_members(s: Session, group_id: str, participant_ids: list[str]) -> None:
+    """Add participants who are not members yet (members already in are ignored)."""
+    have = {m.participant_id for m in _members(s, group_id)}
+    now = utcnow()
+    for who in participant_ids:
+        if who not in have:
+            s.add(ProlificReplicaGroupMember(group_id=group_id, participant_id=who, created_at=now))
+    s.flush()
+
+
+def remove_members(s: Session, group_id: str, participant_ids: list[str]) -> None:
+    for member in _members(s, group_id):
+        if member.participant_id in participant_ids:
+            s.delete(member)
+    s.flush()
+
+
+def create_group(s: Session, body: dict[str, Any]) -> tuple[int, Any]:
+    """``POST /participant-groups/`` ``{workspace_id, name, description, participant_ids}``."""
+    workspace = _workspace_id(body.get("workspace_id"))
+    name = body.get("name")
+    if not isinstance(name, str) or not name.strip():
+        raise Refusal(400, "name: This field is required.")
+    description = body.get("description")
+    row = ProlificReplicaParticipantGroup(
+        id=new_id(),
+        workspace_id=workspace,
+        name=name,
+        description=description if isinstance(description, str) else None,
+        is_deleted=False,
+        created_at=utcnow(),
+    )
+    s.add(row)
+    s.flush()
+    add_members(s, row.id, _participant_ids(body))
+    return 201, group_view(s, row)
+
+
+def list_groups(s: Session, query: dict[str, str]) -> tuple[int, Any]:
+    """``GET /participant-groups/?workspace_id=``: the workspace's groups not deleted."""
+    workspace = _workspace_id(query.get("workspace_id"))
+    rows = s.scalars(
+        select(ProlificReplicaParticipantGroup)
+        .where(
+            ProlificReplicaParticipantGroup.workspace_id == workspace,
+            ProlificReplicaParticipantGroup.is_deleted.is_(False),
+        )
+        .order_by(ProlificReplicaParticipantGroup.created_at, ProlificReplicaParticipantGroup.id)
+    ).all()
+    return 200, {"results": [group_view(s, row) for row in rows]}
+
+
+def membership_view(s: Session, group_id: str) -> dict[str, Any]:
+    return {
+        "results": [
+            {"participant_id": m.participant_id, "datetime_created": m.created_at.isoformat()}
+            for m in _members(s, group_id)
+        ]
+    }
+
+
+def group_members(s: Session, method: str, group_id: str, body: dict[str, Any]) -> tuple[int, Any]:
+    """``GET``, ``POST`` (add) and ``DELETE`` (remove) ``/participant-groups/{id}/participants/``:
+    the group's members after the change."""
+    _group(s, group_id)
+    if method == "POST":
+        add_members(s, group_id, _participant_ids(body))
+    elif method == "DELETE":
+        remove_members(s, group_id, _participant_ids(body))
+    return 200, membership_view(s, group_id)
+
+
+def in_group(s: Session, group_ids: list[str], participant_id: str) -> bool:
+    found = s.scalar(
+        select(ProlificReplicaGroupMember.group_id).where(
+            ProlificReplicaGroupMember.group_id.in_(group_ids),
+            ProlificReplicaGroupMember.participant_id == participant_id,
+        )
+    )
+    return found is not None
+
+
+def barred(s: Session, study: ProlificReplicaStudy, participant_id: str) -> str | None:
+    """Why the study keeps the participant out (None: they may take part): a submission of it
+    already, a study of ``previous_studies_blocklist`` taken, a group of ``participant_group_blocklist`` joined, or
+    no group of ``participant_group_allowlist``."""
+    again = s.scalar(
+        select(ProlificReplicaSubmission.id).where(
+            ProlificReplicaSubmission.study_id == study.id,
+            ProlificReplicaSubmission.participant_id == participant_id,
+        )
+    )
+    if again is not None:
+        return "they took part in it already (one submission per participant)"
+    for item in study.fields.get("filters") or []:
+        values = list(item.get("selected_values") or [])
+        kind = item.get("filter_id")
+        if kind == "previous_studies_blocklist":
+            taken = s.scalar(
+                select(ProlificReplicaSubmission.id).where(
+                    ProlificReplicaSubmission.study_id.in_(values),
+                    ProlificReplicaSubmission.participant_id == participant_id,
+                )
+            )
+            if taken is not None:
+                return "they took part in a study of its previous_studies_blocklist"
+        if kind == "participant_group_blocklist" and in_group(s, values, participant_id):
+            return "they are in a participant group of its participant_group_blocklist"
+        if kind == "participant_group_allowlist" and not in_group(s, values, participant_id):
+            return "they are in no participant group of its participant_group_allowlist"
+    return None
+
+
+def code_actions(s: Session, code: dict[str, Any], participant_id: str) -> None:
+    """A completion code's group actions, carried out for the participant who gave it."""
+    for action in code.get("actions") or []:
+        if not isinstance(action, dict):
+            continue
+        group = action.get("participant_group")
+        if action.get("action") == "ADD_TO_PARTICIPANT_GROUP" and isinstance(group, str):
+            if s.get(ProlificReplicaParticipantGroup, group) is not None:
+                add_members(s, group, [participant_id])
+        if action.get("action") == "REMOVE_FROM_PARTICIPANT_GROUP" and isinstance(group, str):
+            remove_members(s, group, [participant_id])
+
+
 ROUTES: list[tuple[str, re.Pattern[str], str]] = [
     ("POST", re.compile(r"studies/"), "create_study"),
     ("GET", re.compile(r"studies/(?P<id>[0-9a-f]{24})/"), "get_study"),
@@ -776,11 +1309,31 @@ ROUTES: list[tuple[str, re.Pattern[str], str]] = [
     ("POST", re.compile(r"bulk-bonus-payments/(?P<id>[0-9a-f]{24})/pay/"), "pay_bonuses"),
     ("GET", re.compile(r"projects/(?P<id>[0-9a-f]{24})/"), "get_project"),
     ("GET", re.compile(r"workspaces/(?P<id>[0-9a-f]{24})/balance/"), "get_balance"),
+    ("GET", re.compile(r"workspaces/"), "list_workspaces"),
     ("POST", re.compile(r"study-cost-calculator/"), "study_cost"),
     ("GET", re.compile(r"reward-recommendations/"), "reward_recommendations"),
     ("POST", re.compile(r"messages/"), "send_message"),
     ("GET", re.compile(r"messages/"), "list_messages"),
     ("POST", re.compile(r"messages/bulk/"), "bulk_message"),
+    ("GET", re.compile(r"hooks/event-types/"), "event_types"),
+    ("POST", re.compile(r"hooks/secrets/"), "create_secret"),
+    ("GET", re.compile(r"hooks/secrets/"), "list_secrets"),
+    ("POST", re.compile(r"hooks/subscriptions/"), "create_subscription"),
+    ("GET", re.compile(r"hooks/subscriptions/"), "list_subscriptions"),
+    ("GET", re.compile(r"hooks/subscriptions/(?P<id>[0-9a-f]{24})/"), "get_subscription"),
+    ("POST", re.compile(r"hooks/subscriptions/(?P<id>[0-9a-f]{24})/"), "confirm_subscription"),
+    (
+        "GET",
+        re.compile(r"hooks/subscriptions/(?P<id>[0-9a-f]{24})/events/"),
+        "subscription_events",
+    ),
+    ("POST", re.compile(r"participant-groups/"), "create_group"),
+    ("GET", re.compile(r"participant-groups/"), "list_groups"),
+    ("GET", re.compile(r"participant-groups/(?P<id>[0-9a-f]{24})/"), "get_group"),
+    *(
+        (method, re.compile(r"participant-groups/(?P<id>[0-9a-f]{24})/participants/"), "members")
+        for method in ("GET", "POST", "DELETE")
+    ),
 ]
 
 
@@ -792,9 +1345,11 @@ def handle(
     raw: bytes,
     workspace: Workspace = Workspace(),
     changes: list[StudyChange] | None = None,
+    headers: dict[str, str] | None = None,
 ) -> tuple[int, Any]:
     """Prolific's answer (status, JSON body) to one request under ``/api/v1/``; a study's change
-    of status is added to ``changes`` (for its ``study.status.change`` webhook)."""
+    of status is added to ``changes`` (for its ``study.status.change`` webhook), the answer's
+    own headers (a subscription's ``X-Hook-Secret``) to ``headers``."""
     path = path.lstrip("/")
     known = [(m, name, p.fullmatch(path)) for m, p, name in ROUTES]
     matches = [(m, name, found) for m, name, found in known if found]
@@ -815,6 +1370,9 @@ def handle(
     ident = found.groupdict().get("id", "")
     try:
         with db.write() as s:
+            due = publish_due(s)
+            if changes is not None:
+                changes.extend(due)
             if name == "create_study":
                 return create_study(s, body)
             if name == "get_study":
@@ -857,6 +1415,32 @@ def handle(
                 return bulk_message(s, body)
             if name == "list_messages":
                 return list_messages(s, query)
+            if name == "list_workspaces":
+                return 200, {"results": [{"id": WORKSPACE_ID, "title": "Rehearsals"}]}
+            if name == "event_types":
+                return 200, {"results": [{"event_type": e} for e in EVENT_TYPES]}
+            if name == "create_secret":
+                return create_secret(s, body)
+            if name == "list_secrets":
+                return list_secrets(s, query)
+            if name == "create_subscription":
+                return create_subscription(s, body, headers)
+            if name == "list_subscriptions":
+                return list_subscriptions(s, query)
+            if name == "get_subscription":
+                return 200, subscription_view(_subscription(s, ident))
+            if name == "confirm_subscription":
+                return confirm_subscription(s, ident, body)
+            if name == "subscription_events":
+                return subscription_events(s, ident, query)
+            if name == "create_group":
+                return create_group(s, body)
+            if name == "list_groups":
+                return list_groups(s, query)
+            if name == "get_group":
+                return 200, group_view(s, _group(s, ident))
+            if name == "members":
+                return group_members(s, method, ident, body)
             return pay_bonuses(s, ident)
     except Refusal as refused:
         return refused.status, error_body(refused.status, refused.detail)
@@ -879,6 +1463,7 @@ class ReplicaTransport(httpx.BaseTransport):
         self.workspace = workspace
 
     def handle_request(self, request: httpx.Request) -> httpx.Response:
+        headers: dict[str, str] = {}
         if request.headers.get("Authorization") != f"Token {self.token}":
             status, body = 401, error_body(401, "Invalid token.")
         else:
@@ -886,10 +1471,34 @@ class ReplicaTransport(httpx.BaseTransport):
             path = path[len(self.prefix) :] if path.startswith(self.prefix) else path
             query = {k: v[-1] for k, v in parse_qs(request.url.query.decode()).items()}
             status, body = handle(
-                self.db, request.method, path, query, request.read(), self.workspace
+                self.db, request.method, path, query, request.read(), self.workspace, None, headers
             )
         content = b"" if body is None else json.dumps(body).encode()
-        return httpx.Response(status, content=content, headers={"Content-Type": "application/json"})
+        return httpx.Response(
+            status, content=content, headers={"Content-Type": "application/json", **headers}
+        )
+
+
+def submission_payload(submission: dict[str, Any]) -> dict[str, Any]:
+    """The body of the replica's ``submission.status.change`` for a submission."""
+    return {
+        "event_type": "submission.status.change",
+        "resource_id": submission["id"],
+        "study_id": submission["study_id"],
+        "participant_id": submission["participant_id"],
+        "status": submission["status"],
+    }
+
+
+def study_payload(change: StudyChange) -> dict[str, Any]:
+    """Prolific's ``study.status.change`` body: the study's id as ``resource_id``, its new
+    status, ``metadata``."""
+    return {
+        "resource_id": change.study_id,
+        "event_type": "study.status.change",
+        "metadata": {},
+        "status": change.status,
+    }
 
 
 def status_event(
@@ -897,38 +1506,22 @@ def status_event(
 ) -> tuple[dict[str, str], bytes]:
     """The replica's ``submission.status.change`` webhook for a submission, signed as Prolific
     signs it: the headers and the body."""
-    body = json.dumps(
-        {
-            "event_type": "submission.status.change",
-            "resource_id": submission["id"],
-            "study_id": submission["study_id"],
-            "participant_id": submission["participant_id"],
-            "status": submission["status"],
-        }
-    ).encode()
+    body = json.dumps(submission_payload(submission)).encode()
     # When the status changed: the replica sends at once.
-    return _signed(secret, body, timestamp, str(timestamp)), body
+    return signed(secret, body, timestamp, str(timestamp)), body
 
 
 def study_status_event(
     secret: str, change: StudyChange, timestamp: int
 ) -> tuple[dict[str, str], bytes]:
-    """The replica's ``study.status.change`` webhook, with Prolific's body (the study's id as
-    ``resource_id``, its new status, ``metadata``), signed as its submission events are; its
+    """The replica's ``study.status.change`` webhook, signed as its submission events are; its
     ``X-Timestamp`` is the change's own time, to the microsecond, so that two changes in one
     second keep their order."""
-    body = json.dumps(
-        {
-            "resource_id": change.study_id,
-            "event_type": "study.status.change",
-            "metadata": {},
-            "status": change.status,
-        }
-    ).encode()
-    return _signed(secret, body, timestamp, change.at.isoformat()), body
+    body = json.dumps(study_payload(change)).encode()
+    return signed(secret, body, timestamp, change.at.isoformat()), body
 
 
-def _signed(secret: str, body: bytes, timestamp: int, event_time: str) -> dict[str, str]:
+def signed(secret: str, body: bytes, timestamp: int, event_time: str) -> dict[str, str]:
     """A webhook's headers, as Prolific signs its deliveries: the signature of the timestamp
     and the body, a new event id, and ``X-Timestamp`` (``event_time``: when it happened)."""
     stamp = str(timestamp)

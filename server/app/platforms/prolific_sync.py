@@ -41,9 +41,11 @@ from server.app.storage.models import (
     Participant,
     ProlificEvent,
     ProlificStudy,
+    ProlificWebhookSecret,
     StatusChange,
     utcnow,
 )
+from server.app.storage.replica_models import ProlificReplicaHookSecret
 from server.app.storage.vocabulary import ParticipantStatus, SessionStatus
 
 RELEASED = ("RETURNED", "TIMED-OUT")
@@ -85,6 +87,38 @@ def verify(
         raise WebhookRefused(f"the request is {int(age)} s old: a replay is refused")
     if not hmac.compare_digest(signature(secret, timestamp, body).encode(), given.encode()):
         raise WebhookRefused("the signature does not match")
+
+
+def verify_any(
+    known: list[str],
+    timestamp: str | None,
+    given: str | None,
+    body: bytes,
+    now: float | None = None,
+) -> None:
+    """``verify`` against each secret the server knows: signed with any one of them passes."""
+    refused = WebhookRefused("no webhook secret")
+    for secret in known:
+        try:
+            verify(secret, timestamp, given, body, now)
+        except WebhookRefused as error:
+            refused = error
+        else:
+            return
+    raise refused
+
+
+def webhook_secrets(db: Database, settings: Any) -> list[str]:
+    """The secrets a webhook may be signed with: ``BAM_PROLIFIC_WEBHOOK_SECRET``, each
+    workspace's secret that ``bam-study prolific hooks`` stored, and this server's Prolific
+    replica's own workspace secret (its events need no setting)."""
+    known = []
+    if settings.prolific_webhook_secret is not None:
+        known.append(settings.prolific_webhook_secret.get_secret_value())
+    with db.read() as s:
+        known += list(s.scalars(select(ProlificWebhookSecret.secret)))
+        known += list(s.scalars(select(ProlificReplicaHookSecret.value)))
+    return known
 
 
 # Statuses Prolific reports that say nothing lasting: ``PROCESSING`` between an approval or a
@@ -304,6 +338,13 @@ def _apply_study_status(s: Session, study_id: str, status: str, at: datetime) ->
         return OLDER
     row.status, row.status_at = status, at
     return APPLIED
+
+
+def record_study_status(db: Database, study_id: str, status: str, at: datetime) -> None:
+    """Keep Prolific's answer to a change the server sent (its status then), as its event
+    would (an event stamped later still wins)."""
+    with db.write() as s:
+        _apply_study_status(s, study_id, status, at)
 
 
 def _warn_high_return_rate(

@@ -526,6 +526,17 @@ def _settle_bonus(
             row = s.scalar(select(Bonus).where(where))
         status = 502 if isinstance(error, ReviewUnavailable) else 409
         raise ApiError(status, f"{error}. {_unsettled_message(row, token)}") from None
+    if not backend.repeat_pay_is_safe:
+        # Prolific's pay answers 202 and pays asynchronously: accepted is not paid. The
+        # submission's bonus_payments settles it, now if it lists the bonus already, else
+        # later (a resend or the reconciliation), as a bonus in doubt; never by paying again
+        # before Prolific has had PAY_SETTLES_WITHIN to pay it.
+        with db.write() as s:
+            s.execute(update(Bonus).where(where, Bonus.state == "paying").values(state="in_doubt"))
+        try:
+            return _settle_from_record(db, backend, who, token)
+        except ApiError:
+            return False  # in doubt until Prolific's record lists it
     with db.write() as s:
         s.execute(update(Bonus).where(where).values(state=BonusState.PAID, paid_at=utcnow()))
     return True
@@ -695,5 +706,8 @@ def reconcile_bonuses(db: Database, backend: ReviewBackend) -> list[str]:
             _settle_bonus(db, backend, who, token, money(cents), reason)
         except ApiError:
             continue
+        with db.read() as s:
+            if s.scalar(select(Bonus.state).where(Bonus.unique_token == token)) != "paid":
+                continue  # a pay Prolific accepted and has not listed yet: still in doubt
         settled.append(token)
     return settled

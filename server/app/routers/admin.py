@@ -15,7 +15,7 @@ from server.app.errors import ApiError
 from server.app.export.files import export_zip
 from server.app.export.tables import export_tables
 from server.app.participants import assignment, places, teaching
-from server.app.platforms import prolific_sync, review
+from server.app.platforms import prolific_capacity, prolific_sync, review
 from server.app.rights.erasure import Erased, erase_participant
 from server.app.schemas import (
     AdminEvaluation,
@@ -30,6 +30,7 @@ from server.app.schemas import (
     BulkApprovalView,
     ExclusionRequest,
     HighReturnRateView,
+    ProlificStudyChangeView,
     ProlificStudyView,
     QueueView,
     ReplicaAssignmentView,
@@ -600,6 +601,16 @@ def prolific_studies(state: StateDep) -> list[ProlificStudyView]:
                     status=row.status if row else None,
                     status_at=row.status_at if row else None,
                     high_return_rate=warning,
+                    changes=[
+                        ProlificStudyChangeView(
+                            at=c.at,
+                            change=c.change,
+                            value=c.value,
+                            reason=c.reason,
+                            outcome=c.outcome,
+                        )
+                        for c in prolific_capacity.changes_of(state.db, study_id)
+                    ],
                 )
             )
     return views

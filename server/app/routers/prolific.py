@@ -14,45 +14,62 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import secrets
 import time
 from datetime import timedelta
-from typing import Any
+from typing import Annotated, Any
 
 import httpx
-from fastapi import APIRouter, BackgroundTasks, Request, Response
+from fastapi import APIRouter, BackgroundTasks, Query, Request, Response
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse
 from sqlalchemy import select
 
-from server.app.admin_auth import admin_token
+from server.app.admin_auth import admin_token, client_address
 from server.app.deps import StateDep, is_admin
+from server.app.errors import ApiError
+from server.app.participants import places
+from server.app.platforms.prolific_capacity import Load, follow, followed_studies, steady
 from server.app.platforms.prolific_replica import (
     PLACEHOLDERS,
     REPLICA_PATH,
+    Delivery,
     StudyChange,
+    barred,
+    code_actions,
     concurrency_limit,
+    delivered,
+    deliveries,
     error_body,
     handle,
+    hook_secret,
     new_id,
     places_taken,
+    publish_due,
     requests_return,
     return_reason,
-    status_event,
-    study_status_event,
+    signed,
+    study_payload,
+    submission_payload,
     submission_view,
     taking_part,
     workspace_of,
 )
 from server.app.platforms.prolific_sync import (
+    STUDY_STATUS_EVENT,
+    SUBMISSION_EVENT,
     WebhookRefused,
     apply_webhook,
     event_time,
-    verify,
+    verify_any,
+    webhook_secrets,
 )
+from server.app.platforms.review import ReviewRefused, ReviewUnavailable
 from server.app.routers.common import login_redirect, notice, own_origin, templates
 from server.app.state import ServerState
+from server.app.storage.db import Database
 from server.app.storage.models import utcnow
 from server.app.storage.replica_models import (
     ProlificReplicaBonusSetup,
@@ -60,6 +77,7 @@ from server.app.storage.replica_models import (
     ProlificReplicaStudy,
     ProlificReplicaSubmission,
 )
+from server.app.updates.queue import QueueState
 
 router = APIRouter(prefix=REPLICA_PATH, tags=["prolific replica"], include_in_schema=False)
 
@@ -67,74 +85,98 @@ PID_COOKIE = "prolific_replica_pid"
 log = logging.getLogger(__name__)
 
 
-def send_status_event(url: str, secret: str, submission: dict[str, Any]) -> None:
-    """POST the signed webhook, as Prolific does (a failure is logged; the poll catches up)."""
-    headers, body = status_event(secret, submission, int(time.time()))
+def send_event(db: Database, delivery: Delivery, event_time: str) -> None:
+    """POST one signed webhook, as Prolific does, with the workspace's secret, and record how
+    the target answered (a failure is logged; the poll catches up)."""
+    with db.write() as s:
+        secret = hook_secret(s, make=True)
+    assert secret is not None
+    body = json.dumps(delivery.payload).encode()
+    headers = signed(secret, body, int(time.time()), event_time)
     try:
-        httpx.post(url, content=body, headers=headers, timeout=10).raise_for_status()
+        httpx.post(
+            delivery.target_url, content=body, headers=headers, timeout=10
+        ).raise_for_status()
     except httpx.HTTPError as error:
-        log.warning("the Prolific replica's webhook to %s failed: %s", url, error)
+        log.warning("the Prolific replica's webhook to %s failed: %s", delivery.target_url, error)
+        delivered(db, delivery.event_id, False)
+    else:
+        delivered(db, delivery.event_id, True)
+
+
+def _send(
+    background: BackgroundTasks,
+    request: Request,
+    state: ServerState,
+    events: list[tuple[str, str, dict[str, Any], str]],
+) -> None:
+    """Send each event ``(type, resource id, body, X-Timestamp)`` after answering, in order: to
+    the replica's subscriptions to its type, or, with none, to this server's own webhook (no
+    setting needed: the replica signs with its own workspace secret, which the webhook knows)."""
+    own = f"{own_origin(request)}{REPLICA_PATH}/webhook"
+    with state.db.write() as s:
+        hook_secret(s, make=True)
+        planned = [
+            (delivery, at)
+            for event_type, resource, payload, at in events
+            for delivery in deliveries(s, event_type, resource, payload, own)
+        ]
+    for delivery, at in planned:
+        background.add_task(send_event, state.db, delivery, at)
 
 
 def notify(
     background: BackgroundTasks, request: Request, state: ServerState, submission: Any
 ) -> None:
-    """With BAM_PROLIFIC_WEBHOOK_SECRET set, the replica sends the submission's new status to
-    this server's webhook, signed with it, after answering."""
-    secret = state.settings.prolific_webhook_secret
-    if secret is not None and submission is not None:
-        background.add_task(
-            send_status_event,
-            f"{own_origin(request)}/prolific/webhook",
-            secret.get_secret_value(),
-            submission,
-        )
-
-
-def send_study_event(url: str, secret: str, change: StudyChange) -> None:
-    """POST the signed ``study.status.change`` webhook (a failure is logged)."""
-    headers, body = study_status_event(secret, change, int(time.time()))
-    try:
-        httpx.post(url, content=body, headers=headers, timeout=10).raise_for_status()
-    except httpx.HTTPError as error:
-        log.warning("the Prolific replica's webhook to %s failed: %s", url, error)
+    """The submission's new status, sent as ``submission.status.change`` after answering."""
+    if submission is not None:
+        payload = submission_payload(submission)
+        stamp = str(int(time.time()))
+        _send(background, request, state, [(SUBMISSION_EVENT, submission["id"], payload, stamp)])
 
 
 def notify_study(
     background: BackgroundTasks, request: Request, state: ServerState, changes: list[StudyChange]
 ) -> None:
-    """With BAM_PROLIFIC_WEBHOOK_SECRET set, the replica sends each study's new status to this
-    server's webhook, in order, after answering."""
-    secret = state.settings.prolific_webhook_secret
-    if secret is not None:
-        for change in changes:
-            background.add_task(
-                send_study_event,
-                f"{own_origin(request)}/prolific/webhook",
-                secret.get_secret_value(),
-                change,
-            )
+    """Each study's new status, sent as ``study.status.change`` after answering, in order (its
+    ``X-Timestamp`` the change's own time, to the microsecond)."""
+    if changes:
+        events = [
+            (STUDY_STATUS_EVENT, c.study_id, study_payload(c), c.at.isoformat()) for c in changes
+        ]
+        _send(background, request, state, events)
 
 
-@router.api_route("/api/v1/{path:path}", methods=["GET", "POST", "PATCH"])
+@router.api_route("/api/v1/{path:path}", methods=["GET", "POST", "PATCH", "DELETE"])
 async def api(
     path: str, request: Request, state: StateDep, background: BackgroundTasks
 ) -> Response:
     expected = admin_token(state.settings)
     given = request.headers.get("Authorization", "")
+    address = client_address(request)
+    try:
+        # The admin token, guessed here as at the dashboard's sign-in: past the failures
+        # allowed, the address gets 429 whatever it sends.
+        state.sign_ins.check(address)
+    except ApiError as limited:
+        return JSONResponse(
+            error_body(429, limited.message), status_code=429, headers=limited.headers
+        )
     if expected is None or not secrets.compare_digest(given.encode(), f"Token {expected}".encode()):
+        state.sign_ins.failed(address)
         return JSONResponse(error_body(401, "Invalid token."), status_code=401)
     raw = await request.body()
     query = dict(request.query_params)
     workspace = workspace_of(state.settings)
     changes: list[StudyChange] = []
+    headers: dict[str, str] = {}
     status, body = await state.run_db(
-        lambda: handle(state.db, request.method, path, query, raw, workspace, changes)
+        lambda: handle(state.db, request.method, path, query, raw, workspace, changes, headers)
     )
     notify_study(background, request, state, changes)
     if body is None:
-        return Response(status_code=status)
-    return JSONResponse(body, status_code=status)
+        return Response(status_code=status, headers=headers)
+    return JSONResponse(body, status_code=status, headers=headers)
 
 
 def time_out_overdue(state: ServerState) -> None:
@@ -204,19 +246,36 @@ def researcher_view(request: Request, state: StateDep) -> Response:
 
 @router.post("/studies/{study_id}/take-part")
 def take_part(
-    study_id: str, request: Request, state: StateDep, background: BackgroundTasks
+    study_id: str,
+    request: Request,
+    state: StateDep,
+    background: BackgroundTasks,
+    participant_id: Annotated[str | None, Query(pattern=r"^[0-9a-f]{24}$")] = None,
 ) -> Response:
-    """A new participant (a generated PROLIFIC_PID) takes a place and is sent to the study;
-    the last place taken makes the study AWAITING REVIEW (its webhook sent)."""
+    """A participant (a new generated PROLIFIC_PID, or ``participant_id``: one who took part
+    before) takes a place and is sent to the study, unless the study's filters keep them out
+    (its blocklists, its allowlist); the last place taken makes the study AWAITING REVIEW (its
+    webhook sent)."""
     if not is_admin(request, state):
         return login_redirect("/prolific")
     time_out_overdue(state)
+    with state.db.write() as s:
+        due = publish_due(s)
+    notify_study(background, request, state, due)
     with state.db.write() as s:
         # The study's row locked (PostgreSQL) until the place is taken: two participants at
         # once cannot both take the last place or the last concurrent one.
         study = s.get(ProlificReplicaStudy, study_id, with_for_update=True)
         if study is None:
             return notice(request, "No such study", f"The replica has no study {study_id}.", 404)
+        why = barred(s, study, participant_id) if participant_id else None
+        if why is not None:
+            return notice(
+                request,
+                "Not eligible",
+                f"Participant {participant_id} cannot take part in study {study_id}: {why}.",
+                403,
+            )
         if study.status != "ACTIVE":
             return notice(
                 request, "Not open", f"Study {study_id} is {study.status}: it takes no one.", 409
@@ -240,7 +299,7 @@ def take_part(
         submission = ProlificReplicaSubmission(
             id=new_id(),
             study_id=study.id,
-            participant_id=new_id(),
+            participant_id=participant_id or new_id(),
             status="ACTIVE",
             started_at=utcnow(),
         )
@@ -339,6 +398,7 @@ def complete(
         row.study_code = cc
         row.completed_at = utcnow()
         row.status = "AWAITING REVIEW"
+        code_actions(s, codes[cc], row.participant_id)  # its participant groups
         asked = requests_return(codes[cc])
         if asked and row.return_requested is None:
             # As Prolific: the submission is completed and the participant asked to return
@@ -369,17 +429,24 @@ def complete(
 
 @router.post("/webhook")
 async def webhook(request: Request, state: StateDep) -> Response:
-    """Prolific's webhook (``BAM_PROLIFIC_WEBHOOK_SECRET``) for ``submission.status.change``,
+    """Prolific's webhook (signed with the workspace's secret that ``bam-study prolific hooks``
+    stored, or ``BAM_PROLIFIC_WEBHOOK_SECRET``, or this server's replica's own) for ``submission.status.change``,
     ``study.status.change`` and ``study.has_high_return_rate`` (``prolific_sync``): a
     forged, unsigned or old request is refused (401) and changes nothing; a redelivered event
     is answered 200 and applied once."""
-    secret = state.settings.prolific_webhook_secret
-    if secret is None:
-        return JSONResponse({"detail": "set BAM_PROLIFIC_WEBHOOK_SECRET"}, status_code=503)
+    known = await state.run_db(lambda: webhook_secrets(state.db, state.settings))
+    if not known:
+        return JSONResponse(
+            {
+                "detail": "no webhook secret: run `bam-study prolific hooks` (it makes the "
+                "workspace's secret and stores it here), or set BAM_PROLIFIC_WEBHOOK_SECRET"
+            },
+            status_code=503,
+        )
     body = await request.body()
     try:
-        verify(
-            secret.get_secret_value(),
+        verify_any(
+            known,
             request.headers.get("X-Prolific-Request-Timestamp"),
             request.headers.get("X-Prolific-Request-Signature"),
             body,
@@ -401,3 +468,56 @@ async def webhook(request: Request, state: StateDep) -> Response:
     except ValueError as error:
         return JSONResponse({"detail": str(error)}, status_code=400)
     return JSONResponse({"result": result})
+
+
+# -- the study's capacity held on Prolific ------------------------------------------------------
+FOLLOW_SECONDS = 15.0  # how often the server compares its load with its Prolific studies
+
+
+def server_load(state: ServerState, queue: QueueState | None) -> Load:
+    """The readings ``prolific_capacity`` follows: the participants the server admits at once,
+    its update queue (``queue``: the update manager's, read on its event loop) and its line."""
+    with state.db.connect() as c:
+        waiting = places.waiting_count(c, utcnow())
+    return Load(
+        limit=places.study_limit(state),
+        awaited=queue.sessions_awaited if queue is not None else 0,
+        oldest_wait_seconds=queue.oldest_wait_seconds if queue is not None else 0.0,
+        waiting=waiting,
+    )
+
+
+def follow_capacity(
+    state: ServerState, queue: QueueState | None, previous: Load | None = None
+) -> Load:
+    """One comparison of the server's load with each Prolific study it follows (a study
+    Prolific cannot be asked about is left for the next one); ``previous``: the reading before,
+    which a wait for updates must have shown too (``steady``; None: this reading alone). The
+    reading, for the next."""
+    reading = server_load(state, queue)
+    load = reading if previous is None else steady(previous, reading)
+    studies = followed_studies(state.db)
+    if not studies:
+        return reading
+    client = getattr(state.review_backend("prolific"), "client", None)
+    if client is None:
+        return reading
+    for study_id in studies:
+        try:
+            follow(state.db, client, study_id, load)
+        except (ReviewRefused, ReviewUnavailable) as error:
+            log.warning("could not hold Prolific study %s to the capacity: %s", study_id, error)
+    return reading
+
+
+async def follow_capacity_forever(state: ServerState) -> None:
+    """``follow_capacity`` every ``FOLLOW_SECONDS`` while the server runs, each reading
+    judged with the one before (a wait must last two readings to pause a study)."""
+    previous: Load | None = Load(None, 0, 0.0, 0)  # before the first: no wait
+    while True:
+        await asyncio.sleep(FOLLOW_SECONDS)
+        queue = state.updates.queue() if state.updates is not None else None
+        try:
+            previous = await asyncio.to_thread(follow_capacity, state, queue, previous)
+        except Exception:
+            log.exception("could not hold the Prolific studies to the capacity")

@@ -208,6 +208,7 @@ PLATFORM_ID_TABLES = (
     "prolific_replica_bonus_setups",
     "prolific_replica_payments",
     "prolific_replica_messages",
+    "prolific_replica_group_members",
 )
 
 

@@ -426,6 +426,35 @@ class ProlificStudy(Base):
     high_return_rate_metadata: Mapped[dict[str, object] | None] = mapped_column(JSON)
 
 
+class ProlificWebhookSecret(Base):
+    """A Prolific workspace's webhook signing secret, as ``POST /hooks/secrets/`` gave it to
+    ``bam-study prolific hooks`` (one per workspace: a new one replaces the old, on Prolific
+    and here); ``/prolific/webhook`` accepts events signed with it."""
+
+    __tablename__ = "prolific_webhook_secrets"
+
+    workspace_id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    secret: Mapped[str] = mapped_column(Text)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class ProlificStudyChange(Base):
+    """A change the server made to its Prolific study by itself (``prolific_capacity``): its
+    ``max_concurrent_submissions`` set to the server's live capacity, or the study paused while
+    the update queue would make agents wait and started when it drained; with why, and
+    Prolific's answer (``done``, or its refusal)."""
+
+    __tablename__ = "prolific_study_changes"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    study_id: Mapped[str] = mapped_column(String(64), index=True)
+    at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    change: Mapped[str] = mapped_column(String(32))  # max_concurrent_submissions, PAUSE, START
+    value: Mapped[int | None] = mapped_column(Integer)  # the new max_concurrent_submissions
+    reason: Mapped[str] = mapped_column(Text)
+    outcome: Mapped[str] = mapped_column(Text)  # done, or why Prolific refused
+
+
 class Erasure(Base):
     """The audit row of one participant's erasure (``rights.erasure``): when, by whom, the
     participant's pseudonyms and how many rows each table lost; nothing else of theirs is

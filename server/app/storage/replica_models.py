@@ -11,7 +11,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import JSON, ForeignKey, Index, Integer, String, Text
+from sqlalchemy import JSON, Boolean, ForeignKey, Index, Integer, String, Text
 from sqlalchemy.orm import Mapped, mapped_column
 
 from server.app.storage.models import Base, UTCDateTime, utcnow
@@ -153,3 +153,73 @@ class ProlificReplicaMessage(Base):
     study_id: Mapped[str] = mapped_column(String(24))
     body: Mapped[str] = mapped_column(Text)
     sent_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class ProlificReplicaHookSecret(Base):
+    """The replica workspace's webhook signing secret (``POST /hooks/secrets/``: one per
+    workspace, a new one replaces the old); made by the replica itself when it first sends
+    a webhook without one, so that its events need no setting."""
+
+    __tablename__ = "prolific_replica_hook_secrets"
+
+    id: Mapped[str] = mapped_column(String(24), primary_key=True)
+    workspace_id: Mapped[str] = mapped_column(String(24), unique=True)
+    value: Mapped[str] = mapped_column(Text)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class ProlificReplicaSubscription(Base):
+    """A webhook subscription (``POST /hooks/subscriptions/``): it delivers once confirmed
+    with the ``X-Hook-Secret`` its creation answered."""
+
+    __tablename__ = "prolific_replica_subscriptions"
+
+    id: Mapped[str] = mapped_column(String(24), primary_key=True)
+    workspace_id: Mapped[str] = mapped_column(String(24))
+    event_type: Mapped[str] = mapped_column(String(64))
+    target_url: Mapped[str] = mapped_column(Text)
+    confirmation: Mapped[str] = mapped_column(String(64))  # the X-Hook-Secret
+    is_enabled: Mapped[bool] = mapped_column(Boolean, default=False)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class ProlificReplicaHookEvent(Base):
+    """One delivery of an event to a subscription's target (``GET
+    /hooks/subscriptions/{id}/events/``): PENDING until the target answered, then SUCCEEDED
+    (2xx) or FAILED."""
+
+    __tablename__ = "prolific_replica_hook_events"
+
+    id: Mapped[str] = mapped_column(String(24), primary_key=True)
+    subscription_id: Mapped[str] = mapped_column(String(24), index=True)
+    event_type: Mapped[str] = mapped_column(String(64))
+    resource_id: Mapped[str] = mapped_column(String(24))
+    status: Mapped[str] = mapped_column(String(16))
+    target_url: Mapped[str] = mapped_column(Text)
+    payload: Mapped[dict[str, Any]] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class ProlificReplicaParticipantGroup(Base):
+    """A participant group (``POST /participant-groups/``) of the replica's workspace."""
+
+    __tablename__ = "prolific_replica_participant_groups"
+
+    id: Mapped[str] = mapped_column(String(24), primary_key=True)
+    workspace_id: Mapped[str] = mapped_column(String(24))
+    name: Mapped[str] = mapped_column(String(200))
+    description: Mapped[str | None] = mapped_column(Text)
+    is_deleted: Mapped[bool] = mapped_column(Boolean, default=False)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class ProlificReplicaGroupMember(Base):
+    """A participant in a group: added by the API or by a completion code's
+    ADD_TO_PARTICIPANT_GROUP action, taken out by REMOVE_FROM_PARTICIPANT_GROUP."""
+
+    __tablename__ = "prolific_replica_group_members"
+
+    group_id: Mapped[str] = mapped_column(String(24), primary_key=True)
+    participant_id: Mapped[str] = mapped_column(String(24), primary_key=True)  # PROLIFIC_PID
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)

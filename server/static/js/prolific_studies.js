@@ -23,13 +23,26 @@ function warning(study) {
     extra);
 }
 
+// The server's own changes to the study (its concurrency and pauses held to its capacity).
+function changes(study) {
+  const shown = (study.changes || []).slice(0, 5);
+  if (!shown.length) return null;
+  return h("ul", { class: "prolific-changes", "data-prolific-changes": study.study_id },
+    ...shown.map((c) => h("li", { "data-change": c.change },
+      `${formatTime(c.at)}: `,
+      c.change === "max_concurrent_submissions" ? `concurrency set to ${c.value}` : c.change === "PAUSE" ? "paused" : "started again",
+      ` (${c.reason})`,
+      c.outcome === "done" ? "" : ` - Prolific refused: ${c.outcome}`)));
+}
+
 function line(study) {
   const status = study.status
     ? [h("strong", { "data-study-status": study.status }, study.status), study.status_at ? ` since ${formatTime(study.status_at)}` : ""]
     : [h("span", { class: "muted", "data-study-status": "" }, "no status event from Prolific yet")];
   return h("div", { "data-prolific-study": study.study_id },
     h("p", {}, "Prolific study ", h("span", { class: "mono" }, study.study_id), ": ", ...status),
-    study.high_return_rate ? warning(study) : null);
+    study.high_return_rate ? warning(study) : null,
+    changes(study));
 }
 
 // What is shown, so that a refresh with nothing new leaves the page (and the alert) alone.

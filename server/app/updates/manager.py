@@ -46,6 +46,7 @@ the capacity.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import threading
 import time
@@ -75,7 +76,7 @@ from server.app.updates.policies import PolicyCache, decode
 from server.app.updates.pool import UpdatesUnavailable, WorkerDied
 from server.app.updates.queue import ProcessGate, QueueState, UpdateQueue
 from server.app.updates.runners import ClusterUpdates, LocalUpdates, Runner
-from server.app.updates.servers import ServerLoad, ServerRegistry, server_name
+from server.app.updates.servers import ServerLoad, ServerRegistry, others_load, server_name
 from server.app.updates.store import LEASE_SECONDS, Job, UpdateStore
 from server.cores import available_cores
 from server.domains import make as make_environment
@@ -123,6 +124,9 @@ class UpdateManager:
         self.shared = db is not None and not db.is_sqlite
         self.order = UpdateQueue(self.store.processed, self._share_awaited if self.shared else None)
         self.registry = ServerRegistry(db, self.server)
+        # The other live servers' participants at once and update slots, as their latest
+        # heartbeats said (read at this server's own heartbeats).
+        self._others = (0, 0)
         self._listener: Listener | None = None
         # The notices this server sends outside a transaction of its own, off the event loop.
         self._announcing: ThreadPoolExecutor | None = None
@@ -304,6 +308,10 @@ class UpdateManager:
             try:
                 await asyncio.to_thread(self.store.renew)
                 await asyncio.to_thread(self.registry.beat, self.load())
+                if self.shared:
+                    self._others = await asyncio.to_thread(
+                        others_load, self.db, self.server, self.lease_seconds
+                    )
             except Exception:
                 log.exception("could not renew this server's claims on learner updates")
 
@@ -465,6 +473,21 @@ class UpdateManager:
             measured_on=measured_on,
             longest_update=self.reference_longest,
             server_seconds=server,
+        )
+
+    def deployment_capacity(self) -> Capacity | None:
+        """The capacity of the whole deployment: this server's with the other live servers'
+        participants and slots added (their heartbeats'); None before this server's own is
+        known. One server: ``capacity()``."""
+        own = self.capacity()
+        participants, slots = self._others
+        if own is None or not (participants or slots):
+            return own
+        return dataclasses.replace(
+            own,
+            participants=own.participants + participants,
+            slots=own.slots + slots,
+            measured_on=f"{own.measured_on}, with the deployment's other servers",
         )
 
     @property

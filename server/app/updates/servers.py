@@ -119,3 +119,14 @@ def deployment_servers(db: Database, gone_after_seconds: float) -> list[ServerVi
         )
         for row in rows
     ]
+
+
+def others_load(db: Database, name: str, gone_after_seconds: float) -> tuple[int, int]:
+    """The participants at once and the update slots of the deployment's other live servers
+    (those that stated a capacity), from their heartbeats."""
+    participants = slots = 0
+    for server in deployment_servers(db, gone_after_seconds):
+        if server.live and server.name != name:
+            participants += server.load.participants_at_once or 0
+            slots += server.load.update_slots
+    return participants, slots

@@ -24,7 +24,7 @@ from sqlalchemy import delete, func, select
 from server.app.errors import ApiError
 from server.app.settings import Settings
 from server.app.storage.db import Database
-from server.app.storage.models import AdminSession, SignInFailure
+from server.app.storage.models import DashboardSession, SignInFailure
 
 MIN_ADMIN_TOKEN = 16
 SESSION_SECONDS = 12 * 3600
@@ -124,8 +124,8 @@ class AdminSessions:
         session_id = secrets.token_urlsafe(32)
         expires = int(now) + SESSION_SECONDS
         with self.db.write() as s:
-            s.execute(delete(AdminSession).where(AdminSession.expires <= now))
-            s.add(AdminSession(id_hash=self._hash(session_id), expires=expires))
+            s.execute(delete(DashboardSession).where(DashboardSession.expires <= now))
+            s.add(DashboardSession(id_hash=self._hash(session_id), expires=expires))
         payload = f"{session_id}.{expires}"
         return f"{payload}.{self._signature(token, payload)}"
 
@@ -143,7 +143,9 @@ class AdminSessions:
             return False
         with self.db.read() as s:
             expires = s.scalar(
-                select(AdminSession.expires).where(AdminSession.id_hash == self._hash(session_id))
+                select(DashboardSession.expires).where(
+                    DashboardSession.id_hash == self._hash(session_id)
+                )
             )
         return (
             expires is not None
@@ -156,7 +158,9 @@ class AdminSessions:
         if session_id is not None:
             with self.db.write() as s:
                 s.execute(
-                    delete(AdminSession).where(AdminSession.id_hash == self._hash(session_id))
+                    delete(DashboardSession).where(
+                        DashboardSession.id_hash == self._hash(session_id)
+                    )
                 )
 
 

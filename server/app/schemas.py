@@ -665,3 +665,24 @@ class ProlificStudyView(BaseModel):
     status: str | None = Field(description="Prolific's status of the study (none: no event yet).")
     status_at: datetime | None = Field(description="When the study took that status.")
     high_return_rate: HighReturnRateView | None
+
+
+class ServerRow(BaseModel):
+    """One ``bam-study serve`` process of the deployment, as its latest heartbeat says
+    (``server.app.updates.servers``)."""
+
+    name: str = Field(description="Its name in the claims on learner updates.")
+    host: str
+    pid: int
+    started_at: datetime
+    heartbeat_at: datetime
+    stopped_at: datetime | None
+    live: bool = Field(
+        description="Not stopped, and its heartbeat is more recent than the update lease."
+    )
+    this_server: bool = Field(description="The server that answered this request.")
+    update_slots: int
+    updates_running: int
+    updates_completed: int
+    updates_failed: int
+    participants_at_once: int | None = Field(description="Its capacity (none: not yet timed).")

@@ -475,7 +475,7 @@ class StudyServer(Base):
     participants_at_once: Mapped[int | None] = mapped_column(Integer)  # its capacity
 
 
-class AdminSession(Base):
+class DashboardSession(Base):
     """A signed-in dashboard (``server.app.admin_auth``): the sha256 of its random id, and its
     expiry in seconds since the epoch (as its cookie says). In the database, so that a cookie
     one server gave works on every server of the deployment."""

@@ -438,6 +438,11 @@ class ProlificStudy(Base):
     high_return_rate_metadata: Mapped[dict[str, object] | None] = mapped_column(JSON)
 
 
+# The deployment's own tables: its servers and their jobs, the experimenter's sign-ins. No row
+# of them is a participant's; the servers write them while they run (heartbeats).
+DEPLOYMENT_TABLES = ("servers", "periodic_runs", "admin_sessions", "sign_in_failures")
+
+
 class Erasure(Base):
     """The audit row of one participant's erasure (``rights.erasure``): when, by whom, the
     participant's pseudonyms and how many rows each table lost; nothing else of theirs is

@@ -47,21 +47,24 @@ def once_per_period(
 
 
 @asynccontextmanager
-async def one_server_at_a_time(db: Database, job: str) -> AsyncIterator[None]:
+async def one_server_at_a_time(db: Database | None, job: str) -> AsyncIterator[None]:
     """``async with``: the block runs on one server of the deployment at a time (PostgreSQL:
-    a session's advisory lock on a connection held meanwhile; SQLite: one server anyway)."""
-    if db.is_sqlite:
+    a session's advisory lock on a connection held meanwhile; SQLite, or no database: one
+    server anyway)."""
+    if db is None or db.is_sqlite:
         yield
         return
     key = advisory_lock_key(f"bam-study one at a time {job}")
     connection = await asyncio.to_thread(db.engine.connect)
     try:
-        while not await asyncio.to_thread(
-            lambda: bool(connection.scalar(select(func.pg_try_advisory_lock(key))))
-        ):
-            connection.rollback()
+
+        def locked() -> bool:
+            got = bool(connection.scalar(select(func.pg_try_advisory_lock(key))))
+            connection.commit()
+            return got
+
+        while not await asyncio.to_thread(locked):
             await asyncio.sleep(LOCK_POLL_SECONDS)
-        connection.commit()
         try:
             yield
         finally:

@@ -8,10 +8,6 @@ across them."""
 
 from __future__ import annotations
 
-import os
-import shutil
-import signal
-import subprocess
 import threading
 import time
 from collections.abc import Iterator
@@ -24,52 +20,13 @@ from sqlalchemy import func, select
 from server.app.admin_auth import FAILURES_ALLOWED
 from server.app.storage.db import Database
 from server.app.storage.models import Event, LearnerUpdate, LearningSession, StudyServer
-from server.commands.live import ServerProcess, free_port
+from server.commands.live import Proxy, ServerProcess
 from server.commands.simulated import TeachingPlan, run_participants
 from tests.app.test_live import fast_study_file
-from tests.support.server import ADMIN_TOKEN, BOUND, count_events, wait_for_updates, wait_until
+from tests.support.server import ADMIN_TOKEN, BOUND, count_events, wait_for_updates
 
-NGINX = shutil.which("nginx") or "/usr/sbin/nginx"
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
 LEASE_SECONDS = 3  # the killed server's claims are taken over this long after its death
-
-
-def nginx_config(prefix: Path, port: int, upstreams: list[str]) -> str:
-    """docs/deployment.md's configuration, on loopback ports, its files under ``prefix``."""
-    servers = "\n".join(
-        f"        server {address} max_fails=1 fail_timeout=5s;" for address in upstreams
-    )
-    temp = "\n".join(
-        f"    {name}_temp_path {prefix / name};"
-        for name in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi")
-    )
-    return f"""worker_processes 1;
-pid {prefix / "nginx.pid"};
-error_log {prefix / "error.log"} warn;
-events {{ worker_connections 512; }}
-http {{
-    access_log {prefix / "access.log"};
-{temp}
-    upstream bam_study {{
-{servers}
-        keepalive 32;
-    }}
-    server {{
-        listen 127.0.0.1:{port};
-        client_max_body_size 1m;
-        location / {{
-            proxy_pass http://bam_study;
-            proxy_http_version 1.1;
-            proxy_set_header Connection "";
-            proxy_set_header Host $http_host;
-            proxy_set_header X-Forwarded-For $remote_addr;
-            proxy_set_header X-Forwarded-Proto $scheme;
-            proxy_next_upstream error timeout http_502;
-            proxy_read_timeout 120s;
-        }}
-    }}
-}}
-"""
 
 
 @pytest.fixture
@@ -100,41 +57,9 @@ def servers(db: Database, tmp_path: Path) -> Iterator[list[ServerProcess]]:
 
 @pytest.fixture
 def proxy(servers: list[ServerProcess], tmp_path: Path) -> Iterator[str]:
-    if not os.path.exists(NGINX):
-        pytest.fail("nginx is missing: apt-get install -y nginx (.ci/run installs it)")
-    prefix = tmp_path / "nginx"
-    prefix.mkdir()
-    for name in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi"):
-        (prefix / name).mkdir()
-        (prefix / name).chmod(0o777)  # written by nginx's worker, another user under root
-    port = free_port()
-    config = prefix / "nginx.conf"
-    config.write_text(nginx_config(prefix, port, [f"127.0.0.1:{s.port}" for s in servers]))
-    process = subprocess.Popen(
-        [NGINX, "-p", str(prefix), "-c", str(config), "-e", str(prefix / "error.log"),
-         "-g", "daemon off;"],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.STDOUT,
-    )  # fmt: skip
-    url = f"http://127.0.0.1:{port}"
-
-    def answering() -> bool:
-        if process.poll() is not None:
-            raise AssertionError(f"nginx exited: {(prefix / 'error.log').read_text()}")
-        try:
-            return httpx.get(f"{url}/api/health", timeout=2).status_code == 200
-        except httpx.HTTPError:
-            return False
-
-    try:
-        wait_until(answering, "nginx answers", BOUND)
-        yield url
-    finally:
-        process.send_signal(signal.SIGQUIT)
-        try:
-            process.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            process.kill()
+    upstreams = [f"127.0.0.1:{server.port}" for server in servers]
+    with Proxy(tmp_path / "nginx", upstreams) as nginx:
+        yield nginx.url
 
 
 def sign_in(url: str) -> str:

@@ -182,43 +182,18 @@ class UpdateStore:
 
     def load(self, session_id: int) -> Job | None:
         """The session's next update's job, claimed by this server; None where it has none
-        pending, or another live server's claim holds it (or it is being claimed)."""
-        with self.db.write() as s:
-            update = s.scalar(
-                select(LearnerUpdate)
-                .where(
-                    LearnerUpdate.session_id == session_id,
-                    LearnerUpdate.status == UpdateStatus.PENDING,
-                )
-                .order_by(LearnerUpdate.update_index)
-                .limit(1)
-                .with_for_update(skip_locked=True)
-            )
-            if update is None:
-                return None
-            earlier = s.scalar(
-                select(func.count())
-                .select_from(LearnerUpdate)
-                .where(
-                    LearnerUpdate.session_id == session_id,
-                    LearnerUpdate.status == UpdateStatus.PENDING,
-                    LearnerUpdate.update_index < update.update_index,
-                )
-            )
-            if earlier:
-                return None  # the session's next update is being claimed by another server
-            now = utcnow()
-            holder = update.claimed_by
-            if holder not in (None, self.server) and update.lease_until is not None:
-                if update.lease_until >= now:
-                    return None  # another server runs it
-                update.taken_from = holder
+        pending, or another live server's claim holds it (or it is being claimed). The claim
+        is a short write of its own; the job is read after it (on SQLite, participants' writes
+        do not wait for the read of an update's events)."""
+        claimed = self._claim(session_id)
+        if claimed is None:
+            return None
+        update_id, run = claimed
+        with self.db.read() as s:
+            update = s.get(LearnerUpdate, update_id)
             session = s.get(LearningSession, session_id)
-            if session is None:
-                return None  # erased since the update was read
-            update.claimed_by = self.server
-            update.lease_until = now + self.lease
-            update.runs += 1
+            if update is None or session is None:
+                return None  # erased since the update was claimed
             base = s.execute(
                 select(LearnerUpdate.through_event_id, LearnerUpdate.learner_state)
                 .where(
@@ -264,8 +239,46 @@ class UpdateStore:
                 update.update_index,
                 session.environment,
                 payload,
-                run=update.runs,
+                run=run,
             )
+
+    def _claim(self, session_id: int) -> tuple[int, int] | None:
+        """Claim the session's next pending update for this server: its id and the claim's
+        run number; None where another live claim holds it or it is being claimed."""
+        with self.db.write() as s:
+            update = s.scalar(
+                select(LearnerUpdate)
+                .where(
+                    LearnerUpdate.session_id == session_id,
+                    LearnerUpdate.status == UpdateStatus.PENDING,
+                )
+                .order_by(LearnerUpdate.update_index)
+                .limit(1)
+                .with_for_update(skip_locked=True)
+            )
+            if update is None:
+                return None
+            earlier = s.scalar(
+                select(func.count())
+                .select_from(LearnerUpdate)
+                .where(
+                    LearnerUpdate.session_id == session_id,
+                    LearnerUpdate.status == UpdateStatus.PENDING,
+                    LearnerUpdate.update_index < update.update_index,
+                )
+            )
+            if earlier:
+                return None  # the session's next update is being claimed by another server
+            now = utcnow()
+            holder = update.claimed_by
+            if holder not in (None, self.server) and update.lease_until is not None:
+                if update.lease_until >= now:
+                    return None  # another server runs it
+                update.taken_from = holder
+            update.claimed_by = self.server
+            update.lease_until = now + self.lease
+            update.runs += 1
+            return update.id, update.runs
 
     def _held(self, s: Session, job: Job) -> tuple[LearnerUpdate, LearningSession] | None:
         """The job's update and session, locked, where this server's claim still holds the

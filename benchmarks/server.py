@@ -445,8 +445,9 @@ def main(argv: list[str] | None = None) -> int:
         for each in servers:  # each times its own capacity, one after another
             measured = wait_for_capacity(each.url, admin_token, args.capacity_timeout)
         if args.servers > 1:
-            # The deployment's: once every server's heartbeat has stated its own.
-            time.sleep(12.0)
+            # The deployment's: once every server's heartbeat (every 10 s) has stated its own
+            # and the first server has read theirs at its own.
+            time.sleep(22.0)
             measured = queue_view(server.url, admin_token)
         print(capacity_line(measured), flush=True)
         entry = server.url

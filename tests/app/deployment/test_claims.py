@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+import time
 from collections.abc import Iterator
 from datetime import timedelta
 from typing import Any
@@ -19,10 +20,18 @@ from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import LearnerUpdate, utcnow
 from server.app.updates.notices import Listener, channel_of
+from server.app.updates.queue import UpdateQueue
 from server.app.updates.store import Job, Stored, UpdateStore
 from server.app.updates.worker import run_update
 from tests.app.updates.test_updates import demonstrate, updates_of
-from tests.support.server import BOUND, gated_app, study_config, teaching_participant, wait_until
+from tests.support.server import (
+    BOUND,
+    gated_app,
+    run_apart,
+    study_config,
+    teaching_participant,
+    wait_until,
+)
 
 
 @pytest.fixture
@@ -181,3 +190,22 @@ def test_a_lease_is_renewed_while_its_server_lives(
     assert a.renew() == 1  # A's heartbeat: its lease holds again
     assert b.load(pending) is None
     assert [s.session_id for s in b.pending_sessions()] == []  # nothing free to take
+
+
+def test_a_wait_on_another_server_puts_its_session_first_here() -> None:
+    """The order is the deployment's: a wait that began on another server earlier than this
+    one's goes first here too; a wait that began here is told to the others, one told by them
+    is not told back."""
+    shared: list[tuple[int, int]] = []
+
+    async def scenario() -> list[int]:
+        queue = UpdateQueue(lambda session_id: 0, lambda s, t, since: shared.append((s, t)))
+        queue.start()
+        queue.enqueue_many([1, 2, 3])  # queued first, nobody waiting
+        queue.mark_awaited(2, 1)  # a participant here waits for session 2's agent
+        # Session 3's participant, on another server, began waiting a minute ago.
+        queue.mark_awaited(3, 1, since_epoch=time.time() - 60)
+        return [await queue.take() for _ in range(3)]
+
+    assert run_apart(scenario) == [3, 2, 1]
+    assert shared == [(2, 1)]

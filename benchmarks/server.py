@@ -6,6 +6,8 @@ acknowledged against events stored.
     python benchmarks/server.py --participants 50 --seconds 60 --database-url postgresql+psycopg://...
     python benchmarks/server.py --scheduler local:2             # updates on a local Dask cluster
     python benchmarks/server.py --scheduler tcp://host:8786     # ... or on a running one
+    python benchmarks/server.py --servers 3 --database-url postgresql+psycopg://...
+                                                   # three servers behind nginx, one database
 
 The server is ``bam-study serve`` in its own process (a fresh SQLite file in a temporary folder
 unless --database-url is given; a PostgreSQL database is migrated first), with the paper's study
@@ -18,6 +20,11 @@ must be stored. An agent step that had to wait for its learner's update counts a
 wait, not as an agent step (the agent's wait for its update: the figure that updates on a Dask
 cluster, --scheduler, are for). Latencies run from a request's first attempt, and the table counts
 the requests that needed a retry.
+
+With --servers N (PostgreSQL), N ``serve`` processes share the database behind Debian's nginx
+(``server.commands.live.Proxy``, docs/deployment.md's configuration), each with --workers update
+processes, and the participants go through the proxy; the capacity is the deployment's (every
+server's, once each has timed its own), and the servers' CPU is their sum.
 
 The server measures its capacity at start (the participants who can teach at once without
 waiting, ``server.app.capacity``); the participants arrive once it has, so that the measurement
@@ -58,7 +65,7 @@ from sqlalchemy import func, select
 from server.app.config import DEFAULT_STUDY_CONFIG
 from server.app.storage.db import Database, upgrade
 from server.app.storage.models import Event, LearnerUpdate
-from server.commands.live import ServerProcess, free_port
+from server.commands.live import Proxy, ServerProcess, free_port
 from server.commands.simulated import (
     STUDY_PLAN,
     StudyRun,
@@ -351,6 +358,12 @@ def main(argv: list[str] | None = None) -> int:
         help="how long to wait for the server to measure its capacity at start",
     )
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--servers",
+        type=int,
+        default=1,
+        help="serve processes on the one database, behind nginx (PostgreSQL only; 1)",
+    )
     args = parser.parse_args(argv)
     cluster_workers = None
     if args.scheduler and args.scheduler.startswith("local:"):
@@ -364,6 +377,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.optimizer != "warm-lbfgs":
             parser.error("--warm-alternations needs --optimizer warm-lbfgs")
 
+    if args.servers < 1:
+        parser.error("--servers must be at least 1")
+    if args.servers > 1 and not (args.database_url or "").startswith("postgresql"):
+        parser.error(
+            "--servers N > 1 needs --database-url postgresql+psycopg://... (a SQLite "
+            "study has one server)"
+        )
     folder = Path(tempfile.mkdtemp(prefix="bam-bench-"))
     url = args.database_url or f"sqlite:///{folder / 'study.db'}"
     db = Database.from_url(url)
@@ -400,6 +420,8 @@ def main(argv: list[str] | None = None) -> int:
         where = f"updates on the Dask cluster at {args.scheduler}"
     else:
         where = f"{args.workers} update processes"
+    if args.servers > 1:
+        where = f"{args.servers} servers behind nginx, {where} each"
     print(
         f"{args.participants} participants for {args.seconds:.0f} s on "
         f"{'SQLite' if url.startswith('sqlite') else 'PostgreSQL'}, {where}, "
@@ -414,13 +436,28 @@ def main(argv: list[str] | None = None) -> int:
             )
         elif args.scheduler:
             environment["BAM_UPDATE_SCHEDULER"] = args.scheduler
-        server = stack.enter_context(ServerProcess(folder, environment))
-        measured = wait_for_capacity(server.url, admin_token, args.capacity_timeout)
+        servers = []
+        for number in range(args.servers):
+            place = folder if args.servers == 1 else folder / f"server-{number}"
+            place.mkdir(exist_ok=True)
+            servers.append(stack.enter_context(ServerProcess(place, environment)))
+        server = servers[0]
+        for each in servers:  # each times its own capacity, one after another
+            measured = wait_for_capacity(each.url, admin_token, args.capacity_timeout)
+        if args.servers > 1:
+            # The deployment's: once every server's heartbeat (every 10 s) has stated its own
+            # and the first server has read theirs at its own.
+            time.sleep(22.0)
+            measured = queue_view(server.url, admin_token)
         print(capacity_line(measured), flush=True)
+        entry = server.url
+        if args.servers > 1:
+            upstreams = [f"127.0.0.1:{each.port}" for each in servers]
+            entry = stack.enter_context(Proxy(folder / "nginx", upstreams)).url
 
         def teach() -> None:
             result["run"] = run_participants(
-                server.url,
+                entry,
                 args.participants,
                 args.participants,
                 args.seed,
@@ -430,14 +467,23 @@ def main(argv: list[str] | None = None) -> int:
             )
 
         thread = threading.Thread(target=teach)
-        assert server.process is not None
-        cpu_before = cpu_by_group(server.process.pid, cluster_pids)
+        pids = [each.process.pid for each in servers if each.process is not None]
+
+        def cpu() -> dict[str, float]:
+            """The servers' CPU (with their update processes), summed."""
+            groups = [cpu_by_group(pid, cluster_pids) for pid in pids]
+            total = dict(groups[0])  # the machine's, the participants' and a cluster's once
+            for group in ("server", "update processes"):
+                total[group] = sum(each[group] for each in groups)
+            return total
+
+        cpu_before = cpu()
         started, started_at = time.perf_counter(), datetime.now(UTC)
         thread.start()
         thread.join(timeout=args.seconds)
         stop.set()
         stopped, stopped_at = time.perf_counter(), datetime.now(UTC)
-        cpu_after = cpu_by_group(server.process.pid, cluster_pids)
+        cpu_after = cpu()
         # From the latest updates and, where they share its cores, the server's CPU time (with
         # a PostgreSQL server's on this machine) over them.
         live = queue_view(server.url, admin_token)

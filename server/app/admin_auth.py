@@ -1,10 +1,12 @@
 """The experimenter's sign-in: the admin token, guesses of it limited per client address, and
 the dashboard's sessions.
 
-A dashboard session is a random id kept by the server with its expiry, sent as a cookie signed
-with a key derived from the admin token (``id.expiry.signature``). Signing out forgets the id,
-so a copied cookie stops working; so does every cookie when the server restarts or the admin
-token changes.
+A dashboard session is a random id kept in the database with its expiry (its sha256, so that
+reading the table gives no cookie), sent as a cookie signed with a key derived from the admin
+token (``id.expiry.signature``). Signing out forgets the id, so a copied cookie stops working;
+so does every cookie when the admin token changes. The failed sign-ins are in the database too:
+every server of a deployment accepts a cookie any of them gave, and counts an address's
+failures on all of them together.
 """
 
 from __future__ import annotations
@@ -13,21 +15,21 @@ import hashlib
 import hmac
 import math
 import secrets
-import threading
 import time
-from collections import deque
 from collections.abc import Callable
 
 from fastapi import Request
+from sqlalchemy import delete, func, select
 
 from server.app.errors import ApiError
 from server.app.settings import Settings
+from server.app.storage.db import Database
+from server.app.storage.models import DashboardSession, SignInFailure
 
 MIN_ADMIN_TOKEN = 16
 SESSION_SECONDS = 12 * 3600
 FAILURES_ALLOWED = 10  # failed sign-ins per address in FAILURE_WINDOW seconds, then 429
 FAILURE_WINDOW = 60.0
-ADDRESSES_KEPT = 10_000
 
 
 ADMIN_COOKIE = "bam_admin"  # the dashboard session's cookie (see ``AdminSessions``)
@@ -64,67 +66,66 @@ def client_address(request: Request) -> str:
 
 
 class SignInGuard:
-    """Failed sign-ins per client address: past ``FAILURES_ALLOWED`` within ``FAILURE_WINDOW``
-    seconds the address gets 429 (with Retry-After) until the oldest failure is that old,
-    whatever it sends, so guessing runs at a few tokens a minute."""
+    """Failed sign-ins per client address, on every server of the deployment together: past
+    ``FAILURES_ALLOWED`` within ``FAILURE_WINDOW`` seconds the address gets 429 (with
+    Retry-After) until the oldest failure is that old, whatever it sends, so guessing runs at a
+    few tokens a minute. ``clock``: seconds since the epoch (the servers' clocks agree)."""
 
-    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, db: Database, clock: Callable[[], float] = time.time) -> None:
+        self.db = db
         self.clock = clock
-        self._failures: dict[str, deque[float]] = {}
-        self._lock = threading.Lock()
-
-    def _recent(self, address: str, now: float) -> deque[float]:
-        failures = self._failures.get(address, deque())
-        while failures and failures[0] <= now - FAILURE_WINDOW:
-            failures.popleft()
-        return failures
 
     def check(self, address: str) -> None:
         """429 while ``address`` has used up its failures."""
-        with self._lock:
-            now = self.clock()
-            failures = self._recent(address, now)
-            if len(failures) >= FAILURES_ALLOWED:
-                wait = max(1, math.ceil(failures[0] + FAILURE_WINDOW - now))
-                raise ApiError(
-                    429,
-                    f"too many failed sign-ins from this address: try again in {wait} s",
-                    headers={"Retry-After": str(wait)},
+        now = self.clock()
+        with self.db.read() as s:
+            count, oldest = s.execute(
+                select(func.count(), func.min(SignInFailure.failed_at)).where(
+                    SignInFailure.address == address[:64],
+                    SignInFailure.failed_at > now - FAILURE_WINDOW,
                 )
+            ).one()
+        if count >= FAILURES_ALLOWED:
+            wait = max(1, math.ceil(oldest + FAILURE_WINDOW - now))
+            raise ApiError(
+                429,
+                f"too many failed sign-ins from this address: try again in {wait} s",
+                headers={"Retry-After": str(wait)},
+            )
 
     def failed(self, address: str) -> None:
-        with self._lock:
-            now = self.clock()
-            if len(self._failures) >= ADDRESSES_KEPT:
-                for known in list(self._failures):
-                    if not self._recent(known, now):
-                        del self._failures[known]
-            failures = self._recent(address, now)
-            failures.append(now)
-            self._failures[address] = failures
+        now = self.clock()
+        with self.db.write() as s:
+            # Failures past the window count no more: the table keeps only the latest minute.
+            s.execute(delete(SignInFailure).where(SignInFailure.failed_at <= now - FAILURE_WINDOW))
+            s.add(SignInFailure(address=address[:64], failed_at=now))
 
 
 class AdminSessions:
-    """The dashboard's signed-in sessions (module docstring)."""
+    """The dashboard's signed-in sessions (module docstring). ``clock``: seconds since the
+    epoch."""
 
-    def __init__(self, clock: Callable[[], float] = time.time) -> None:
+    def __init__(self, db: Database, clock: Callable[[], float] = time.time) -> None:
+        self.db = db
         self.clock = clock
-        self._expiry: dict[str, int] = {}
-        self._lock = threading.Lock()
 
     @staticmethod
     def _signature(token: str, payload: str) -> str:
         key = hashlib.sha256(b"bam-study admin session\0" + token.encode()).digest()
         return hmac.new(key, payload.encode(), hashlib.sha256).hexdigest()
 
+    @staticmethod
+    def _hash(session_id: str) -> str:
+        return hashlib.sha256(session_id.encode()).hexdigest()
+
     def start(self, token: str) -> str:
         """A new session: the cookie's value."""
         now = self.clock()
         session_id = secrets.token_urlsafe(32)
         expires = int(now) + SESSION_SECONDS
-        with self._lock:
-            self._expiry = {k: v for k, v in self._expiry.items() if v > now}
-            self._expiry[session_id] = expires
+        with self.db.write() as s:
+            s.execute(delete(DashboardSession).where(DashboardSession.expires <= now))
+            s.add(DashboardSession(id_hash=self._hash(session_id), expires=expires))
         payload = f"{session_id}.{expires}"
         return f"{payload}.{self._signature(token, payload)}"
 
@@ -140,8 +141,12 @@ class AdminSessions:
         session_id = self._session_id(token, cookie)
         if session_id is None:
             return False
-        with self._lock:
-            expires = self._expiry.get(session_id)
+        with self.db.read() as s:
+            expires = s.scalar(
+                select(DashboardSession.expires).where(
+                    DashboardSession.id_hash == self._hash(session_id)
+                )
+            )
         return (
             expires is not None
             and cookie.split(".")[1] == str(expires)
@@ -151,8 +156,12 @@ class AdminSessions:
     def end(self, token: str, cookie: str) -> None:
         session_id = self._session_id(token, cookie)
         if session_id is not None:
-            with self._lock:
-                self._expiry.pop(session_id, None)
+            with self.db.write() as s:
+                s.execute(
+                    delete(DashboardSession).where(
+                        DashboardSession.id_hash == self._hash(session_id)
+                    )
+                )
 
 
 def bearer_is_admin(request: Request, token: str, guard: SignInGuard) -> bool:

@@ -40,6 +40,7 @@ from server.app.settings import Settings, get_settings
 from server.app.state import ServerState
 from server.app.storage.database_cpu import postgres_cpu_reader
 from server.app.storage.db import Database, SchemaError, current_revision, head_revision
+from server.app.storage.periodic import once_per_period
 from server.app.updates.capacity import reference_jobs
 from server.app.updates.manager import UpdateManager
 
@@ -194,11 +195,12 @@ def create_app(
                 if updates_cluster is None
                 else None
             ),
+            lease_seconds=settings.update_lease_seconds,
         )
         state.updates = manager
         await manager.start()
-        sweeper = asyncio.ensure_future(_sweep_forever(state))
-        follower = asyncio.ensure_future(prolific.follow_capacity_forever(state))
+        sweeper = asyncio.ensure_future(_sweep_forever(state, manager.server))
+        follower = asyncio.ensure_future(prolific.follow_capacity_forever(state, manager.server))
         try:
             yield
         finally:
@@ -278,22 +280,30 @@ def _writable(value: Any) -> Any:
     return _writable(str(value))
 
 
-async def _sweep_forever(state: ServerState) -> None:
+async def _sweep_forever(state: ServerState, server: str) -> None:
     """Mark participants idle for too long as abandoned (they continue if they come back), and
-    replace platform ids past ``scrub_identifiers_after_days`` by their pseudonyms."""
+    replace platform ids past ``scrub_identifiers_after_days`` by their pseudonyms: once per
+    ``SWEEP_SECONDS`` on the whole deployment, by whichever server comes first
+    (``once_per_period``)."""
+
+    def time_outs() -> None:
+        marked = statuses.mark_abandoned(state.db, state.settings)
+        if marked:
+            log.info("%d participant(s) marked abandoned", marked)
+
+    def scrubbing() -> None:
+        secret = state.settings.secret.get_secret_value() if state.settings.secret else None
+        scrubbed = scrub(state.db, secret, state.study.scrub_identifiers_after_days)
+        if scrubbed:
+            log.info("%d participant(s)' platform ids replaced by pseudonyms", scrubbed)
+
     while True:
-        try:
-            marked = await asyncio.to_thread(statuses.mark_abandoned, state.db, state.settings)
-            if marked:
-                log.info("%d participant(s) marked abandoned", marked)
-        except Exception:
-            log.exception("could not mark abandoned participants")
-        try:
-            secret = state.settings.secret.get_secret_value() if state.settings.secret else None
-            days = state.study.scrub_identifiers_after_days
-            scrubbed = await asyncio.to_thread(scrub, state.db, secret, days)
-            if scrubbed:
-                log.info("%d participant(s)' platform ids replaced by pseudonyms", scrubbed)
-        except Exception:
-            log.exception("could not replace expired platform ids")
+        for job, work, failure in (
+            ("time-outs", time_outs, "could not mark abandoned participants"),
+            ("scrubbing", scrubbing, "could not replace expired platform ids"),
+        ):
+            try:
+                await asyncio.to_thread(once_per_period, state.db, job, SWEEP_SECONDS, server, work)
+            except Exception:
+                log.exception(failure)
         await asyncio.sleep(SWEEP_SECONDS)

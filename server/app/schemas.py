@@ -680,3 +680,24 @@ class ProlificStudyView(BaseModel):
         description="The server's own last changes to the study (its concurrency, pauses and "
         "starts held to the capacity), newest first.",
     )
+
+
+class ServerRow(BaseModel):
+    """One ``bam-study serve`` process of the deployment, as its latest heartbeat says
+    (``server.app.updates.servers``)."""
+
+    name: str = Field(description="Its name in the claims on learner updates.")
+    host: str
+    pid: int
+    started_at: datetime
+    heartbeat_at: datetime
+    stopped_at: datetime | None
+    live: bool = Field(
+        description="Not stopped, and its heartbeat is more recent than the update lease."
+    )
+    this_server: bool = Field(description="The server that answered this request.")
+    update_slots: int
+    updates_running: int
+    updates_completed: int
+    updates_failed: int
+    participants_at_once: int | None = Field(description="Its capacity (none: not yet timed).")

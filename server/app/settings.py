@@ -72,6 +72,14 @@ class Settings(BaseSettings):
     update_worker_niceness: int = Field(
         10, ge=0, le=19, description="Nice increment of update processes, so requests come first."
     )
+    update_lease_seconds: float = Field(
+        30.0,
+        ge=1,
+        le=3600,
+        description="How long a server's claim on a learner update holds without its renewal "
+        "(every third of it): when a server of several on one PostgreSQL dies, the others take "
+        "its updates over after this long.",
+    )
     agent_wait_seconds: float = Field(
         30.0, gt=0, le=600, description="How long an agent step waits for its learner's update."
     )

@@ -30,10 +30,15 @@ class ServerState:
     settings: Settings
     policies: PolicyCache = field(default_factory=PolicyCache)
     updates: UpdateManager | None = None
-    sign_ins: SignInGuard = field(default_factory=SignInGuard)
-    admin_sessions: AdminSessions = field(default_factory=AdminSessions)
+    # In the database: every server of a deployment shares them (``admin_auth``).
+    sign_ins: SignInGuard = field(init=False)
+    admin_sessions: AdminSessions = field(init=False)
     # By the participants' platform (mturk, prolific), each made on first use.
     reviews: dict[str, ReviewBackend] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.sign_ins = SignInGuard(self.db)
+        self.admin_sessions = AdminSessions(self.db)
 
     def review_backend(self, platform: str) -> ReviewBackend:
         """Where the reviews and bonuses of the platform's participants go

@@ -1,10 +1,12 @@
 """A study server in its own process, for the benchmark, the end-to-end tests and demos:
 ``bam-study serve`` on a free local port, in its own process group so that stopping it also
-stops its learner-update workers."""
+stops its learner-update workers; and nginx in front of several of them (``Proxy``), as
+docs/deployment.md configures it, on loopback ports."""
 
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -131,3 +133,101 @@ class WarmUpNotice:
                 flush=True,
             )
             self.said_at = seconds
+
+
+NGINX_TEMP = ("client_body", "proxy", "fastcgi", "uwsgi", "scgi")
+
+
+def nginx_config(prefix: Path, port: int, upstreams: list[str]) -> str:
+    """deploy/nginx.conf's proxy on 127.0.0.1:``port`` to ``upstreams`` (host:port), its files
+    under ``prefix``."""
+    servers = "\n".join(
+        f"        server {address} max_fails=1 fail_timeout=5s;" for address in upstreams
+    )
+    temp = "\n".join(f"    {name}_temp_path {prefix / name};" for name in NGINX_TEMP)
+    return f"""worker_processes 1;
+pid {prefix / "nginx.pid"};
+error_log {prefix / "error.log"} warn;
+events {{ worker_connections 1024; }}
+http {{
+    access_log off;
+{temp}
+    upstream bam_study {{
+{servers}
+        keepalive 32;
+    }}
+    server {{
+        listen 127.0.0.1:{port};
+        client_max_body_size 1m;
+        location / {{
+            proxy_pass http://bam_study;
+            proxy_http_version 1.1;
+            proxy_set_header Connection "";
+            proxy_set_header Host $http_host;
+            proxy_set_header X-Forwarded-For $remote_addr;
+            proxy_set_header X-Forwarded-Proto $scheme;
+            proxy_next_upstream error timeout http_502;
+            proxy_read_timeout 120s;
+        }}
+    }}
+}}
+"""
+
+
+class Proxy:
+    """Debian's nginx in a process of its own, in front of ``upstreams``, with its
+    configuration and files in ``folder`` (``apt-get install nginx``; not its service)."""
+
+    def __init__(self, folder: Path, upstreams: list[str], port: int | None = None) -> None:
+        self.nginx = shutil.which("nginx") or "/usr/sbin/nginx"
+        if not os.path.exists(self.nginx):
+            raise RuntimeError("nginx is missing: apt-get install -y nginx")
+        self.folder = folder
+        self.port = port or free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.upstreams = upstreams
+        self.process: subprocess.Popen[bytes] | None = None
+
+    def start(self, timeout: float = 60.0) -> None:
+        self.folder.mkdir(parents=True, exist_ok=True)
+        for name in NGINX_TEMP:
+            (self.folder / name).mkdir(exist_ok=True)
+            (self.folder / name).chmod(0o777)  # nginx's worker runs as another user under root
+        config = self.folder / "nginx.conf"
+        config.write_text(nginx_config(self.folder, self.port, self.upstreams))
+        error_log = self.folder / "error.log"
+        self.process = subprocess.Popen(
+            [self.nginx, "-p", str(self.folder), "-c", str(config), "-e", str(error_log),
+             "-g", "daemon off;"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.STDOUT,
+        )  # fmt: skip
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                raise RuntimeError(f"nginx exited: {error_log.read_text(errors='replace')}")
+            try:
+                if httpx.get(f"{self.url}/api/health", timeout=2).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.1)
+        self.stop()
+        raise RuntimeError(f"nginx did not answer within {timeout} s")
+
+    def stop(self) -> None:
+        if self.process is None or self.process.poll() is not None:
+            return
+        self.process.send_signal(signal.SIGQUIT)  # nginx's graceful stop
+        try:
+            self.process.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait(timeout=30)
+
+    def __enter__(self) -> Proxy:
+        self.start()
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.stop()

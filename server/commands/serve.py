@@ -61,8 +61,6 @@ def listen(host: str, port: int) -> socket.socket:
 
 
 def run(args: argparse.Namespace) -> int:
-    import errno
-
     from server.app.config import StudyConfigError, load_study_config
     from server.app.settings import SettingsError, load_settings
 
@@ -85,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.lab:
         study = study.model_copy(update={"allow_anonymous": True})
-    from server.app.admin_auth import admin_token, weak_admin_token
+    from server.app.admin_auth import weak_admin_token
 
     weak = weak_admin_token(settings)
     if weak is not None:
@@ -94,6 +92,34 @@ def run(args: argparse.Namespace) -> int:
     if not 1 <= args.port <= 65535:
         print(f"{PROG}: --port must be a number from 1 to 65535, got {args.port}", file=sys.stderr)
         return 2
+    from server.app.storage.db import SecondServer, single_server_lock
+
+    try:
+        lock = single_server_lock(settings.database_url)
+    except Exception:  # a URL SQLAlchemy cannot read: the database's own message follows
+        lock = None
+    if lock is not None:
+        try:
+            lock.acquire()
+        except SecondServer as error:
+            print(f"{PROG}: {error}", file=sys.stderr)
+            return 1
+        except OSError as error:
+            print(f"{PROG}: cannot lock the SQLite database: {error}", file=sys.stderr)
+            return 1
+    try:
+        return _serve(args, settings, study, lock is not None)
+    finally:
+        if lock is not None:
+            lock.release()
+
+
+def _serve(args: argparse.Namespace, settings: Settings, study: StudyConfig, single: bool) -> int:
+    """``run`` once the settings are read and the SQLite file (``single``) is this server's."""
+    import errno
+
+    from server.app.admin_auth import admin_token
+
     try:
         sock = listen(args.host, args.port)
     except OSError as error:

@@ -38,6 +38,8 @@ def test_a_benchmark_script_starts_as_the_readme_runs_it(script: str, tmp_path: 
         ("compare.py", ["--against", "no-such-revision"], "'no-such-revision' is not a commit"),
         ("compare.py", ["--against", "HEAD", "--cycles", "0"], "--cycles must be at least 1"),
         ("server.py", ["--warm-alternations", "2"], "--warm-alternations needs --optimizer"),
+        ("server.py", ["--servers", "0"], "--servers must be at least 1"),
+        ("server.py", ["--servers", "2"], "--servers N > 1 needs --database-url postgresql"),
         ("authors.py", [], "the following arguments are required: --source"),
         ("authors.py", ["--source", "/no/such/folder"], "--source /no/such/folder is not a folder"),
         ("authors.py", ["--source", ".", "--repeats", "0"], "--repeats must be at least 1"),

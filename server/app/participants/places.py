@@ -44,10 +44,11 @@ class Place:
 
 
 def study_limit(state: ServerState) -> int | None:
-    """Participants in the study at once: the study file's, or the measured capacity."""
+    """Participants in the study at once: the study file's, or the measured capacity (the
+    whole deployment's, with several servers)."""
     if state.study.max_active_participants is not None:
         return state.study.max_active_participants
-    capacity = state.updates.capacity() if state.updates is not None else None
+    capacity = state.updates.deployment_capacity() if state.updates is not None else None
     return capacity.participants if capacity is not None else None
 
 
@@ -117,7 +118,7 @@ def queue_view(state: ServerState, queue: QueueState | None) -> QueueView:
     """The dashboard's live queue beside the capacity and the limit; ``queue``: the update
     manager's, read on its event loop."""
     manager = state.updates
-    capacity = manager.capacity() if manager is not None else None
+    capacity = manager.deployment_capacity() if manager is not None else None
     longest = capacity.longest_update if capacity is not None else None
     now = utcnow()
     with state.db.connect() as c:

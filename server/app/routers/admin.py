@@ -38,6 +38,7 @@ from server.app.schemas import (
     ReplicaSubmissionView,
     ReviewRequest,
     ReviewView,
+    ServerRow,
     StatusChangeView,
 )
 from server.app.state import ServerState
@@ -63,6 +64,7 @@ from server.app.storage.vocabulary import (
     SessionStatus,
     UpdateStatus,
 )
+from server.app.updates.servers import deployment_servers
 
 STATUSES = tuple(ParticipantStatus)
 
@@ -413,6 +415,31 @@ def send_bonus(
     )
     with state.db.read() as s:
         return _participant_detail(s, participant_id)
+
+
+@router.get("/servers", response_model=list[ServerRow])
+async def read_servers(state: StateDep) -> list[ServerRow]:
+    """The deployment's servers (several ``serve`` processes on one PostgreSQL database), the
+    latest started first: every live one, and the latest ten gone, each with its heartbeat and
+    its load."""
+    lease = state.settings.update_lease_seconds
+    this = state.updates.server if state.updates is not None else None
+    found = await state.run_db(lambda: deployment_servers(state.db, lease))
+    shown = [row for row in found if row.live] + [row for row in found if not row.live][:10]
+    return [
+        ServerRow(
+            name=row.name,
+            host=row.host,
+            pid=row.pid,
+            started_at=row.started_at,
+            heartbeat_at=row.heartbeat_at,
+            stopped_at=row.stopped_at,
+            live=row.live,
+            this_server=row.name == this,
+            **vars(row.load),
+        )
+        for row in shown
+    ]
 
 
 @router.get("/queue", response_model=QueueView)

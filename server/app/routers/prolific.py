@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
 import logging
 import secrets
@@ -71,6 +72,7 @@ from server.app.routers.common import login_redirect, notice, own_origin, templa
 from server.app.state import ServerState
 from server.app.storage.db import Database
 from server.app.storage.models import utcnow
+from server.app.storage.periodic import once_per_period
 from server.app.storage.replica_models import (
     ProlificReplicaBonusSetup,
     ProlificReplicaPayment,
@@ -510,14 +512,28 @@ def follow_capacity(
     return reading
 
 
-async def follow_capacity_forever(state: ServerState) -> None:
+async def follow_capacity_forever(state: ServerState, server: str) -> None:
     """``follow_capacity`` every ``FOLLOW_SECONDS`` while the server runs, each reading
-    judged with the one before (a wait must last two readings to pause a study)."""
+    judged with the one before (a wait must last two readings to pause a study); on the
+    whole deployment once a period, by whichever server comes first (``once_per_period``), so
+    that several servers do not each set the study's concurrency."""
     previous: Load | None = Load(None, 0, 0.0, 0)  # before the first: no wait
+
+    def follow_once(queue: QueueState | None) -> None:
+        nonlocal previous
+        previous = follow_capacity(state, queue, previous)
+
     while True:
         await asyncio.sleep(FOLLOW_SECONDS)
         queue = state.updates.queue() if state.updates is not None else None
         try:
-            previous = await asyncio.to_thread(follow_capacity, state, queue, previous)
+            await asyncio.to_thread(
+                once_per_period,
+                state.db,
+                "prolific capacity",
+                FOLLOW_SECONDS,
+                server,
+                functools.partial(follow_once, queue),
+            )
         except Exception:
             log.exception("could not hold the Prolific studies to the capacity")

@@ -15,6 +15,7 @@ participants run in parallel.
 from __future__ import annotations
 
 import hashlib
+import os
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -210,6 +211,53 @@ PLATFORM_ID_TABLES = (
     "prolific_replica_messages",
     "prolific_replica_group_members",
 )
+
+
+class SecondServer(RuntimeError):
+    """Another server already serves this SQLite file."""
+
+
+class SingleServerLock:
+    """The lock a server holds on its SQLite file while it serves (``<file>.server-lock``,
+    an exclusive ``flock``, which the system releases when the process ends, also by a
+    crash): SQLite's study has one server, and a second on the same file is refused at start.
+    Several servers share a PostgreSQL database instead (docs/deployment.md)."""
+
+    def __init__(self, url: str) -> None:
+        parsed = make_url(url)
+        self.path = Path(f"{parsed.database}.server-lock")
+        self._file: Any = None
+
+    def acquire(self) -> None:
+        """Raises ``SecondServer`` where another server holds the file."""
+        import fcntl
+
+        handle = open(self.path, "a+")
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.close()
+            raise SecondServer(
+                f"another server already serves the SQLite database {self.path.name[:-12]} "
+                f"(it holds {self.path}): a SQLite study has one server. To run several "
+                "servers on one study, use PostgreSQL (BAM_DATABASE_URL=postgresql+psycopg://"
+                "...; docs/deployment.md)"
+            ) from None
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"{os.getpid()}\n")
+        handle.flush()
+        self._file = handle
+
+    def release(self) -> None:
+        if self._file is not None:
+            self._file.close()  # closing the file releases the lock
+            self._file = None
+
+
+def single_server_lock(url: str) -> SingleServerLock | None:
+    """The lock a server on ``url`` must hold (SQLite), or None (PostgreSQL: several may)."""
+    return SingleServerLock(url) if make_url(url).get_backend_name() == "sqlite" else None
 
 
 def open_study_database(url: str) -> Database:

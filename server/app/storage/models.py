@@ -200,6 +200,10 @@ class LearningSession(Base):
     policy_update: Mapped[int | None] = mapped_column(
         Integer
     )  # latest index done: agent acts on it
+    # Someone waits for the agent after update ``awaited_update`` since ``awaited_since`` (on
+    # any server of the deployment): the update queues of all servers put the session first.
+    awaited_since: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    awaited_update: Mapped[int | None] = mapped_column(Integer)
 
 
 class Episode(Base):
@@ -285,6 +289,14 @@ class LearnerUpdate(Base):
     learner_state: Mapped[bytes | None] = mapped_column(LargeBinary)
     greedy_policy: Mapped[bytes | None] = mapped_column(LargeBinary)
     error: Mapped[str | None] = mapped_column(Text)
+    # The claim on a pending update (``server.app.updates.store``): the server that runs it,
+    # until when its lease holds (renewed while it runs; past it, another server takes the
+    # update over, ``taken_from`` the server whose lease expired), and ``runs``, the claims
+    # taken on it (an update that ran once has 1, whatever ``attempts`` says of retries).
+    claimed_by: Mapped[str | None] = mapped_column(String(64))
+    lease_until: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    runs: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    taken_from: Mapped[str | None] = mapped_column(String(64))
 
 
 class AttentionCheck(Base):
@@ -455,6 +467,11 @@ class ProlificStudyChange(Base):
     outcome: Mapped[str] = mapped_column(Text)  # done, or why Prolific refused
 
 
+# The deployment's own tables: its servers and their jobs, the experimenter's sign-ins. No row
+# of them is a participant's; the servers write them while they run (heartbeats).
+DEPLOYMENT_TABLES = ("servers", "periodic_runs", "admin_sessions", "sign_in_failures")
+
+
 class Erasure(Base):
     """The audit row of one participant's erasure (``rights.erasure``): when, by whom, the
     participant's pseudonyms and how many rows each table lost; nothing else of theirs is
@@ -470,3 +487,57 @@ class Erasure(Base):
     worker_pseudonym: Mapped[str | None] = mapped_column(String(32))  # w_ + salted hash
     assignment_pseudonym: Mapped[str | None] = mapped_column(String(32))  # a_ + salted hash
     rows: Mapped[dict[str, int]] = mapped_column(JSON)  # table -> rows removed
+
+
+class StudyServer(Base):
+    """One ``bam-study serve`` process of the deployment (``server.app.updates.servers``): its
+    name, where it runs, when it started, its latest heartbeat with its load then, and when it
+    stopped (None: running, or it died and its heartbeat stopped)."""
+
+    __tablename__ = "servers"
+
+    name: Mapped[str] = mapped_column(String(64), primary_key=True)
+    host: Mapped[str] = mapped_column(String(255))
+    pid: Mapped[int] = mapped_column(Integer)
+    started_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    heartbeat_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    stopped_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    update_slots: Mapped[int] = mapped_column(Integer, default=0)
+    updates_running: Mapped[int] = mapped_column(Integer, default=0)
+    updates_completed: Mapped[int] = mapped_column(Integer, default=0)
+    updates_failed: Mapped[int] = mapped_column(Integer, default=0)
+    participants_at_once: Mapped[int | None] = mapped_column(Integer)  # its capacity
+
+
+class DashboardSession(Base):
+    """A signed-in dashboard (``server.app.admin_auth``): the sha256 of its random id, and its
+    expiry in seconds since the epoch (as its cookie says). In the database, so that a cookie
+    one server gave works on every server of the deployment."""
+
+    __tablename__ = "admin_sessions"
+
+    id_hash: Mapped[str] = mapped_column(String(64), primary_key=True)
+    expires: Mapped[int] = mapped_column(BigInteger, index=True)
+
+
+class SignInFailure(Base):
+    """A failed sign-in (a wrong admin token) from a client address, at ``failed_at`` seconds
+    since the epoch: counted across every server of the deployment."""
+
+    __tablename__ = "sign_in_failures"
+    __table_args__ = (Index("ix_sign_in_failures_address", "address", "failed_at"),)
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    address: Mapped[str] = mapped_column(String(64))
+    failed_at: Mapped[float] = mapped_column(Float, index=True)
+
+
+class PeriodicRun(Base):
+    """The latest run of a periodic job (time-outs, scrubbing) by whichever server ran it: the
+    servers of a deployment run each job once per period between them."""
+
+    __tablename__ = "periodic_runs"
+
+    job: Mapped[str] = mapped_column(String(64), primary_key=True)
+    ran_at: Mapped[datetime] = mapped_column(UTCDateTime())
+    ran_by: Mapped[str] = mapped_column(String(64))

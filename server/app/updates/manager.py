@@ -31,6 +31,13 @@ Pending updates are found again in the database when the server starts, so none 
 restart. With ``BAM_UPDATE_SCHEDULER`` the same function runs on the workers of a Dask cluster
 instead of the local processes (``server.app.updates.cluster``), in the same order.
 
+Several servers may share one PostgreSQL database (docs/deployment.md). Each update is claimed
+in the database before it runs, with a lease this server renews while it lives (``store``), so
+an update runs on one server, and is taken over when its server dies; the servers tell each
+other of stored updates, new pending ones and awaited agents (``notices``), so a waiter on one
+server goes on when another stores its update, and the sessions awaited longest go first on
+every server. SQLite has one server: it takes back every claim when it starts.
+
 The manager puts together three parts: ``queue`` (the order and the waits), ``store`` (the
 database work) and ``runners`` (the local processes or the cluster); it dispatches, and says
 the capacity.
@@ -39,18 +46,20 @@ the capacity.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import threading
 import time
 import traceback
 from collections import deque
 from collections.abc import Callable
-from concurrent.futures import Executor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from server.app.storage.db import Database
+from server.app.storage.periodic import one_server_at_a_time
 from server.app.updates.capacity import (
     LIVE_MINIMUM,
     LIVE_UPDATES,
@@ -62,11 +71,13 @@ from server.app.updates.capacity import (
     participants_at_once,
     session_updates,
 )
+from server.app.updates.notices import Listener, channel_of
 from server.app.updates.policies import PolicyCache, decode
 from server.app.updates.pool import UpdatesUnavailable, WorkerDied
 from server.app.updates.queue import ProcessGate, QueueState, UpdateQueue
 from server.app.updates.runners import ClusterUpdates, LocalUpdates, Runner
-from server.app.updates.store import Job, UpdateStore
+from server.app.updates.servers import ServerLoad, ServerRegistry, others_load, server_name
+from server.app.updates.store import LEASE_SECONDS, Job, UpdateStore
 from server.cores import available_cores
 from server.domains import make as make_environment
 
@@ -101,10 +112,24 @@ class UpdateManager:
         reference_jobs: list[dict[str, Any]] | None = None,
         server_share: Callable[[threading.Event], float] | None = None,
         database_cpu: Callable[[], float] | None = None,
+        server: str | None = None,
+        lease_seconds: float = LEASE_SECONDS,
     ) -> None:
         self.policies = policies
-        self.store = UpdateStore(db, learner_settings)
-        self.order = UpdateQueue(self.store.processed)
+        self.db = db
+        self.server = server or server_name()  # this server's name in claims and ``servers``
+        self.lease_seconds = lease_seconds
+        self.store = UpdateStore(db, learner_settings, self.server, lease_seconds)
+        # Several servers on one database (PostgreSQL): they tell each other (``notices``).
+        self.shared = db is not None and not db.is_sqlite
+        self.order = UpdateQueue(self.store.processed, self._share_awaited if self.shared else None)
+        self.registry = ServerRegistry(db, self.server)
+        # The other live servers' participants at once and update slots, as their latest
+        # heartbeats said (read at this server's own heartbeats).
+        self._others = (0, 0)
+        self._listener: Listener | None = None
+        # The notices this server sends outside a transaction of its own, off the event loop.
+        self._announcing: ThreadPoolExecutor | None = None
         self.cluster = cluster  # updates on a Dask cluster (server.app.updates.cluster), not a pool
         self.runner: Runner = (
             ClusterUpdates(cluster, workers, self._resize)
@@ -176,8 +201,50 @@ class UpdateManager:
         return self.order.queued + self._reading
 
     def submit(self, session_ids: list[int]) -> None:
-        """Thread-safe: these sessions have new pending updates."""
+        """Thread-safe: these sessions have new pending updates (the other servers are told:
+        whichever has a slot free first claims them)."""
         self.order.submit(session_ids)
+        if self._announcing is not None and session_ids:
+            self._announcing.submit(self._quietly, self.store.announce_pending, list(session_ids))
+
+    def _share_awaited(self, session_id: int, target: int, since: float) -> None:
+        """On the loop: a wait began here; the other servers' queues put the session first."""
+        if self._announcing is not None:
+            self._announcing.submit(
+                self._quietly, self.store.await_update, session_id, target, since
+            )
+
+    @staticmethod
+    def _quietly(work: Callable[..., None], *args: Any) -> None:
+        try:
+            work(*args)
+        except Exception:  # a notice lost costs time only (the poll and the rescan)
+            log.exception("could not tell the other servers")
+
+    def _heard(self, notice: dict[str, Any]) -> None:
+        """On the loop: a notice from another server (``notices``)."""
+        try:
+            if "processed" in notice:
+                self.order.notify(int(notice["processed"]), int(notice["update"]))
+            elif "pending" in notice:
+                self.order.enqueue_many([int(i) for i in notice["pending"]])
+            elif "awaited" in notice:
+                self.order.mark_awaited(
+                    int(notice["awaited"]), int(notice["update"]), float(notice["since"])
+                )
+        except (KeyError, TypeError, ValueError):
+            log.warning("a notice not understood: %r", notice)
+
+    def load(self) -> ServerLoad:
+        """What this server's heartbeat says of it."""
+        capacity = self.capacity()
+        return ServerLoad(
+            update_slots=self.slots,
+            updates_running=self.order.updating,
+            updates_completed=self.completed,
+            updates_failed=self.failed,
+            participants_at_once=capacity.participants if capacity is not None else None,
+        )
 
     def expect(self, session_id: int, target: int) -> None:
         """Thread-safe: someone waits for the session's update ``target`` from now on."""
@@ -192,11 +259,20 @@ class UpdateManager:
     # -- lifecycle ---------------------------------------------------------------------------
     async def start(self) -> None:
         self.order.start()
+        if self.shared:
+            self.store.channel = await asyncio.to_thread(channel_of, self.db.engine)
+            self._listener = Listener(self.db.engine, self.store.channel, self.server, self._heard)
+            self._listener.start(asyncio.get_running_loop())
+            self._announcing = ThreadPoolExecutor(1, thread_name_prefix="update-notices-out")
+        else:  # the only server (a second one is refused at start): every claim is stale
+            await asyncio.to_thread(self.store.release_all, True)
         self._slots = asyncio.Semaphore(self._capacity * (1 + PREPARED_PER_SLOT))
         self._processes = ProcessGate(self._capacity, self.order.priority)
+        await asyncio.to_thread(self.registry.register, self.load())
         self.runner.start(self._spawn)
         self._spawn(self._dispatch())
         self._spawn(self._rescan_forever())
+        self._spawn(self._heartbeat_forever())
         if self.reference_jobs:
             self._spawn(self._measure_reference())
 
@@ -210,6 +286,34 @@ class UpdateManager:
                 pass
         self.order.stop()
         await self.runner.stop()
+        if self._listener is not None:
+            await asyncio.to_thread(self._listener.stop)
+        if self._announcing is not None:
+            self._announcing.shutdown(wait=True)
+            self._announcing = None
+        try:  # the claims go back at once (a restarted or another server takes them)
+            await asyncio.to_thread(self.store.release_all)
+            await asyncio.to_thread(self.registry.stopped)
+        except Exception:
+            log.exception("could not give back this server's claims on learner updates")
+
+    @property
+    def heartbeat_seconds(self) -> float:
+        """How often the server renews its leases and says its load: a third of the lease."""
+        return self.lease_seconds / 3
+
+    async def _heartbeat_forever(self) -> None:
+        while True:
+            await asyncio.sleep(self.heartbeat_seconds)
+            try:
+                await asyncio.to_thread(self.store.renew)
+                await asyncio.to_thread(self.registry.beat, self.load())
+                if self.shared:
+                    self._others = await asyncio.to_thread(
+                        others_load, self.db, self.server, self.lease_seconds
+                    )
+            except Exception:
+                log.exception("could not renew this server's claims on learner updates")
 
     def _spawn(self, coroutine: Any) -> asyncio.Task[Any]:
         task = asyncio.ensure_future(coroutine)
@@ -243,6 +347,10 @@ class UpdateManager:
                 return
             try:
                 outcome, deaths = await self._run(job)
+            except UpdatesUnavailable:
+                # Not the update's fault: it stays pending, for this server or another.
+                await asyncio.to_thread(self.store.release, job)
+                raise
             except WorkerDied as died:
                 log.error(
                     "an update process died during update %s of session %s",
@@ -252,8 +360,6 @@ class UpdateManager:
                 more = await asyncio.to_thread(
                     self.store.fail, job, "the update process died", True, died.deaths
                 )
-            except UpdatesUnavailable:
-                raise  # not the update's fault: it stays pending and is tried again
             except Exception:
                 error = traceback.format_exc()
                 log.error(
@@ -263,9 +369,18 @@ class UpdateManager:
                 self.failed += 1
             else:
                 policy = decode(outcome["greedy_policy"], make_environment(job.environment))
-                more = await asyncio.to_thread(self.store.commit, job, outcome, deaths)
-                self.policies.put(session_id, job.update_index, policy)
-                self.completed += 1
+                stored = await asyncio.to_thread(self.store.commit, job, outcome, deaths)
+                more = stored.more
+                if stored.stored:
+                    self.policies.put(session_id, job.update_index, policy)
+                    self.completed += 1
+                else:
+                    log.warning(
+                        "update %s of session %s was taken over by another server (this "
+                        "server's lease expired): its result here is not stored",
+                        job.update_index,
+                        session_id,
+                    )
             processed = await asyncio.to_thread(self.store.processed, session_id)
             self.order.notify(session_id, processed)
         except asyncio.CancelledError:
@@ -309,14 +424,22 @@ class UpdateManager:
         return outcome, deaths
 
     async def _rescan_forever(self) -> None:
+        """Pending updates nobody holds (left by a restart, or by a server that died, once its
+        lease expired), with who awaits them, every ``RESCAN_SECONDS`` or each lease."""
         while True:
             try:
                 pending = await asyncio.to_thread(self.store.pending_sessions)
             except Exception:
                 log.exception("could not look for pending learner updates")
                 pending = []
-            self.order.enqueue_many(pending)
-            await asyncio.sleep(RESCAN_SECONDS)
+            for session in pending:
+                if session.awaited_since is not None and session.awaited_update is not None:
+                    self.order.mark_awaited(
+                        session.session_id, session.awaited_update, session.awaited_since
+                    )
+                else:
+                    self.order.enqueue(session.session_id)
+            await asyncio.sleep(min(RESCAN_SECONDS, self.lease_seconds))
 
     # -- capacity ----------------------------------------------------------------------------
     def capacity(self) -> Capacity | None:
@@ -352,6 +475,21 @@ class UpdateManager:
             server_seconds=server,
         )
 
+    def deployment_capacity(self) -> Capacity | None:
+        """The capacity of the whole deployment: this server's with the other live servers'
+        participants and slots added (their heartbeats'); None before this server's own is
+        known. One server: ``capacity()``."""
+        own = self.capacity()
+        participants, slots = self._others
+        if own is None or not (participants or slots):
+            return own
+        return dataclasses.replace(
+            own,
+            participants=own.participants + participants,
+            slots=own.slots + slots,
+            measured_on=f"{own.measured_on}, with the deployment's other servers",
+        )
+
     @property
     def _timing_server_share(self) -> bool:
         """The server's own work per update is to be timed at start and is not yet."""
@@ -364,6 +502,12 @@ class UpdateManager:
         assert self._processes is not None and self.reference_jobs is not None
         while not self.ready:
             await asyncio.sleep(0.5)
+        async with one_server_at_a_time(self.db, "capacity"):
+            await self._time_reference()
+
+    async def _time_reference(self) -> None:
+        """The reference updates timed (``_measure_reference``), alone on the deployment."""
+        assert self._processes is not None and self.reference_jobs is not None
         total = updates = 0.0
         costs: list[UpdateCost] = []
         for index, session in enumerate(self.reference_jobs):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
@@ -151,10 +152,18 @@ class UpdateQueue:
     """Sessions with pending updates, in dispatch order: awaited sessions first, the one
     awaited longest first, then the others in the order their updates were queued."""
 
-    def __init__(self, processed_in_db: Callable[[int], int]) -> None:
+    def __init__(
+        self,
+        processed_in_db: Callable[[int], int],
+        share_awaited: Callable[[int, int, float], None] | None = None,
+    ) -> None:
         # The session's latest processed update as the database has it (a blocking call, run
         # in a thread): another server process may have done it.
         self.processed_in_db = processed_in_db
+        # Told (on the loop) of a wait that began here, with the session, the update awaited
+        # and since when (seconds since the epoch): the deployment's other servers put the
+        # session first too (``UpdateManager``; None: one server).
+        self.share_awaited = share_awaited
         self.loop: asyncio.AbstractEventLoop | None = None
         self._wake: asyncio.Event | None = None
         self._ready: dict[int, int] = {}  # session -> turn
@@ -205,6 +214,11 @@ class UpdateQueue:
         return len(self._ready)
 
     @property
+    def updating(self) -> int:
+        """Sessions being updated here."""
+        return len(self._running)
+
+    @property
     def backlog(self) -> int:
         """Sessions waiting for a slot or being updated."""
         return len(self._ready) + len(self._running)
@@ -249,12 +263,23 @@ class UpdateQueue:
             return
         self.loop.call_soon_threadsafe(self.mark_awaited, session_id, target)
 
-    def mark_awaited(self, session_id: int, target: int) -> None:
+    def mark_awaited(self, session_id: int, target: int, since_epoch: float | None = None) -> None:
+        """Someone waits for the session's update ``target``: from now, or, told by another
+        server, from ``since_epoch`` (seconds since the epoch)."""
         assert self.loop is not None
         if self._processed.get(session_id, -1) >= target:
             return
-        since, awaited = self._awaited.get(session_id, (self.loop.time(), target))
-        self._awaited[session_id] = (since, max(awaited, target))
+        now = self.loop.time()
+        since = now if since_epoch is None else now - max(0.0, time.time() - since_epoch)
+        known = self._awaited.get(session_id)
+        if known is None:
+            self._awaited[session_id] = (since, target)
+        else:
+            self._awaited[session_id] = (min(known[0], since), max(known[1], target))
+        if since_epoch is None and self.share_awaited is not None:
+            if known is None or target > known[1]:
+                first = self._awaited[session_id][0]
+                self.share_awaited(session_id, target, time.time() - (now - first))
         self.enqueue(session_id)
 
     async def wait(

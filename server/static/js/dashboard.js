@@ -565,9 +565,25 @@ async function loadQueue() {
     item("oldest-wait", "The oldest wait", seconds(q.oldest_wait_seconds), null, q.oldest_wait_seconds > 2));
 }
 
+/** The deployment's servers with their heartbeats and load (one row with one server). */
+async function loadServers() {
+  const servers = await getJSON(`${API}/servers`);
+  $("#servers tbody").replaceChildren(...servers.map((s) =>
+    h("tr", { "data-server": s.name },
+      h("td", {}, s.name, s.this_server ? h("span", { class: "muted" }, " (this page's)") : null),
+      h("td", { class: s.live ? "" : "alert" }, s.live ? "live" : (s.stopped_at ? "stopped" : "gone (no heartbeat)")),
+      h("td", {}, time(s.started_at)),
+      h("td", {}, time(s.heartbeat_at)),
+      h("td", {}, String(s.update_slots)),
+      h("td", {}, String(s.updates_running)),
+      h("td", {}, String(s.updates_completed)),
+      h("td", {}, String(s.updates_failed)),
+      h("td", {}, s.participants_at_once === null ? "not timed yet" : String(s.participants_at_once)))));
+}
+
 async function refresh() {
   try {
-    await Promise.all([loadParticipants(), loadSubmissions(), loadQueue()]);
+    await Promise.all([loadParticipants(), loadSubmissions(), loadQueue(), loadServers()]);
   } catch (error) {
     $("#refreshed").textContent = `could not update: ${error.message}`;
   }

@@ -4,7 +4,7 @@
 concurrency, a pause, a start), and the replica's hook secret, subscriptions, deliveries,
 participant groups and their members.
 
-Revision ID: 0016p
+Revision ID: 0016
 Revises: 0015
 """
 
@@ -15,7 +15,7 @@ from collections.abc import Sequence
 import sqlalchemy as sa
 from alembic import op
 
-revision: str = "0016p"
+revision: str = "0016"
 down_revision: str | None = "0015"
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None

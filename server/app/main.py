@@ -22,12 +22,14 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from server.app.config import StudyConfig, load_study_config
 from server.app.errors import ApiError, InvalidInput, TurnedAway
+from server.app.live.views import LiveViews
 from server.app.participants import statuses
 from server.app.rights.scrub import scrub
 from server.app.routers import (
     admin,
     arrivals,
     dashboard,
+    live,
     mturk,
     pages,
     participant,
@@ -203,6 +205,7 @@ def create_app(
         finally:
             sweeper.cancel()
             await asyncio.gather(sweeper, return_exceptions=True)
+            await app.state.live.stop()
             await manager.stop()
             if own_cluster:
                 assert updates_cluster is not None
@@ -219,6 +222,7 @@ def create_app(
         telemetry=None if settings.opentelemetry else TELEMETRY_OFF,
     )
     app.state.server = state
+    app.state.live = LiveViews(state)  # the dashboard's live views (``routers.live``)
     # The questionnaire's answers may be longer than any other request (free text).
     answers = {"/api/participant/questionnaire": study_config.questionnaire.largest_answers_bytes()}
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes, larger=answers)
@@ -249,8 +253,10 @@ def create_app(
         arrivals.router,
         participant.router,
         admin.router,
+        live.router,
         pages.router,
         dashboard.pages,
+        live.pages,
         mturk.router,
         prolific.router,
     ):

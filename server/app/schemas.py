@@ -371,6 +371,11 @@ class PublicStudy(BaseModel):
     questionnaire: dict[str, Any] | None = Field(
         None, description="The post-study questionnaire (intro and questions); None: none."
     )
+    device_check: dict[str, Any] | None = Field(
+        None,
+        description="The device check before consent (min_width, min_height, key_seconds); "
+        "None: none.",
+    )
 
 
 # -- admin ----------------------------------------------------------------------------------

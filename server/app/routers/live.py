@@ -4,7 +4,8 @@ snapshot now) and as server-sent events (``text/event-stream``: the latest snaps
 then each change), behind the admin token; and the dashboard's pages that show them.
 
 Every watcher of a view gets the same snapshot, computed once per interval however many watch
-(``live.broadcast``); the mirror only reads, so the participant can notice nothing.
+(``live.broadcast``); the mirror only reads, so the participant can notice nothing. The streams
+are left out of the OpenAPI schema: they never end, and are no JSON a client could check.
 """
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ async def read_funnel(state: StateDep) -> dict[str, Any]:
     return await state.run_db(read)
 
 
-@router.get("/funnel/stream", response_class=StreamingResponse)
+@router.get("/funnel/stream", response_class=StreamingResponse, include_in_schema=False)
 async def stream_funnel(request: Request) -> StreamingResponse:
     """The funnel as server-sent events (``event: funnel``), with the update manager's queue."""
     return stream(live_views(request).funnel, "funnel")
@@ -75,7 +76,7 @@ async def read_curves(state: StateDep) -> dict[str, Any]:
     return await state.run_db(read)
 
 
-@router.get("/curves/stream", response_class=StreamingResponse)
+@router.get("/curves/stream", response_class=StreamingResponse, include_in_schema=False)
 async def stream_curves(request: Request) -> StreamingResponse:
     """The curves as server-sent events (``event: curves``)."""
     return stream(live_views(request).curves, "curves")
@@ -95,7 +96,11 @@ async def read_mirror(participant_id: RowId, state: StateDep) -> dict[str, Any]:
     return await state.run_db(lambda: _exists(state, participant_id))
 
 
-@router.get("/participants/{participant_id}/mirror/stream", response_class=StreamingResponse)
+@router.get(
+    "/participants/{participant_id}/mirror/stream",
+    response_class=StreamingResponse,
+    include_in_schema=False,
+)
 async def stream_mirror(
     participant_id: RowId, request: Request, state: StateDep
 ) -> StreamingResponse:

@@ -9,6 +9,7 @@ updates run behind a gate, so that one can be held pending as long as the test n
 from __future__ import annotations
 
 from collections.abc import Iterator
+from pathlib import Path
 
 import httpx
 import pytest
@@ -134,7 +135,7 @@ def test_the_funnel_changes_as_participants_arrive_leave_and_wait(
 
 
 def test_the_mirror_follows_a_participant_and_the_curves_move(
-    page: Page, server: LiveServer
+    page: Page, server: LiveServer, screenshot_dir: Path
 ) -> None:
     watch = Watch(server.url).attach(page)
     participant, session = in_tutorial(server)
@@ -189,6 +190,7 @@ def test_the_mirror_follows_a_participant_and_the_curves_move(
     for width, height in SIZES:
         page.set_viewport_size({"width": width, "height": height})
         assert axe_violations(page) == [], (width, height)
+    page.screenshot(path=str(screenshot_dir / "live-mirror.png"))
 
     # On to the first study agent: the mirror follows.
     if participant.get(base)["teaching"]["mode"] == "agent":
@@ -215,4 +217,5 @@ def test_the_mirror_follows_a_participant_and_the_curves_move(
     for width, height in SIZES:
         page.set_viewport_size({"width": width, "height": height})
         assert axe_violations(page) == [], (width, height)
+    page.screenshot(path=str(screenshot_dir / "live-dashboard.png"), full_page=True)
     watch.check()

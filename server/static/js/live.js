@@ -36,7 +36,7 @@ function showFunnel(snapshot) {
   });
   $("#funnel").replaceChildren(...items);
   $("#funnel-notes").replaceChildren(
-    h("span", { "data-live": "total" }, `${snapshot.participants_total} participants in all; `),
+    h("span", { "data-live": "total" }, `${snapshot.participants_total} participant${snapshot.participants_total === 1 ? "" : "s"} in all; `),
     h("span", { "data-live": "idle" }, `${snapshot.idle} idle for more than 5 minutes; `),
     h("span", { "data-live": "failed" }, `${snapshot.failed_a_check} failed an attention check.`),
     snapshot.listed_of > snapshot.participants.length ? ` The ${snapshot.participants.length} there longest are listed.` : "");

@@ -45,7 +45,7 @@ STAGE_LABELS = {
 IN_STUDY = ("consented", "tutorial", "teaching", "questionnaire")
 # The statuses a participant can end in before consent, and after it (the server's
 # ``storage.vocabulary.ParticipantStatus``); "returned" and "abandoned" can be either.
-BEFORE_CONSENT = ("waiting", "declined", "arrived", "returned", "abandoned")
+BEFORE_CONSENT = ("waiting", "incompatible", "declined", "arrived", "returned", "abandoned")
 AFTER_CONSENT = ("returned", "abandoned", *IN_STUDY, *COMPLETED_STATUSES)
 
 # The columns of participant_flow.csv.
@@ -158,6 +158,14 @@ def participant_flow(
         "Waited for a place, never started",
         status.eq("waiting") & before,
         "status waiting",
+    )
+    add(
+        ARRIVED,
+        "left",
+        "incompatible",
+        "Turned away by the device check",
+        status.eq("incompatible") & before,
+        "status incompatible",
     )
     add(
         ARRIVED,

@@ -5,7 +5,8 @@ Each session's curve is a step function: at a count x it is the normalised retur
 session's latest evaluation made at a count of at most x (its last evaluation carries forward
 to the end of the axis; before its first evaluation it has no value and does not count).
 The curves are evaluated on the union of all counts at which any session of the environment
-was evaluated, so the means are exact, not binned.
+was evaluated, so the means are exact, not binned. The dashboard's live curves compute the same
+on the database (``server.app.live.curves``, where the two computations are).
 """
 
 from __future__ import annotations
@@ -18,37 +19,14 @@ import numpy as np
 
 from analysis.names import environment_display, learner_display, threshold_label
 from analysis.results import Analysis
+from server.app.live.curves import mean_and_standard_error as mean_and_standard_error
+from server.app.live.curves import step_values as step_values
 from server.names import LEARNER_REGISTRY
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 AXIS_NAMES = {"episodes": "Episodes", "actions": "Actions"}
-
-
-def step_values(counts: np.ndarray, returns: np.ndarray, grid: np.ndarray) -> np.ndarray:
-    """One session's normalised return at each grid count (NaN before its first evaluation).
-
-    ``counts`` are the session's cumulative counts in update order (non-decreasing); where
-    several updates share a count, the latest one holds."""
-    index = np.searchsorted(counts, grid, side="right") - 1
-    values = np.full(len(grid), np.nan)
-    valid = index >= 0
-    values[valid] = returns[index[valid]]
-    return values
-
-
-def mean_and_standard_error(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per column of a sessions x grid array with NaN for "no value": the mean, the standard
-    error of the mean (NaN with fewer than two values) and the number of values."""
-    present = ~np.isnan(values)
-    n = present.sum(axis=0)
-    filled = np.where(present, values, 0.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(n > 0, filled.sum(axis=0) / n, np.nan)
-        squares = np.where(present, (values - mean) ** 2, 0.0).sum(axis=0)
-        se = np.where(n > 1, np.sqrt(squares / (n - 1)) / np.sqrt(n), np.nan)
-    return mean, se, n
 
 
 def learning_curve_figure(analysis: Analysis, x: str) -> Figure:

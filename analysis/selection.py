@@ -32,6 +32,7 @@ UNFINISHED_REASONS: dict[str, str] = {
     ParticipantStatus.RETURNED: "returned the task",
     ParticipantStatus.ABANDONED: "timed out",
     ParticipantStatus.DECLINED: "declined consent",
+    ParticipantStatus.INCOMPATIBLE: "turned away by the device check",
     ParticipantStatus.ARRIVED: "still in the study",
     ParticipantStatus.CONSENTED: "still in the study",
     ParticipantStatus.TUTORIAL: "still in the study",

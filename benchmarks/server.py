@@ -8,6 +8,7 @@ acknowledged against events stored.
     python benchmarks/server.py --scheduler tcp://host:8786     # ... or on a running one
     python benchmarks/server.py --servers 3 --database-url postgresql+psycopg://...
                                                    # three servers behind nginx, one database
+    python benchmarks/server.py --dashboards 3                  # with three live dashboards open
 
 The server is ``bam-study serve`` in its own process (a fresh SQLite file in a temporary folder
 unless --database-url is given; a PostgreSQL database is migrated first), with the paper's study
@@ -84,6 +85,7 @@ PLANNER_LEARNERS = ("bam", "model-based")  # those of the paper's study
 WAIT_P95_SECONDS = 2.0
 MOVE_P95_SECONDS = 0.050
 DRAINED_WITHIN_SECONDS = 10.0
+MIRROR_P95_SECONDS = 1.0  # a participant's move on the dashboard's mirror (--dashboards)
 DRAIN_WATCH_SECONDS = 120.0  # how long the drain of the updates is followed after the stop
 
 
@@ -313,6 +315,111 @@ def drain_watch(db: Database, stopped: float) -> Callable[[], tuple[int, int, fl
     return result
 
 
+def sse_events(response: httpx.Response) -> Iterator[dict[str, object]]:
+    """The data of each server-sent event of a stream."""
+    data = None
+    for line in response.iter_lines():
+        if line.startswith("data:"):
+            data = line.removeprefix("data:").strip()
+        elif line == "" and data is not None:
+            yield json.loads(data)
+            data = None
+
+
+class Dashboards:
+    """``count`` dashboards open on the live views while the participants teach, as the live
+    page opens them: each follows the funnel and one participant's mirror (a participant who is
+    teaching, another once that one has finished). The mirror's delay: from a participant's
+    event committed (its time in the view) to the view that shows it received here."""
+
+    def __init__(self, url: str, token: str, count: int, stop: threading.Event) -> None:
+        self.url, self.token, self.count, self.stop = url, token, count, stop
+        self.delays: list[float] = []
+        self.funnel_events = 0
+        self.errors: list[str] = []
+        self.threads = [
+            threading.Thread(target=target, args=(i,), daemon=True)
+            for i in range(count)
+            for target in (self.follow_funnel, self.follow_mirror)
+        ]
+        self.lock = threading.Lock()
+        self.watched: set[int] = set()
+        self.clients: list[httpx.Client] = []
+
+    def client(self) -> httpx.Client:
+        client = httpx.Client(
+            base_url=self.url,
+            headers={"Authorization": f"Bearer {self.token}"},
+            timeout=httpx.Timeout(30.0, read=60.0),
+        )
+        with self.lock:
+            self.clients.append(client)
+        return client
+
+    def close(self) -> None:
+        """Close every stream (after the stop), so that the server stops with none open."""
+        with self.lock:
+            for client in self.clients:
+                client.close()
+
+    def start(self) -> None:
+        for thread in self.threads:
+            thread.start()
+
+    def follow_funnel(self, _: int) -> None:
+        try:
+            with (
+                self.client() as client,
+                client.stream("GET", "/api/admin/live/funnel/stream") as r,
+            ):
+                for _snapshot in sse_events(r):
+                    self.funnel_events += 1
+                    if self.stop.is_set():
+                        return
+        except Exception as error:
+            if not self.stop.is_set():
+                self.errors.append(f"funnel: {error!r}")
+
+    def someone_teaching(self, client: httpx.Client) -> int | None:
+        rows = client.get("/api/admin/live/funnel").json()["participants"]
+        with self.lock:
+            for row in rows:
+                if row["session_id"] is not None and row["participant_id"] not in self.watched:
+                    self.watched.add(row["participant_id"])
+                    return int(row["participant_id"])
+        return None
+
+    def follow_mirror(self, _: int) -> None:
+        try:
+            with self.client() as client:
+                while not self.stop.is_set():
+                    participant = self.someone_teaching(client)
+                    if participant is None:
+                        time.sleep(0.5)
+                        continue
+                    self.watch(client, participant)
+        except Exception as error:
+            if not self.stop.is_set():
+                self.errors.append(f"mirror: {error!r}")
+
+    def watch(self, client: httpx.Client, participant: int) -> None:
+        newest = None
+        path = f"/api/admin/live/participants/{participant}/mirror/stream"
+        with client.stream("GET", path) as response:
+            for view in sse_events(response):
+                received = datetime.now(UTC)
+                session = view.get("session")
+                if self.stop.is_set() or not isinstance(session, dict):
+                    return  # the run is over, or the participant is no longer teaching
+                recent = session["recent"]
+                if not recent:
+                    continue
+                at = datetime.fromisoformat(recent[0]["at"])
+                if newest is not None and at > newest:
+                    self.delays.append((received - at).total_seconds())
+                newest = at if newest is None else max(newest, at)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--participants", type=int, default=200)
@@ -363,6 +470,13 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         default=1,
         help="serve processes on the one database, behind nginx (PostgreSQL only; 1)",
+    )
+    parser.add_argument(
+        "--dashboards",
+        type=int,
+        default=0,
+        help="live dashboards open meanwhile: each follows the funnel and one participant's "
+        "mirror (the mirror's delay is measured)",
     )
     args = parser.parse_args(argv)
     cluster_workers = None
@@ -477,11 +591,14 @@ def main(argv: list[str] | None = None) -> int:
                 total[group] = sum(each[group] for each in groups)
             return total
 
+        dashboards = Dashboards(server.url, admin_token, args.dashboards, stop)
+        dashboards.start()
         cpu_before = cpu()
         started, started_at = time.perf_counter(), datetime.now(UTC)
         thread.start()
         thread.join(timeout=args.seconds)
         stop.set()
+        dashboards.close()
         stopped, stopped_at = time.perf_counter(), datetime.now(UTC)
         cpu_after = cpu()
         # From the latest updates and, where they share its cores, the server's CPU time (with
@@ -573,6 +690,15 @@ def main(argv: list[str] | None = None) -> int:
     print(core_use_line(cpu_before, cpu_after, stopped - started))
     server_cpu = cpu_after["server"] - cpu_before["server"]
     print(f"server CPU per request     {1000 * server_cpu / max(1, requests):.2f} ms")
+    if args.dashboards:
+        print(
+            f"dashboards open            {args.dashboards}: {dashboards.funnel_events} funnel "
+            f"snapshots received, {len(dashboards.watched)} participants watched"
+        )
+        if dashboards.delays:
+            print(latency_row("a move to the mirror", dashboards.delays, 26))
+        for problem in dashboards.errors[:5]:
+            print(f"  dashboard: {problem}", file=sys.stderr)
     print(f"participants with errors   {len(errors)}")
     for participant in errors[:5]:
         print(f"  participant {participant.index}: {participant.error}", file=sys.stderr)
@@ -587,6 +713,17 @@ def main(argv: list[str] | None = None) -> int:
             percentile(moves, 95) <= MOVE_P95_SECONDS,
         ),
         ("nothing lost", run.acknowledged == stored and not errors),
+        *(
+            [
+                (
+                    f"a move reaches the mirror: p95 <= {MIRROR_P95_SECONDS:.0f} s",
+                    bool(dashboards.delays)
+                    and percentile(dashboards.delays, 95) <= MIRROR_P95_SECONDS,
+                )
+            ]
+            if args.dashboards
+            else []
+        ),
         (
             f"no update pending {DRAINED_WITHIN_SECONDS:.0f} s after the stop",
             after_mark == 0,

@@ -311,6 +311,28 @@ class AttentionChecks(_Strict):
         return [p for p in range(agents - 1) if (p + 1) % self.every == 0]
 
 
+class DeviceCheck(_Strict):
+    """The check of the participant's device before consent: one arrow key pressed (the
+    teaching page is driven by the arrow keys), a window large enough for the teaching page,
+    and a browser with what the page uses. A participant whose device fails is turned away
+    (status incompatible), on Prolific with the study's INCOMPATIBLE_DEVICE code."""
+
+    enabled: bool = Field(False, description="Check the device before the consent page.")
+    min_width: int = Field(
+        1000, ge=320, le=4000, description="The narrowest window taken, in CSS pixels."
+    )
+    min_height: int = Field(
+        600, ge=320, le=4000, description="The lowest window taken, in CSS pixels."
+    )
+    key_seconds: float = Field(
+        60,
+        ge=1,
+        le=600,
+        description="How long the page waits for an arrow key press before it turns the "
+        "participant away (a device without arrow keys: a phone, a tablet).",
+    )
+
+
 class Completion(_Strict):
     """How a participant finishes: MTurk's externalSubmit, Prolific's redirect, or a code page."""
 
@@ -332,6 +354,13 @@ class Completion(_Strict):
         "consent is sent to prolific_url with it, and one who withdraws is given a button "
         "there, so that Prolific asks them to return the submission (without it, the page asks "
         "them to return it themselves).",
+    )
+    prolific_incompatible_device_code: str | None = Field(
+        None,
+        pattern=r"^[A-Za-z0-9_\-]{1,64}$",
+        description="The study's Prolific INCOMPATIBLE_DEVICE completion code: a participant "
+        "whose device fails the device check is sent to prolific_url with it, so that Prolific "
+        "asks them to return the submission (without it, the page asks them to return it).",
     )
     prolific_url: str = Field(
         "https://app.prolific.com/submissions/complete?cc={code}",
@@ -741,6 +770,11 @@ class StudyConfig(_Strict):
         description="Instructional attention checks between agents (the table below); none "
         "unless enabled.",
     )
+    device_check: DeviceCheck = Field(
+        DeviceCheck(),
+        description="The check of the participant's device before consent (the table below); "
+        "none unless enabled.",
+    )
     prolific: ProlificStudy | None = Field(
         None,
         description="The study on Prolific, for `bam-study prolific create` (the table below).",
@@ -901,6 +935,9 @@ class StudyConfig(_Strict):
             "environments": self.taught_environments(),
             "questionnaire": self.questionnaire.model_dump(mode="json")
             if self.questionnaire.questions
+            else None,
+            "device_check": self.device_check.model_dump(mode="json")
+            if self.device_check.enabled
             else None,
         }
 

@@ -22,12 +22,14 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from server.app.config import StudyConfig, load_study_config
 from server.app.errors import ApiError, InvalidInput, TurnedAway
+from server.app.live.views import LiveViews
 from server.app.participants import statuses
 from server.app.rights.scrub import scrub
 from server.app.routers import (
     admin,
     arrivals,
     dashboard,
+    live,
     mturk,
     pages,
     participant,
@@ -207,6 +209,7 @@ def create_app(
             sweeper.cancel()
             follower.cancel()
             await asyncio.gather(sweeper, follower, return_exceptions=True)
+            await app.state.live.stop()
             await manager.stop()
             if own_cluster:
                 assert updates_cluster is not None
@@ -223,6 +226,7 @@ def create_app(
         telemetry=None if settings.opentelemetry else TELEMETRY_OFF,
     )
     app.state.server = state
+    app.state.live = LiveViews(state)  # the dashboard's live views (``routers.live``)
     # The questionnaire's answers may be longer than any other request (free text).
     answers = {"/api/participant/questionnaire": study_config.questionnaire.largest_answers_bytes()}
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes, larger=answers)
@@ -253,8 +257,10 @@ def create_app(
         arrivals.router,
         participant.router,
         admin.router,
+        live.router,
         pages.router,
         dashboard.pages,
+        live.pages,
         mturk.router,
         prolific.router,
     ):

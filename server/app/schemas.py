@@ -86,6 +86,20 @@ class ConsentRequest(SeqRequest):
     agree: bool
 
 
+# What a browser may lack of what the study's pages use (the device check's report).
+BrowserFeature = Literal["fetch", "dialog", "svg"]
+
+
+class DeviceCheckRequest(SeqRequest):
+    """What the page measured before consent: whether an arrow key was pressed in the time
+    given, the window's size in CSS pixels, and what of the pages' needs the browser lacks."""
+
+    arrow_key: bool = Field(description="An arrow key was pressed (false: none in the time).")
+    width: int = Field(ge=0, le=100_000, description="window.innerWidth")
+    height: int = Field(ge=0, le=100_000, description="window.innerHeight")
+    missing: list[BrowserFeature] = Field(default_factory=list, max_length=3)
+
+
 class TaskRequest(SeqRequest):
     task: int = Field(ge=0, le=1000, description="Index of the task in the environment.")
 
@@ -356,6 +370,11 @@ class PublicStudy(BaseModel):
     )
     questionnaire: dict[str, Any] | None = Field(
         None, description="The post-study questionnaire (intro and questions); None: none."
+    )
+    device_check: dict[str, Any] | None = Field(
+        None,
+        description="The device check before consent (min_width, min_height, key_seconds); "
+        "None: none.",
     )
 
 

@@ -96,7 +96,8 @@ PARTICIPANTS = (
     Column("hit_id", "MTurk hitId or Prolific STUDY_ID."),
     Column(
         "status",
-        "Latest status: arrived, consented, declined, tutorial, teaching, "
+        "Latest status: arrived, incompatible (turned away by the device check before "
+        "consent; why: status_changes.csv's note), consented, declined, tutorial, teaching, "
         "questionnaire (answering the post-study questionnaire), completed, submitted, returned "
         "(MTurk HIT returned, or Prolific submission RETURNED or TIMED-OUT: released) or "
         "abandoned (idle too long).",
@@ -257,12 +258,14 @@ EVENTS = (
     Column("participant_id", "The participant.", INT),
     Column(
         "session_id",
-        "The learning session (empty for consent, start, tutorial, submission and attention_move).",
+        "The learning session (empty for device_check, consent, start, tutorial, submission and "
+        "attention_move).",
         INT,
     ),
     Column("seq", "The participant's sequence number of the request.", INT),
     Column(
         "kind",
+        "device_check (the device check passed or failed before consent), "
         "consent, start, tutorial (a tutorial step reached), submission, open (teaching "
         "begun after the agent's introduction page), task, mode, move, agent_step, feedback, "
         "reset, end_episode, finish, or attention_move (a move in an attention check: state "

@@ -27,8 +27,13 @@ from server.app.storage.records import Record, add, load, load_all
 from server.app.storage.tables import ERASURES, PARTICIPANTS
 from server.app.storage.vocabulary import IN_PROGRESS, ParticipantStatus
 
-# A worker's participations that no longer count: the task returned, or consent declined.
-NOT_COUNTED = (ParticipantStatus.RETURNED, ParticipantStatus.DECLINED)
+# A worker's participations that no longer count: the task returned, consent declined, or the
+# device turned away by the device check (the worker may come back on another device).
+NOT_COUNTED = (
+    ParticipantStatus.RETURNED,
+    ParticipantStatus.DECLINED,
+    ParticipantStatus.INCOMPATIBLE,
+)
 # Participations going on (an abandoned participant may come back).
 GOING_ON = (*IN_PROGRESS, ParticipantStatus.ABANDONED)
 

@@ -117,13 +117,14 @@ def submission(transaction: Transaction) -> None:
 def completion(participant: Any, study: StudyConfig) -> Completion | None:
     """The completion code and how to hand it in (the platform says: ``Platform.handing``); None
     until the completion is committed. A participant who declined consent goes back with the
-    platform's no-consent code, if it has one (Prolific's NO_CONSENT)."""
+    platform's no-consent code, if it has one (Prolific's NO_CONSENT); one turned away by the
+    device check, with its code for that (Prolific's INCOMPATIBLE_DEVICE)."""
     platform = registry.platform(participant.platform)
-    code = (
-        platform.no_consent_code(study)
-        if participant.status == ParticipantStatus.DECLINED
-        else None
-    )
+    code = None
+    if participant.status == ParticipantStatus.DECLINED:
+        code = platform.no_consent_code(study)
+    elif participant.status == ParticipantStatus.INCOMPATIBLE:
+        code = platform.incompatible_device_code(study)
     if code is None and participant.status in FINISHED_STATUSES:
         code = participant.completion_code
     if code is None:

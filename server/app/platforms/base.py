@@ -115,6 +115,10 @@ class Platform(Protocol):
         """The code a participant who declined consent goes back with (None: no code)."""
         ...
 
+    def incompatible_device_code(self, study: StudyConfig) -> str | None:
+        """The code a participant turned away by the device check goes back with (None)."""
+        ...
+
     def withdrawal(self, participant: Any, study: StudyConfig) -> Leaving: ...
 
     def review_backend(
@@ -188,6 +192,9 @@ class BasePlatform:
         return Handing()
 
     def no_consent_code(self, study: StudyConfig) -> str | None:
+        return None
+
+    def incompatible_device_code(self, study: StudyConfig) -> str | None:
         return None
 
     def withdrawal(self, participant: Any, study: StudyConfig) -> Leaving:

@@ -50,6 +50,11 @@ STUDY_STATUSES = (
 # The statuses that are a decision, as ours.
 PROLIFIC_DECISIONS = {"APPROVED": ReviewDecision.APPROVED, "REJECTED": ReviewDecision.REJECTED}
 RETRIED = frozenset({429, 500, 502, 503, 504})
+# Shown by Prolific to a participant whose device failed our check (INCOMPATIBLE_DEVICE).
+INCOMPATIBLE_DEVICE_REASON = (
+    "Your device or window could not run the study (it needs arrow keys and a larger window): "
+    "please return the study."
+)
 # Shown by Prolific to a participant who declined consent or withdrew (our NO_CONSENT code).
 NO_CONSENT_REASON = (
     "You did not consent to take part, or you withdrew your consent: please return the study."
@@ -527,10 +532,10 @@ def draft_study(
 ) -> dict[str, Any]:
     """The body of ``POST /studies/`` for the study file's ``[prolific]`` table: the study link
     of ``base_url`` (default: the public address) with Prolific's placeholders, the study's
-    completion codes (COMPLETED for manual review; NO_CONSENT asking for a return), the
-    reward in cents, desktop only (the teaching page needs arrow keys), and at most
-    ``max_concurrent`` participants at once (what the server can serve). ``groups``: the id of
-    each participant group the table names (``family_group``, ``follow_up_group``,
+    completion codes (COMPLETED for manual review; NO_CONSENT and INCOMPATIBLE_DEVICE asking
+    for a return), the reward in cents, desktop only (the teaching page needs arrow keys), and
+    at most ``max_concurrent`` participants at once (what the server can serve). ``groups``:
+    the id of each participant group the table names (``family_group``, ``follow_up_group``,
     ``only_group``), by name: the family's is blocked and joined, the follow-up's joined, the
     only group's allowed."""
     prolific = study.prolific
@@ -559,6 +564,17 @@ def draft_study(
                 "code_type": "NO_CONSENT",
                 "actor": "participant",
                 "actions": [{"action": "REQUEST_RETURN", "return_reason": NO_CONSENT_REASON}],
+            }
+        )
+    if completion.prolific_incompatible_device_code is not None:
+        codes.append(
+            {
+                "code": completion.prolific_incompatible_device_code,
+                "code_type": "INCOMPATIBLE_DEVICE",
+                "actor": "participant",
+                "actions": [
+                    {"action": "REQUEST_RETURN", "return_reason": INCOMPATIBLE_DEVICE_REASON}
+                ],
             }
         )
     fields: dict[str, Any] = {

@@ -98,6 +98,9 @@ class Prolific(BasePlatform):
     def no_consent_code(self, study: StudyConfig) -> str | None:
         return study.completion.prolific_no_consent_code
 
+    def incompatible_device_code(self, study: StudyConfig) -> str | None:
+        return study.completion.prolific_incompatible_device_code
+
     def withdrawal(self, participant: Any, study: StudyConfig) -> Leaving:
         code = self.no_consent_code(study)
         if code is None:

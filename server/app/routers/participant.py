@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import asdict
 
-from fastapi import APIRouter, Response
+from fastapi import APIRouter, Request, Response
 
 from server.app.deps import StateDep, TokenDep
 from server.app.errors import ApiError
@@ -13,6 +13,7 @@ from server.app.participants import (
     assignment,
     attention,
     completion,
+    device,
     places,
     tokens,
     transaction,
@@ -26,6 +27,7 @@ from server.app.schemas import (
     AttentionOutcome,
     Completion,
     ConsentRequest,
+    DeviceCheckRequest,
     Outcome,
     ParticipantState,
     PlaceView,
@@ -89,6 +91,22 @@ async def ask_for_place(state: StateDep, token: TokenDep) -> PlaceView:
         return PlaceView(**asdict(place), ask_seconds=places.ASK_SECONDS)
 
     return await state.run_db(ask)
+
+
+@router.post("/device-check", response_model=RequestOutcome)
+async def device_check(
+    body: DeviceCheckRequest, request: Request, state: StateDep, token: TokenDep
+) -> Response:
+    """Before consent (a study with ``[device_check]``): what the page measured. A device that
+    cannot take part turns the participant away (status incompatible; on Prolific the answer's
+    completion has the study's INCOMPATIBLE_DEVICE code); one that can stays at consent."""
+    browser = device.browser_name(request.headers.get("user-agent"))
+
+    def handle(transaction: Transaction) -> RequestOutcome:
+        device.check_device(transaction, body, browser)
+        return participant_response(transaction)
+
+    return await perform(state, token, "device_check", body, handle)
 
 
 @router.post("/consent", response_model=RequestOutcome)

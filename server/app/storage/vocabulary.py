@@ -28,7 +28,8 @@ class ParticipantStatus(Vocabulary):
 
     # In the order a participant can reach them (the export's columns follow it).
     WAITING = "waiting"  # arrived while the study was full, for a place (``places``)
-    ARRIVED = "arrived"  # has the consent page
+    ARRIVED = "arrived"  # has the consent page (after the device check, in a study with one)
+    INCOMPATIBLE = "incompatible"  # turned away by the device check before consent: flow ends
     CONSENTED = "consented"  # domain and learning sessions assigned
     DECLINED = "declined"  # did not consent: the flow ends
     TUTORIAL = "tutorial"  # teaching the tutorial's agent

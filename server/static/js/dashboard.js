@@ -118,6 +118,7 @@ async function showParticipant(id, { reveal = false } = {}) {
         h("p", {}, h("strong", {}, "Worker "), h("span", { class: "mono" }, p.worker_id ?? "(none)")),
         h("p", {}, h("strong", {}, "Assignment "), h("span", { class: "mono" }, p.assignment_id ?? "(none)")),
         h("p", {}, h("strong", {}, "Domain "), p.domain ?? "(not yet)", h("strong", {}, "  Time "), `${p.minutes.toFixed(1)} min`),
+        h("p", {}, h("a", { href: `/dashboard/live/participants/${p.participant_id}`, "data-action": "watch-live" }, "Watch this participant live (read only)")),
         exclusionForm(p),
         reviewSection(p),
         qualitySection(p),

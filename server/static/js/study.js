@@ -5,6 +5,7 @@
 
 import { ApiError, Sequencer, getJSON, postJSON, useParticipantToken } from "./api.js";
 import { AttentionCheck } from "./attention.js";
+import { deviceCheck } from "./device.js";
 import { environmentTitle, h, paragraphs } from "./dom.js";
 import { robotIcon, svg } from "./grid.js";
 import { Teacher } from "./teach.js";
@@ -22,6 +23,8 @@ let seq = null;
 let participant = null;
 let teacher = null;
 let check = null;
+let deviceChecked = false; // this load passed the device check (a reload checks again)
+let deviceProblems = null; // what this load's device check found, when it turned the participant away
 
 const offline = h("div", { class: "offline", role: "alert", hidden: true },
   h("span", { class: "spinner", "aria-hidden": "true" }), " The connection to the study server was lost; retrying…");
@@ -127,7 +130,10 @@ async function refresh() {
 async function route() {
   switch (participant.status) {
     case "arrived":
+      if (study.device_check && !deviceChecked) return deviceCheckPage();
       return consentPage();
+    case "incompatible":
+      return incompatiblePage();
     case "declined":
       return declinedPage();
     case "consented":
@@ -161,6 +167,50 @@ async function post(url, body = {}) {
     failure(error);
     return null;
   }
+}
+
+// -- the device check, before consent --------------------------------------------------------
+async function deviceCheckPage() {
+  const needs = study.device_check;
+  const page = sheet();
+  const report = deviceCheck(page, needs);
+  show(page);
+  page.classList.add("device-sheet");
+  const measured = await report;
+  if (await post("/api/participant/device-check", measured)) {
+    deviceChecked = true;
+    deviceProblems = [];
+    if (!measured.arrow_key) deviceProblems.push("no arrow key was pressed");
+    if (measured.width < needs.min_width || measured.height < needs.min_height) {
+      deviceProblems.push(`your window was ${measured.width} \u00d7 ${measured.height} pixels, smaller than the ${needs.min_width} \u00d7 ${needs.min_height} the study needs`);
+    }
+    if (measured.missing.length) deviceProblems.push(`your browser lacks what the study uses (${measured.missing.join(", ")})`);
+    await refresh();
+    route();
+  }
+}
+
+function incompatiblePage() {
+  const back = participant.completion && participant.completion.redirect_url;
+  const why = deviceProblems && deviceProblems.length
+    ? h("p", { "data-device": "problems" }, `The check found that ${deviceProblems.join("; ")}.`)
+    : null;
+  show(sheet(
+    h("h1", {}, "Sorry: this study cannot run on your device"),
+    h("p", { class: "lead" }, "The study is done with the arrow keys of a keyboard, in a large enough browser window, and your device or window did not pass the check."),
+    why,
+    participant.platform === "mturk"
+      ? h("p", {}, "Please return the HIT so that someone else can take it; you may accept it again from a computer with a keyboard.")
+      : null,
+    back ? [h("p", {}, "You are being sent back to Prolific, which will ask you to return the study. If nothing happens, press the button."),
+      h("a", { class: "btn primary big", href: back, target: "_top", "data-action": "return-prolific" }, "Return to Prolific")]
+      : participant.platform === "prolific"
+        ? h("p", {}, "Please return the study on Prolific, so that you are not counted as having taken part.")
+        : participant.platform === "lab"
+          ? h("p", {}, "Please tell the experimenter.")
+          : null,
+    h("p", {}, "Nothing more will be recorded. You may close this page.")));
+  if (back) window.open(back, "_top");
 }
 
 // -- consent and instructions ---------------------------------------------------------------

@@ -25,6 +25,7 @@ STORED = {
     v.ParticipantStatus: [
         "waiting",
         "arrived",
+        "incompatible",
         "consented",
         "declined",
         "tutorial",

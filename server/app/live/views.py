@@ -1,0 +1,84 @@
+"""The live views of one server: the funnel and the curves, each one ``Broadcast`` for every
+dashboard that watches, and one mirror per participant watched (however many watch them)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from server.app.live import curves, funnel, mirror
+from server.app.live.broadcast import Broadcast
+from server.app.state import ServerState
+from server.app.storage.models import utcnow
+
+FUNNEL_SECONDS = 1.0  # how often the funnel and the curves are computed while watched
+CURVES_SECONDS = 2.0
+# How often a watched participant's view is asked whether it changed: a move reaches the mirror
+# within this and the time to read it.
+MIRROR_SECONDS = 0.25
+
+
+class LiveViews:
+    def __init__(self, state: ServerState) -> None:
+        self.state = state
+        self.funnel = Broadcast(self._funnel, FUNNEL_SECONDS)
+        self.curves = Broadcast(self._curves, CURVES_SECONDS)
+        self.mirrors: dict[int, Broadcast] = {}
+
+    async def _funnel(self) -> dict[str, Any]:
+        state = self.state
+        queue = state.updates.queue() if state.updates is not None else None
+
+        def read() -> dict[str, Any]:
+            with state.db.connect() as c:
+                snapshot = funnel.funnel(c, utcnow())
+            snapshot["queue"] = (
+                None
+                if queue is None
+                else {
+                    "sessions_updating": queue.sessions_updating,
+                    "sessions_awaited": queue.sessions_awaited,
+                    "oldest_wait_seconds": round(queue.oldest_wait_seconds, 1),
+                    "updates_done": queue.completed,
+                }
+            )
+            return snapshot
+
+        return await state.run_db(read)
+
+    async def _curves(self) -> dict[str, Any]:
+        def read() -> dict[str, Any]:
+            with self.state.db.connect() as c:
+                return curves.live_curves(c)
+
+        return await self.state.run_db(read)
+
+    def mirror(self, participant_id: int) -> Broadcast:
+        """The participant's mirror, shared by everyone who watches them."""
+        if participant_id not in self.mirrors:
+            state = self.state
+
+            async def changed() -> Any:
+                def read() -> Any:
+                    with state.db.connect() as c:
+                        return mirror.fingerprint(c, participant_id)
+
+                return await state.run_db(read)
+
+            async def compute() -> dict[str, Any] | None:
+                def read() -> dict[str, Any] | None:
+                    with state.db.connect() as c:
+                        return mirror.mirror_view(c, state.study, participant_id)
+
+                return await state.run_db(read)
+
+            self.mirrors[participant_id] = Broadcast(compute, MIRROR_SECONDS, changed)
+        return self.mirrors[participant_id]
+
+    def forget_unwatched(self) -> None:
+        for participant_id, broadcast in list(self.mirrors.items()):
+            if broadcast.watchers == 0 and not broadcast.running:
+                del self.mirrors[participant_id]
+
+    async def stop(self) -> None:
+        for broadcast in (self.funnel, self.curves, *self.mirrors.values()):
+            await broadcast.stop()

@@ -151,7 +151,7 @@ class Settings(BaseSettings):
         None,
         description="The Prolific workspace's webhook signing secret, as POST /hooks/secrets/ "
         "gives it (one per workspace; a new one replaces the old), not the X-Hook-Secret that "
-        "confirms a subscription. Not needed with `bam-study prolific hooks`, which makes the "
+        "confirms a subscription. Not needed with bam-study prolific hooks, which makes the "
         "secret and stores it in the database: /prolific/webhook accepts events signed with "
         "this, with a stored one, or with the server's Prolific replica's own.",
     )

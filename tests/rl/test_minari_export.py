@@ -294,9 +294,8 @@ def test_an_unknown_format_is_refused_and_nothing_is_written(
     with pytest.raises(SystemExit) as stopped:
         main(["export", "--database-url", "sqlite:///x.db", "--out", str(out), "--format", "rlds"])
     assert stopped.value.code == 2
-    assert "argument --format: invalid choice: 'rlds' (choose from csv, minari)" in (
-        capsys.readouterr().err.replace("'csv', 'minari'", "csv, minari")
-    )
+    error = capsys.readouterr().err.replace("'", "")
+    assert "argument --format: invalid choice: rlds (choose from csv, minari, " in error
     assert list(tmp_path.iterdir()) == []
     flag = "--include-excluded"
     assert main(["export", "--database-url", "sqlite:///x.db", "--out", str(out), flag]) == 2

@@ -31,13 +31,12 @@ from server.app.storage.replica_models import ProlificReplicaMessage, ProlificRe
 from server.app.updates.queue import QueueState
 from server.commands.main import main
 from tests.app.platforms.test_prolific import FailingPay
-from tests.app.platforms.test_prolific_rehearsal import Person
+from tests.app.platforms.test_prolific_rehearsal import Person, prolific_study
 from tests.support.server import (
     ADMIN_TOKEN,
     demonstrate_each_task,
     live,
     make_settings,
-    study_config,
     wait_until,
 )
 
@@ -48,20 +47,7 @@ LOADED = QueueState(3, 1, 3, 12.0, 1, 0, 0)  # three participants wait 12 s for 
 
 @pytest.fixture
 def study() -> StudyConfig:
-    return study_config(
-        learners=["cloning"],
-        domains=[
-            {"name": "navigation", "environments": ["wall"]},
-            {"name": "farming", "environments": ["two-fields"]},
-            {"name": "gravity", "environments": ["flip"]},
-        ],
-        tutorial={"enabled": False},
-        questionnaire={"questions": []},
-        completion={
-            "mode": "prolific",
-            "prolific_code": "C1A2B3C4",
-            "prolific_no_consent_code": "NOCONSNT",
-        },
+    return prolific_study(
         max_active_participants=4,
         prolific={
             "name": "Teaching robots",

@@ -53,9 +53,9 @@ DOMAINS = ("navigation", "farming", "gravity")
 PLACES = 9
 
 
-@pytest.fixture
-def study() -> StudyConfig:
-    """Three domains of one environment and one agent each, no tutorial, on Prolific."""
+def prolific_study(**extra: Any) -> StudyConfig:
+    """Three domains of one environment and one agent each, no tutorial, on Prolific; ``extra``:
+    more of the study file's keys."""
     return study_config(
         learners=["cloning"],
         domains=[
@@ -70,7 +70,13 @@ def study() -> StudyConfig:
             "prolific_code": "C1A2B3C4",
             "prolific_no_consent_code": "NOCONSNT",
         },
+        **extra,
     )
+
+
+@pytest.fixture
+def study() -> StudyConfig:
+    return prolific_study()
 
 
 @pytest.fixture

@@ -2,8 +2,8 @@
 tests/support/server.py, for every test folder: tests/app mirrors server/app room by room, and
 tests/commands, tests/browser and tests/analysis drive the same server."""
 
+import os
 import sys
-import time
 from collections.abc import Iterator
 
 import pytest
@@ -36,11 +36,13 @@ def pytest_configure(config: pytest.Config) -> None:
 
     if kernels_cached():
         return
-    from server.app.updates.compiling import one_warm_up_at_a_time
-    from server.app.updates.warmup import warm_up
+    from server.app.updates.compiling import warm_up_in_processes
 
-    print(f"compiling the learners' kernels before the tests ({COMPILE_TIME})", file=sys.stderr)
-    started = time.monotonic()
-    with one_warm_up_at_a_time():
-        warm_up()
-    print(f"compiled in {time.monotonic() - started:.0f} s", file=sys.stderr)
+    processes = min(2, os.cpu_count() or 1)
+    print(
+        f"compiling the learners' kernels before the tests ({COMPILE_TIME}, shared by "
+        f"{processes} processes)",
+        file=sys.stderr,
+    )
+    seconds = warm_up_in_processes(processes)
+    print(f"compiled in {seconds:.0f} s", file=sys.stderr)

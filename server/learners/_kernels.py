@@ -1335,7 +1335,9 @@ def cost_steps_tasks(
     and agent steps' log-likelihood (``demo_rows[demo_start[row]:demo_start[row + 1]]`` and
     the like, in the data's order) and dL/dQ, and the reverse pass's dL/drewards summed to
     its cells; every task adds its costs' prior. Tasks are independent: any split of them
-    over threads computes the same bits. At the last step's start each task's costs go to
+    over threads computes the same bits. Called once an update, it is split over Python
+    threads (it holds no GIL), not by a parallel version of its own, which only took as long
+    again to compile (about 20 s of a core). At the last step's start each task's costs go to
     ``before`` and its records' log-likelihoods to ``demo_values`` and ``step_values`` (at
     their places in the data), for the objective; an error stops the task with its code in
     ``codes[task]`` (the likelihood's, ``GRADIENT_NOT_FINITE``, ``LIKELIHOOD_NOT_FINITE``)."""
@@ -1442,15 +1444,6 @@ def cost_steps_tasks(
             ):  # fmt: skip
                 codes[task] = GRADIENT_NOT_FINITE
                 break
-
-
-@njit(cache=True, parallel=True, nogil=True)
-def cost_steps_chunks(*arguments):  # type: ignore[no-untyped-def]
-    """``cost_steps_tasks`` on the task ranges ``firsts[c] .. lasts[c] - 1``, in parallel:
-    its arguments, then ``firsts`` and ``lasts`` in place of its ``first`` and ``last``."""
-    firsts, lasts = arguments[-2], arguments[-1]
-    for c in prange(firsts.shape[0]):
-        cost_steps_tasks(*arguments[:-2], firsts[c], lasts[c])  # type: ignore[call-arg]
 
 
 # -- a learner's steps on theta and its dynamics steps, compiled whole -----------------------------

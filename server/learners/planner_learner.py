@@ -558,7 +558,7 @@ class PlannerLearner(Learner):
         planning.run_pass(  # by the module, as the passes' are: a benchmark counts them there
             task_chunks(len(env.tasks)),
             _kernels.cost_steps_tasks,
-            _kernels.cost_steps_chunks,
+            None,  # on Python threads: one call an update (cost_steps_tasks' docstring)
             (
                 *operator.rows_in(dtype),
                 *(NO_INCOMING_32 if scatter else operator.incoming_in(dtype)),

@@ -140,13 +140,15 @@ os.register_at_fork(after_in_child=_forked)
 def run_pass(
     chunks: Sequence[tuple[int, int]],
     kernel: Callable[..., None],
-    kernel_chunks: Callable[..., None],
+    kernel_chunks: Callable[..., None] | None,
     arguments: tuple[Any, ...],
 ) -> None:
     """``kernel(*arguments, first, last)`` for every chunk of a pass: all of them in one call
     of ``kernel_chunks(*arguments, firsts, lasts)`` on OpenMP threads, or chunk by chunk on
-    Python threads (``run_chunks``); one chunk runs here."""
-    if len(chunks) > 1 and compiled_threads():
+    Python threads (``run_chunks``); one chunk runs here. Without ``kernel_chunks``, always on
+    Python threads: for a kernel called once an update, whose thread hand-over costs nothing
+    beside it, a parallel version would only be compiled (as long again as the kernel)."""
+    if kernel_chunks is not None and len(chunks) > 1 and compiled_threads():
         firsts, lasts, threads = _bounds(tuple(chunks))
         # numba's thread count is per calling thread; set only when it changes (3 us a call).
         if getattr(_launches, "threads", None) != threads:

@@ -63,12 +63,10 @@ def warm_this_process() -> None:
     global _warm
     if _warm:
         return
-    from server.app.updates.compiling import one_warm_up_at_a_time
-    from server.app.updates.warmup import warm_up
+    from server.app.updates.compiling import warm_up_here
 
     try:
-        with one_warm_up_at_a_time():
-            seconds = warm_up()
+        seconds = warm_up_here()
     except Exception:
         import traceback
 

@@ -60,15 +60,13 @@ def worker_init(
         os._exit(0)
 
     threading.Thread(target=leave_with_parent, name="leave-with-server", daemon=True).start()
-    from server.app.updates.compiling import one_warm_up_at_a_time
-    from server.app.updates.warmup import warm_up
+    from server.app.updates.compiling import warm_up_here
 
-    # The kernels loaded (or compiled, about two minutes, where numba's cache lacks them: by one
-    # process of the machine at a time, the others then load them) now, not on a participant's
-    # first update.
+    # The kernels loaded now, not on a participant's first update; where numba's cache lacks
+    # them, compiled, each by one process of the machine while the others compile other kernels
+    # or wait for it and load it.
     try:
-        with one_warm_up_at_a_time():
-            seconds = warm_up()
+        seconds = warm_up_here()
     except Exception:  # an update would meet the same error, and report it for its session
         traceback.print_exc()
     else:

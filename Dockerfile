@@ -37,9 +37,10 @@ RUN pip install --no-deps -e . \
 
 USER bam
 # The learners' compiled kernels, in numba's cache in the image (the bam user's ~/.cache): the
-# update processes load them when they start (about 0.4 s) instead of compiling them (about
-# 14 s each). The cache is made for this machine's CPU; on another, they compile at start.
-RUN python -c "from server.app.updates.warmup import warm_up; warm_up()"
+# update processes load them when they start (about 0.4 s) instead of compiling them (about a
+# minute of a core). The cache is made for this machine's CPU; on another, they compile at
+# start. Compiled by two processes side by side, each kernel once.
+RUN python -c "from server.app.updates.compiling import warm_up_in_processes; warm_up_in_processes(2)"
 EXPOSE 8000
 
 # Healthy once every update process has loaded the learners' compiled kernels (503 before).

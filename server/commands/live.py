@@ -119,8 +119,8 @@ class WarmUpNotice:
         if self.said_at is None:
             print(
                 "the server's update processes are loading the learners' compiled kernels "
-                f"(the first time on a machine, one of them compiles them: {COMPILE_TIME}; "
-                "then a second or two)",
+                f"(the first time on a machine, they compile them, each kernel once, on every free "
+                f"core: {COMPILE_TIME} in all; then a second or two)",
                 file=self.stream,
                 flush=True,
             )

@@ -3,7 +3,7 @@ the learners in its own process says so before minutes of compiling, not after.
 
 numba keeps a kernel compiled with ``cache=True`` as an index file (``.nbi``) and data files
 beside its source (``__pycache__``) or under ``NUMBA_CACHE_DIR``. A missing index, or one older
-than ``_kernels.py``, means the next call compiles (about two minutes of a core). The check
+than ``_kernels.py``, means the next call compiles (about a minute of a core). The check
 reads one kernel's index, a guess that errs only towards saying nothing: an index made for
 another CPU is rebuilt without a word.
 """
@@ -19,7 +19,7 @@ from typing import TextIO
 from server.learners import _kernels
 
 # What a compile costs, as the commands say it (docs/benchmarks.md has the measurement).
-COMPILE_TIME = "about two minutes of a core"
+COMPILE_TIME = "about a minute of a core"
 
 
 def kernels_cached() -> bool:

@@ -456,7 +456,7 @@ def test_a_command_waiting_for_its_servers_warm_up_says_why_and_how_long() -> No
     for seconds, warm in ((0.5, 0), (5.0, 0), (16.0, 1), (20.0, 1), (31.5, 1)):
         notice(seconds, {"update_processes_warm": warm, "update_processes": 2})
     lines = stream.getvalue().splitlines()
-    assert "compiled kernels" in lines[0] and "about two minutes" in lines[0]
+    assert "compiled kernels" in lines[0] and "about a minute" in lines[0]
     assert lines[1:] == [
         "  ... 16 s, 1 of 2 update processes ready",
         "  ... 32 s, 1 of 2 update processes ready",

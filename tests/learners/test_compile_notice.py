@@ -57,7 +57,7 @@ def test_the_notice_speaks_before_and_after_a_compile_only(
         assert lines == ["(working)"]
     else:
         assert lines[0].startswith("bam-study check: note: this command compiles the learners'")
-        assert "about two minutes" in lines[0] and lines[1] == "(working)"
+        assert "about a minute" in lines[0] and lines[1] == "(working)"
         assert lines[2].startswith("bam-study check: note: the kernels were compiled in ")
     # A pool's first jobs compile in their own processes: no time of ours to report.
     said = io.StringIO()

@@ -209,8 +209,8 @@ class LocalUpdates:
         began = time.monotonic()
         log.info(
             "waiting for %d update process(es) to load the learners' compiled kernels (where "
-            "numba's cache lacks them, as on a first start, they are compiled: %s, each "
-            "process on a free core); /api/health answers 503 until then",
+            "numba's cache lacks them, as on a first start, they are compiled: %s in all, "
+            "each kernel by one process, the processes side by side); /api/health answers 503 until then",
             self.workers,
             COMPILE_TIME,
         )

@@ -3,9 +3,10 @@
 numba compiles the planner's and the likelihoods' kernels on their first call and keeps them in
 its on-disk cache: a process loads them on its first update (about 0.3 s), and on a machine
 whose cache is missing or was made for another CPU (a new container, a new checkout) compiles
-them (about two minutes of a core: 127 s on an AVX-512 AMD EPYC, 2026-11-29). A study
-server's update processes run ``warm_up`` when they start, so that neither lands on a
-participant's first update."""
+them (about a minute of a core; docs/benchmarks.md has the figure). A study server's update
+processes run ``warm_up`` when they start, so that neither lands on a participant's first
+update; processes that start together compile different kernels side by side
+(``compiling``)."""
 
 from __future__ import annotations
 

@@ -179,6 +179,27 @@ class Settings(BaseSettings):
         "instrumentation, to the providers configured in the environment). Off, FastAPI looks "
         "for the providers on no request: a tenth of a move's CPU time on the server.",
     )
+    live_funnel_seconds: float = Field(
+        1.0,
+        ge=0.1,
+        le=60,
+        description="How often the live dashboard's funnel is computed while someone watches it "
+        "(once for every watcher).",
+    )
+    live_curves_seconds: float = Field(
+        2.0,
+        ge=0.1,
+        le=600,
+        description="How often the live dashboard's learning curves are computed while someone "
+        "watches them.",
+    )
+    live_mirror_seconds: float = Field(
+        0.25,
+        ge=0.05,
+        le=10,
+        description="How often a watched participant's view is asked whether it changed: a move "
+        "reaches the one-way mirror within this and the time to read it.",
+    )
     sqlite_busy_timeout_ms: int = Field(
         10_000, ge=0, description="How long a SQLite connection waits for a lock held elsewhere."
     )

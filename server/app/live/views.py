@@ -10,18 +10,13 @@ from server.app.live.broadcast import Broadcast
 from server.app.state import ServerState
 from server.app.storage.models import utcnow
 
-FUNNEL_SECONDS = 1.0  # how often the funnel and the curves are computed while watched
-CURVES_SECONDS = 2.0
-# How often a watched participant's view is asked whether it changed: a move reaches the mirror
-# within this and the time to read it.
-MIRROR_SECONDS = 0.25
-
 
 class LiveViews:
     def __init__(self, state: ServerState) -> None:
         self.state = state
-        self.funnel = Broadcast(self._funnel, FUNNEL_SECONDS)
-        self.curves = Broadcast(self._curves, CURVES_SECONDS)
+        # How often each is computed while watched: BAM_LIVE_FUNNEL_SECONDS and the like.
+        self.funnel = Broadcast(self._funnel, state.settings.live_funnel_seconds)
+        self.curves = Broadcast(self._curves, state.settings.live_curves_seconds)
         self.mirrors: dict[int, Broadcast] = {}
 
     async def _funnel(self) -> dict[str, Any]:
@@ -71,7 +66,7 @@ class LiveViews:
 
                 return await state.run_db(read)
 
-            self.mirrors[participant_id] = Broadcast(compute, MIRROR_SECONDS, changed)
+            self.mirrors[participant_id] = Broadcast(compute, state.settings.live_mirror_seconds, changed)
         return self.mirrors[participant_id]
 
     def forget_unwatched(self) -> None:

@@ -14,6 +14,7 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
+from pydantic import ValidationError
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select, text
 
@@ -165,6 +166,20 @@ def test_the_streamed_funnel_equals_the_database_at_each_moment(
         assert nonzero(snapshot["statuses"]) == statuses_in_database(db)
         assert snapshot["stages"]["consent"] == 2 and snapshot["stages"]["tutorial"] == 0
     assert app.state.live.funnel.watchers in (0, 1)  # the stream closed (or is closing)
+
+
+def test_the_live_views_intervals_are_the_deployment_s_settings(
+    db: Database, settings: Settings, study: StudyConfig, executor: ProcessPoolExecutor
+) -> None:
+    chosen = settings.model_copy(
+        update={"live_funnel_seconds": 5.0, "live_curves_seconds": 30.0, "live_mirror_seconds": 1.5}
+    )
+    views = create_app(chosen, study, db=db, executor=executor).state.live
+    assert (views.funnel.interval, views.curves.interval) == (5.0, 30.0)
+    assert views.mirror(1).interval == 1.5
+    for name, value in (("live_mirror_seconds", 0), ("live_funnel_seconds", -1)):
+        with pytest.raises(ValidationError, match=name):
+            Settings(**{name: value})
 
 
 def test_every_watcher_of_a_view_shares_one_snapshot_per_interval() -> None:

@@ -5,51 +5,71 @@ about dynamics the teacher knows but the agent never observed (the doorway's wal
 
 from __future__ import annotations
 
-from typing import Any
+from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
-from server.domains.base import Environment, ObservedTransitions
+from server.domains.base import ObservedTransitions
 from server.learners.objective import TeacherData, maximize_lbfgs
-from server.learners.planner_learner import PlannerLearner, check_count
+from server.learners.planner_learner import PlannerLearner
+from server.learners.settings import (
+    CompiledPlannerSteps,
+    PlannerSettings,
+    check_non_negative_count,
+    setting,
+    setting_of,
+)
+
+
+@dataclass(frozen=True, kw_only=True)
+class BAMSettings(PlannerSettings, CompiledPlannerSteps):
+    """BAM's settings: its schedule of alternations (the planner learners' settings besides)."""
+
+    alternations: int = setting(
+        10, "An update's alternations of [cost steps, then dynamics steps] (the authors')."
+    )
+    cost_steps: int = setting_of(
+        PlannerSettings, "cost_steps", 20, "Momentum steps on the costs in each alternation."
+    )
+    dynamics_steps: int = setting_of(
+        PlannerSettings,
+        "dynamics_steps",
+        20,
+        "Momentum steps on the dynamics parameters in each alternation.",
+    )
+    warm_alternations: int = setting(
+        0,
+        'With optimizer "warm-lbfgs": alternations of the momentum schedule that a warm update '
+        "runs before L-BFGS-B (0: L-BFGS-B alone). Two reach at least the reference "
+        "schedule's value of equation (5) at about a third of its passes, but the agents learn "
+        'less well (docs/defaults.md, "A faster optimiser"): a setting, not the default.',
+        check=check_non_negative_count,
+    )
+    # A warm update runs 7 of the 10 alternations (5 learn less in navigation, beyond the
+    # demonstrations experiment's chance: docs/defaults.md, "Shorter warm updates").
+    warm_share: float = setting_of(PlannerSettings, "warm_share", 0.7)
 
 
 class BAM(PlannerLearner):
     """Behavior Aware Modeling, ``learners.make("bam", env)`` (the module docstring)."""
 
     name = "bam"
-    default_settings = {
-        **PlannerLearner.default_settings,
-        "alternations": 10,
-        "cost_steps": 20,
-        "dynamics_steps": 20,
-        # With optimizer "warm-lbfgs": alternations of the momentum schedule that a warm update
-        # runs before L-BFGS-B (0: L-BFGS-B alone). Two reach at least the reference schedule's
-        # value of equation (5) on average over whole runs, at about a third of its passes;
-        # L-BFGS-B alone reaches less. The agents learn less well than with the reference
-        # schedule (docs/defaults.md, "A faster optimiser"): a setting, not the default.
-        "warm_alternations": 0,
-        # A warm update runs 7 of the 10 alternations (5 learn less in navigation, beyond
-        # the demonstrations experiment's chance: docs/defaults.md, "Shorter warm updates").
-        "warm_share": 0.7,
-    }
+    settings_type: ClassVar[type[BAMSettings]] = BAMSettings
+    settings: BAMSettings
     warm_up_settings = {"alternations": 1, **PlannerLearner.warm_up_settings}
-
-    def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
-        super().__init__(env, seed, **settings)
-        check_count("warm_alternations", self.settings["warm_alternations"], minimum=0)
 
     def _fit(self) -> tuple[float, int]:
         data = self.teacher_data()
         observed = self.env.model.observe(self.data.observed_transitions())
         optimizer, evaluations = self.schedule(data)
         if optimizer == "momentum":
-            alternations = self.momentum_steps(int(self.settings["alternations"]), data)
+            alternations = self.momentum_steps(int(self.settings.alternations), data)
             return self._fit_momentum(data, observed, alternations)
         steps = 0
-        if self.settings["optimizer"] == "warm-lbfgs" and self.settings["warm_alternations"]:
+        if self.settings.optimizer == "warm-lbfgs" and self.settings.warm_alternations:
             self.stop_momentum()
-            _, steps = self._fit_momentum(data, observed, int(self.settings["warm_alternations"]))
+            _, steps = self._fit_momentum(data, observed, int(self.settings.warm_alternations))
         objective, evaluations = self._fit_lbfgs(data, observed, evaluations)
         return objective, steps + evaluations
 
@@ -61,12 +81,12 @@ class BAM(PlannerLearner):
         objective = float("nan")
         for _ in range(alternations):
             if not data.empty:
-                cost_steps = int(self.settings["cost_steps"])
+                cost_steps = int(self.settings.cost_steps)
                 self.cost_steps(self.operator(data), data, cost_steps)
                 steps += cost_steps
             # The dynamics steps leave the costs as they are, and their prior with them.
             cost_prior, _ = self.cost_prior(self.costs)
-            remaining = int(self.settings["dynamics_steps"])
+            remaining = int(self.settings.dynamics_steps)
             while remaining > 0 and not data.empty and self.compiles_theta_steps():
                 value, done = self.dynamics_steps_in_one_call(data, observed, remaining)
                 if done:

@@ -4,14 +4,31 @@ share knowledge across tasks that BAM is compared against."""
 
 from __future__ import annotations
 
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numpy as np
 
 from server.domains.base import Environment, check_finite
-from server.learners.model_based import ModelBasedIRL
+from server.learners.model_based import ModelBasedIRL, ModelBasedSettings
 from server.learners.objective import MomentumAscent, TeacherData, cell_rewards
 from server.learners.planning import TransitionOperator
+from server.learners.settings import PlannerSettings, setting, setting_of
+
+
+@dataclass(frozen=True, kw_only=True)
+class GlobalCostSettings(PlannerSettings):
+    """Global cost's settings: model-based IRL's and the global cost's prior. On every update
+    the authors' schedule (its experiment has not been run with shorter warm updates), and
+    NumPy's steps (the global cost ties the tasks' cost steps together; the dynamics steps are
+    kept for the same agents as its published runs): no compiled steps."""
+
+    dynamics_steps: int = setting_of(ModelBasedSettings, "dynamics_steps", 200)
+    cost_steps: int = setting_of(ModelBasedSettings, "cost_steps", 200)
+    global_prior_sd: float = setting(
+        1.0, "The deviation of the global cost's Gaussian prior N(0, sd), centred on 0."
+    )
+    warm_share: float = setting_of(PlannerSettings, "warm_share", 1.0)
 
 
 class GlobalCostIRL(ModelBasedIRL):
@@ -19,32 +36,21 @@ class GlobalCostIRL(ModelBasedIRL):
     docstring)."""
 
     name = "global-cost"
-    # The authors' schedule on every update: the global-cost experiment has not been run with
-    # shorter warm updates. Its cost steps are NumPy's (the global cost ties the tasks' steps
-    # together): no ``compiled_steps``; nor, for the same agents as its published runs,
-    # ``compiled_dynamics_steps``.
-    default_settings = {
-        **{
-            k: v
-            for k, v in ModelBasedIRL.default_settings.items()
-            if k not in ("compiled_steps", "compiled_dynamics_steps")
-        },
-        "global_prior_sd": 1.0,
-        "warm_share": 1.0,
-    }
+    settings_type: ClassVar[type[PlannerSettings]] = GlobalCostSettings
+    settings: GlobalCostSettings
 
     def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
         super().__init__(env, seed, **settings)
         self.global_costs = np.zeros(env.num_states)
         # "per-task" (the authors'): each task's costs and the global cost have an optimiser
         # of their own; "joint": one optimiser over [task costs, global cost].
-        self.joint = self.settings["cost_optimizers"] == "joint"
+        self.joint = self.settings.cost_optimizers == "joint"
         self.global_optimizer = MomentumAscent(
             (self.costs.size if self.joint else 0) + env.num_states,
-            self.settings["cost_learning_rate"],
-            self.settings["momentum"],
-            self.settings["max_step"],
-            clip=self.settings["momentum_clip"],
+            self.settings.cost_learning_rate,
+            self.settings.momentum,
+            self.settings.max_step,
+            clip=self.settings.momentum_clip,
         )
 
     def rewards(self) -> np.ndarray:
@@ -66,7 +72,7 @@ class GlobalCostIRL(ModelBasedIRL):
         prior, prior_grad = self.cost_prior(self.costs)
         global_prior, global_prior_grad = self._global_prior()
         global_grad = d_rewards.sum(axis=0) + global_prior_grad
-        bound = self.settings["cost_bound"]
+        bound = self.settings.cost_bound
         if self.joint:
             joint = np.concatenate([self.costs.ravel(), self.global_costs])
             joint_grad = np.concatenate([(grad + prior_grad).ravel(), global_grad])
@@ -103,7 +109,7 @@ class GlobalCostIRL(ModelBasedIRL):
     def _global_prior(self) -> tuple[float, np.ndarray]:
         from server.learners.likelihoods import gaussian_log_prior
 
-        return gaussian_log_prior(self.global_costs, 0.0, self.settings["global_prior_sd"])
+        return gaussian_log_prior(self.global_costs, 0.0, self.settings.global_prior_sd)
 
     def stop_momentum(self) -> None:
         super().stop_momentum()

@@ -3,7 +3,7 @@ the soft planner: BAM, model-based IRL and model-based IRL with a global cost.""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -14,7 +14,6 @@ from server.domains.base import (
     SoftmaxRowsModel,
     TransitionModel,
     check_finite,
-    check_gradient_rule,
 )
 from server.learners import _kernels, planning
 from server.learners.base import Learner
@@ -27,17 +26,11 @@ from server.learners.likelihoods import (
     refuse,
 )
 from server.learners.objective import (
-    COMMON_SETTINGS,
-    COST_SETTINGS,
-    OPTIMIZER_SCOPES,
-    OPTIMIZERS,
     MomentumAscent,
     TeacherData,
     action_model,
     cell_gradient,
     cell_rewards,
-    check_choice,
-    check_positive_or_none,
     feedback_model,
     likelihood_arguments,
     maximize_lbfgs,
@@ -54,22 +47,9 @@ from server.learners.planning import (
     soft_plan,
     task_chunks,
 )
+from server.learners.settings import CompiledPlannerSteps, PlannerSettings
 
 THETA_BOUND = 15.0
-COST_CELLS = ("domain", "every")
-
-
-def check_count(name: str, value: Any, minimum: int) -> None:
-    """A whole-number setting of at least ``minimum`` (0 or 1); bools are refused."""
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < minimum:
-        kind = "positive" if minimum == 1 else "non-negative"
-        raise ValueError(f"{name} must be a {kind} integer, got {value!r}")
-
-
-def check_share(name: str, value: Any) -> None:
-    """A setting that is a number in (0, 1]; bools are refused."""
-    if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value <= 1:
-        raise ValueError(f"{name} must be a number greater than 0 and at most 1, got {value!r}")
 
 
 class PlannerLearner(Learner):
@@ -80,46 +60,32 @@ class PlannerLearner(Learner):
     schedule and optimiser state, saving and restoring them), kept in one class so that a
     learner's state round-trips through one ``state_dict``."""
 
-    default_settings = {**COMMON_SETTINGS, **COST_SETTINGS}
+    settings_type: ClassVar[type[PlannerSettings]] = PlannerSettings
+    settings: PlannerSettings
     warm_up_settings = {"cost_steps": 1, "dynamics_steps": 1}
 
     def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
         super().__init__(env, seed, **settings)
-        if self.settings["optimizer"] not in OPTIMIZERS:
-            raise ValueError(
-                f"optimizer must be one of {', '.join(repr(o) for o in OPTIMIZERS)}, "
-                f"got {self.settings['optimizer']!r}"
-            )
-        for name in ("max_evaluations", "warm_evaluations"):
-            check_count(name, self.settings[name], minimum=1)
-        check_share("warm_share", self.settings["warm_share"])
-        check_choice("cost_optimizers", self.settings["cost_optimizers"], OPTIMIZER_SCOPES)
-        check_choice("cost_cells", self.settings["cost_cells"], COST_CELLS)
-        check_choice("planner_precision", self.settings["planner_precision"], tuple(PRECISIONS))
-        check_gradient_rule(self.settings["dynamics_gradient"])
-        check_positive_or_none("dynamics_prior_sd", self.settings["dynamics_prior_sd"])
         self.theta = env.model.initial_parameters()
         self.costs = np.zeros((len(env.tasks), env.num_cells))
         # The cells whose costs are fitted (the others stay at 0).
         self.cost_mask = (
-            env.cost_cells
-            if self.settings["cost_cells"] == "domain"
-            else np.ones(env.num_cells, bool)
+            env.cost_cells if self.settings.cost_cells == "domain" else np.ones(env.num_cells, bool)
         )
         self.theta_optimizer = MomentumAscent(
             env.model.num_parameters,
-            self.settings["dynamics_learning_rate"],
-            self.settings["momentum"],
-            self.settings["max_step"],
-            clip=self.settings["momentum_clip"],
+            self.settings.dynamics_learning_rate,
+            self.settings.momentum,
+            self.settings.max_step,
+            clip=self.settings.momentum_clip,
         )
         self.cost_optimizer = MomentumAscent(
             self.costs.size,
-            self.settings["cost_learning_rate"],
-            self.settings["momentum"],
-            self.settings["max_step"],
-            clip=self.settings["momentum_clip"],
-            rows=len(env.tasks) if self.settings["cost_optimizers"] == "per-task" else 1,
+            self.settings.cost_learning_rate,
+            self.settings.momentum,
+            self.settings.max_step,
+            clip=self.settings.momentum_clip,
+            rows=len(env.tasks) if self.settings.cost_optimizers == "per-task" else 1,
         )
         # Tasks whose costs an update has fitted (a task's first fit is a cold start).
         self.fitted_tasks = np.zeros(len(env.tasks), dtype=bool)
@@ -128,12 +94,12 @@ class PlannerLearner(Learner):
     # -- the optimiser schedule -------------------------------------------------------------
     def schedule(self, data: TeacherData) -> tuple[str, int]:
         """This update's optimiser, "momentum" or "lbfgs", and its L-BFGS-B evaluation cap."""
-        optimizer = self.settings["optimizer"]
+        optimizer = self.settings.optimizer
         if optimizer == "lbfgs":
-            return "lbfgs", int(self.settings["max_evaluations"])
+            return "lbfgs", int(self.settings.max_evaluations)
         if optimizer == "warm-lbfgs":
             if self.warm(data):
-                return "lbfgs", int(self.settings["warm_evaluations"])
+                return "lbfgs", int(self.settings.warm_evaluations)
             # A cold start: the momentum schedule from rest.
             self.stop_momentum()
         return "momentum", 0
@@ -147,7 +113,7 @@ class PlannerLearner(Learner):
         least one, and none where the schedule has none."""
         if not self.warm(data):
             return steps
-        return min(steps, max(1, round(steps * float(self.settings["warm_share"]))))
+        return min(steps, max(1, round(steps * float(self.settings.warm_share))))
 
     def stop_momentum(self) -> None:
         """Momentum steps from rest next: the velocity of earlier momentum steps is stale
@@ -189,7 +155,7 @@ class PlannerLearner(Learner):
         return soft_plan(
             self.operator(),
             self.rewards(),
-            self.settings["beta"],
+            self.settings.beta,
             self.env.horizon,
             keep_trace=False,
         ).q_all
@@ -205,11 +171,11 @@ class PlannerLearner(Learner):
 
     # -- objective pieces -----------------------------------------------------------------
     def cost_prior(self, costs: np.ndarray) -> tuple[float, np.ndarray]:
-        return gaussian_log_prior(costs, 0.0, self.settings["cost_prior_sd"])
+        return gaussian_log_prior(costs, 0.0, self.settings.cost_prior_sd)
 
     def dynamics_prior(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
         """ln m(theta): the setting's Gaussian, else the model space's own prior (or none)."""
-        sd = self.settings["dynamics_prior_sd"]
+        sd = self.settings.dynamics_prior_sd
         if sd is None:
             sd = self.env.model.prior_sd
         if sd is None:
@@ -219,7 +185,7 @@ class PlannerLearner(Learner):
     def gradient_rule(self, exact: bool) -> str:
         """The dynamics gradient of a momentum step ("authors" or "exact"); L-BFGS-B needs the
         exact one (``exact``)."""
-        return "exact" if exact else str(self.settings["dynamics_gradient"])
+        return "exact" if exact else str(self.settings.dynamics_gradient)
 
     def transition_objective(
         self,
@@ -265,7 +231,7 @@ class PlannerLearner(Learner):
         (with ``fresh_rows``, the passes' probabilities in arrays of their own, for a kernel to
         fill), and the dL/dT it writes."""
         settings = self.settings
-        dtype = PRECISIONS[settings["planner_precision"]]
+        dtype = PRECISIONS[settings.planner_precision]
         horizon = check_horizon(self.env.horizon)
         rewards = self.task_rewards(data, self.costs)
         if data.plan_states is not None:
@@ -359,10 +325,12 @@ class PlannerLearner(Learner):
 
     def compiles_theta_steps(self) -> bool:
         """Whether ``theta_steps`` and ``teacher_gradient`` run compiled: the setting
-        ``compiled_dynamics_steps``, where the model space's primitives are one the kernels
-        know."""
+        ``compiled_dynamics_steps`` (of the learners that have it), where the model space's
+        primitives are one the kernels know."""
+        settings = self.settings
         return (
-            bool(self.settings["compiled_dynamics_steps"])
+            isinstance(settings, CompiledPlannerSteps)
+            and bool(settings.compiled_dynamics_steps)
             and _primitive_family(self.env.model) is not None
         )
 
@@ -377,7 +345,7 @@ class PlannerLearner(Learner):
         assert family is not None
         authors = self.gradient_rule(exact=False) == "authors"
         teacher = self.plan_model(data)
-        sd = self.settings["dynamics_prior_sd"]
+        sd = self.settings.dynamics_prior_sd
         if sd is None:
             sd = model.prior_sd
         if sd is not None and (not np.isfinite(sd) or sd <= 0):  # as gaussian_log_prior refuses it
@@ -496,7 +464,7 @@ class PlannerLearner(Learner):
         grad = np.zeros_like(self.costs)
         grad[data.tasks] = self.cost_gradient(d_rewards)
         prior, prior_grad = self.cost_prior(self.costs)
-        bound = self.settings["cost_bound"]
+        bound = self.settings.cost_bound
         updated = self.cost_optimizer.step(self.costs.ravel(), (grad + prior_grad).ravel())
         self.costs = np.clip(updated.reshape(self.costs.shape), -bound, bound)
         return value + prior
@@ -515,10 +483,13 @@ class PlannerLearner(Learner):
         return value
 
     def compiles_cost_steps(self) -> bool:
-        """Whether ``cost_steps`` runs compiled: the setting ``compiled_steps``, where each
-        task's costs have an optimiser of their own."""
-        return bool(self.settings["compiled_steps"]) and self.cost_optimizer.rows == len(
-            self.env.tasks
+        """Whether ``cost_steps`` runs compiled: the setting ``compiled_steps`` (of the
+        learners that have it), where each task's costs have an optimiser of their own."""
+        settings = self.settings
+        return (
+            isinstance(settings, CompiledPlannerSteps)
+            and bool(settings.compiled_steps)
+            and self.cost_optimizer.rows == len(self.env.tasks)
         )
 
     def _compiled_cost_steps(
@@ -529,7 +500,7 @@ class PlannerLearner(Learner):
         are): a step's arithmetic outside its two passes is a few microseconds, which a NumPy
         call per operation made about a hundred (wall: over half of an update)."""
         env, settings = self.env, self.settings
-        dtype = PRECISIONS[settings["planner_precision"]]
+        dtype = PRECISIONS[settings.planner_precision]
         actions, feedback = action_model(settings), feedback_model(settings)
         horizon = check_horizon(env.horizon)
         optimizer = self.cost_optimizer
@@ -551,8 +522,8 @@ class PlannerLearner(Learner):
         step_values = np.zeros(data.step_tasks.shape[0])
         codes = np.zeros(len(env.tasks), dtype=np.int64)
         scatter = dtype == np.float32
-        bound = float(settings["cost_bound"])
-        prior_sd = float(settings["cost_prior_sd"])
+        bound = float(settings.cost_bound)
+        prior_sd = float(settings.cost_prior_sd)
         if not np.isfinite(prior_sd) or prior_sd <= 0:  # as gaussian_log_prior refuses it
             raise ValueError(f"prior standard deviation must be positive, got {prior_sd!r}")
         planning.run_pass(  # by the module, as the passes' are: a benchmark counts them there
@@ -652,7 +623,7 @@ class PlannerLearner(Learner):
         return [(-THETA_BOUND, THETA_BOUND)] * self.env.model.num_parameters
 
     def cost_bounds(self, data: TeacherData) -> list[tuple[float | None, float | None]]:
-        bound = float(self.settings["cost_bound"])
+        bound = float(self.settings.cost_bound)
         return [(-bound, bound)] * len(self.cost_vector(data))
 
     def packed_cost_gradient(

@@ -51,7 +51,7 @@ def steps_both_ways(learner: PlannerLearner) -> tuple[PlannerLearner, float, Pla
     numpy_steps = restore(learner.env, state)
     compiled = restore(learner.env, state)
     assert isinstance(numpy_steps, PlannerLearner) and isinstance(compiled, PlannerLearner)
-    compiled.settings["compiled_steps"] = True
+    compiled.settings = compiled.settings.replace(compiled_steps=True)
     data = numpy_steps.teacher_data()
     value = numpy_steps.cost_steps(numpy_steps.operator(data), data, STEPS)
     compiled_value = compiled.cost_steps(compiled.operator(data), data, STEPS)
@@ -122,7 +122,7 @@ def test_compiled_cost_steps_split_over_threads_give_the_same_bits(
     for threads in (1, 2, 3):
         with planning.using_planner_threads(threads):
             copy = restore(learner.env, state)
-            copy.settings["compiled_steps"] = True
+            copy.settings = copy.settings.replace(compiled_steps=True)
             objective = copy.update().objective
         assert isinstance(copy, PlannerLearner)
         results[threads] = (copy.costs, copy.cost_optimizer.velocity, copy.theta, objective)
@@ -135,12 +135,14 @@ def test_a_gradient_that_is_not_finite_is_refused_and_the_costs_stay() -> None:
     """A prior so narrow that its gradient overflows: both ways refuse the step with the same
     error, and the compiled steps leave the learner's costs and velocity as they were."""
     learner = taught("wall", "model-based", feedback=False)
-    learner.settings["cost_prior_sd"] = 1e-200  # its variance underflows to 0
+    learner.settings = learner.settings.replace(
+        cost_prior_sd=1e-200
+    )  # its variance underflows to 0
     state = learner.state_dict()
     for compiled in (False, True):
         copy = restore(learner.env, state)
         assert isinstance(copy, PlannerLearner)
-        copy.settings["compiled_steps"] = compiled
+        copy.settings = copy.settings.replace(compiled_steps=compiled)
         costs, velocity = copy.costs.copy(), copy.cost_optimizer.velocity.copy()
         data = copy.teacher_data()
         with pytest.raises(FloatingPointError, match="gradient is not finite"):
@@ -157,7 +159,7 @@ def test_a_prior_deviation_that_is_not_positive_is_refused_both_ways(sd: float) 
     for compiled in (False, True):
         copy = restore(learner.env, state)
         assert isinstance(copy, PlannerLearner)
-        copy.settings.update(compiled_steps=compiled, cost_prior_sd=sd)
+        copy.settings = copy.settings.replace(compiled_steps=compiled, cost_prior_sd=sd)
         costs = copy.costs.copy()
         data = copy.teacher_data()
         with pytest.raises(ValueError, match="prior standard deviation must be positive"):
@@ -170,8 +172,8 @@ def test_the_global_cost_learner_has_no_compiled_cost_steps() -> None:
     env = domains.make("wall")
     with pytest.raises(ValueError, match="compiled_steps"):
         make("global-cost", env, compiled_steps=True)
-    assert make("bam", env).settings["compiled_steps"] is True
-    assert make("model-based", env).settings["compiled_steps"] is True
+    assert make("bam", env).settings.compiled_steps is True
+    assert make("model-based", env).settings.compiled_steps is True
 
 
 def test_a_state_saved_before_compiled_cost_steps_keeps_the_numpy_steps() -> None:
@@ -180,4 +182,4 @@ def test_a_state_saved_before_compiled_cost_steps_keeps_the_numpy_steps() -> Non
     state = learner.state_dict()
     del state["settings"]["compiled_steps"]
     restored = restore(learner.env, state)
-    assert restored.settings["compiled_steps"] is False
+    assert restored.settings.compiled_steps is False

@@ -43,7 +43,7 @@ def taught(name: str, learner_name: str, **settings: Any) -> PlannerLearner:
 def both_ways(learner: PlannerLearner, compiled: bool) -> PlannerLearner:
     copy = restore(learner.env, learner.state_dict())
     assert isinstance(copy, PlannerLearner)
-    copy.settings["compiled_dynamics_steps"] = compiled
+    copy.settings = copy.settings.replace(compiled_dynamics_steps=compiled)
     return copy
 
 
@@ -194,7 +194,9 @@ def test_a_table_whose_zeros_leave_the_layouts_is_stepped_outside(
     those steps the other way and learns what the kernel would have."""
     learner = taught("doorway", "bam")
     assert isinstance(learner, BAM)
-    learner.settings["warm_share"] = 0.2  # two alternations: rounding has no time to grow
+    learner.settings = learner.settings.replace(
+        warm_share=0.2
+    )  # two alternations: rounding has no time to grow
     reference = both_ways(learner, compiled=True)
     reference.update()
     real = planning.TransitionOperator.layout
@@ -222,7 +224,9 @@ def test_a_whole_update_learns_the_same_both_ways() -> None:
     """Doorway's BAM update (its dynamics steps and the walls learned through the teacher's
     data): the same theta and costs to rounding."""
     learner = taught("doorway", "bam")
-    learner.settings["warm_share"] = 0.2  # two alternations: rounding has no time to grow
+    learner.settings = learner.settings.replace(
+        warm_share=0.2
+    )  # two alternations: rounding has no time to grow
     updated = []
     for compiled in (False, True):
         copy = both_ways(learner, compiled)
@@ -268,10 +272,14 @@ def test_a_gradient_that_is_not_finite_is_refused_and_theta_stays() -> None:
 
 @pytest.mark.parametrize("sd", [0.0, -1.0])
 def test_a_dynamics_prior_deviation_that_is_not_positive_is_refused_both_ways(sd: float) -> None:
+    """Refused where the settings are made; and the steps refuse it themselves, both ways
+    (the settings' check passed by, as a state's settings could not be)."""
     learner = taught("wall", "model-based")
+    with pytest.raises(ValueError, match="dynamics_prior_sd must be a positive number"):
+        learner.settings.replace(dynamics_prior_sd=sd)
     for compiled in (False, True):
         copy = both_ways(learner, compiled)
-        copy.settings["dynamics_prior_sd"] = sd
+        object.__setattr__(copy.settings, "dynamics_prior_sd", sd)  # past the frozen check
         theta = copy.theta.copy()
         with pytest.raises(ValueError, match="prior standard deviation must be positive"):
             copy.theta_steps(observed_of(copy), STEPS)
@@ -293,5 +301,5 @@ def test_a_state_saved_before_compiled_dynamics_steps_keeps_the_numpy_steps() ->
     state = learner.state_dict()
     del state["settings"]["compiled_dynamics_steps"]
     restored = restore(learner.env, state)
-    assert restored.settings["compiled_dynamics_steps"] is False
+    assert restored.settings.compiled_dynamics_steps is False
     assert isinstance(restored, PlannerLearner) and not restored.compiles_theta_steps()

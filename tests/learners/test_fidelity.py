@@ -313,8 +313,8 @@ def test_cloning_keeps_a_variance_floor_and_does_not_collapse() -> None:
     from tests.learners._support import demonstrate_round
 
     env = domains.make("doorway")
-    assert make_learner("cloning", env).settings["variance_floor"] == 1e-8
-    assert make_learner("bam", env).settings["variance_floor"] == 0.0
+    assert make_learner("cloning", env).settings.variance_floor == 1e-8
+    assert make_learner("bam", env).settings.variance_floor == 0.0
     returns, deviations = {}, {}
     for floor in (1e-8, 0.0):
         learner = make_learner("cloning", env, seed=0, variance_floor=floor)

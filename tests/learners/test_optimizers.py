@@ -23,8 +23,8 @@ def reference_passes(learner: Any) -> int:
     """Steps in one update of the reference momentum schedule with teacher data."""
     s = learner.settings
     if learner.name == "bam":
-        return int(s["alternations"]) * (int(s["cost_steps"]) + int(s["dynamics_steps"]))
-    return int(s["dynamics_steps"]) + int(s["cost_steps"])
+        return int(s.alternations) * (int(s.cost_steps) + int(s.dynamics_steps))
+    return int(s.dynamics_steps) + int(s.cost_steps)
 
 
 def demonstrate_task(learner: Any, env: Any, teacher: Teacher, task: int, rng: Any) -> None:
@@ -146,14 +146,14 @@ def test_warm_share_runs_the_whole_schedule_for_a_first_fit_and_its_share_afterw
     full = reference_passes(learner)
     s = learner.settings
     if name == "bam":
-        half = 5 * (int(s["cost_steps"]) + int(s["dynamics_steps"]))
+        half = 5 * (int(s.cost_steps) + int(s.dynamics_steps))
     else:
-        half = int(s["dynamics_steps"]) + int(s["cost_steps"]) // 2
+        half = int(s.dynamics_steps) + int(s.cost_steps) // 2
     assert steps == [full, half, full, half]
     # The warm update is the reference schedule cut short, not another optimiser.
     demonstrate_task(learner, env, teacher, 0, rng)
     state = learner.state_dict()
-    cut = {"alternations": 5} if name == "bam" else {"cost_steps": int(s["cost_steps"]) // 2}
+    cut = {"alternations": 5} if name == "bam" else {"cost_steps": int(s.cost_steps) // 2}
     reference = learners.restore(
         env, {**state, "settings": {**state["settings"], "warm_share": 1.0, **cut}}
     )

@@ -33,26 +33,28 @@ class ModelBasedSettings(PlannerSettings, CompiledPlannerSteps):
 
 
 class ModelBasedIRL(PlannerLearner):
-    """Model-based IRL, ``learners.make("model-based", env)`` (the module docstring)."""
+    """Model-based IRL, ``learners.make("model-based", env)`` (the module docstring): an
+    update runs the dynamics fit on the observed transitions, then the cost fit under it."""
 
     name = "model-based"
     # Its code reads the planner learners' settings alone (global cost's have no compiled steps).
     settings_type: ClassVar[type[PlannerSettings]] = ModelBasedSettings
 
     def _fit(self) -> tuple[float, int]:
+        dynamics, costs = self.dynamics_fit, self.cost_fit
         observed = self.env.model.observe(self.data.observed_transitions())
         data = self.teacher_data()
         optimizer, evaluations = self.schedule(data)
         if self.settings.optimizer == "lbfgs":
-            dynamics_objective, dynamics_evaluations = self.fit_theta_lbfgs(observed, evaluations)
+            dynamics_objective, dynamics_evaluations = dynamics.fit_lbfgs(observed, evaluations)
         else:
             # The dynamics fit never runs the planner: the momentum schedule costs little.
-            dynamics_objective = self.theta_steps(observed, int(self.settings.dynamics_steps))
+            dynamics_objective = dynamics.steps(observed, int(self.settings.dynamics_steps))
             dynamics_evaluations = int(self.settings.dynamics_steps)
         if optimizer == "lbfgs":
             if data.empty:
                 return dynamics_objective, dynamics_evaluations
-            teacher_objective, cost_evaluations = self.fit_costs_lbfgs(
+            teacher_objective, cost_evaluations = costs.fit_lbfgs(
                 self.operator(data), data, evaluations
             )
             return dynamics_objective + teacher_objective, dynamics_evaluations + cost_evaluations
@@ -62,6 +64,6 @@ class ModelBasedIRL(PlannerLearner):
             operator = self.operator(data)
             cost_steps = self.momentum_steps(int(self.settings.cost_steps), data)
             if cost_steps:
-                teacher_objective = self.cost_steps(operator, data, cost_steps)
+                teacher_objective = costs.steps(operator, data, cost_steps)
         steps = int(self.settings.dynamics_steps) + cost_steps
         return dynamics_objective + teacher_objective, steps

@@ -128,7 +128,7 @@ def check_gradients(learner: Any, seed: int) -> None:
 
         indices = probe_indices(analytic, rng, count=6)
         if block == "costs":  # only the cells that carry a cost are parameters (farming)
-            fitted = np.broadcast_to(learner.cost_mask, parameters.shape).ravel()
+            fitted = np.broadcast_to(learner.cost_fit.mask, parameters.shape).ravel()
             indices = indices[fitted[indices]]
         numeric = central_difference(value_at, parameters, indices)
         setattr(learner, block, parameters)
@@ -226,7 +226,7 @@ def test_planning_over_the_states_the_data_reaches_changes_no_bit(
     )
     results = []
     for data in (whole, part):
-        value, d_rewards, d_transitions = learner.teacher_objective(
+        value, d_rewards, d_transitions = learner.cost_fit.teacher_objective(
             learner.operator(data), data, need_transitions=True
         )
         results.append((value, d_rewards, learner.pullback(data, d_transitions)))

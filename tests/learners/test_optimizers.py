@@ -269,7 +269,7 @@ def test_lbfgs_keeps_the_dynamics_parameters_where_observations_stay_possible(
     update failed ("observed transition ... is impossible"). Bounded at +-30, a machine's
     softmax in three-fields still worked with probability 1 - 1e-26, which is 1, so a failed
     move was impossible again. These runs of the feedback experiment crashed so."""
-    from server.learners.planner_learner import THETA_BOUND
+    from server.learners.dynamics_fit import THETA_BOUND
     from server.simulation.protocols import Job, run_agent
 
     job = Job("feedback", environment, "bam", agent, 10, 0, (("optimizer", "warm-lbfgs"),))

@@ -43,8 +43,8 @@ import numpy as np
 from server import domains
 from server.cores import available_cores
 from server.learners import NAMES, _kernels, dumps, make, planning, restore
-from server.learners.objective import COST_SETTINGS
 from server.learners.planning import TransitionOperator, set_planner_threads, soft_plan
+from server.learners.settings import PlannerSettings
 from server.simulation.config import ConfigError, parse_learner_settings
 from server.teacher import Teacher
 
@@ -240,7 +240,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(error))
     precision = next(
         (str(s["planner_precision"]) for s in settings_of.values() if "planner_precision" in s),
-        COST_SETTINGS["planner_precision"],
+        PlannerSettings.field("planner_precision").default,
     )
     header = (
         f"{'environment':13s} {'learner':12s} "

@@ -74,7 +74,7 @@ from server.commands.simulated import (
     percentile,
     run_participants,
 )
-from server.learners.objective import OPTIMIZERS
+from server.learners.settings import OPTIMIZERS
 
 FAST_LEARNERS: dict[str, dict[str, object]] = {
     "bam": {"alternations": 2, "cost_steps": 10, "dynamics_steps": 10},

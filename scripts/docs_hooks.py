@@ -7,8 +7,9 @@ table in its place. NAME is one of ``GENERATORS``:
   ``server/app/config.py`` (their field types, defaults and descriptions);
 - ``domains``: the domains, their environments and tutorials, from ``server.domains``;
 - ``environment-legend``: each family's map letters, from the families in ``server.domains``;
-- ``learner-settings``: every learner's settings and their defaults, from the learners'
-  ``default_settings``;
+- ``learner-settings``: every learner's settings, their types, defaults and descriptions, from
+  the learners' ``settings_type`` dataclasses (``server/learners/settings.py`` and each
+  learner's module);
 - ``deployment-settings``: every ``BAM_*`` variable, from ``server/app/settings.py``;
 - ``export-tables``: every exported file and column, from ``DICTIONARY`` and ``INTEGER_COLUMNS``
   in ``server/app/export/columns.py`` and ``DESCRIPTIONS`` in ``server/app/export/files.py`` (the
@@ -323,21 +324,39 @@ def environment_legend() -> str:
 def learner_settings() -> str:
     from server.learners import DISPLAY_NAMES, LEARNERS
 
-    names = sorted({key for cls in LEARNERS.values() for key in cls.default_settings})
+    described = {
+        name: {i.name: i for i in cls.settings_type.described()} for name, cls in LEARNERS.items()
+    }
+    names = sorted({setting for infos in described.values() for setting in infos})
     lines = [
-        "| setting | " + " | ".join(f"`{name}`" for name in LEARNERS) + " |",
-        "| --- |" + " --- |" * len(LEARNERS),
+        "| setting | type | " + " | ".join(f"`{name}`" for name in LEARNERS) + " | description |",
+        "| --- | --- |" + " --- |" * len(LEARNERS) + " --- |",
     ]
     for setting in names:
-        values = []
-        for cls in LEARNERS.values():
-            if setting not in cls.default_settings:
-                values.append("")
-                continue
-            values.append(code(toml_value(cls.default_settings[setting])))
-        lines.append(f"| `{setting}` | " + " | ".join(values) + " |")
+        infos = {name: own[setting] for name, own in described.items() if setting in own}
+        values = [
+            code(toml_value(infos[name].default)) if name in infos else "" for name in LEARNERS
+        ]
+        kind = next(iter(infos.values())).kind
+        lines.append(
+            f"| `{setting}` | {kind} | "
+            + " | ".join(values)
+            + f" | {_described(infos).replace('|', '&#124;')} |"
+        )
     legend = ", ".join(f"`{name}`: {DISPLAY_NAMES[name]}" for name in LEARNERS)
     return "\n".join([*lines, "", f"Learners: {legend}. An empty cell: not a setting of it."])
+
+
+def _described(infos: dict[str, Any]) -> str:
+    """A setting's description, or each learner's where they differ (``cost_steps``)."""
+    by_text: dict[str, list[str]] = {}
+    for name, info in infos.items():
+        by_text.setdefault(info.description, []).append(name)
+    if len(by_text) == 1:
+        return next(iter(by_text))
+    return " ".join(
+        f"{', '.join(f'`{n}`' for n in names)}: {text}" for text, names in by_text.items()
+    )
 
 
 def deployment_settings() -> str:

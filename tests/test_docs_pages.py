@@ -106,3 +106,18 @@ def test_a_generated_table_says_where_to_read_it(path: Path, name: str, start: i
     files = [source for source in sources if "/" in source]
     assert files, f"{path.name}: the note names no file or folder of the code"
     assert [source for source in files if not (ROOT / source).exists()] == []
+
+
+def test_the_learner_settings_table_gives_each_settings_type_and_description() -> None:
+    from server.learners import LEARNERS
+
+    table = hooks.learner_settings()
+    rows = {line.split(" | ")[0].strip("| `"): line for line in table.splitlines()}
+    for cls in LEARNERS.values():
+        for info in cls.settings_type.described():
+            row = rows[info.name]
+            assert f"| `{info.name}` | {info.kind} |" in row, info.name
+            assert info.description.replace("|", "&#124;") in row, info.name
+    assert '| `optimizer` | "momentum" or "lbfgs" or "warm-lbfgs" |' in table
+    assert "| `cost_steps` | integer |" in rows["cost_steps"]
+    assert "`bam`: Momentum steps on the costs in each alternation." in rows["cost_steps"]

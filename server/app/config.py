@@ -808,13 +808,10 @@ class StudyConfig(_Strict):
         if len(set(names)) != len(names):
             raise ValueError("a domain is listed twice")
         for name, settings in self.learner_settings.items():
-            valid = learner_class(_check_learner(name)).default_settings
-            unknown = sorted(set(settings) - set(valid))
-            if unknown:
-                raise ValueError(
-                    f"learner_settings.{name}: unknown setting(s) {', '.join(unknown)}; "
-                    f"valid: {', '.join(sorted(valid))}"
-                )
+            try:  # the learner's typed settings: unknown keys and wrong values refused
+                learner_class(_check_learner(name)).settings_type.of(settings)
+            except ValueError as error:
+                raise ValueError(f"learner_settings.{name}: {error}") from None
         colour_names = [colour.name for colour in self.colours]
         if len(set(colour_names)) != len(colour_names):
             raise ValueError("two colours have the same name")

@@ -35,6 +35,7 @@ from server.learners.records import (
     IdleMove,
     Observation,
 )
+from server.learners.settings import Settings
 
 _blas: ThreadpoolController | None = None
 
@@ -148,24 +149,39 @@ SETTINGS_BEFORE_THEY_EXISTED: dict[str, Any] = {
 }
 
 
+class _DefaultSettings:
+    """A learner class's ``default_settings``: its ``settings_type``'s defaults by name (a new
+    dict at each read)."""
+
+    def __get__(self, instance: object, owner: type[Learner]) -> dict[str, Any]:
+        return owner.settings_type.defaults()
+
+
 class Learner(ABC):
-    """Base class of every learner (see the module docstring)."""
+    """Base class of every learner (see the module docstring).
+
+    A learner's settings are a frozen dataclass, its ``settings_type``
+    (``server.learners.settings``), each field typed and described; ``settings`` holds the
+    learner's, read as attributes. ``default_settings`` is the same defaults by name."""
 
     name: ClassVar[str]
-    default_settings: ClassVar[dict[str, Any]]
+    settings_type: ClassVar[type[Settings]] = Settings
+    default_settings = _DefaultSettings()
+    settings: Settings
     # Settings that take an update through everything a study's updates do in as few steps as
     # its schedule allows (the same kernels): what ``server.app.updates.warmup`` runs.
     warm_up_settings: ClassVar[dict[str, Any]] = {}
 
     def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
-        unknown = sorted(set(settings) - set(self.default_settings))
+        names = self.settings_type.names()
+        unknown = sorted(set(settings) - set(names))
         if unknown:
             raise ValueError(
                 f"unknown setting(s) for learner {self.name!r}: {', '.join(unknown)}; "
-                f"valid: {', '.join(sorted(self.default_settings))}"
+                f"valid: {', '.join(sorted(names))}"
             )
         self.env = env
-        self.settings: dict[str, Any] = {**self.default_settings, **settings}
+        self.settings = self.settings_type(**settings)
         self.seed = int(seed)
         self.rng = np.random.default_rng(self.seed)
         self.data = DataLog()
@@ -259,7 +275,7 @@ class Learner(ABC):
         return {
             "learner": self.name,
             "environment": self.env.name,
-            "settings": dict(self.settings),
+            "settings": self.settings.as_dict(),
             "seed": self.seed,
             "updates": self.updates,
             "rng": self.rng.bit_generator.state,
@@ -289,7 +305,7 @@ class Learner(ABC):
         before = {
             key: value
             for key, value in SETTINGS_BEFORE_THEY_EXISTED.items()
-            if key in cls.default_settings
+            if key in cls.settings_type.names()
         }
         learner = cls(env, seed=state["seed"], **{**before, **state["settings"]})
         learner.updates = int(state["updates"])

@@ -8,7 +8,8 @@ only actions of exactly the best value count as tied."""
 
 from __future__ import annotations
 
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numpy as np
 from numba import njit
@@ -25,84 +26,104 @@ from server.learners.likelihoods import (
     step_advantages,
 )
 from server.learners.objective import (
-    COMMON_SETTINGS,
-    OPTIMIZER_SCOPES,
     MomentumAscent,
     TeacherData,
     action_model,
-    check_choice,
-    check_positive_or_none,
     feedback_model,
     likelihood_arguments,
     teacher_log_likelihood,
 )
+from server.learners.settings import (
+    OPTIMIZER_SCOPES,
+    CommonSettings,
+    check_positive_or_none,
+    setting,
+    setting_of,
+)
+
+
+def _check_tie_tolerance(name: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0 <= value < 1:
+        raise ValueError(f"{name} must be in [0, 1), got {value!r}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class CloningSettings(CommonSettings):
+    """Behavioural cloning's settings: its table's prior, clip and optimisers, and its ties."""
+
+    variance_floor: float = setting_of(
+        CommonSettings,
+        "variance_floor",
+        VARIANCE_FLOOR,
+        "A floor on a Q row's variance in the normalised action model. The authors' model has "
+        "none, but their rows are kept from shrinking to nothing under the prior only by their "
+        "gradient's rounding noise (which ours, centring each row, does not make); with no "
+        "floor the agent collapses from round 3 (doorway: 6% of the optimum after three "
+        "rounds against 70% with the floor; docs/fidelity.md).",
+    )
+    steps: int = setting(200, "Momentum steps on the table in an update.")
+    learning_rate: float = setting(0.01, "The learning rate of the momentum steps.")
+    q_prior_sd: float = setting(
+        1.0, "The deviation of the table's Gaussian prior N(0, sd), centred on 0."
+    )
+    q_bound_sds: float | None = setting(
+        3.0,
+        "The table is clipped to +-this many prior deviations after every step (the "
+        "authors': 3); unset: not clipped.",
+        check=check_positive_or_none,
+    )
+    optimizers: str = setting(
+        "per-task",
+        '"per-task": one optimiser per task\'s table (the authors\'); "joint": one for all.',
+        choices=OPTIMIZER_SCOPES,
+    )
+    tie_tolerance: float = setting(
+        0.0,
+        "Q values this close (relative) to a state's best count as tied for best, in [0, 1) "
+        "(the authors: 0, exact ties only).",
+        check=_check_tie_tolerance,
+    )
+    compiled_steps: bool = setting(
+        True,
+        "true: an update's momentum steps in one compiled call, 3-4 times faster, the agents "
+        'as the NumPy steps\' (docs/defaults.md, "Compiled cloning steps"), not to the last '
+        "bit (a step's norm is summed in another order); false: step by step in NumPy, as the "
+        "published reproduction runs were made.",
+    )
 
 
 class BehavioralCloning(Learner):
     """Behavioural cloning, ``learners.make("cloning", env)`` (the module docstring)."""
 
     name = "cloning"
-    default_settings = {
-        **COMMON_SETTINGS,
-        # A floor on a Q row's variance in the normalised action model. The authors' model
-        # has none, but their rows are kept from shrinking to nothing under the prior only by
-        # their gradient's rounding noise (which ours, centring each row, does not make); with
-        # no floor our agent collapses from round 3 (doorway: 6% of the optimum after three
-        # rounds against 70% with the floor). Why: docs/fidelity.md.
-        "variance_floor": VARIANCE_FLOOR,
-        "steps": 200,
-        "learning_rate": 0.01,
-        "q_prior_sd": 1.0,
-        # The table is clipped to +- this many prior deviations after every step (the
-        # authors': 3); None: not clipped.
-        "q_bound_sds": 3.0,
-        # "per-task": one optimiser per task's table (the authors'); "joint": one for all.
-        "optimizers": "per-task",
-        # Q values this close (relative) to a state's best count as tied for best (the
-        # authors: 0, exact ties only).
-        "tie_tolerance": 0.0,
-        # True: an update's momentum steps in one compiled call, 3-4 times faster, the agents
-        # as the NumPy steps' (the demonstrations and feedback experiments rerun with them:
-        # docs/defaults.md, "Compiled cloning steps"), not to the last bit (a step's norm
-        # is summed in another order); False: step by step in NumPy, as the published
-        # reproduction runs were made.
-        "compiled_steps": True,
-    }
+    settings_type: ClassVar[type[CloningSettings]] = CloningSettings
+    settings: CloningSettings
 
     def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
         super().__init__(env, seed, **settings)
-        check_choice("optimizers", self.settings["optimizers"], OPTIMIZER_SCOPES)
-        check_positive_or_none("q_bound_sds", self.settings["q_bound_sds"])
-        tolerance = self.settings["tie_tolerance"]
-        if isinstance(tolerance, bool) or not 0 <= tolerance < 1:
-            raise ValueError(f"tie_tolerance must be in [0, 1), got {tolerance!r}")
-        if not isinstance(self.settings["compiled_steps"], bool):
-            raise ValueError(
-                f"compiled_steps must be true or false, got {self.settings['compiled_steps']!r}"
-            )
         self.table = np.zeros((len(env.tasks), env.num_states, env.num_actions))
         self.optimizer = MomentumAscent(
             self.table.size,
-            self.settings["learning_rate"],
-            self.settings["momentum"],
-            self.settings["max_step"],
-            clip=self.settings["momentum_clip"],
-            rows=len(env.tasks) if self.settings["optimizers"] == "per-task" else 1,
+            self.settings.learning_rate,
+            self.settings.momentum,
+            self.settings.max_step,
+            clip=self.settings.momentum_clip,
+            rows=len(env.tasks) if self.settings.optimizers == "per-task" else 1,
         )
 
     def _fit(self) -> tuple[float, int]:
         data = TeacherData.from_log(self.data)
         if data.empty:
             return 0.0, 0
-        if self.settings["compiled_steps"]:
+        if self.settings.compiled_steps:
             return self._compiled_steps(data)
         actions, feedback = action_model(self.settings), feedback_model(self.settings)
-        sds = self.settings["q_bound_sds"]
-        bound = None if sds is None else float(sds) * float(self.settings["q_prior_sd"])
+        sds = self.settings.q_bound_sds
+        bound = None if sds is None else float(sds) * float(self.settings.q_prior_sd)
         objective = 0.0
-        for _ in range(int(self.settings["steps"])):
+        for _ in range(int(self.settings.steps)):
             value, d_q = teacher_log_likelihood(self.table[data.tasks], data, actions, feedback)
-            prior, prior_grad = gaussian_log_prior(self.table, 0.0, self.settings["q_prior_sd"])
+            prior, prior_grad = gaussian_log_prior(self.table, 0.0, self.settings.q_prior_sd)
             grad = prior_grad
             grad[data.tasks] += d_q
             objective = value + prior
@@ -111,15 +132,15 @@ class BehavioralCloning(Learner):
             )
             if bound is not None:
                 self.table = np.clip(self.table, -bound, bound)
-        return objective, int(self.settings["steps"])
+        return objective, int(self.settings.steps)
 
     def _compiled_steps(self, data: TeacherData) -> tuple[float, int]:
         """The steps of ``_fit``, all in one compiled call (``_ascend``): a step is a few
         microseconds of arithmetic, which a NumPy call per operation made 150."""
-        steps = int(self.settings["steps"])
+        steps = int(self.settings.steps)
         if steps <= 0:
             return 0.0, 0
-        prior_sd = float(self.settings["q_prior_sd"])
+        prior_sd = float(self.settings.q_prior_sd)
         check_finite("Q table", self.table)
         if not np.isfinite(prior_sd) or prior_sd <= 0:
             raise ValueError(f"prior standard deviation must be positive, got {prior_sd!r}")
@@ -137,8 +158,8 @@ class BehavioralCloning(Learner):
     def ascent_arguments(self, data: TeacherData, steps: int) -> tuple[Any, ...]:
         """``_ascend``'s arguments for ``steps`` steps of this learner's table and optimiser on
         ``data``, as its settings have them."""
-        prior_sd = float(self.settings["q_prior_sd"])
-        sds = self.settings["q_bound_sds"]
+        prior_sd = float(self.settings.q_prior_sd)
+        sds = self.settings.q_bound_sds
         optimizer = self.optimizer
         return (
             np.ascontiguousarray(self.table, dtype=np.float64),
@@ -170,7 +191,7 @@ class BehavioralCloning(Learner):
         # the agent STAY there for ever.
         rows = self.table[task][visited]
         best = rows.max(axis=1, keepdims=True)
-        tolerance = float(self.settings["tie_tolerance"])
+        tolerance = float(self.settings.tie_tolerance)
         tied = rows >= best - tolerance * np.maximum(1.0, np.abs(best))
         probabilities[visited] = tied / tied.sum(axis=1, keepdims=True)
         return probabilities

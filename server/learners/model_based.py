@@ -4,36 +4,57 @@ fixed model."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import ClassVar
+
 from server.learners.planner_learner import PlannerLearner
+from server.learners.settings import CompiledPlannerSteps, PlannerSettings, setting_of
+
+
+@dataclass(frozen=True, kw_only=True)
+class ModelBasedSettings(PlannerSettings, CompiledPlannerSteps):
+    """Model-based IRL's settings: the planner learners', with its own schedule."""
+
+    dynamics_steps: int = setting_of(
+        PlannerSettings,
+        "dynamics_steps",
+        200,
+        "Momentum steps of an update's dynamics fit, on the observed transitions alone.",
+    )
+    cost_steps: int = setting_of(
+        PlannerSettings,
+        "cost_steps",
+        200,
+        "Momentum steps of an update's cost fit, under the fitted dynamics.",
+    )
+    # A warm update runs 100 of the 200 cost steps (docs/defaults.md, "Shorter warm
+    # updates"; 50 kept the curves too, nearer the edge in the farming environments).
+    warm_share: float = setting_of(PlannerSettings, "warm_share", 0.5)
 
 
 class ModelBasedIRL(PlannerLearner):
-    """Model-based IRL, ``learners.make("model-based", env)`` (the module docstring)."""
+    """Model-based IRL, ``learners.make("model-based", env)`` (the module docstring): an
+    update runs the dynamics fit on the observed transitions, then the cost fit under it."""
 
     name = "model-based"
-    default_settings = {
-        **PlannerLearner.default_settings,
-        "dynamics_steps": 200,
-        "cost_steps": 200,
-        # A warm update runs 100 of the 200 cost steps (docs/defaults.md, "Shorter warm
-        # updates"; 50 kept the curves too, nearer the edge in the farming environments).
-        "warm_share": 0.5,
-    }
+    # Its code reads the planner learners' settings alone (global cost's have no compiled steps).
+    settings_type: ClassVar[type[PlannerSettings]] = ModelBasedSettings
 
     def _fit(self) -> tuple[float, int]:
+        dynamics, costs = self.dynamics_fit, self.cost_fit
         observed = self.env.model.observe(self.data.observed_transitions())
         data = self.teacher_data()
         optimizer, evaluations = self.schedule(data)
-        if self.settings["optimizer"] == "lbfgs":
-            dynamics_objective, dynamics_evaluations = self.fit_theta_lbfgs(observed, evaluations)
+        if self.settings.optimizer == "lbfgs":
+            dynamics_objective, dynamics_evaluations = dynamics.fit_lbfgs(observed, evaluations)
         else:
             # The dynamics fit never runs the planner: the momentum schedule costs little.
-            dynamics_objective = self.theta_steps(observed, int(self.settings["dynamics_steps"]))
-            dynamics_evaluations = int(self.settings["dynamics_steps"])
+            dynamics_objective = dynamics.steps(observed, int(self.settings.dynamics_steps))
+            dynamics_evaluations = int(self.settings.dynamics_steps)
         if optimizer == "lbfgs":
             if data.empty:
                 return dynamics_objective, dynamics_evaluations
-            teacher_objective, cost_evaluations = self.fit_costs_lbfgs(
+            teacher_objective, cost_evaluations = costs.fit_lbfgs(
                 self.operator(data), data, evaluations
             )
             return dynamics_objective + teacher_objective, dynamics_evaluations + cost_evaluations
@@ -41,8 +62,8 @@ class ModelBasedIRL(PlannerLearner):
         cost_steps = 0
         if not data.empty:
             operator = self.operator(data)
-            cost_steps = self.momentum_steps(int(self.settings["cost_steps"]), data)
+            cost_steps = self.momentum_steps(int(self.settings.cost_steps), data)
             if cost_steps:
-                teacher_objective = self.cost_steps(operator, data, cost_steps)
-        steps = int(self.settings["dynamics_steps"]) + cost_steps
+                teacher_objective = costs.steps(operator, data, cost_steps)
+        steps = int(self.settings.dynamics_steps) + cost_steps
         return dynamics_objective + teacher_objective, steps

@@ -23,108 +23,18 @@ from server.learners.planning import (
     check_horizon,
     checked_soft_plan,
 )
-
-# Settings every learner shares (the paper's authors' reference settings).
-COMMON_SETTINGS: dict[str, Any] = {
-    "beta": 1.0,
-    "normalized_actions": True,
-    # Added to the variance of a Q row in the normalised action model (0: the authors' rule,
-    # which divides by 1 where all of a row's values are equal).
-    "variance_floor": 0.0,
-    "epsilon": 0.05,
-    "alpha": 1.0,
-    "mu_plus": 0.1,
-    "mu_minus": 0.1,
-    "momentum": 0.7,
-    "max_step": 0.1,
-    # "step": the authors' clipped momentum (the velocity unclipped, the applied step
-    # clipped); "velocity": the clipped step kept as the velocity.
-    "momentum_clip": "step",
-}
-
-# Settings of the learners that fit per-cell costs through a planner.
-COST_SETTINGS: dict[str, Any] = {
-    "cost_prior_sd": 1.0,
-    "cost_bound": 3.0,
-    "cost_learning_rate": 0.01,
-    "dynamics_learning_rate": 1.0,
-    # m(theta): None is the model space's own prior, the authors' (navigation and farming:
-    # none; gravity: N(0, 1)); a number is a Gaussian prior of that deviation centred on the
-    # model's initialisation.
-    "dynamics_prior_sd": None,
-    # "per-task": each task's costs have an optimiser of their own, whose step is clipped on
-    # its own (the authors'); "joint": one optimiser over every task's costs.
-    "cost_optimizers": "per-task",
-    # "domain": the cells the environment's model space gives a cost (farming: the fields,
-    # not the dirt, as the authors' learners have it; elsewhere every cell); "every": all.
-    "cost_cells": "domain",
-    # "authors": the dynamics gradient of the authors' model space where it is not the
-    # exact gradient of the likelihood (farming; see TransitionModel.outcomes); "exact": the
-    # gradient of equation (5). L-BFGS-B always uses the exact gradient.
-    "dynamics_gradient": "authors",
-    # "momentum": the reference schedule of fixed momentum steps on every update;
-    # "lbfgs": L-BFGS-B over the parameter blocks on every update, stopping at convergence or
-    # after `max_evaluations` objective evaluations;
-    # "warm-lbfgs": the reference momentum schedule when a task is fitted for the first time
-    # (from its zero costs the small clipped momentum steps reach a higher likelihood than
-    # L-BFGS-B), L-BFGS-B from the warm start on every later update, capped at
-    # `warm_evaluations`. One such update reaches at least the value of one momentum update
-    # from the same start at a twentieth of its passes, but over whole runs L-BFGS-B alone
-    # ends lower; BAM's `warm_alternations` runs part of the momentum schedule first (see
-    # docs/defaults.md, "A faster optimiser").
-    "optimizer": "momentum",
-    # The planner's passes: "float32" in single precision, Q and the gradients to about 1e-5
-    # relative, the agents as the float64 passes' (the 50-agent demonstrations experiment:
-    # docs/defaults.md, "Float32 passes"), an update 0-33% cheaper; "float64" in double
-    # precision, as the published reproduction runs were made.
-    "planner_precision": "float32",
-    # True: an update's momentum cost steps, each task's (with per-task optimisers), in one
-    # compiled call, the agents as the NumPy steps' (the demonstrations and feedback
-    # experiments rerun with them: docs/defaults.md, "Compiled cost steps"), not to the
-    # last bit (a step's norm is summed in another order, a feedback step's sigmoid takes the
-    # C library's tanh); False: step by step in NumPy, as the published reproduction runs were
-    # made.
-    "compiled_steps": True,
-    # True: an update's momentum steps on the dynamics parameters (BAM's dynamics steps
-    # outside their planner passes; model-based IRL's whole dynamics fit) in compiled calls,
-    # the agents as the NumPy steps' (docs/defaults.md, "Compiled dynamics steps"), not to
-    # the last bit (the C library's tanh, exp and log, sums in order); False: in NumPy, as the
-    # runs before them were made.
-    "compiled_dynamics_steps": True,
-    "max_evaluations": 40,
-    "warm_evaluations": 20,
-    # With optimizer "momentum": the share of the planning steps (BAM's alternations,
-    # model-based IRL's cost steps) an update runs when every task it plans has been fitted
-    # before (a warm start); 1 is the authors' schedule on every update. A task's first fit
-    # always runs the whole schedule. BAM's and model-based IRL's defaults are below 1 (their
-    # classes): the 50-agent demonstrations experiment keeps their curves there
-    # (docs/defaults.md, "Shorter warm updates").
-    "warm_share": 1.0,
-}
+from server.learners.settings import (
+    MOMENTUM_CLIPS,
+    CommonSettings,
+    PlannerSettings,
+    check_choice,
+)
 
 # Teacher data is planned over the states it reaches when those are at most this share of
 # the states (``TeacherData.restricted``). On an AVX-512 AMD EPYC, 2 cores, 2026-11-28:
 # three-fields' data reaches 272 of 384 states, and its passes restricted cost 14-16% less than
 # over every state; two-fields' reaches 367, and they cost 1.5-1.8 times as much.
 RESTRICT_BELOW = 0.9
-
-OPTIMIZERS = ("momentum", "lbfgs", "warm-lbfgs")
-# One optimiser per task's parameters (the authors'), or one for all of them.
-OPTIMIZER_SCOPES = ("per-task", "joint")
-
-
-def check_choice(name: str, value: Any, choices: tuple[str, ...]) -> None:
-    """A setting that must be one of ``choices``."""
-    if value not in choices:
-        raise ValueError(f"{name} must be one of {', '.join(map(repr, choices))}, got {value!r}")
-
-
-def check_positive_or_none(name: str, value: Any) -> None:
-    """A setting that is a positive number, or None (bools are refused)."""
-    if value is not None and (
-        isinstance(value, bool) or not isinstance(value, int | float) or value <= 0
-    ):
-        raise ValueError(f"{name} must be a positive number or None, got {value!r}")
 
 
 def taught_tasks(log: DataLog) -> np.ndarray:
@@ -217,20 +127,18 @@ class TeacherData:
         return mask
 
 
-def action_model(settings: dict[str, Any]) -> ActionModel:
+def action_model(settings: CommonSettings) -> ActionModel:
     return _action_model(
-        float(settings["beta"]),
-        bool(settings["normalized_actions"]),
-        float(settings["variance_floor"]),
+        float(settings.beta), bool(settings.normalized_actions), float(settings.variance_floor)
     )
 
 
-def feedback_model(settings: dict[str, Any]) -> FeedbackModel:
+def feedback_model(settings: CommonSettings) -> FeedbackModel:
     return _feedback_model(
-        float(settings["epsilon"]),
-        float(settings["alpha"]),
-        float(settings["mu_plus"]),
-        float(settings["mu_minus"]),
+        float(settings.epsilon),
+        float(settings.alpha),
+        float(settings.mu_plus),
+        float(settings.mu_minus),
     )
 
 
@@ -246,7 +154,7 @@ def _feedback_model(epsilon: float, alpha: float, mu_plus: float, mu_minus: floa
     return FeedbackModel(epsilon=epsilon, alpha=alpha, mu_plus=mu_plus, mu_minus=mu_minus)
 
 
-def likelihood_arguments(data: TeacherData, settings: dict[str, Any]) -> tuple[Any, ...]:
+def likelihood_arguments(data: TeacherData, settings: CommonSettings) -> tuple[Any, ...]:
     """The teacher data and the action and feedback models as the compiled likelihood
     (``likelihoods.data_log_likelihood_kernel``, but for its Q and sigmoids) takes them: the
     demonstrations, the action model, the agent steps, the feedback model."""
@@ -291,7 +199,7 @@ def planned_teacher_log_likelihood(
     operator: TransitionOperator,
     rewards: np.ndarray,
     data: TeacherData,
-    settings: dict[str, Any],
+    settings: PlannerSettings,
     horizon: int,
     need_transitions: bool,
 ) -> tuple[float, np.ndarray, np.ndarray | None]:
@@ -309,16 +217,13 @@ def planned_teacher_log_likelihood(
         rewards,
         actions.beta,
         check_horizon(horizon),
-        dtype=PRECISIONS[settings["planner_precision"]],
+        dtype=PRECISIONS[settings.planner_precision],
     )
     value, d_q = teacher_log_likelihood(
         plan.q_all.astype(np.float64, copy=False), data, actions, feedback_model(settings)
     )
     d_rewards, d_transitions = plan.checked_backward(d_q, need_transitions=need_transitions)
     return value, d_rewards, d_transitions
-
-
-MOMENTUM_CLIPS = ("step", "velocity")
 
 
 class MomentumAscent:

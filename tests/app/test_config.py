@@ -54,7 +54,15 @@ def test_the_default_is_the_papers_study() -> None:
         ),
         (
             ("# [learner_settings.bam]", "learner_settings = { bam = { speed = 2 } }"),
-            "learner_settings.bam: unknown setting(s) speed",
+            "learner_settings.bam: unknown setting(s) speed; valid: alpha, alternations, beta",
+        ),
+        (
+            ("# [learner_settings.bam]", "learner_settings = { bam = { alternations = 2.5 } }"),
+            "learner_settings.bam: alternations must be an integer, got 2.5",
+        ),
+        (
+            ("# [learner_settings.bam]", 'learner_settings = { cloning = { optimizers = "x" } }'),
+            "learner_settings.cloning: optimizers must be one of 'per-task', 'joint', got 'x'",
         ),
         (('hex = "#CC79A7"', 'hex = "purple"'), "colours.5.hex"),
         (

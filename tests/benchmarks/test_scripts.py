@@ -86,7 +86,7 @@ def test_versus_times_the_same_saved_update_at_both_settings_alternately(monkeyp
     for state in restored:
         assert all(state[key] is first[key] for key in first if key != "settings")
         assert {k: v for k, v in state["settings"].items() if k != "planner_precision"} == {
-            k: v for k, v in learner.settings.items() if k != "planner_precision"
+            k: v for k, v in learner.settings.as_dict().items() if k != "planner_precision"
         }
 
 

@@ -24,7 +24,7 @@ from tests.learners.test_objective import teach
 def assert_same_fit(compiled: Any, plain: Any, tolerance: float) -> None:
     """An update of ``compiled`` against one of ``plain`` (the same learner, NumPy's steps)."""
     result, expected = compiled.update(), plain.update()
-    assert result.steps == expected.steps == compiled.settings["steps"]
+    assert result.steps == expected.steps == compiled.settings.steps
     assert result.objective == pytest.approx(expected.objective, rel=tolerance)
     np.testing.assert_allclose(compiled.table, plain.table, rtol=0, atol=tolerance)
     np.testing.assert_allclose(
@@ -94,7 +94,7 @@ def test_a_gradient_that_is_not_finite_is_refused() -> None:
     teach(learner, seed=0)
     table = np.ones_like(learner.table)
     learner.table = table
-    learner.settings["q_prior_sd"] = 1e-200  # squared: 0
+    learner.settings = learner.settings.replace(q_prior_sd=1e-200)  # squared: 0
     *_, code = _ascend(*learner.ascent_arguments(TeacherData.from_log(learner.data), 5))
     assert code == GRADIENT_NOT_FINITE
     assert (table == 1.0).all()

@@ -51,10 +51,10 @@ def steps_both_ways(learner: PlannerLearner) -> tuple[PlannerLearner, float, Pla
     numpy_steps = restore(learner.env, state)
     compiled = restore(learner.env, state)
     assert isinstance(numpy_steps, PlannerLearner) and isinstance(compiled, PlannerLearner)
-    compiled.settings["compiled_steps"] = True
+    compiled.settings = compiled.settings.replace(compiled_steps=True)
     data = numpy_steps.teacher_data()
-    value = numpy_steps.cost_steps(numpy_steps.operator(data), data, STEPS)
-    compiled_value = compiled.cost_steps(compiled.operator(data), data, STEPS)
+    value = numpy_steps.cost_fit.steps(numpy_steps.operator(data), data, STEPS)
+    compiled_value = compiled.cost_fit.steps(compiled.operator(data), data, STEPS)
     return numpy_steps, value, compiled, compiled_value
 
 
@@ -83,11 +83,14 @@ def test_compiled_cost_steps_take_the_numpy_steps(
     assert np.max(np.abs(numpy_steps.costs - start)) > 1e-3  # the steps moved the costs
     np.testing.assert_allclose(compiled.costs, numpy_steps.costs, rtol=0, atol=1e-12)
     np.testing.assert_allclose(
-        compiled.cost_optimizer.velocity, numpy_steps.cost_optimizer.velocity, rtol=0, atol=1e-12
+        compiled.cost_fit.optimizer.velocity,
+        numpy_steps.cost_fit.optimizer.velocity,
+        rtol=0,
+        atol=1e-12,
     )
     assert compiled_value == pytest.approx(value, rel=1e-12)
     # Cells without a cost stay at 0 (farming's dirt).
-    assert np.all(compiled.costs[:, ~compiled.cost_mask] == 0.0)
+    assert np.all(compiled.costs[:, ~compiled.cost_fit.mask] == 0.0)
 
 
 @pytest.mark.parametrize("precision", ["float64", "float32"])
@@ -122,10 +125,10 @@ def test_compiled_cost_steps_split_over_threads_give_the_same_bits(
     for threads in (1, 2, 3):
         with planning.using_planner_threads(threads):
             copy = restore(learner.env, state)
-            copy.settings["compiled_steps"] = True
+            copy.settings = copy.settings.replace(compiled_steps=True)
             objective = copy.update().objective
         assert isinstance(copy, PlannerLearner)
-        results[threads] = (copy.costs, copy.cost_optimizer.velocity, copy.theta, objective)
+        results[threads] = (copy.costs, copy.cost_fit.optimizer.velocity, copy.theta, objective)
     for threads in (2, 3):
         for one, split in zip(results[1], results[threads], strict=True):
             np.testing.assert_array_equal(split, one)
@@ -135,19 +138,21 @@ def test_a_gradient_that_is_not_finite_is_refused_and_the_costs_stay() -> None:
     """A prior so narrow that its gradient overflows: both ways refuse the step with the same
     error, and the compiled steps leave the learner's costs and velocity as they were."""
     learner = taught("wall", "model-based", feedback=False)
-    learner.settings["cost_prior_sd"] = 1e-200  # its variance underflows to 0
+    learner.settings = learner.settings.replace(
+        cost_prior_sd=1e-200
+    )  # its variance underflows to 0
     state = learner.state_dict()
     for compiled in (False, True):
         copy = restore(learner.env, state)
         assert isinstance(copy, PlannerLearner)
-        copy.settings["compiled_steps"] = compiled
-        costs, velocity = copy.costs.copy(), copy.cost_optimizer.velocity.copy()
+        copy.settings = copy.settings.replace(compiled_steps=compiled)
+        costs, velocity = copy.costs.copy(), copy.cost_fit.optimizer.velocity.copy()
         data = copy.teacher_data()
         with pytest.raises(FloatingPointError, match="gradient is not finite"):
-            copy.cost_steps(copy.operator(data), data, STEPS)
+            copy.cost_fit.steps(copy.operator(data), data, STEPS)
         if compiled:
             np.testing.assert_array_equal(copy.costs, costs)
-            np.testing.assert_array_equal(copy.cost_optimizer.velocity, velocity)
+            np.testing.assert_array_equal(copy.cost_fit.optimizer.velocity, velocity)
 
 
 @pytest.mark.parametrize("sd", [0.0, -1.0, float("nan")])
@@ -157,11 +162,11 @@ def test_a_prior_deviation_that_is_not_positive_is_refused_both_ways(sd: float) 
     for compiled in (False, True):
         copy = restore(learner.env, state)
         assert isinstance(copy, PlannerLearner)
-        copy.settings.update(compiled_steps=compiled, cost_prior_sd=sd)
+        copy.settings = copy.settings.replace(compiled_steps=compiled, cost_prior_sd=sd)
         costs = copy.costs.copy()
         data = copy.teacher_data()
         with pytest.raises(ValueError, match="prior standard deviation must be positive"):
-            copy.cost_steps(copy.operator(data), data, STEPS)
+            copy.cost_fit.steps(copy.operator(data), data, STEPS)
         np.testing.assert_array_equal(copy.costs, costs)
 
 
@@ -170,8 +175,8 @@ def test_the_global_cost_learner_has_no_compiled_cost_steps() -> None:
     env = domains.make("wall")
     with pytest.raises(ValueError, match="compiled_steps"):
         make("global-cost", env, compiled_steps=True)
-    assert make("bam", env).settings["compiled_steps"] is True
-    assert make("model-based", env).settings["compiled_steps"] is True
+    assert make("bam", env).settings.compiled_steps is True
+    assert make("model-based", env).settings.compiled_steps is True
 
 
 def test_a_state_saved_before_compiled_cost_steps_keeps_the_numpy_steps() -> None:
@@ -180,4 +185,4 @@ def test_a_state_saved_before_compiled_cost_steps_keeps_the_numpy_steps() -> Non
     state = learner.state_dict()
     del state["settings"]["compiled_steps"]
     restored = restore(learner.env, state)
-    assert restored.settings["compiled_steps"] is False
+    assert restored.settings.compiled_steps is False

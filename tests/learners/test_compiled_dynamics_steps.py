@@ -43,7 +43,7 @@ def taught(name: str, learner_name: str, **settings: Any) -> PlannerLearner:
 def both_ways(learner: PlannerLearner, compiled: bool) -> PlannerLearner:
     copy = restore(learner.env, learner.state_dict())
     assert isinstance(copy, PlannerLearner)
-    copy.settings["compiled_dynamics_steps"] = compiled
+    copy.settings = copy.settings.replace(compiled_dynamics_steps=compiled)
     return copy
 
 
@@ -74,19 +74,19 @@ def test_compiled_dynamics_steps_take_the_numpy_steps(
     results = []
     for compiled in (False, True):
         copy = both_ways(learner, compiled)
-        assert copy.compiles_theta_steps() is compiled
+        assert copy.dynamics_fit.compiled is compiled
         observed = observed_of(copy)
         data = copy.teacher_data()
         if name == "three-fields":
             assert data.plan_states is not None
         values = []
         if isinstance(copy, BAM):
-            cost_prior, _ = copy.cost_prior(copy.costs)
+            cost_prior, _ = copy.cost_fit.prior(copy.costs)
             for _ in range(STEPS):
                 values.append(copy._dynamics_step(data, observed, cost_prior))
         else:
-            values.append(copy.theta_steps(observed, STEPS))
-        results.append((copy.theta.copy(), copy.theta_optimizer.velocity.copy(), values))
+            values.append(copy.dynamics_fit.steps(observed, STEPS))
+        results.append((copy.theta.copy(), copy.dynamics_fit.optimizer.velocity.copy(), values))
     (theta, velocity, values), (compiled_theta, compiled_velocity, compiled_values) = results
     assert np.max(np.abs(theta - learner.theta)) > 1e-3  # the steps moved theta
     np.testing.assert_allclose(compiled_theta, theta, rtol=0, atol=1e-11)
@@ -124,7 +124,7 @@ def test_the_compiled_teacher_gradient_is_the_passes_one(
             agent_episode(learner, env, teacher, rng, task=0, steps=15)
         learner.update()
     data = learner.teacher_data()
-    value, _, d_transitions = learner.teacher_objective(learner.operator(data), data, True)
+    value, _, d_transitions = learner.cost_fit.teacher_objective(learner.operator(data), data, True)
     compiled_value, compiled_d = learner.teacher_gradient(data)
     assert compiled_d.shape == d_transitions.shape
     assert np.count_nonzero(compiled_d) > 0
@@ -170,7 +170,7 @@ def test_bam_s_dynamics_steps_in_one_call_take_its_steps_one_by_one(
         copy = both_ways(learner, compiled=True)
         assert isinstance(copy, BAM)
         observed, data = observed_of(copy), copy.teacher_data()
-        cost_prior, _ = copy.cost_prior(copy.costs)
+        cost_prior, _ = copy.cost_fit.prior(copy.costs)
         if whole:
             value, done = copy.dynamics_steps_in_one_call(data, observed, STEPS)
             assert done == STEPS
@@ -178,7 +178,7 @@ def test_bam_s_dynamics_steps_in_one_call_take_its_steps_one_by_one(
         else:
             for _ in range(STEPS):
                 value = copy._dynamics_step(data, observed, cost_prior)
-        results.append((copy.theta.copy(), copy.theta_optimizer.velocity.copy(), value))
+        results.append((copy.theta.copy(), copy.dynamics_fit.optimizer.velocity.copy(), value))
     (theta, velocity, value), (whole_theta, whole_velocity, whole_value) = results
     assert np.max(np.abs(theta - learner.theta)) > 1e-3
     np.testing.assert_allclose(whole_theta, theta, rtol=0, atol=1e-10)
@@ -194,7 +194,9 @@ def test_a_table_whose_zeros_leave_the_layouts_is_stepped_outside(
     those steps the other way and learns what the kernel would have."""
     learner = taught("doorway", "bam")
     assert isinstance(learner, BAM)
-    learner.settings["warm_share"] = 0.2  # two alternations: rounding has no time to grow
+    learner.settings = learner.settings.replace(
+        warm_share=0.2
+    )  # two alternations: rounding has no time to grow
     reference = both_ways(learner, compiled=True)
     reference.update()
     real = planning.TransitionOperator.layout
@@ -222,7 +224,9 @@ def test_a_whole_update_learns_the_same_both_ways() -> None:
     """Doorway's BAM update (its dynamics steps and the walls learned through the teacher's
     data): the same theta and costs to rounding."""
     learner = taught("doorway", "bam")
-    learner.settings["warm_share"] = 0.2  # two alternations: rounding has no time to grow
+    learner.settings = learner.settings.replace(
+        warm_share=0.2
+    )  # two alternations: rounding has no time to grow
     updated = []
     for compiled in (False, True):
         copy = both_ways(learner, compiled)
@@ -241,11 +245,11 @@ def test_an_impossible_observed_transition_is_refused_both_ways() -> None:
     observed = env.model.observe(np.array([[env.state_of(0, 0), 0, far]]))
     for compiled in (False, True):
         copy = both_ways(learner, compiled)
-        theta, velocity = copy.theta.copy(), copy.theta_optimizer.velocity.copy()
+        theta, velocity = copy.theta.copy(), copy.dynamics_fit.optimizer.velocity.copy()
         with pytest.raises(ValueError, match=r"observed transition \(0, 0, \d+\) is impossible"):
-            copy.theta_steps(observed, STEPS)
+            copy.dynamics_fit.steps(observed, STEPS)
         np.testing.assert_array_equal(copy.theta, theta)
-        np.testing.assert_array_equal(copy.theta_optimizer.velocity, velocity)
+        np.testing.assert_array_equal(copy.dynamics_fit.optimizer.velocity, velocity)
 
 
 def test_a_gradient_that_is_not_finite_is_refused_and_theta_stays() -> None:
@@ -253,28 +257,32 @@ def test_a_gradient_that_is_not_finite_is_refused_and_theta_stays() -> None:
     for compiled in (False, True):
         copy = both_ways(learner, compiled)
         data = copy.teacher_data()
-        _, _, d_transitions = copy.teacher_objective(copy.operator(data), data, True)
+        _, _, d_transitions = copy.cost_fit.teacher_objective(copy.operator(data), data, True)
         assert d_transitions is not None
         d_transitions = d_transitions.copy()
         d_transitions.reshape(-1)[copy.plan_model(data).flat_parametric_entries[0]] = np.inf
-        theta, velocity = copy.theta.copy(), copy.theta_optimizer.velocity.copy()
+        theta, velocity = copy.theta.copy(), copy.dynamics_fit.optimizer.velocity.copy()
         # (NumPy warns of the inf - inf its softmax pull-back meets on the way.)
         with np.errstate(invalid="ignore"), pytest.raises(FloatingPointError, match="not finite"):
-            copy.theta_steps(observed_of(copy), 1, data, d_transitions)
+            copy.dynamics_fit.steps(observed_of(copy), 1, copy.plan_model(data), d_transitions)
         if compiled:
             np.testing.assert_array_equal(copy.theta, theta)
-            np.testing.assert_array_equal(copy.theta_optimizer.velocity, velocity)
+            np.testing.assert_array_equal(copy.dynamics_fit.optimizer.velocity, velocity)
 
 
 @pytest.mark.parametrize("sd", [0.0, -1.0])
 def test_a_dynamics_prior_deviation_that_is_not_positive_is_refused_both_ways(sd: float) -> None:
+    """Refused where the settings are made; and the steps refuse it themselves, both ways
+    (the settings' check passed by, as a state's settings could not be)."""
     learner = taught("wall", "model-based")
+    with pytest.raises(ValueError, match="dynamics_prior_sd must be a positive number"):
+        learner.settings.replace(dynamics_prior_sd=sd)
     for compiled in (False, True):
         copy = both_ways(learner, compiled)
-        copy.settings["dynamics_prior_sd"] = sd
+        object.__setattr__(copy.settings, "dynamics_prior_sd", sd)  # past the frozen check
         theta = copy.theta.copy()
         with pytest.raises(ValueError, match="prior standard deviation must be positive"):
-            copy.theta_steps(observed_of(copy), STEPS)
+            copy.dynamics_fit.steps(observed_of(copy), STEPS)
         np.testing.assert_array_equal(copy.theta, theta)
 
 
@@ -282,9 +290,9 @@ def test_the_global_cost_learner_keeps_its_numpy_dynamics_steps() -> None:
     env = domains.make("wall")
     with pytest.raises(ValueError, match="compiled_dynamics_steps"):
         make("global-cost", env, compiled_dynamics_steps=True)
-    assert not make("global-cost", env).compiles_theta_steps()
-    assert make("bam", env).compiles_theta_steps()
-    assert make("model-based", env).compiles_theta_steps()
+    assert not make("global-cost", env).dynamics_fit.compiled
+    assert make("bam", env).dynamics_fit.compiled
+    assert make("model-based", env).dynamics_fit.compiled
 
 
 def test_a_state_saved_before_compiled_dynamics_steps_keeps_the_numpy_steps() -> None:
@@ -293,5 +301,5 @@ def test_a_state_saved_before_compiled_dynamics_steps_keeps_the_numpy_steps() ->
     state = learner.state_dict()
     del state["settings"]["compiled_dynamics_steps"]
     restored = restore(learner.env, state)
-    assert restored.settings["compiled_dynamics_steps"] is False
-    assert isinstance(restored, PlannerLearner) and not restored.compiles_theta_steps()
+    assert restored.settings.compiled_dynamics_steps is False
+    assert isinstance(restored, PlannerLearner) and not restored.dynamics_fit.compiled

@@ -3,7 +3,7 @@ scores a normalised return of 1."""
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import pytest
@@ -25,7 +25,6 @@ class TeacherPolicy(Learner):
     """A 'learner' that acts greedily on the teacher's hard-max Q."""
 
     name = "teacher-policy"
-    default_settings: ClassVar[dict[str, Any]] = {}
 
     def __init__(self, env: Environment, seed: int = 0, **settings: Any) -> None:
         super().__init__(env, seed, **settings)

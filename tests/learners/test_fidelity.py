@@ -56,9 +56,9 @@ def test_each_task_s_step_is_clipped_on_its_own() -> None:
 def test_planner_learners_default_to_the_authors_optimiser(name: str) -> None:
     env = domains.make("two-fields")
     learner = make_learner(name, env)
-    assert learner.cost_optimizer.clip == "step"
-    assert learner.cost_optimizer.rows == len(env.tasks)
-    assert learner.theta_optimizer.clip == "step"
+    assert learner.cost_fit.optimizer.clip == "step"
+    assert learner.cost_fit.optimizer.rows == len(env.tasks)
+    assert learner.dynamics_fit.optimizer.clip == "step"
 
 
 # -- model spaces and priors ---------------------------------------------------------------
@@ -66,7 +66,7 @@ def test_planner_learners_default_to_the_authors_optimiser(name: str) -> None:
 
 def test_navigation_has_no_prior_on_the_dynamics() -> None:
     learner = make_learner("bam", domains.make("doorway"))
-    value, gradient = learner.dynamics_prior(np.full(learner.theta.shape, 5.0))
+    value, gradient = learner.dynamics_fit.prior(np.full(learner.theta.shape, 5.0))
     assert value == 0.0 and not gradient.any()
 
 
@@ -74,11 +74,11 @@ def test_gravity_has_the_authors_unit_normal_prior_and_clips_at_50() -> None:
     env = domains.make("flip")
     learner = make_learner("bam", env)
     theta = np.linspace(-2, 2, env.model.num_parameters)
-    value, gradient = learner.dynamics_prior(theta)
+    value, gradient = learner.dynamics_fit.prior(theta)
     assert value == pytest.approx(-0.5 * (theta**2).sum())
     assert np.allclose(gradient, -theta)
     learner.theta = np.full(env.model.num_parameters, 49.99)
-    learner.theta_step(np.full(env.model.num_parameters, 1e6))
+    learner.dynamics_fit.step(np.full(env.model.num_parameters, 1e6))
     assert learner.theta.max() == 50.0
 
 
@@ -89,16 +89,16 @@ def test_farming_is_four_terrains_without_prior_from_a_quarter_and_clips_at_50()
     p = env.model.primitives(env.model.initial_parameters())
     assert np.allclose(p, 0.25)
     learner = make_learner("model-based", env)
-    value, gradient = learner.dynamics_prior(np.full(env.model.num_parameters, 7.0))
+    value, gradient = learner.dynamics_fit.prior(np.full(env.model.num_parameters, 7.0))
     assert value == 0.0 and not gradient.any()
     learner.theta = np.full(env.model.num_parameters, -49.99)
-    learner.theta_step(np.full(env.model.num_parameters, -1e6))
+    learner.dynamics_fit.step(np.full(env.model.num_parameters, -1e6))
     assert learner.theta.min() == -50.0
 
 
 def test_a_named_gaussian_prior_replaces_the_model_space_s_own() -> None:
     learner = make_learner("bam", domains.make("doorway"), dynamics_prior_sd=3.0)
-    value, _ = learner.dynamics_prior(learner.theta + 3.0)
+    value, _ = learner.dynamics_fit.prior(learner.theta + 3.0)
     assert value == pytest.approx(-0.5 * learner.theta.size)
     with pytest.raises(ValueError, match="dynamics_prior_sd"):
         make_learner("bam", domains.make("doorway"), dynamics_prior_sd=-1.0)
@@ -313,8 +313,8 @@ def test_cloning_keeps_a_variance_floor_and_does_not_collapse() -> None:
     from tests.learners._support import demonstrate_round
 
     env = domains.make("doorway")
-    assert make_learner("cloning", env).settings["variance_floor"] == 1e-8
-    assert make_learner("bam", env).settings["variance_floor"] == 0.0
+    assert make_learner("cloning", env).settings.variance_floor == 1e-8
+    assert make_learner("bam", env).settings.variance_floor == 0.0
     returns, deviations = {}, {}
     for floor in (1e-8, 0.0):
         learner = make_learner("cloning", env, seed=0, variance_floor=floor)

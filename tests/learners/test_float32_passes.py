@@ -137,7 +137,9 @@ def test_a_float32_update_reaches_the_float64_update_s_objective(learner: str) -
         for each in learners.values():
             each.update()
         assert not np.array_equal(learners["float32"].costs, learners["float64"].costs)
-        learners["float32"].settings["planner_precision"] = "float64"
+        learners["float32"].settings = learners["float32"].settings.replace(
+            planner_precision="float64"
+        )
         reference, single = (
             learners[precision].objective()[0] for precision in ("float64", "float32")
         )

@@ -65,10 +65,10 @@ def test_settings_default_to_the_reference_and_can_be_overridden(name: str) -> N
     learner = learners.make(name, env)
     reference = {"beta": 1.0, "epsilon": 0.05, "alpha": 1.0, "mu_plus": 0.1, "mu_minus": 0.1}
     for key, value in reference.items():
-        assert learner.settings[key] == value, key
-    assert learner.settings["normalized_actions"] is True
+        assert getattr(learner.settings, key) == value, key
+    assert learner.settings.normalized_actions is True
     overridden = learners.make(name, env, beta=2.0, epsilon=0.1)
-    assert overridden.settings["beta"] == 2.0 and overridden.settings["epsilon"] == 0.1
+    assert overridden.settings.beta == 2.0 and overridden.settings.epsilon == 0.1
     with pytest.raises(ValueError, match="unknown setting"):
         learners.make(name, env, betta=2.0)
 
@@ -76,19 +76,19 @@ def test_settings_default_to_the_reference_and_can_be_overridden(name: str) -> N
 def test_reference_optimisation_settings() -> None:
     env = domains.make("wall")
     planner = learners.make("bam", env)
-    assert planner.settings["cost_prior_sd"] == 1.0 and planner.settings["cost_bound"] == 3.0
-    assert (planner.settings["alternations"], planner.settings["cost_steps"]) == (10, 20)
-    assert planner.settings["dynamics_steps"] == 20
+    assert planner.settings.cost_prior_sd == 1.0 and planner.settings.cost_bound == 3.0
+    assert (planner.settings.alternations, planner.settings.cost_steps) == (10, 20)
+    assert planner.settings.dynamics_steps == 20
     assert np.all(planner.theta == -3.0)  # navigation cells presumed free
     model_based = learners.make("model-based", env)
-    assert (model_based.settings["dynamics_steps"], model_based.settings["cost_steps"]) == (
+    assert (model_based.settings.dynamics_steps, model_based.settings.cost_steps) == (
         200,
         200,
     )
     # Warm updates run part of the schedule (docs/defaults.md, "Shorter warm updates");
     # the global-cost learner, not run through its experiment so, the whole of it.
-    assert planner.settings["warm_share"] == 0.7 and model_based.settings["warm_share"] == 0.5
-    assert learners.make("global-cost", env).settings["warm_share"] == 1.0
+    assert planner.settings.warm_share == 0.7 and model_based.settings.warm_share == 0.5
+    assert learners.make("global-cost", env).settings.warm_share == 1.0
 
 
 # -- policies --------------------------------------------------------------------------------------

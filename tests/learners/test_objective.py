@@ -85,7 +85,7 @@ def cloning_objective(learner: Any) -> tuple[float, dict[str, np.ndarray]]:
         action_model(learner.settings),
         feedback_model(learner.settings),
     )
-    prior, gradient = gaussian_log_prior(learner.table, 0.0, learner.settings["q_prior_sd"])
+    prior, gradient = gaussian_log_prior(learner.table, 0.0, learner.settings.q_prior_sd)
     gradient = gradient.copy()
     gradient[data.tasks] += d_q
     return value + prior, {"table": gradient}
@@ -103,7 +103,7 @@ TOLERANCES = {"float64": (1e-5, 1e-6), "float32": (2e-3, 1e-4)}
 def check_gradients(learner: Any, seed: int) -> None:
     """The objective's gradient at the learner's precision against central differences of
     its float64 objective (float32's rounding would swamp a difference quotient)."""
-    precision = learner.settings.get("planner_precision", "float64")
+    precision = getattr(learner.settings, "planner_precision", "float64")
     rtol, atol = TOLERANCES[precision]
     value, gradients = objective_of(learner)
     assert np.isfinite(value)
@@ -118,17 +118,17 @@ def check_gradients(learner: Any, seed: int) -> None:
 
         def value_at(x: np.ndarray, block: str = block, shape=parameters.shape) -> float:
             setattr(learner, block, x.reshape(shape))
-            if "planner_precision" in learner.settings:
-                learner.settings["planner_precision"] = "float64"
+            if hasattr(learner.settings, "planner_precision"):
+                learner.settings = learner.settings.replace(planner_precision="float64")
             try:
                 return objective_of(learner)[0]
             finally:
-                if "planner_precision" in learner.settings:
-                    learner.settings["planner_precision"] = precision
+                if hasattr(learner.settings, "planner_precision"):
+                    learner.settings = learner.settings.replace(planner_precision=precision)
 
         indices = probe_indices(analytic, rng, count=6)
         if block == "costs":  # only the cells that carry a cost are parameters (farming)
-            fitted = np.broadcast_to(learner.cost_mask, parameters.shape).ravel()
+            fitted = np.broadcast_to(learner.cost_fit.mask, parameters.shape).ravel()
             indices = indices[fitted[indices]]
         numeric = central_difference(value_at, parameters, indices)
         setattr(learner, block, parameters)
@@ -140,8 +140,8 @@ def check_gradients(learner: Any, seed: int) -> None:
 def made(name: str, environment: str, precision: str) -> Any:
     """A learner of ``name`` whose passes run in ``precision`` (cloning has none)."""
     learner = learners.make(name, domains.make(environment), seed=0)
-    if "planner_precision" in learner.settings:
-        learner.settings["planner_precision"] = precision
+    if hasattr(learner.settings, "planner_precision"):
+        learner.settings = learner.settings.replace(planner_precision=precision)
     return learner
 
 
@@ -176,7 +176,7 @@ def test_objective_without_teacher_data_is_dynamics_and_priors(name: str) -> Non
     randomise(learner, seed=8)
     _, gradients = learner.objective()
     np.testing.assert_allclose(
-        gradients["costs"], -learner.costs / learner.settings["cost_prior_sd"] ** 2, rtol=1e-12
+        gradients["costs"], -learner.costs / learner.settings.cost_prior_sd**2, rtol=1e-12
     )
     check_gradients(learner, seed=9)
 
@@ -226,7 +226,7 @@ def test_planning_over_the_states_the_data_reaches_changes_no_bit(
     )
     results = []
     for data in (whole, part):
-        value, d_rewards, d_transitions = learner.teacher_objective(
+        value, d_rewards, d_transitions = learner.cost_fit.teacher_objective(
             learner.operator(data), data, need_transitions=True
         )
         results.append((value, d_rewards, learner.pullback(data, d_transitions)))

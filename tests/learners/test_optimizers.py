@@ -23,8 +23,8 @@ def reference_passes(learner: Any) -> int:
     """Steps in one update of the reference momentum schedule with teacher data."""
     s = learner.settings
     if learner.name == "bam":
-        return int(s["alternations"]) * (int(s["cost_steps"]) + int(s["dynamics_steps"]))
-    return int(s["dynamics_steps"]) + int(s["cost_steps"])
+        return int(s.alternations) * (int(s.cost_steps) + int(s.dynamics_steps))
+    return int(s.dynamics_steps) + int(s.cost_steps)
 
 
 def demonstrate_task(learner: Any, env: Any, teacher: Teacher, task: int, rng: Any) -> None:
@@ -52,7 +52,7 @@ def test_warm_lbfgs_runs_momentum_for_a_first_fit_and_lbfgs_afterwards(name: str
     full = reference_passes(learner)
     # A cold update is the whole reference schedule; a warm one at most the cap on
     # L-BFGS-B's evaluations (model-based IRL adds its planner-free dynamics steps).
-    dynamics = 0 if name == "bam" else int(learner.settings["dynamics_steps"])
+    dynamics = 0 if name == "bam" else int(learner.settings.dynamics_steps)
     assert steps[0] == full and steps[2] == full
     for warm in (steps[1], steps[3]):
         assert dynamics < warm <= dynamics + 7 + 2  # L-BFGS-B may finish its last line search
@@ -117,7 +117,7 @@ def test_warm_alternations_run_momentum_alternations_from_rest_then_lbfgs() -> N
     # SciPy's L-BFGS-B checks its evaluation cap between iterations: the line search it is in
     # (at most 20 evaluations) may pass it. How far depends on the path, whose last bits depend
     # on the BLAS kernels the CPU selects (2 over on AVX2 machines, 4 on AVX-512 ones).
-    assert 1 <= evaluations < int(learner.settings["warm_evaluations"]) + LINE_SEARCH_EVALUATIONS
+    assert 1 <= evaluations < int(learner.settings.warm_evaluations) + LINE_SEARCH_EVALUATIONS
     assert learner.objective()[0] > momentum.objective()[0]
     # Without the L-BFGS-B part, exactly the momentum steps from rest; with the saved velocity
     # kept they would differ.
@@ -146,14 +146,14 @@ def test_warm_share_runs_the_whole_schedule_for_a_first_fit_and_its_share_afterw
     full = reference_passes(learner)
     s = learner.settings
     if name == "bam":
-        half = 5 * (int(s["cost_steps"]) + int(s["dynamics_steps"]))
+        half = 5 * (int(s.cost_steps) + int(s.dynamics_steps))
     else:
-        half = int(s["dynamics_steps"]) + int(s["cost_steps"]) // 2
+        half = int(s.dynamics_steps) + int(s.cost_steps) // 2
     assert steps == [full, half, full, half]
     # The warm update is the reference schedule cut short, not another optimiser.
     demonstrate_task(learner, env, teacher, 0, rng)
     state = learner.state_dict()
-    cut = {"alternations": 5} if name == "bam" else {"cost_steps": int(s["cost_steps"]) // 2}
+    cut = {"alternations": 5} if name == "bam" else {"cost_steps": int(s.cost_steps) // 2}
     reference = learners.restore(
         env, {**state, "settings": {**state["settings"], "warm_share": 1.0, **cut}}
     )
@@ -219,7 +219,7 @@ def test_a_state_saved_before_its_settings_existed_restores_what_the_learner_did
     then = {
         k: v
         for k, v in SETTINGS_BEFORE_THEY_EXISTED.items()
-        if k in learners.make(name, env).settings
+        if k in learners.make(name, env).settings.names()
     }
     assert then
     before = learners.make(name, env, seed=1, beta=2.0, **then)
@@ -229,8 +229,8 @@ def test_a_state_saved_before_its_settings_existed_restores_what_the_learner_did
     for key in then:
         del state["settings"][key]
     restored = learners.restore(env, learners.loads(learners.dumps(state)))
-    assert {key: restored.settings[key] for key in then} == then
-    assert restored.settings["beta"] == 2.0
+    assert {key: getattr(restored.settings, key) for key in then} == then
+    assert restored.settings.beta == 2.0
     for learner in (before, restored):
         demonstrate_task(learner, env, Teacher(env, seed=2), 0, np.random.default_rng(2))
     results = [learner.update() for learner in (before, restored)]
@@ -269,7 +269,7 @@ def test_lbfgs_keeps_the_dynamics_parameters_where_observations_stay_possible(
     update failed ("observed transition ... is impossible"). Bounded at +-30, a machine's
     softmax in three-fields still worked with probability 1 - 1e-26, which is 1, so a failed
     move was impossible again. These runs of the feedback experiment crashed so."""
-    from server.learners.planner_learner import THETA_BOUND
+    from server.learners.dynamics_fit import THETA_BOUND
     from server.simulation.protocols import Job, run_agent
 
     job = Job("feedback", environment, "bam", agent, 10, 0, (("optimizer", "warm-lbfgs"),))

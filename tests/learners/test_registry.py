@@ -6,14 +6,16 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import pytest
 
 from server import domains, learners, names
 from server.learners.base import Learner
+from server.learners.settings import Settings, setting
 from server.names import LearnerInfo
 from server.simulation import protocols
 from tests.analysis.conftest import small_study, write_export
@@ -66,11 +68,18 @@ def test_the_names_load_no_learning_stack_and_the_package_no_learner() -> None:
 # -- a fifth learner, registered in one line ---------------------------------------------------
 
 
+@dataclass(frozen=True, kw_only=True)
+class ToySettings(Settings):
+    """The toy's one setting."""
+
+    spread: float = setting(1.0, "Unused: the toy is uniform over the actions whatever it is.")
+
+
 class ToyLearner(Learner):
     """Uniform over the actions, whatever it is taught."""
 
     name = "toy"
-    default_settings: ClassVar[dict[str, Any]] = {}
+    settings_type = ToySettings
 
     def _fit(self) -> tuple[float, int]:
         return 0.0, 0
@@ -107,8 +116,11 @@ def test_a_fifth_learner_is_in_every_list(toy: str) -> None:
     config, _ = build_config("demonstrations", ["wall"], ["bam", toy], 1, 1, 0)
     assert config.learners == ("bam", toy)
     env = domains.make("wall")
-    made = learners.make(toy, env, **ToyLearner.warm_up_settings)
-    assert isinstance(learners.restore(env, made.state_dict()), ToyLearner)
+    made = learners.make(toy, env, spread=2, **ToyLearner.warm_up_settings)
+    restored = learners.restore(env, made.state_dict())
+    assert isinstance(restored, ToyLearner) and restored.settings == ToySettings(spread=2)
+    with pytest.raises(ValueError, match="spread must be a number, got 'wide'"):
+        learners.make(toy, env, spread="wide")
 
 
 def test_a_fifth_learner_leaves_the_others_seeds_alone(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -66,7 +66,9 @@ class LiveViews:
 
                 return await state.run_db(read)
 
-            self.mirrors[participant_id] = Broadcast(compute, state.settings.live_mirror_seconds, changed)
+            self.mirrors[participant_id] = Broadcast(
+                compute, state.settings.live_mirror_seconds, changed
+            )
         return self.mirrors[participant_id]
 
     def forget_unwatched(self) -> None:

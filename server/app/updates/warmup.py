@@ -75,7 +75,7 @@ def _through_updates(env: Environment, learner_name: str, rng: np.random.Generat
             learner.record_agent_step(task, state, action, next_state, feedback)
             state = next_state
     learner.update()
-    if isinstance(learner, PlannerLearner) and learner.compiles_theta_steps():
+    if isinstance(learner, PlannerLearner) and learner.dynamics_fit.compiled:
         # BAM's single dynamics step (where a step left the passes' layouts, which these
         # short fits do not meet): its compiled teacher gradient.
         learner.teacher_gradient(learner.teacher_data())

@@ -25,8 +25,9 @@ from server.app.updates.compiling import (
 from server.learners import _kernels
 
 # A cached kernel of its own (numba caches only functions defined in files), compiled by two
-# processes that start it at the same moment (a barrier of files), each reporting whether it
-# compiled the kernel (a cache miss) or loaded it (a hit).
+# processes that start it at the same moment (a barrier of files), its compile made 3 s longer
+# so that each needs it while the other compiles, each reporting whether it compiled the
+# kernel (a cache miss) or loaded it (a hit).
 KERNEL = """
 from numba import njit
 
@@ -46,6 +47,11 @@ import toy_kernel
 from server.app.updates.compiling import kernels_compiled_once
 
 folder, me, guarded = Path(sys.argv[1]), sys.argv[2], sys.argv[3] == "guarded"
+compile_now = toy_kernel.kernel.compile
+def slow_compile(signature):  # a compile long enough for the other process to need it too
+    time.sleep(3)
+    return compile_now(signature)
+toy_kernel.kernel.compile = slow_compile
 (folder / f"ready-{me}").touch()
 while len(list(folder.glob("ready-*"))) < 2:
     time.sleep(0.001)

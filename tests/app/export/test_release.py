@@ -137,37 +137,85 @@ def check_data_package(out: Path) -> None:
     assert {r.name for r in package.resources} == set(FILES)
 
 
-def test_the_data_package_validates_with_its_foreign_keys(release: Path, tmp_path: Path) -> None:
+def test_the_data_package_validates_with_its_foreign_keys(release: Path) -> None:
     check_data_package(release)
     package = json.loads((release / "datapackage.json").read_text())
     schemas = {resource["name"]: resource["schema"] for resource in package["resources"]}
     assert schemas["participants"]["primaryKey"] == ["participant_id"]
     declared = {
-        (name, tuple(key["fields"]), key["reference"]["resource"])
+        (
+            name,
+            tuple(key["fields"]),
+            key["reference"]["resource"],
+            tuple(key["reference"]["fields"]),
+        )
         for name, schema in schemas.items()
         for key in schema.get("foreignKeys", [])
     }
     for name in ("sessions", "episodes", "events", "evaluations", "reviews", "bonuses"):
-        assert (name, ("participant_id",), "participants") in declared, name
-    assert ("evaluations", ("session_id",), "sessions") in declared
+        assert (name, ("participant_id",), "participants", ("participant_id",)) in declared, name
+    for name in ("episodes", "events", "evaluations"):
+        assert (name, ("session_id",), "sessions", ("session_id",)) in declared, name
+    for name in ("episodes", "events"):
+        assert (name, ("tutorial_session_id",), "tutorial_sessions", ("session_id",)) in declared
     assert package["licenses"][0]["name"] == "CC-BY-4.0"
 
-    # A session whose participant is not in participants.csv breaks a foreign key.
-    broken = tmp_path / "broken"
-    shutil.copytree(release, broken, ignore=shutil.ignore_patterns("psych-ds", "hugging-face"))
-    sessions = pd.read_csv(broken / "sessions.csv", dtype=str, keep_default_na=False)
-    sessions.loc[0, "participant_id"] = "999"
-    sessions.to_csv(broken / "sessions.csv", index=False)
+
+def broken_copy(release: Path, folder: Path, file: str, edit: Any) -> Any:
+    """The release's data package with ``file``'s rows changed by ``edit`` (a DataFrame of
+    text cells -> the rows kept), its checksums left out; frictionless's report of it."""
+    from frictionless import validate
+
+    shutil.copytree(release, folder, ignore=shutil.ignore_patterns("psych-ds", "hugging-face"))
+    rows = pd.read_csv(folder / f"{file}.csv", dtype=str, keep_default_na=False)
+    edit(rows).to_csv(folder / f"{file}.csv", index=False)
+    package = json.loads((release / "datapackage.json").read_text())
     for resource in package["resources"]:
         resource.pop("hash")
         resource.pop("bytes")
-    (broken / "datapackage.json").write_text(json.dumps(package))
-    from frictionless import validate
+    (folder / "datapackage.json").write_text(json.dumps(package))
+    return validate(folder / "datapackage.json")
 
-    report = validate(broken / "datapackage.json")
+
+def foreign_key_errors(report: Any) -> set[tuple[str, str, str, str]]:
+    """(file, its columns, the file referred to, the value) of each foreign-key error;
+    asserts that there are errors and no others."""
     assert not report.valid
-    assert {error[0] for error in report.flatten(["type"])} == {"foreign-key"}
-    assert "999" in str(report.flatten(["message"]))
+    found = set()
+    for task in report.tasks:
+        for error in task.errors:
+            assert error.type == "foreign-key", (task.name, error.message)
+            columns, value = ",".join(error.field_names), ",".join(error.field_cells)
+            found.add((task.name, columns, error.reference_name, value))
+    return found
+
+
+def test_a_session_whose_participant_is_gone_breaks_a_foreign_key(
+    release: Path, tmp_path: Path
+) -> None:
+    def unknown_participant(rows: pd.DataFrame) -> pd.DataFrame:
+        rows.loc[0, "participant_id"] = "999"
+        return rows
+
+    report = broken_copy(release, tmp_path / "broken", "sessions", unknown_participant)
+    assert foreign_key_errors(report) == {("sessions", "participant_id", "participants", "999")}
+
+
+@pytest.mark.parametrize(
+    ("kind", "column"), [("sessions", "session_id"), ("tutorial_sessions", "tutorial_session_id")]
+)
+def test_an_episode_whose_session_row_is_removed_breaks_a_foreign_key(
+    release: Path, tmp_path: Path, kind: str, column: str
+) -> None:
+    """The session of an episode removed from its file: its episodes, events (and, for a
+    study session, evaluations) no longer validate, by that session's column."""
+    episodes = csv_rows(release / "episodes.csv")
+    gone = next(row[column] for row in episodes if row[column])
+    report = broken_copy(
+        release, tmp_path / "broken", kind, lambda rows: rows[rows["session_id"] != gone]
+    )
+    files = {"episodes", "events"} | ({"evaluations"} if kind == "sessions" else set())
+    assert foreign_key_errors(report) == {(file, column, kind, gone) for file in files}
 
 
 # Croissant
@@ -308,7 +356,12 @@ def test_the_feedback_table_holds_every_plus_and_minus_with_its_trajectory(relea
     episodes = pd.read_csv(release / "episodes.csv").set_index("episode_id")
     for row in feedback.itertuples():
         step = steps.loc[row.step_event_id]
-        assert step["record"] == "agent_step" and step["session_id"] == row.session_id
+        assert step["record"] == "agent_step"
+        for column in ("session_id", "tutorial_session_id"):  # the same, or both empty
+            given, of_step = getattr(row, column), step[column]
+            assert pd.isna(given) == pd.isna(of_step), column
+            assert pd.isna(given) or int(given) == int(of_step), column
+        assert row.session_kind == episodes.loc[row.episode_id, "session_kind"]
         assert (row.state, row.action, row.next_state) == (
             step["state"],
             step["action"],

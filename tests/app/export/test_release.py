@@ -25,7 +25,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from server.app.config import DEFAULT_STUDY_CONFIG, load_study_config
-from server.app.export.columns import DICTIONARY, FILES
+from server.app.export.columns import DICTIONARY, FILES, INT
 from server.app.export.release import FOREIGN_KEYS, HUMAN_ANSWERS
 from server.app.export.release.feedback import FEEDBACK
 from server.app.export.release.psych_ds import DESCRIPTION_FILE
@@ -270,6 +270,38 @@ def test_croissant_reads_every_record_set_with_the_csv_counts_and_its_rai_fields
     assert "Not answered by the authors" in document["description"]
     assert "rai:dataUseCases" in document["description"]
     assert document["license"] == "CC-BY-4.0" and len(document["creator"]) == 2
+
+
+def test_croissant_fields_reference_the_fields_the_data_package_keys_name(release: Path) -> None:
+    """Each single-column foreign key of the data package is a Croissant ``references`` (from
+    participants to sessions, episodes, events and the rest), and mlcroissant reads the
+    referring record sets with their own values (its join with the referred file adds no
+    row and changes no cell)."""
+    import mlcroissant as mlc
+
+    document = json.loads((release / "croissant.json").read_text())
+    references = {
+        field["@id"]: field["references"]["field"]["@id"]
+        for record_set in document["recordSet"]
+        for field in record_set["field"]
+        if "references" in field
+    }
+    keys = {f"{key.file}/{key.columns[0]}": f"{key.to}/{key.to_columns[0]}" for key in FOREIGN_KEYS}
+    # All but the participant_id of the record sets referred to themselves (mlcroissant cannot
+    # read a join with a record set that joins too).
+    left_out = {"sessions/participant_id", "tutorial_sessions/participant_id"}
+    assert references == {field: to for field, to in keys.items() if field not in left_out}
+    assert references["events/tutorial_session_id"] == "tutorial_sessions/session_id"
+    assert references["episodes/session_id"] == "sessions/session_id"
+    dataset = mlc.Dataset(jsonld=release / "croissant.json")
+    for name in sorted({key.file for key in FOREIGN_KEYS}):
+        rows = csv_rows(release / f"{name}.csv")
+        read = list(dataset.records(record_set=name))
+        assert len(read) == len(rows), name
+        for column in (c.name for c in FILES[name] if c.kind == INT):
+            cells = [record[f"{name}/{column}"] for record in read]
+            expected = [int(row[column]) if row[column] else None for row in rows]
+            assert [None if pd.isna(cell) else int(cell) for cell in cells] == expected, column
 
 
 def test_without_a_dataset_table_the_human_answers_are_listed_as_missing(

@@ -1,11 +1,13 @@
 """The study's data as a release, each format checked by its own standard's tool: the
 Frictionless data package validates with its foreign keys (and a broken reference fails it);
-mlcroissant loads the Croissant file and reads every record set with the CSVs' row counts;
-``datasets`` reads every Parquet table with the same counts, by file and by the card's
-configs; the Psych-DS folder passes the 1.5.0 schema's required-field and file-name rules
-(vendored in tests/app/export/psych_ds/, with their source). The RAI fields hold what the
-server knows, the [dataset] table's answers, and list the questions it leaves open. After
-`bam-study erase`, every format still validates and none holds the erased participant.
+mlcroissant loads the Croissant file, with those keys as references, and reads every record
+set with the CSVs' row counts; ``datasets`` reads every Parquet table with the same counts, by
+file and by the card's configs; the Psych-DS folder passes the 1.5.0 schema's required-field
+and file-name rules (vendored in tests/app/export/psych_ds/, with their source). The RAI
+fields hold what the server knows, the [dataset] table's answers, and list the questions it
+leaves open; they are named as the Croissant RAI vocabulary (vendored in
+tests/app/export/croissant_rai/, with its source) defines them. After `bam-study erase`,
+every format still validates and none holds the erased participant.
 
 One small study (two simulated participants) is run once for the module."""
 
@@ -37,6 +39,7 @@ from tests.support.databases import migrated_sqlite
 from tests.support.server import ADMIN_TOKEN, make_settings, study_config, wait_for_updates
 
 PLAN = TeachingPlan(min_rounds=1, max_rounds=1, agent_try_probability=1.0, max_agent_steps=6)
+RAI_VOCABULARY = Path(__file__).parent / "croissant_rai" / "croissant_rai.ttl"
 PSYCH_DS = json.loads((Path(__file__).parent / "psych_ds" / "schema-1.5.0-rules.json").read_text())
 DATASET_TABLE = """
 [dataset]
@@ -302,6 +305,28 @@ def test_croissant_fields_reference_the_fields_the_data_package_keys_name(releas
             cells = [record[f"{name}/{column}"] for record in read]
             expected = [int(row[column]) if row[column] else None for row in rows]
             assert [None if pd.isna(cell) else int(cell) for cell in cells] == expected, column
+
+
+def test_every_rai_field_is_spelt_as_the_rai_vocabulary_defines_it(release: Path) -> None:
+    """The Croissant RAI 1.0 vocabulary (vendored in tests/app/export/croissant_rai/, with its
+    source) defines rai:dataCollectionTimeframe; mlcroissant 1.1.1 reads
+    rai:dataCollectionTimeFrame, a spelling of the specification's prose only."""
+    import rdflib
+
+    graph = rdflib.Graph().parse(RAI_VOCABULARY, format="turtle")
+    namespace = "http://mlcommons.org/croissant/RAI/"
+    defined = {
+        f"rai:{subject.removeprefix(namespace)}"
+        for subject in graph.subjects(rdflib.RDF.type, rdflib.RDF.Property)
+        if str(subject).startswith(namespace)
+    }
+    assert "rai:dataCollectionTimeframe" in defined
+    assert "rai:dataCollectionTimeFrame" not in defined
+    document = json.loads((release / "croissant.json").read_text())
+    written = {key for key in document if key.startswith("rai:")}
+    assert "rai:dataCollectionTimeframe" in written
+    assert written <= defined, written - defined
+    assert set(HUMAN_ANSWERS) <= defined
 
 
 def test_without_a_dataset_table_the_human_answers_are_listed_as_missing(

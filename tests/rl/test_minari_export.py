@@ -88,6 +88,8 @@ def test_the_minari_export_has_the_csv_exports_episodes_and_actions(
     export(url, tmp_path / "csv")
     export(url, tmp_path / "minari", "--format", "minari")
     csv = {name: pd.read_csv(tmp_path / "csv" / f"{name}.csv") for name in ("episodes", "events")}
+    for frame in csv.values():  # a study session's rows by session_id, a tutorial's by the other
+        frame["session"] = frame["session_id"].fillna(frame["tutorial_session_id"]).astype("Int64")
     participants = pd.read_csv(tmp_path / "csv" / "participants.csv").set_index("participant_id")
     sessions = pd.concat(
         [pd.read_csv(tmp_path / "csv" / f"{n}.csv") for n in ("sessions", "tutorial_sessions")]
@@ -95,9 +97,7 @@ def test_the_minari_export_has_the_csv_exports_episodes_and_actions(
     episodes = csv["episodes"].dropna(subset=["ended_at"])
     episodes = episodes[episodes["participant_id"] != study_run["excluded"]]
     environment_of = sessions["environment"]
-    expected_ids = {
-        f"bam-study/{environment_of[s]}/participants-v0" for s in episodes["session_id"]
-    }
+    expected_ids = {f"bam-study/{environment_of[s]}/participants-v0" for s in episodes["session"]}
     datasets = load(tmp_path / "minari", monkeypatch)
     assert set(datasets) == expected_ids
 
@@ -106,11 +106,11 @@ def test_the_minari_export_has_the_csv_exports_episodes_and_actions(
     by_episode: dict[tuple[int, int], list[tuple[int, int, int, bool]]] = defaultdict(list)
     for row in events.itertuples():
         if row.record in ("demonstration", "agent_step"):
-            by_episode[(row.session_id, int(row.episode_index))].append(
+            by_episode[(row.session, int(row.episode_index))].append(
                 (int(row.state), ACTIONS.index(row.action), int(row.next_state), False)
             )
         if not pd.isna(row.stay_state):
-            by_episode[(row.session_id, int(row.episode_index))].append(
+            by_episode[(row.session, int(row.episode_index))].append(
                 (int(row.next_state), STAY, int(row.stay_state), True)
             )
     with db.read() as s:
@@ -125,7 +125,7 @@ def test_the_minari_export_has_the_csv_exports_episodes_and_actions(
         env = domains.make(environment)
         gym_env = dataset.recover_environment()
         assert gym_env.spec.id == environment_id(environment)
-        mine = episodes[episodes["session_id"].map(environment_of) == environment]
+        mine = episodes[episodes["session"].map(environment_of) == environment]
         assert dataset.total_episodes == len(mine)
         for episode in dataset.iterate_episodes():
             infos = episode.infos
@@ -133,14 +133,14 @@ def test_the_minari_export_has_the_csv_exports_episodes_and_actions(
             seen.append(int(infos["episode"][0]))
             assert infos["kind"][0].decode() == row["kind"]
             assert int(infos["task"][0]) == row["task"]
-            assert int(infos["session"][0]) == row["session_id"]
+            assert int(infos["session"][0]) == row["session"]
             assert int(infos["participant"][0]) == row["participant_id"]
-            session = sessions.loc[row["session_id"]]
+            session = sessions.loc[row["session"]]
             assert infos["learner"][0].decode() == session["learner"]
             worker = participants.loc[row["participant_id"], "worker_id"]
             assert infos["worker"][0].decode() == worker and worker.startswith("w_")
             steps = steps_of(episode)
-            assert steps == by_episode[(row["session_id"], row["index"])]
+            assert steps == by_episode[(row["session"], row["index"])]
             assert steps[0][0] == row["start_state"] and steps[-1][2] == row["end_state"]
             assert sum(not synthetic for *_, synthetic in steps) == row["actions"]
             assert not episode.terminations.any() and episode.truncations[-1]
@@ -155,7 +155,7 @@ def test_the_minari_export_has_the_csv_exports_episodes_and_actions(
             # An agent step's action is its learner update's greedy policy's.
             update = infos["learner_update"]
             if row["kind"] == "agent":
-                policy = decode(policies[(row["session_id"], int(update[1]))], env)
+                policy = decode(policies[(row["session"], int(update[1]))], env)
                 for t, (state, action, _, _) in enumerate(steps):
                     assert update[t + 1] == update[1] >= 0
                     assert policy[int(row["task"]), state] == action

@@ -21,7 +21,7 @@ from typing import Any, Literal
 from server.app.export import quality
 from server.app.export.read import Context
 from server.app.rights.pseudonyms import ASSIGNMENT, WORKER
-from server.app.storage.vocabulary import ParticipantStatus
+from server.app.storage.vocabulary import ParticipantStatus, SessionKind
 from server.domains import make as make_environment
 from server.domains.base import ACTIONS
 from server.names import learner_names_prose
@@ -214,13 +214,39 @@ SESSIONS = (
 TUTORIAL_SESSIONS = tuple(column for column in SESSIONS if column.name != "position")
 
 
+# The column that names an episode's or an event's learning session, by the session's kind: a
+# study session is a row of sessions.csv, a tutorial's a row of tutorial_sessions.csv, so that
+# each column is a foreign key into one file (the ids are one sequence: one of the two is set).
+SESSION_COLUMNS = {SessionKind.STUDY: "session_id", SessionKind.TUTORIAL: "tutorial_session_id"}
+
+
+def _session_of_kind(kind: SessionKind, description: str) -> Column:
+    """The row's learning session if it is of ``kind``, else empty (and for an event outside
+    any session)."""
+
+    def value(row: Any, ctx: Context) -> int | None:
+        if row.session_id is None or ctx.session(row.session_id).kind != kind:
+            return None
+        return int(row.session_id)
+
+    return Column(SESSION_COLUMNS[kind], description, INT, value)
+
+
 def _task_name(e: Any, ctx: Context) -> str:
     return make_environment(ctx.session(e.session_id).environment).tasks[e.task].name
 
 
 EPISODES = (
     Column("episode_id", "Episode number (database id).", INT, lambda e, ctx: e.id),
-    Column("session_id", "The learning session (sessions.csv, or tutorial_sessions.csv).", INT),
+    _session_of_kind(
+        SessionKind.STUDY,
+        "The learning session (sessions.csv); empty for a tutorial's episode.",
+    ),
+    _session_of_kind(
+        SessionKind.TUTORIAL,
+        "The tutorial's learning session (tutorial_sessions.csv); empty for a study session's "
+        "episode.",
+    ),
     Column(
         "participant_id",
         "The participant.",
@@ -228,7 +254,9 @@ EPISODES = (
         lambda e, ctx: ctx.session(e.session_id).participant_id,
     ),
     Column(
-        "session_kind", "study or tutorial.", value=lambda e, ctx: ctx.session(e.session_id).kind
+        "session_kind",
+        "study (session_id is given) or tutorial (tutorial_session_id is).",
+        value=lambda e, ctx: ctx.session(e.session_id).kind,
     ),
     Column("index", "Order of the episode in its session, from 0.", INT),
     Column("kind", "demonstration or agent."),
@@ -256,11 +284,14 @@ EPISODES = (
 EVENTS = (
     Column("event_id", "Event number (database id; increasing in time).", INT, lambda e, c: e.id),
     Column("participant_id", "The participant.", INT),
-    Column(
-        "session_id",
-        "The learning session (empty for device_check, consent, start, tutorial, submission and "
-        "attention_move).",
-        INT,
+    _session_of_kind(
+        SessionKind.STUDY,
+        "The learning session (sessions.csv); empty for a tutorial's events (tutorial_session_id) "
+        "and for device_check, consent, start, tutorial, submission and attention_move.",
+    ),
+    _session_of_kind(
+        SessionKind.TUTORIAL,
+        "The tutorial's learning session (tutorial_sessions.csv); empty for every other event.",
     ),
     Column("seq", "The participant's sequence number of the request.", INT),
     Column(

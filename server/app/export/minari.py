@@ -43,7 +43,8 @@ INFOS: dict[str, str] = {
     "participant": "The participant (participant_id of participants.csv).",
     "worker": "The participant's MTurk or Prolific id, pseudonymised as in participants.csv "
     "(w_ + salted hash; empty for lab participants).",
-    "session": "The learning session (session_id of sessions.csv or tutorial_sessions.csv).",
+    "session": "The learning session: session_id of sessions.csv, or of tutorial_sessions.csv "
+    "for a tutorial's (tutorial_session_id in episodes.csv and events.csv).",
     "episode": "The episode (episode_id of episodes.csv).",
     "learner": "The session's learner (bam, model-based, global-cost, cloning).",
     "learner_update": "Agent episodes: the learner update whose greedy policy acted "

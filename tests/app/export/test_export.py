@@ -134,6 +134,38 @@ def test_one_evaluation_per_update(study_run: list, client: TestClient, db: Data
     check_admin_zip(client, evaluations)
 
 
+def test_each_episode_and_event_names_its_session_in_the_file_of_its_kind(
+    study_run: list, db: Database
+) -> None:
+    """A study session's rows by session_id (sessions.csv), a tutorial's by
+    tutorial_session_id (tutorial_sessions.csv), the other column empty: each a foreign key
+    into one file."""
+    tables = export_tables(db)
+    with db.read() as s:
+        kind_of = {x.id: x.kind for x in s.scalars(select(LearningSession))}
+        of_event = {
+            event_id: session for event_id, session in s.execute(select(Event.id, Event.session_id))
+        }
+    files = {"study": tables["sessions"], "tutorial": tables["tutorial_sessions"]}
+    assert all(len(frame) for frame in files.values())
+    for name, key in (("episodes", "episode_id"), ("events", "event_id")):
+        table = tables[name]
+        study, tutorial = table["session_id"], table["tutorial_session_id"]
+        assert not (study.notna() & tutorial.notna()).any(), name
+        assert tutorial.notna().any() and study.notna().any(), name
+        given = study.fillna(tutorial)
+        for kind, frame in files.items():
+            column = study if kind == "study" else tutorial
+            assert set(column.dropna()) <= set(frame["session_id"]), (name, kind)
+            assert all(kind_of[int(x)] == kind for x in column.dropna()), (name, kind)
+        if name == "events":
+            expected = [of_event[int(x)] for x in table[key]]
+            assert [None if pd.isna(x) else int(x) for x in given] == expected
+        else:
+            assert given.notna().all()
+            assert list(table["session_kind"]) == [kind_of[int(x)] for x in given]
+
+
 def check_pseudonyms(study_run: list, url: str, tmp_path: Path) -> None:
     """Worker ids are pseudonymised (stably) unless asked otherwise."""
     hidden = export(url, tmp_path / "hidden")["participants"]

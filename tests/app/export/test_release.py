@@ -1,11 +1,13 @@
 """The study's data as a release, each format checked by its own standard's tool: the
 Frictionless data package validates with its foreign keys (and a broken reference fails it);
-mlcroissant loads the Croissant file and reads every record set with the CSVs' row counts;
-``datasets`` reads every Parquet table with the same counts, by file and by the card's
-configs; the Psych-DS folder passes the 1.5.0 schema's required-field and file-name rules
-(vendored in tests/app/export/psych_ds/, with their source). The RAI fields hold what the
-server knows, the [dataset] table's answers, and list the questions it leaves open. After
-`bam-study erase`, every format still validates and none holds the erased participant.
+mlcroissant loads the Croissant file, with those keys as references, and reads every record
+set with the CSVs' row counts; ``datasets`` reads every Parquet table with the same counts, by
+file and by the card's configs; the Psych-DS folder passes the 1.5.0 schema's required-field
+and file-name rules (vendored in tests/app/export/psych_ds/, with their source). The RAI
+fields hold what the server knows, the [dataset] table's answers, and list the questions it
+leaves open; they are named as the Croissant RAI vocabulary (vendored in
+tests/app/export/croissant_rai/, with its source) defines them. After `bam-study erase`,
+every format still validates and none holds the erased participant.
 
 One small study (two simulated participants) is run once for the module."""
 
@@ -25,7 +27,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from server.app.config import DEFAULT_STUDY_CONFIG, load_study_config
-from server.app.export.columns import DICTIONARY, FILES
+from server.app.export.columns import DICTIONARY, FILES, INT
 from server.app.export.release import FOREIGN_KEYS, HUMAN_ANSWERS
 from server.app.export.release.feedback import FEEDBACK
 from server.app.export.release.psych_ds import DESCRIPTION_FILE
@@ -37,6 +39,7 @@ from tests.support.databases import migrated_sqlite
 from tests.support.server import ADMIN_TOKEN, make_settings, study_config, wait_for_updates
 
 PLAN = TeachingPlan(min_rounds=1, max_rounds=1, agent_try_probability=1.0, max_agent_steps=6)
+RAI_VOCABULARY = Path(__file__).parent / "croissant_rai" / "croissant_rai.ttl"
 PSYCH_DS = json.loads((Path(__file__).parent / "psych_ds" / "schema-1.5.0-rules.json").read_text())
 DATASET_TABLE = """
 [dataset]
@@ -137,37 +140,85 @@ def check_data_package(out: Path) -> None:
     assert {r.name for r in package.resources} == set(FILES)
 
 
-def test_the_data_package_validates_with_its_foreign_keys(release: Path, tmp_path: Path) -> None:
+def test_the_data_package_validates_with_its_foreign_keys(release: Path) -> None:
     check_data_package(release)
     package = json.loads((release / "datapackage.json").read_text())
     schemas = {resource["name"]: resource["schema"] for resource in package["resources"]}
     assert schemas["participants"]["primaryKey"] == ["participant_id"]
     declared = {
-        (name, tuple(key["fields"]), key["reference"]["resource"])
+        (
+            name,
+            tuple(key["fields"]),
+            key["reference"]["resource"],
+            tuple(key["reference"]["fields"]),
+        )
         for name, schema in schemas.items()
         for key in schema.get("foreignKeys", [])
     }
     for name in ("sessions", "episodes", "events", "evaluations", "reviews", "bonuses"):
-        assert (name, ("participant_id",), "participants") in declared, name
-    assert ("evaluations", ("session_id",), "sessions") in declared
+        assert (name, ("participant_id",), "participants", ("participant_id",)) in declared, name
+    for name in ("episodes", "events", "evaluations"):
+        assert (name, ("session_id",), "sessions", ("session_id",)) in declared, name
+    for name in ("episodes", "events"):
+        assert (name, ("tutorial_session_id",), "tutorial_sessions", ("session_id",)) in declared
     assert package["licenses"][0]["name"] == "CC-BY-4.0"
 
-    # A session whose participant is not in participants.csv breaks a foreign key.
-    broken = tmp_path / "broken"
-    shutil.copytree(release, broken, ignore=shutil.ignore_patterns("psych-ds", "hugging-face"))
-    sessions = pd.read_csv(broken / "sessions.csv", dtype=str, keep_default_na=False)
-    sessions.loc[0, "participant_id"] = "999"
-    sessions.to_csv(broken / "sessions.csv", index=False)
+
+def broken_copy(release: Path, folder: Path, file: str, edit: Any) -> Any:
+    """The release's data package with ``file``'s rows changed by ``edit`` (a DataFrame of
+    text cells -> the rows kept), its checksums left out; frictionless's report of it."""
+    from frictionless import validate
+
+    shutil.copytree(release, folder, ignore=shutil.ignore_patterns("psych-ds", "hugging-face"))
+    rows = pd.read_csv(folder / f"{file}.csv", dtype=str, keep_default_na=False)
+    edit(rows).to_csv(folder / f"{file}.csv", index=False)
+    package = json.loads((release / "datapackage.json").read_text())
     for resource in package["resources"]:
         resource.pop("hash")
         resource.pop("bytes")
-    (broken / "datapackage.json").write_text(json.dumps(package))
-    from frictionless import validate
+    (folder / "datapackage.json").write_text(json.dumps(package))
+    return validate(folder / "datapackage.json")
 
-    report = validate(broken / "datapackage.json")
+
+def foreign_key_errors(report: Any) -> set[tuple[str, str, str, str]]:
+    """(file, its columns, the file referred to, the value) of each foreign-key error;
+    asserts that there are errors and no others."""
     assert not report.valid
-    assert {error[0] for error in report.flatten(["type"])} == {"foreign-key"}
-    assert "999" in str(report.flatten(["message"]))
+    found = set()
+    for task in report.tasks:
+        for error in task.errors:
+            assert error.type == "foreign-key", (task.name, error.message)
+            columns, value = ",".join(error.field_names), ",".join(error.field_cells)
+            found.add((task.name, columns, error.reference_name, value))
+    return found
+
+
+def test_a_session_whose_participant_is_gone_breaks_a_foreign_key(
+    release: Path, tmp_path: Path
+) -> None:
+    def unknown_participant(rows: pd.DataFrame) -> pd.DataFrame:
+        rows.loc[0, "participant_id"] = "999"
+        return rows
+
+    report = broken_copy(release, tmp_path / "broken", "sessions", unknown_participant)
+    assert foreign_key_errors(report) == {("sessions", "participant_id", "participants", "999")}
+
+
+@pytest.mark.parametrize(
+    ("kind", "column"), [("sessions", "session_id"), ("tutorial_sessions", "tutorial_session_id")]
+)
+def test_an_episode_whose_session_row_is_removed_breaks_a_foreign_key(
+    release: Path, tmp_path: Path, kind: str, column: str
+) -> None:
+    """The session of an episode removed from its file: its episodes, events (and, for a
+    study session, evaluations) no longer validate, by that session's column."""
+    episodes = csv_rows(release / "episodes.csv")
+    gone = next(row[column] for row in episodes if row[column])
+    report = broken_copy(
+        release, tmp_path / "broken", kind, lambda rows: rows[rows["session_id"] != gone]
+    )
+    files = {"episodes", "events"} | ({"evaluations"} if kind == "sessions" else set())
+    assert foreign_key_errors(report) == {(file, column, kind, gone) for file in files}
 
 
 # Croissant
@@ -222,6 +273,60 @@ def test_croissant_reads_every_record_set_with_the_csv_counts_and_its_rai_fields
     assert "Not answered by the authors" in document["description"]
     assert "rai:dataUseCases" in document["description"]
     assert document["license"] == "CC-BY-4.0" and len(document["creator"]) == 2
+
+
+def test_croissant_fields_reference_the_fields_the_data_package_keys_name(release: Path) -> None:
+    """Each single-column foreign key of the data package is a Croissant ``references`` (from
+    participants to sessions, episodes, events and the rest), and mlcroissant reads the
+    referring record sets with their own values (its join with the referred file adds no
+    row and changes no cell)."""
+    import mlcroissant as mlc
+
+    document = json.loads((release / "croissant.json").read_text())
+    references = {
+        field["@id"]: field["references"]["field"]["@id"]
+        for record_set in document["recordSet"]
+        for field in record_set["field"]
+        if "references" in field
+    }
+    keys = {f"{key.file}/{key.columns[0]}": f"{key.to}/{key.to_columns[0]}" for key in FOREIGN_KEYS}
+    # All but the participant_id of the record sets referred to themselves (mlcroissant cannot
+    # read a join with a record set that joins too).
+    left_out = {"sessions/participant_id", "tutorial_sessions/participant_id"}
+    assert references == {field: to for field, to in keys.items() if field not in left_out}
+    assert references["events/tutorial_session_id"] == "tutorial_sessions/session_id"
+    assert references["episodes/session_id"] == "sessions/session_id"
+    dataset = mlc.Dataset(jsonld=release / "croissant.json")
+    for name in sorted({key.file for key in FOREIGN_KEYS}):
+        rows = csv_rows(release / f"{name}.csv")
+        read = list(dataset.records(record_set=name))
+        assert len(read) == len(rows), name
+        for column in (c.name for c in FILES[name] if c.kind == INT):
+            cells = [record[f"{name}/{column}"] for record in read]
+            expected = [int(row[column]) if row[column] else None for row in rows]
+            assert [None if pd.isna(cell) else int(cell) for cell in cells] == expected, column
+
+
+def test_every_rai_field_is_spelt_as_the_rai_vocabulary_defines_it(release: Path) -> None:
+    """The Croissant RAI 1.0 vocabulary (vendored in tests/app/export/croissant_rai/, with its
+    source) defines rai:dataCollectionTimeframe; mlcroissant 1.1.1 reads
+    rai:dataCollectionTimeFrame, a spelling of the specification's prose only."""
+    import rdflib
+
+    graph = rdflib.Graph().parse(RAI_VOCABULARY, format="turtle")
+    namespace = "http://mlcommons.org/croissant/RAI/"
+    defined = {
+        f"rai:{subject.removeprefix(namespace)}"
+        for subject in graph.subjects(rdflib.RDF.type, rdflib.RDF.Property)
+        if str(subject).startswith(namespace)
+    }
+    assert "rai:dataCollectionTimeframe" in defined
+    assert "rai:dataCollectionTimeFrame" not in defined
+    document = json.loads((release / "croissant.json").read_text())
+    written = {key for key in document if key.startswith("rai:")}
+    assert "rai:dataCollectionTimeframe" in written
+    assert written <= defined, written - defined
+    assert set(HUMAN_ANSWERS) <= defined
 
 
 def test_without_a_dataset_table_the_human_answers_are_listed_as_missing(
@@ -308,7 +413,12 @@ def test_the_feedback_table_holds_every_plus_and_minus_with_its_trajectory(relea
     episodes = pd.read_csv(release / "episodes.csv").set_index("episode_id")
     for row in feedback.itertuples():
         step = steps.loc[row.step_event_id]
-        assert step["record"] == "agent_step" and step["session_id"] == row.session_id
+        assert step["record"] == "agent_step"
+        for column in ("session_id", "tutorial_session_id"):  # the same, or both empty
+            given, of_step = getattr(row, column), step[column]
+            assert pd.isna(given) == pd.isna(of_step), column
+            assert pd.isna(given) or int(given) == int(of_step), column
+        assert row.session_kind == episodes.loc[row.episode_id, "session_kind"]
         assert (row.state, row.action, row.next_state) == (
             step["state"],
             step["action"],

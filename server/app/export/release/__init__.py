@@ -22,9 +22,9 @@ from typing import TYPE_CHECKING
 
 import pandas as pd
 
-from server.app.export.columns import FILES
+from server.app.export.columns import FILES, SESSION_COLUMNS
 from server.app.export.files import DESCRIPTIONS, write_export
-from server.app.storage.vocabulary import ParticipantStatus
+from server.app.storage.vocabulary import ParticipantStatus, SessionKind
 
 if TYPE_CHECKING:
     from server.app.config import DatasetRelease, StudyConfig
@@ -73,10 +73,20 @@ def _participant(file: str) -> ForeignKey:
     return ForeignKey(file, ("participant_id",), "participants", ("participant_id",))
 
 
+SESSION_FILES = {SessionKind.STUDY: "sessions", SessionKind.TUTORIAL: "tutorial_sessions"}
+
+
+def _session(file: str, kind: SessionKind) -> ForeignKey:
+    """``file``'s learning sessions of ``kind``: its column of that kind (``SESSION_COLUMNS``,
+    empty on the rows of the other kind) names a row of that kind's file."""
+    return ForeignKey(file, (SESSION_COLUMNS[kind],), SESSION_FILES[kind], ("session_id",))
+
+
 # Every reference between files that holds for every row, but an erasure's (its participant
-# is gone): an episode's or an event's session_id names a row of sessions.csv or of
-# tutorial_sessions.csv, which no single key can say, and an event's episode_index is empty
-# for events between episodes (a mode or task chosen); their participant_id is a key.
+# is gone). An empty cell refers to nothing: an event's session columns are empty outside
+# the sessions. An event's episode_index is not a key into episodes.csv: it is empty for
+# events between episodes (a mode or task chosen) while their session is not, and a key
+# whose columns are partly empty is checked all the same.
 FOREIGN_KEYS: tuple[ForeignKey, ...] = (
     *(
         _participant(name)
@@ -84,7 +94,8 @@ FOREIGN_KEYS: tuple[ForeignKey, ...] = (
         if name not in ("participants", "erasures")
         and any(column.name == "participant_id" for column in columns)
     ),
-    ForeignKey("evaluations", ("session_id",), "sessions", ("session_id",)),
+    *(_session(name, kind) for name in ("episodes", "events") for kind in SESSION_FILES),
+    _session("evaluations", SessionKind.STUDY),
 )
 
 

@@ -1,9 +1,9 @@
 """Croissant 1.0 JSON-LD (``croissant.json``, with the Responsible-AI fields of Croissant RAI
 1.0) over the export's CSVs in the same folder: the distribution (every CSV with its SHA-256),
 a record set per file whose fields are typed and described by the data dictionary, with
-its primary key (``release.PRIMARY_KEYS``), and the RAI fields (``About.rai``). The foreign
-keys are the data package's: mlcroissant reads a field's ``references`` as a join to make
-while reading its record set, not as a key to check. ``mlcroissant`` loads it and reads every record set."""
+its primary key (``release.PRIMARY_KEYS``), the data package's foreign keys as the fields'
+``references`` (``REFERENCES``: all but two, which mlcroissant cannot read), and the RAI
+fields (``About.rai``). ``mlcroissant`` loads it and reads every record set."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from server.app.export.columns import BOOL, FILES, INT, NUMBER, TIME, Column
-from server.app.export.release import PRIMARY_KEYS, About, file_description
+from server.app.export.release import FOREIGN_KEYS, PRIMARY_KEYS, About, file_description
 
 FILE = "croissant.json"
 DATA_TYPES = {
@@ -63,6 +63,21 @@ CONTEXT: dict[str, Any] = {
 }
 
 
+# The record sets other record sets refer to (participants, sessions, tutorial_sessions).
+REFERRED = frozenset(key.to for key in FOREIGN_KEYS)
+# (record set, field) -> the field it refers to: the data package's foreign keys, but those
+# from a record set that is referred to itself (sessions' and tutorial_sessions' participant_id):
+# mlcroissant (1.1.1) reads a field's references as a join with the referred record set, and a
+# join with a record set that joins too fails (it is handed that record set's records, not its
+# table), so that the referring record sets could not be read.
+REFERENCES = {
+    (key.file, column): f"{key.to}/{to}"
+    for key in FOREIGN_KEYS
+    if key.file not in REFERRED
+    for column, to in zip(key.columns, key.to_columns, strict=True)
+}
+
+
 def record_field(name: str, column: Column) -> dict[str, Any]:
     entry: dict[str, Any] = {
         "@type": "cr:Field",
@@ -72,6 +87,9 @@ def record_field(name: str, column: Column) -> dict[str, Any]:
         "dataType": DATA_TYPES[column.kind],
         "source": {"fileObject": {"@id": f"{name}.csv"}, "extract": {"column": column.name}},
     }
+    referred = REFERENCES.get((name, column.name))
+    if referred is not None:
+        entry["references"] = {"field": {"@id": referred}}
     return entry
 
 

@@ -10,14 +10,20 @@ from typing import Any
 
 import pandas as pd
 
-from server.app.export.columns import BOOL, INT, Column
+from server.app.export.columns import BOOL, INT, SESSION_COLUMNS, Column
+from server.app.export.release import SESSION_FILES
 
 FEEDBACK = (
     Column("event_id", "The feedback event (events.csv event_id).", INT),
     Column("step_event_id", "The agent step it judges (events.csv event_id).", INT),
     Column("participant_id", "The participant who gave it (participants.csv).", INT),
-    Column("session_id", "The learning session (sessions.csv or tutorial_sessions.csv).", INT),
-    Column("session_kind", "study or tutorial."),
+    Column("session_id", "The learning session (sessions.csv); empty for a tutorial's.", INT),
+    Column(
+        "tutorial_session_id",
+        "The tutorial's learning session (tutorial_sessions.csv); empty for a study session's.",
+        INT,
+    ),
+    Column("session_kind", "study (session_id is given) or tutorial (tutorial_session_id is)."),
     Column("environment", "The environment taught."),
     Column("learner", "The session's learner."),
     Column("episode_id", "The agent episode of the step (episodes.csv).", INT),
@@ -56,24 +62,29 @@ def _prompt(row: dict[str, Any]) -> str:
     return f"environment {row['environment']}, task {row['task_name']}: {path}"
 
 
+def _session_of(row: Any) -> int | None:
+    """An episode's or an event's learning session, of either kind (``SESSION_COLUMNS``: the
+    ids are one sequence); None for an event outside the sessions."""
+    given = [getattr(row, name) for name in SESSION_COLUMNS.values()]
+    found = [int(value) for value in given if not pd.isna(value)]
+    return found[0] if found else None
+
+
 def feedback_frame(tables: dict[str, pd.DataFrame]) -> pd.DataFrame:
     """The feedback table of the export's ``tables``, in the order the feedback was given."""
     sessions = pd.concat(
-        [
-            tables["sessions"].assign(session_kind="study"),
-            tables["tutorial_sessions"].assign(session_kind="tutorial"),
-        ]
+        [tables[SESSION_FILES[kind]].assign(session_kind=kind.value) for kind in SESSION_FILES]
     ).set_index("session_id")
     episodes = {
-        (int(e.session_id), int(e.index)): e for e in tables["episodes"].itertuples(index=False)
+        (_session_of(e), int(e.index)): e for e in tables["episodes"].itertuples(index=False)
     }
     trajectory: dict[tuple[int, int], tuple[list[int], list[str]]] = {}
     latest: dict[int, dict[str, Any]] = {}
     rows: list[dict[str, Any]] = []
     for event in tables["events"].itertuples(index=False):
-        if pd.isna(event.session_id):
+        session_id = _session_of(event)
+        if session_id is None:
             continue
-        session_id = int(event.session_id)
         if event.record in ("demonstration", "agent_step"):
             key = (session_id, int(event.episode_index))
             states, actions = trajectory.setdefault(key, ([], []))
@@ -83,7 +94,10 @@ def feedback_frame(tables: dict[str, pd.DataFrame]) -> pd.DataFrame:
                 latest[session_id] = {
                     "step_event_id": int(event.event_id),
                     "participant_id": int(event.participant_id),
-                    "session_id": session_id,
+                    **{
+                        name: session_id if kind == session["session_kind"] else None
+                        for kind, name in SESSION_COLUMNS.items()
+                    },
                     "session_kind": session["session_kind"],
                     "environment": session["environment"],
                     "learner": session["learner"],

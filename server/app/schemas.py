@@ -507,7 +507,9 @@ class QueueView(BaseModel):
         description="The learner and environment of that update, as 'learner in environment'."
     )
     slots: int = Field(
-        description="Updates run at once (processes on their own cores, or workers)."
+        description="Updates the deployment runs at once (processes on their own cores, each "
+        "machine's cores once, or a cluster's workers); this server's before its capacity is "
+        "known."
     )
     update_interval_seconds: float = Field(
         description="How often a participant teaching queues an update (BAM_UPDATE_INTERVAL_SECONDS)."
@@ -720,3 +722,17 @@ class ServerRow(BaseModel):
     updates_completed: int
     updates_failed: int
     participants_at_once: int | None = Field(description="Its capacity (none: not yet timed).")
+    machine: str = Field(
+        description="Where its update slots run: the machine's boot id and the cores the server "
+        "may use, or the Dask cluster's scheduler; the deployment's capacity counts the cores of "
+        "servers with the same one once."
+    )
+    cores: int | None = Field(
+        description="The cores its update processes share with it (none: a cluster's workers)."
+    )
+    update_seconds: float | None = Field(
+        description="The cost of an update its capacity was stated from (none: not yet timed)."
+    )
+    server_seconds: float | None = Field(
+        description="Its own CPU seconds per update, counted in its capacity (none: not counted)."
+    )

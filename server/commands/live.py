@@ -6,6 +6,7 @@ docs/deployment.md configures it, on loopback ports."""
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import signal
 import socket
@@ -20,6 +21,9 @@ import httpx
 
 from server.learners.compile_notice import COMPILE_TIME
 
+# uvicorn's access log line: ... "GET /api/health HTTP/1.1" 200
+ACCESS_LINE = re.compile(r'"[A-Z]+ [^"]* HTTP/[\d.]+" (\d{3})')
+
 
 def free_port() -> int:
     with socket.socket() as probe:
@@ -31,10 +35,18 @@ class ServerProcess:
     """``bam-study serve`` in a process of its own (tests of a real server thread use
     ``tests.browser.conftest.LiveServer``, the app served in a thread)."""
 
-    def __init__(self, folder: Path, environment: dict[str, str], port: int | None = None) -> None:
+    def __init__(
+        self,
+        folder: Path,
+        environment: dict[str, str],
+        port: int | None = None,
+        access_log: bool = False,
+    ) -> None:
         """``environment``: the BAM_* settings (BAM_DATABASE_URL, ...); the server runs in
-        ``folder`` and logs to ``folder/server-N.log``."""
+        ``folder`` and logs to ``folder/server-N.log`` (with ``access_log``, every request
+        and its answer's status: ``answers``)."""
         self.folder = folder
+        self.access_log = access_log
         self.port = port or free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.environment = {**os.environ, **environment}
@@ -54,8 +66,10 @@ class ServerProcess:
         told the seconds so far and the health answer while the update processes warm up."""
         self.starts += 1
         with open(self.log_path, "wb") as log:
+            command = [sys.executable, "-m", "server.commands.main", "serve"]
+            command += ["--port", str(self.port)] + (["--access-log"] if self.access_log else [])
             self.process = subprocess.Popen(
-                [sys.executable, "-m", "server.commands.main", "serve", "--port", str(self.port)],
+                command,
                 env=self.environment,
                 cwd=self.folder,
                 stdout=log,
@@ -96,6 +110,27 @@ class ServerProcess:
 
     def log(self) -> str:
         return self.log_path.read_text(errors="replace")[-4000:] if self.log_path.exists() else ""
+
+    def logs(self) -> str:
+        """Everything the server logged, over all its starts."""
+        return "".join(
+            path.read_text(errors="replace")
+            for start in range(1, self.starts + 1)
+            if (path := self.folder / f"server-{start}.log").exists()
+        )
+
+    def answers(self, status: int) -> list[str]:
+        """The access log's lines of requests answered ``status`` (``access_log``); for 500,
+        also uvicorn's report of each exception that escaped a request (answered 500)."""
+        if not self.access_log:
+            raise RuntimeError("the server was started without its access log")
+        lines = self.logs().splitlines()
+        answered = [
+            line for line in lines if (m := ACCESS_LINE.search(line)) and m[1] == str(status)
+        ]
+        if status == 500:
+            answered += [line for line in lines if "Exception in ASGI application" in line]
+        return answered
 
     def __enter__(self) -> ServerProcess:
         self.start(waiting=self.waiting)

@@ -1,7 +1,8 @@
 """Simulated participants that take the study over HTTP, through the same API as the browser.
 
-Each one arrives with MTurk-style parameters (or, on the Prolific replica, as a Prolific
-participant: ``ProlificArrival``), consents, goes through the tutorial and teaches
+Each one arrives with MTurk-style parameters (or as a worker who accepted the HIT on the MTurk
+replica: ``MTurkReplicaArrival``; or, on the Prolific replica, as a Prolific participant:
+``ProlificArrival``), consents, goes through the tutorial and teaches
 every agent: in rounds, each task gets a demonstration by the simulated teacher (with a chance
 of suboptimal moves) from a random start, sometimes after moving the agent in idle mode, and
 sometimes an agent try with A-SABL feedback; the number of rounds varies per agent. It then
@@ -13,6 +14,7 @@ attempt (what a participant would wait), and counts the requests that needed a r
 
 from __future__ import annotations
 
+import html
 import http.client
 import json
 import re
@@ -43,10 +45,23 @@ class Stopped(Exception):
 
 
 PARTICIPANT_KINDS = ("careful", "key-masher", "idle")
+MTURK_PARAMETERS = ("assignmentId", "hitId", "workerId", "turkSubmitTo")
 # The participant's token as the study page gives it to its script (templates/study.html).
 PAGE_TOKEN = re.compile(
     r'<script type="application/json" id="participant-token">("[^"<]*")</script>'
 )
+# The study in the MTurk replica's HIT frame (templates/mturk_frame.html).
+HIT_FRAME = re.compile(r'<iframe[^>]*id="hit-frame"[^>]*src="([^"]*)"')
+
+
+@dataclass(frozen=True)
+class MTurkReplicaArrival:
+    """Arrive as a worker who accepted the HIT on the server's MTurk replica (``/mturk``,
+    signed in with the admin token), with the parameters its HIT frame gives the study; at the
+    end, post the completion form to ``turkSubmitTo``'s ``/mturk/externalSubmit``, as the page
+    does, so that the replica has the assignment submitted (and a bonus can be paid for it)."""
+
+    admin_token: str
 
 
 @dataclass(frozen=True)
@@ -220,9 +235,11 @@ class SimulatedParticipant:
         stop: threading.Event | None = None,
         turn: tuple[threading.Event, threading.Event] | None = None,
         prolific: ProlificArrival | None = None,
+        mturk_replica: MTurkReplicaArrival | None = None,
     ) -> None:
         self.base_url = base_url.rstrip("/")
         self.prolific = prolific
+        self.mturk_replica = mturk_replica
         # The browser's own requests (pages, redirects, cookies) on the Prolific replica.
         self.browser: httpx.Client | None = None
         # (the previous participant has consented, this one has): consents in order.
@@ -333,12 +350,16 @@ class SimulatedParticipant:
         self.act("/api/participant/submission", "submission")
         if self.prolific is not None:
             self._back_to_prolific(shown)
+        if self.mturk_replica is not None:
+            self._submit_to_mturk_replica(shown, self.mturk_replica)
         self.run.completed = True
         self.run.completion_code = code
 
     def _arrive_and_consent(self) -> None:
         if self.prolific is not None:
             self._arrive_from_prolific(self.prolific)
+        elif self.mturk_replica is not None:
+            self._arrive_from_mturk(self._accept_on_mturk_replica(self.mturk_replica))
         else:
             self._arrive_from_mturk()
         if self.run.status == ParticipantStatus.WAITING:  # the study is full: as the page does
@@ -350,12 +371,14 @@ class SimulatedParticipant:
                 time.sleep(place["ask_seconds"])
         self.act("/api/participant/consent", "consent", agree=True)
 
-    def _arrive_from_mturk(self) -> None:
+    def _arrive_from_mturk(self, parameters: dict[str, str] | None = None) -> None:
+        """Arrive with MTurk's parameters: the HIT frame's (``parameters``), or made up."""
         arrival = self.request(
             "POST",
             "/api/arrivals",
             "arrival",
-            {
+            parameters
+            or {
                 "assignmentId": self.run.assignment_id,
                 "hitId": "SIMHIT",
                 "workerId": self.run.worker_id,
@@ -405,6 +428,74 @@ class SimulatedParticipant:
         self.run.participant_id = me["participant_id"]
         self.run.status = me["status"]
         self.seq = me["next_seq"]
+
+    def _mturk_replica_browser(self, replica: MTurkReplicaArrival) -> httpx.Client:
+        if self.browser is None:
+            self.browser = httpx.Client(
+                base_url=self.base_url,
+                headers={"Authorization": f"Bearer {replica.admin_token}"},
+                timeout=60.0,
+            )
+        return self.browser
+
+    def _accept_on_mturk_replica(self, replica: MTurkReplicaArrival) -> dict[str, str]:
+        """Accept the HIT on the replica as this participant's worker; the parameters the HIT
+        frame gives the study (its assignment id is the replica's)."""
+        browser = self._mturk_replica_browser(replica)
+        accepted = self._browse(browser, "POST", "/mturk/accept", {"workerId": self.run.worker_id})
+        if accepted.status_code != 303:
+            raise StudyClientError(
+                f"the MTurk replica did not give worker {self.run.worker_id} an assignment "
+                f"({accepted.status_code}): {_page_text(accepted.text)}"
+            )
+        work = self._browse(browser, "GET", accepted.headers["location"])
+        found = HIT_FRAME.search(work.text)
+        if work.status_code != 200 or found is None:
+            raise StudyClientError(f"the replica's HIT page -> {work.status_code}: no HIT frame")
+        frame = httpx.URL(html.unescape(found.group(1)))
+        parameters = {key: frame.params[key] for key in MTURK_PARAMETERS}
+        self.run.assignment_id = parameters["assignmentId"]
+        return parameters
+
+    def _submit_to_mturk_replica(
+        self, completion: dict[str, Any], replica: MTurkReplicaArrival
+    ) -> None:
+        """The completion form, posted to the replica's externalSubmit as the page does."""
+        target, fields = completion.get("submit_url"), completion.get("submit_fields")
+        if completion.get("mode") != "mturk" or not target or not fields:
+            raise StudyClientError(f"the study sent no MTurk completion form: {completion}")
+        if not str(target).startswith(f"{self.base_url}/"):
+            raise StudyClientError(f"the completion form posts to {target}, not to this server")
+        browser = self._mturk_replica_browser(replica)
+        retries = self.run.retries
+        posted = self._browse(browser, "POST", str(target)[len(self.base_url) :], fields)
+        # Sent again after its answer was lost: the replica has it submitted already.
+        landed_before = self.run.retries > retries and "was submitted" in posted.text
+        if posted.status_code != 200 and not (posted.status_code == 409 and landed_before):
+            raise StudyClientError(
+                f"the replica's externalSubmit -> {posted.status_code}: {_page_text(posted.text)}"
+            )
+
+    def _browse(
+        self, browser: httpx.Client, method: str, path: str, form: dict[str, str] | None = None
+    ) -> httpx.Response:
+        """A page request of the participant's browser, sent again through connection losses
+        and 5xx answers (server restarts), as a person reloads."""
+        deadline = time.monotonic() + self.plan.retry_seconds
+        while True:
+            try:
+                answer = browser.request(method, path, data=form)
+                if answer.status_code not in RETRY_STATUSES:
+                    return answer
+                problem = f"{answer.status_code}: {_page_text(answer.text)}"
+            except TRANSPORT_ERRORS as error:
+                problem = f"{type(error).__name__}: {error}"
+            if time.monotonic() > deadline:
+                raise StudyClientError(f"{method} {path} kept failing: {problem}")
+            if self.stop is not None and self.stop.is_set():
+                raise Stopped
+            self.run.retries += 1
+            time.sleep(0.5)
 
     def _back_to_prolific(self, completion: dict[str, Any]) -> None:
         """The completion redirect, to the replica's copy of Prolific's page."""
@@ -612,13 +703,15 @@ def run_participants(
     ramp_seconds: float = 0.0,
     in_order: bool = False,
     prolific: ProlificArrival | None = None,
+    mturk_replica: MTurkReplicaArrival | None = None,
 ) -> StudyRun:
     """Run simulated participants, ``concurrency`` at a time; each gets its own connection.
     The first ``concurrency`` arrive spread over ``ramp_seconds``; ``stop`` ends the run.
     ``in_order``: each arrives and consents once the one before has, so that the participants'
     numbers and domains do not depend on the threads' timing (a seeded server's study is then
     the same on every run). ``prolific``: each arrives as a Prolific participant on the
-    server's Prolific replica."""
+    server's Prolific replica; ``mturk_replica``: each accepts the HIT on the server's MTurk
+    replica first and submits the assignment there at the end."""
     started = time.perf_counter()
     consented = [threading.Event() for _ in range(participants + 1)]
     consented[0].set()
@@ -630,8 +723,9 @@ def run_participants(
         with LightClient(base_url) as client:
             turn = (consented[slot], consented[slot + 1]) if in_order else None
             run = SimulatedParticipant(
-                base_url, index, seed, plan, client=client, stop=stop, turn=turn, prolific=prolific
-            ).take_part()
+                base_url, index, seed, plan, client=client, stop=stop, turn=turn,
+                prolific=prolific, mturk_replica=mturk_replica,
+            ).take_part()  # fmt: skip
         if progress is not None:
             progress(run)
         return run

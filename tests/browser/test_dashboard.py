@@ -1,13 +1,16 @@
 """The experimenter excludes a participant from the dashboard with a reason, and includes them
-again; the database keeps both reasons."""
+again; the database keeps both reasons. The replay's pause sign, the capacity's tiles in a
+small window, and the deployment's servers with their machines and loads."""
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 
 import pytest
 from playwright.sync_api import Page, expect
 
+from server.app.storage.models import utcnow
 from tests.browser.conftest import (
     LiveServer,
     Watch,
@@ -108,3 +111,34 @@ def test_a_row_of_capacity_figures_lines_up_in_a_small_window(
     assert len(rows) >= 2  # the tiles wrap at this width
     for tops in rows.values():
         assert max(tops) - min(tops) < 1, rows
+
+
+def test_the_dashboard_shows_each_server_its_machine_and_its_load(
+    page: Page, server: LiveServer
+) -> None:
+    """Another server on the same machine, beating, with three updates running: listed beside
+    this one, with the same machine and its load."""
+    (this,) = server.query("SELECT machine, cores FROM servers WHERE stopped_at IS NULL")
+    server.query(
+        "INSERT INTO servers (name, host, pid, started_at, heartbeat_at, update_slots, "
+        "updates_running, updates_completed, updates_failed, machine, cores) VALUES "
+        "('neighbour-7-abcdef', 'neighbour', 7, :now, :now, 1, 3, 41, 2, :machine, :cores)",
+        now=utcnow().strftime("%Y-%m-%d %H:%M:%S.%f"),  # as SQLite's rows store it
+        machine=this.machine,
+        cores=this.cores,
+    )
+    watch = Watch(server.url).attach(page)
+    admin_login(page, server, "/dashboard")
+    rows = page.locator("#servers tbody tr")
+    expect(rows).to_have_count(2)
+    neighbour = page.locator('#servers tr[data-server="neighbour-7-abcdef"]')
+    cells = neighbour.locator("td")
+    expect(cells).to_have_text(
+        ["neighbour-7-abcdef", f"neighbour, machine 1 ({this.cores} cores)", "live",
+         re.compile(r"\S"), re.compile(r"\S"), "1", "3", "41", "2", "not timed yet"],
+        timeout=10_000,
+    )  # fmt: skip
+    machines = {row.get_attribute("data-machine") for row in rows.all()}
+    assert machines == {"1"}
+    server.query("DELETE FROM servers WHERE name = 'neighbour-7-abcdef'")
+    watch.check()

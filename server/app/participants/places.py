@@ -143,7 +143,7 @@ def queue_view(state: ServerState, queue: QueueState | None) -> QueueView:
         ),
         longest_update_seconds=round(longest.seconds, 4) if longest is not None else None,
         longest_update_of=f"{longest.learner} in {longest.environment}" if longest else None,
-        slots=manager.slots if manager is not None else 0,
+        slots=capacity.slots if capacity is not None else manager.slots if manager else 0,
         update_interval_seconds=state.settings.update_interval_seconds,
         limit=study_limit(state),
         limit_from=limit_from,

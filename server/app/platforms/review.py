@@ -273,8 +273,11 @@ def review_submission(
     except IntegrityError:  # a concurrent request recorded its intent first
         with db.read() as s:
             row = read(s)
-            assert row is not None
-            earlier, earlier_decision, earlier_state = row, row.decision, row.state
+        if row is None:
+            # The platform refused it and that request took its intent back: this one asks
+            # again, and answers what the platform says.
+            return review_submission(db, backend, participant_id, decision, message, category)
+        earlier, earlier_decision, earlier_state = row, row.decision, row.state
     if earlier is not None:
         if earlier_decision != decision:
             raise ApiError(
@@ -388,7 +391,12 @@ def pay_bonus(
                 return False
     except IntegrityError:  # a concurrent request with this token recorded its intent first
         earlier = _wait_for(db, read, lambda r: r.state == BonusState.PAID)
-        assert earlier is not None
+        if earlier is None:
+            # The platform refused it and that request took its intent back: this one asks
+            # again, and answers what the platform says (its refusal, a 409, most likely).
+            return pay_bonus(
+                db, backend, participant_id, amount, reason, unique_token, budget_cents
+            )
         if not same(earlier):
             raise ApiError(
                 409, f"the request token {unique_token} was used for another bonus"

@@ -22,7 +22,7 @@ from urllib.parse import urlencode
 
 from fastapi import APIRouter, Form, Request, Response
 from fastapi.responses import HTMLResponse, RedirectResponse
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from server.app.deps import RowId, StateDep, is_admin
@@ -31,6 +31,7 @@ from server.app.platforms.mturk import PREVIEW_ASSIGNMENT
 from server.app.routers.common import login_redirect, notice, own_origin, templates
 from server.app.schemas import ID_PATTERN
 from server.app.state import ServerState
+from server.app.storage.db import advisory_lock_key
 from server.app.storage.models import utcnow
 from server.app.storage.replica_models import (
     ReplicaAssignment,
@@ -43,6 +44,7 @@ from server.app.storage.vocabulary import ReplicaAssignmentStatus
 router = APIRouter(prefix="/mturk", tags=["mturk replica"], include_in_schema=False)
 
 ID_ALPHABET = "ABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789"
+_HIT_LOCK = select(func.pg_advisory_xact_lock(advisory_lock_key("bam-study mturk replica hit")))
 MAX_FIELDS = 50
 
 
@@ -52,6 +54,12 @@ def new_id(length: int = 30) -> str:
 
 
 def the_hit(s: Session, state: ServerState) -> ReplicaHit:
+    """The replica's one HIT, made the first time. In a write transaction, which holds the HIT
+    until it ends (PostgreSQL: an advisory lock; SQLite's write transaction excludes every
+    other writer already): workers accepting at once, on one server or several, make one HIT
+    and get one assignment each, and two never get the same returned assignment."""
+    if s.get_bind().dialect.name == "postgresql":
+        s.execute(_HIT_LOCK)
     hit = s.scalar(select(ReplicaHit).order_by(ReplicaHit.id).limit(1))
     if hit is None:
         hit = ReplicaHit(hit_id=new_id(), title=state.study.title, created_at=utcnow())

@@ -507,6 +507,14 @@ class StudyServer(Base):
     updates_completed: Mapped[int] = mapped_column(Integer, default=0)
     updates_failed: Mapped[int] = mapped_column(Integer, default=0)
     participants_at_once: Mapped[int | None] = mapped_column(Integer)  # its capacity
+    # What the deployment's capacity is summed from (``server.app.updates.capacity``): where its
+    # update slots run (``servers.slots_machine``: servers with the same share its cores), the
+    # cores they share with the server's process there (None: a cluster's workers), and the
+    # costs of an update its capacity was stated from (None: not yet timed).
+    machine: Mapped[str] = mapped_column(String(255), default="", server_default="")
+    cores: Mapped[int | None] = mapped_column(Integer)
+    update_seconds: Mapped[float | None] = mapped_column(Float)
+    server_seconds: Mapped[float | None] = mapped_column(Float)
 
 
 class DashboardSession(Base):

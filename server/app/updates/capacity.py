@@ -25,6 +25,12 @@ server's or the database's work held its core, which ``server_seconds`` counts a
 PostgreSQL on the same machine at 100 participants an update's wall time was more than twice
 its CPU time, and the capacity read 59 with it while 100 participants waited under 1 s).
 
+Several servers of a deployment state a capacity each; the deployment's is summed per machine
+(``deployment_participants``): servers on one machine share its cores, so their slots are
+summed and the cores bound above is applied once for all of them (three servers with one update
+process each on a 2-core machine have the capacity of 2 cores, not of 6), and servers that send
+their updates to one Dask cluster share its workers, counted once.
+
 The capacity bounds the queue, not one update's own time: an agent step that follows an update
 waits for it however few participants teach. The longest reference update is said beside the
 capacity (``LongestUpdate``): where it takes seconds (a slow CPU, a large environment), the
@@ -104,6 +110,59 @@ def participants_at_once(
         shared = update_interval_seconds / (update_seconds + server_seconds)
         share = min(share, TARGET_UTILISATION * max(1, cores) * shared)
     return max(1, math.floor(share))
+
+
+@dataclass(frozen=True)
+class ServerSlots:
+    """One server's update slots as its heartbeat states them, for the deployment's capacity."""
+
+    machine: str  # where the slots run (``servers.slots_machine``): the same one shares cores
+    slots: int
+    cores: int | None  # the cores the slots share with the server there (None: a cluster's)
+    update_seconds: float  # an update's cost the server's capacity was stated from
+    server_seconds: float | None  # the server's own work per update (None: not counted)
+
+
+def deployment_participants(
+    servers: Iterable[ServerSlots], update_interval_seconds: float
+) -> tuple[int, int]:
+    """The participants at once and the update slots of a deployment's ``servers``
+    (the module docstring): on each machine, its servers' slots summed (a cluster's: its
+    workers once) with their costs' mean weighted by slots, its cores counted once; the
+    machines' capacities summed."""
+    machines: dict[str, list[ServerSlots]] = {}
+    for server in servers:
+        machines.setdefault(server.machine, []).append(server)
+    participants = slots = 0
+    for group in machines.values():
+        local = [server for server in group if server.cores is not None]
+        if local:  # processes on the machine: their slots add up, its cores do not
+            cores = max(server.cores or 1 for server in local)
+            summed = sum(max(1, server.slots) for server in local)
+            participants += participants_at_once(
+                _mean(local, lambda server: server.update_seconds),
+                summed,
+                update_interval_seconds,
+                _mean(local, lambda server: server.server_seconds or 0.0),
+                cores=cores,
+            )
+            slots += min(summed, cores)
+        cluster = [server for server in group if server.cores is None]
+        if cluster:  # the same workers, whichever server sends them updates
+            widest = max(max(1, server.slots) for server in cluster)
+            participants += participants_at_once(
+                _mean(cluster, lambda server: server.update_seconds),
+                widest,
+                update_interval_seconds,
+            )
+            slots += widest
+    return participants, slots
+
+
+def _mean(servers: list[ServerSlots], cost: Callable[[ServerSlots], float]) -> float:
+    """A cost's mean over ``servers``, weighted by their slots."""
+    weights = [max(1, server.slots) for server in servers]
+    return sum(w * cost(s) for w, s in zip(weights, servers, strict=True)) / sum(weights)
 
 
 def reference_jobs(

@@ -65,7 +65,9 @@ from server.app.updates.capacity import (
     LIVE_UPDATES,
     Capacity,
     LongestUpdate,
+    ServerSlots,
     UpdateCost,
+    deployment_participants,
     describe,
     longest_of,
     participants_at_once,
@@ -76,7 +78,13 @@ from server.app.updates.policies import PolicyCache, decode
 from server.app.updates.pool import UpdatesUnavailable, WorkerDied
 from server.app.updates.queue import ProcessGate, QueueState, UpdateQueue
 from server.app.updates.runners import ClusterUpdates, LocalUpdates, Runner
-from server.app.updates.servers import ServerLoad, ServerRegistry, others_load, server_name
+from server.app.updates.servers import (
+    ServerLoad,
+    ServerRegistry,
+    others_slots,
+    server_name,
+    slots_machine,
+)
 from server.app.updates.store import LEASE_SECONDS, Job, UpdateStore
 from server.cores import available_cores
 from server.domains import make as make_environment
@@ -124,9 +132,10 @@ class UpdateManager:
         self.shared = db is not None and not db.is_sqlite
         self.order = UpdateQueue(self.store.processed, self._share_awaited if self.shared else None)
         self.registry = ServerRegistry(db, self.server)
-        # The other live servers' participants at once and update slots, as their latest
-        # heartbeats said (read at this server's own heartbeats).
-        self._others = (0, 0)
+        # The other live servers' update slots with their costs, as their latest heartbeats
+        # said (read at this server's own heartbeats), and where this server's run.
+        self._others: list[ServerSlots] = []
+        self.machine = slots_machine(cluster.address if cluster is not None else None)
         self._listener: Listener | None = None
         # The notices this server sends outside a transaction of its own, off the event loop.
         self._announcing: ThreadPoolExecutor | None = None
@@ -244,6 +253,10 @@ class UpdateManager:
             updates_completed=self.completed,
             updates_failed=self.failed,
             participants_at_once=capacity.participants if capacity is not None else None,
+            machine=self.machine,
+            cores=available_cores() if self.cluster is None else None,
+            update_seconds=capacity.update_seconds if capacity is not None else None,
+            server_seconds=capacity.server_seconds if capacity is not None else None,
         )
 
     def expect(self, session_id: int, target: int) -> None:
@@ -310,7 +323,7 @@ class UpdateManager:
                 await asyncio.to_thread(self.registry.beat, self.load())
                 if self.shared:
                     self._others = await asyncio.to_thread(
-                        others_load, self.db, self.server, self.lease_seconds
+                        others_slots, self.db, self.server, self.lease_seconds
                     )
             except Exception:
                 log.exception("could not renew this server's claims on learner updates")
@@ -476,17 +489,27 @@ class UpdateManager:
         )
 
     def deployment_capacity(self) -> Capacity | None:
-        """The capacity of the whole deployment: this server's with the other live servers'
-        participants and slots added (their heartbeats'); None before this server's own is
-        known. One server: ``capacity()``."""
+        """The capacity of the whole deployment: this server's slots with the other live
+        servers' (their heartbeats'), each machine's cores counted once
+        (``capacity.deployment_participants``); None before this server's own is known. One
+        server: ``capacity()``."""
         own = self.capacity()
-        participants, slots = self._others
-        if own is None or not (participants or slots):
+        if own is None or not self._others:
             return own
+        mine = ServerSlots(
+            machine=self.machine,
+            slots=self.slots,
+            cores=available_cores() if self.cluster is None else None,
+            update_seconds=own.update_seconds,
+            server_seconds=own.server_seconds,
+        )
+        participants, slots = deployment_participants(
+            [mine, *self._others], self.update_interval_seconds
+        )
         return dataclasses.replace(
             own,
-            participants=own.participants + participants,
-            slots=own.slots + slots,
+            participants=participants,
+            slots=slots,
             measured_on=f"{own.measured_on}, with the deployment's other servers",
         )
 

@@ -2,7 +2,9 @@
 has a row in ``servers`` with its name (the one its claims on learner updates carry), where it
 runs, and a heartbeat with its load, written every ``heartbeat_seconds`` (a third of the
 update lease, so a server whose heartbeat is older than its lease is gone: its claims are
-taken over). The dashboard lists them; the deployment's capacity is the sum of theirs.
+taken over). The dashboard lists them; the deployment's capacity is summed from theirs, each
+machine's cores once (``capacity.deployment_participants``): a heartbeat says where the
+server's update slots run (``slots_machine``) and the costs its capacity was stated from.
 """
 
 from __future__ import annotations
@@ -12,11 +14,16 @@ import secrets
 import socket
 from dataclasses import dataclass
 from datetime import datetime, timedelta
+from pathlib import Path
 
 from sqlalchemy import select
 
 from server.app.storage.db import Database
 from server.app.storage.models import StudyServer, utcnow
+from server.app.updates.capacity import ServerSlots
+
+BOOT_ID = Path("/proc/sys/kernel/random/boot_id")
+LOOPBACK = ("127.", "localhost", "[::1]")
 
 
 def server_name() -> str:
@@ -26,15 +33,47 @@ def server_name() -> str:
     return f"{host}-{os.getpid()}-{secrets.token_hex(3)}"
 
 
+def this_machine() -> str:
+    """Which cores this process's update processes share: the kernel's boot id (one a machine,
+    shared by its containers, unlike their host names) and the cores this process may run on
+    (containers given cores of their own share none). The host name where there is no boot id
+    (not Linux)."""
+    try:
+        kernel = BOOT_ID.read_text().strip()
+    except OSError:
+        kernel = ""
+    try:
+        allowed = sorted(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        allowed = []
+    cores = ",".join(map(str, allowed))
+    return f"{kernel or socket.gethostname()} cores {cores or os.cpu_count()}"[:255]
+
+
+def slots_machine(cluster_address: str | None) -> str:
+    """Where a server's update slots run: this machine's cores, or the Dask cluster's workers
+    (its scheduler's address; one on a loopback address is this machine's own)."""
+    if cluster_address is None:
+        return this_machine()
+    if any(part in cluster_address for part in LOOPBACK):
+        return f"dask {cluster_address} on {this_machine()}"[:255]
+    return f"dask {cluster_address}"[:255]
+
+
 @dataclass(frozen=True)
 class ServerLoad:
-    """What a server's heartbeat says of it."""
+    """What a server's heartbeat says of it: its load, and what the deployment's capacity is
+    summed from (``ServerSlots``)."""
 
     update_slots: int
     updates_running: int
     updates_completed: int
     updates_failed: int
     participants_at_once: int | None
+    machine: str = ""  # where its update slots run (``slots_machine``)
+    cores: int | None = None  # the cores they share with the server (None: a cluster's)
+    update_seconds: float | None = None  # the update cost its capacity is from (None: untimed)
+    server_seconds: float | None = None  # the server's own work per update (None: not counted)
 
 
 @dataclass(frozen=True)
@@ -115,18 +154,27 @@ def deployment_servers(db: Database, gone_after_seconds: float) -> list[ServerVi
                 updates_completed=row.updates_completed,
                 updates_failed=row.updates_failed,
                 participants_at_once=row.participants_at_once,
+                machine=row.machine,
+                cores=row.cores,
+                update_seconds=row.update_seconds,
+                server_seconds=row.server_seconds,
             ),
         )
         for row in rows
     ]
 
 
-def others_load(db: Database, name: str, gone_after_seconds: float) -> tuple[int, int]:
-    """The participants at once and the update slots of the deployment's other live servers
-    (those that stated a capacity), from their heartbeats."""
-    participants = slots = 0
-    for server in deployment_servers(db, gone_after_seconds):
-        if server.live and server.name != name:
-            participants += server.load.participants_at_once or 0
-            slots += server.load.update_slots
-    return participants, slots
+def others_slots(db: Database, name: str, gone_after_seconds: float) -> list[ServerSlots]:
+    """The update slots of the deployment's other live servers that stated a capacity, from
+    their heartbeats."""
+    return [
+        ServerSlots(
+            machine=server.load.machine,
+            slots=server.load.update_slots,
+            cores=server.load.cores,
+            update_seconds=server.load.update_seconds,
+            server_seconds=server.load.server_seconds,
+        )
+        for server in deployment_servers(db, gone_after_seconds)
+        if server.live and server.name != name and server.load.update_seconds is not None
+    ]

@@ -566,12 +566,17 @@ async function loadQueue() {
     item("oldest-wait", "The oldest wait", seconds(q.oldest_wait_seconds), null, q.oldest_wait_seconds > 2));
 }
 
-/** The deployment's servers with their heartbeats and load (one row with one server). */
+/** The deployment's servers with their heartbeats and load (one row with one server); servers
+ * whose update slots share a machine (or a Dask cluster) have the same machine number. */
 async function loadServers() {
   const servers = await getJSON(`${API}/servers`);
+  const machines = [...new Set(servers.map((s) => s.machine))];
   $("#servers tbody").replaceChildren(...servers.map((s) =>
-    h("tr", { "data-server": s.name },
+    h("tr", { "data-server": s.name, "data-machine": String(machines.indexOf(s.machine) + 1) },
       h("td", {}, s.name, s.this_server ? h("span", { class: "muted" }, " (this page's)") : null),
+      h("td", { title: s.machine || "not stated" },
+        `${s.host}, machine ${machines.indexOf(s.machine) + 1}`,
+        s.cores === null ? " (a cluster's workers)" : ` (${s.cores} cores)`),
       h("td", { class: s.live ? "" : "alert" }, s.live ? "live" : (s.stopped_at ? "stopped" : "gone (no heartbeat)")),
       h("td", {}, time(s.started_at)),
       h("td", {}, time(s.heartbeat_at)),

@@ -1,5 +1,5 @@
 """The deployment's servers as the dashboard lists them: each running server with its
-heartbeat and load, the one that answered marked, and a stopped one shown stopped."""
+heartbeat, machine and load, the one that answered marked, and a stopped one shown stopped."""
 
 from __future__ import annotations
 
@@ -11,6 +11,8 @@ from server.app.config import StudyConfig
 from server.app.main import create_app
 from server.app.settings import Settings
 from server.app.storage.db import Database
+from server.app.updates.servers import this_machine
+from server.cores import available_cores
 from tests.support.server import ADMIN_TOKEN
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
@@ -29,6 +31,9 @@ def test_the_dashboard_lists_each_server(
             assert len(rows) == 2 and all(row["live"] for row in rows)
             assert [row["this_server"] for row in rows].count(True) == 1
             assert all(row["update_slots"] >= 1 and row["stopped_at"] is None for row in rows)
+            # Both in this process: one machine, whose cores their update processes share.
+            assert [row["machine"] for row in rows] == [this_machine()] * 2
+            assert all(row["cores"] == available_cores() for row in rows)
             assert second.get("/api/admin/servers", headers=ADMIN).json()[0]["this_server"]
         # The second server stopped: it is listed as stopped, no longer live.
         rows = first.get("/api/admin/servers", headers=ADMIN).json()

@@ -25,9 +25,9 @@ from server.app.platforms import review
 from server.app.platforms.mturk import MTurkClientBackend, MTurkReplicaBackend
 from server.app.platforms.review import parse_amount
 from server.app.storage.db import Database
-from server.app.storage.models import AssignmentReview, Bonus, Participant
+from server.app.storage.models import AssignmentReview, Bonus, Participant, utcnow
 from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus
-from tests.support.server import ADMIN_TOKEN
+from tests.support.server import ADMIN_TOKEN, BOUND
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
 BASE = "/api/admin/participants"
@@ -229,6 +229,140 @@ def test_concurrent_duplicate_bonuses_pay_once_and_both_answer_the_bonus(
     assert len(answers) == 4 and all(isinstance(a, bool) for a in answers), answers
     assert stand_in.bonuses == {"tok-same-1": ("WORKER1", "1.25")}
     assert our_bonuses(db) == [("tok-same-1", 125, "paid")]
+
+
+class HeldReplica(MTurkReplicaBackend):
+    """The MTurk replica, its answer to the first bonus or approval held until the test lets
+    it go."""
+
+    def __init__(self, db: Database) -> None:
+        super().__init__(db)
+        self.calls = 0
+        self.asked = threading.Event()  # the first call is in
+        self.answer = threading.Event()  # and may answer
+
+    def _hold(self) -> None:
+        self.calls += 1
+        if self.calls == 1:
+            self.asked.set()
+            assert self.answer.wait(BOUND)
+
+    def pay_bonus(self, *args: Any) -> None:
+        self._hold()
+        super().pay_bonus(*args)
+
+    def approve(self, *args: Any) -> None:
+        self._hold()
+        super().approve(*args)
+
+
+@pytest.mark.parametrize("backend", ["postgresql"])
+def test_a_bonus_refused_while_its_duplicate_waits_is_refused_to_both(
+    db: Database, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two requests for one bonus at once (the same token, on two servers), both finding no
+    bonus recorded; the first records its intent, and the platform refuses it (the replica
+    has no assignment for the worker) while the second, whose record collided with it, waits
+    for the first to settle it. The first takes its intent back, and the second asks again and
+    is refused too (it found no bonus once it stopped waiting, and answered 500)."""
+    participant = submitted(db, "WORKER1", "NOT-ON-THE-REPLICA")
+    backend = HeldReplica(db)
+    second_read = threading.Event()  # the second found no bonus recorded
+    second_waits = threading.Event()  # its record collided with the first's: it waits
+
+    def check_budget(*args: Any) -> None:
+        if threading.current_thread().name == "second":
+            second_read.set()
+            assert backend.asked.wait(BOUND)  # the first recorded its intent and asks
+        budget(*args)
+
+    def wait_for(*args: Any) -> Any:
+        second_waits.set()
+        return settle(*args)
+
+    budget, settle = review._check_budget, review._wait_for
+    monkeypatch.setattr(review, "_check_budget", check_budget)
+    monkeypatch.setattr(review, "_wait_for", wait_for)
+    answers: dict[str, Any] = {}
+
+    def pay() -> None:
+        name = threading.current_thread().name
+        try:
+            answers[name] = review.pay_bonus(
+                db, backend, participant, Decimal("1.25"), "Thanks", "tok-refused-1", 10_000
+            )
+        except ApiError as error:
+            answers[name] = (error.status, error.message)
+
+    second = threading.Thread(target=pay, name="second")
+    second.start()
+    assert second_read.wait(BOUND)
+    first = threading.Thread(target=pay, name="first")
+    first.start()
+    assert second_waits.wait(BOUND)
+    backend.answer.set()
+    for thread in (first, second):
+        thread.join(timeout=BOUND)
+    refusal = (409, "the replica has no assignment NOT-ON-THE-REPLICA")
+    assert answers == {"first": refusal, "second": refusal}
+    assert backend.calls == 2  # the second asked the platform itself
+    assert our_bonuses(db) == []
+
+
+@pytest.mark.parametrize("backend", ["postgresql"])
+def test_an_approval_refused_while_its_duplicate_waits_is_refused_to_both(
+    db: Database, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """As the bonus above, for an approval: the second's record of its intent collides with
+    the first's, which the platform refuses and takes back; the second asks again and is
+    refused too (it found no decision recorded after the collision, and answered 500)."""
+    participant = submitted(db, "WORKER1", "NOT-ON-THE-REPLICA")
+    backend = HeldReplica(db)
+    second_read = threading.Event()  # the second found no decision recorded
+    first_done = threading.Event()
+    reads = {"second": 0}
+
+    def now() -> Any:  # stamps the intent, once the transaction found none
+        if threading.current_thread().name == "second" and not second_read.is_set():
+            second_read.set()
+            assert backend.asked.wait(BOUND)  # the first recorded its intent and asks
+        return utcnow()
+
+    def read() -> Any:
+        if threading.current_thread().name == "second":
+            reads["second"] += 1
+            if reads["second"] == 2:  # after the collision: the first is refused meanwhile
+                backend.answer.set()
+                assert first_done.wait(BOUND)
+        return database_read()
+
+    database_read = db.read
+    monkeypatch.setattr(review, "utcnow", now)
+    monkeypatch.setattr(db, "read", read)
+    answers: dict[str, Any] = {}
+
+    def approve() -> None:
+        name = threading.current_thread().name
+        try:
+            answers[name] = review.review_submission(db, backend, participant, "approved", None)
+        except ApiError as error:
+            answers[name] = (error.status, error.message)
+        finally:
+            if name == "first":
+                first_done.set()
+
+    second = threading.Thread(target=approve, name="second")
+    second.start()
+    assert second_read.wait(BOUND)
+    first = threading.Thread(target=approve, name="first")
+    first.start()
+    for thread in (first, second):
+        thread.join(timeout=BOUND)
+    refusal = (409, "the replica has no assignment NOT-ON-THE-REPLICA")
+    assert answers == {"first": refusal, "second": refusal}
+    assert backend.calls == 2  # the second asked the platform itself
+    with db.read() as s:
+        assert s.scalars(select(AssignmentReview)).all() == []
 
 
 def test_reconcile_settles_every_unsettled_mturk_bonus_without_paying_again(

@@ -1,18 +1,26 @@
-"""The local MTurk replica holds one assignment of its HIT per worker, as MTurk does."""
+"""The local MTurk replica holds one assignment of its HIT per worker, as MTurk does, also for
+workers who accept at once on a server of several threads."""
 
 from __future__ import annotations
 
 import html
 import re
+import threading
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from urllib.parse import parse_qs, urlsplit
 
+import httpx
+import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
+from server.app.config import StudyConfig
+from server.app.main import create_app
+from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Participant
-from server.app.storage.replica_models import ReplicaAssignment
-from tests.support.server import ADMIN_TOKEN
+from server.app.storage.replica_models import ReplicaAssignment, ReplicaHit
+from tests.support.server import ADMIN_TOKEN, BOUND, live
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
 
@@ -103,3 +111,31 @@ def test_the_holder_of_a_reused_assignment_keeps_it(client: TestClient, db: Data
     assert TestClient(client.app).get(first_url).status_code == 200
     assert server_statuses() == {"W1": "arrived", "W2": "returned"}
     assert replica_statuses() == [("W1", "returned"), ("W2", "returned"), ("W1", "accepted")]
+
+
+@pytest.mark.parametrize("backend", ["postgresql"])
+def test_workers_accepting_at_once_share_the_hit_and_hold_one_assignment_each(
+    db: Database, settings: Settings, study: StudyConfig, executor: ProcessPoolExecutor
+) -> None:
+    """Six workers accept the HIT at once, each twice (a double click), over real HTTP: one
+    HIT, one assignment per worker, no assignment id twice."""
+    workers = [f"W{n}" for n in range(6)] * 2
+    ready = threading.Barrier(len(workers))
+
+    def accept_at_once(base: str, worker: str) -> httpx.Response:
+        ready.wait(timeout=BOUND)
+        return httpx.post(
+            f"{base}/mturk/accept", data={"workerId": worker}, headers=ADMIN, timeout=BOUND
+        )
+
+    app = create_app(settings, study, db=db, executor=executor)
+    with live(app) as base, ThreadPoolExecutor(len(workers)) as pool:
+        answers = list(pool.map(lambda worker: accept_at_once(base, worker), workers))
+    assert [answer.status_code for answer in answers] == [303] * len(workers)
+    with db.read() as s:
+        hits = s.scalars(select(ReplicaHit.hit_id)).all()
+        rows = s.scalars(select(ReplicaAssignment)).all()
+    assert len(hits) == 1
+    assert sorted(row.worker_id for row in rows) == sorted(set(workers))
+    assert len({row.assignment_id for row in rows}) == len(rows)
+    assert {row.hit_id for row in rows} == set(hits)

@@ -17,6 +17,17 @@ from server.domains.base import (
     check_gradient_rule,
 )
 from server.learners import _kernels, planning
+from server.learners._kernels import (
+    CostCells,
+    CostState,
+    CostWorkspace,
+    StepSettings,
+    TableGradient,
+    TaskRecords,
+    TeacherModels,
+    TeacherPasses,
+    Trace,
+)
 from server.learners.base import Learner
 from server.learners.likelihoods import (
     GRADIENT_NOT_FINITE,
@@ -45,9 +56,8 @@ from server.learners.objective import (
     taught_tasks,
 )
 from server.learners.planning import (
-    NO_ENTRIES,
-    NO_INCOMING_32,
-    NO_RUNS,
+    NO_GRADIENT,
+    NO_TERMS,
     PRECISIONS,
     TransitionOperator,
     check_horizon,
@@ -251,8 +261,8 @@ class PlannerLearner(Learner):
             value, _, d_transitions = self.teacher_objective(operator, data, need_transitions=True)
             assert d_transitions is not None
             return value, d_transitions
-        arguments, d_probs = self._teacher_pass_arguments(operator, data, fresh_rows=False)
-        demo_values, step_values, code = _kernels.teacher_gradient(*arguments)
+        passes, d_probs = self._teacher_pass_arguments(operator, data, fresh_rows=False)
+        demo_values, step_values, code = _kernels.teacher_gradient(passes)
         value = self._teacher_value(demo_values, step_values, code, self._q_shape(operator, data))
         return value, d_probs.astype(np.float64).reshape(
             operator.num_states, operator.num_actions, operator.width
@@ -260,7 +270,7 @@ class PlannerLearner(Learner):
 
     def _teacher_pass_arguments(
         self, operator: TransitionOperator, data: TeacherData, fresh_rows: bool
-    ) -> tuple[tuple[Any, ...], np.ndarray]:
+    ) -> tuple[TeacherPasses, np.ndarray]:
         """``_kernels.teacher_gradient``'s arguments for the learner's rewards on ``operator``
         (with ``fresh_rows``, the passes' probabilities in arrays of their own, for a kernel to
         fill), and the dL/dT it writes."""
@@ -272,37 +282,34 @@ class PlannerLearner(Learner):
             rewards = rewards[:, data.plan_states]
         shape = (rewards.shape[0], operator.num_states, operator.num_actions)
         entries, copies, originals, runs, slots = operator.reverse_entries()
-        scatter = dtype == np.float32
-        incoming = NO_INCOMING_32 if scatter else operator.incoming_in(dtype)
-        rows = operator.rows_in(dtype)
+        rows, incoming, scatter = operator.pass_layouts(dtype)
         if fresh_rows:
-            rows = tuple(a.copy() if a.dtype == dtype else a for a in rows)  # type: ignore[assignment]
-            incoming = tuple(a.copy() if a.dtype == dtype else a for a in incoming)  # type: ignore[assignment]
+            rows, incoming = _own_probabilities(rows, dtype), _own_probabilities(incoming, dtype)
         d_probs: np.ndarray = np.zeros(operator.next_flat.shape[0], dtype)
-        no_terms: np.ndarray = np.empty((0, 0, 0), dtype)
-        trace: tuple[np.ndarray, ...] = (
-            np.empty(shape, dtype),
-            np.empty((horizon - 1, shape[0], shape[1]), dtype),
-            np.empty((horizon - 1, shape[0], shape[2], shape[1]), dtype),
-        )
-        reverse = (
-            entries, runs, slots, np.zeros(shape[:2], dtype), d_probs, no_terms, no_terms,
-            copies, originals,
+        no_terms = NO_TERMS[dtype]
+        gradient = TableGradient(
+            operator.next_flat, operator.width, entries, runs, slots, d_probs, no_terms, shape[0],
+            no_terms,
         )  # fmt: skip
-        arguments: tuple[Any, ...] = (
+        passes = TeacherPasses(
+            rows,
             incoming,
             scatter,
-            rows,
-            operator.next_flat,
-            operator.width,
             np.ascontiguousarray(rewards, dtype),
             dtype(action_model(settings).beta),
             horizon,
-            trace,
+            Trace(
+                np.empty(shape, dtype),
+                np.empty((horizon - 1, shape[0], shape[1]), dtype),
+                np.empty((horizon - 1, shape[0], shape[2], shape[1]), dtype),
+            ),
             likelihood_arguments(data, settings),
-            reverse,
+            np.zeros(shape[:2], dtype),
+            gradient,
+            copies,
+            originals,
         )
-        return arguments, d_probs
+        return passes, d_probs
 
     @staticmethod
     def _teacher_value(
@@ -434,7 +441,7 @@ class PlannerLearner(Learner):
         assert layout is not None
         teacher = self.plan_model(data)
         model = self._theta_model(observed, data)
-        arguments, _ = self._teacher_pass_arguments(operator, data, fresh_rows=True)
+        passes, _ = self._teacher_pass_arguments(operator, data, fresh_rows=True)
         theta = np.array(self.theta, dtype=np.float64)
         velocity = np.array(self.theta_optimizer.velocity, dtype=np.float64)
         kernel_arguments = (
@@ -446,7 +453,7 @@ class PlannerLearner(Learner):
             teacher.flat_parametric_entries,
             layout.nonzero,
             (layout.shifted_source, layout.flat_source, layout.dense_source, layout.target_source),
-            *arguments,
+            passes,
         )
         value, demo_values, step_values, code, done, row = _kernels.dynamics_steps(
             *kernel_arguments
@@ -550,70 +557,49 @@ class PlannerLearner(Learner):
         demo_values = np.zeros(data.demo_tasks.shape[0])
         step_values = np.zeros(data.step_tasks.shape[0])
         codes = np.zeros(len(env.tasks), dtype=np.int64)
-        scatter = dtype == np.float32
         bound = float(settings["cost_bound"])
         prior_sd = float(settings["cost_prior_sd"])
         if not np.isfinite(prior_sd) or prior_sd <= 0:  # as gaussian_log_prior refuses it
             raise ValueError(f"prior standard deviation must be positive, got {prior_sd!r}")
+        cells = CostCells(
+            data_row, plan_states, env.state_cells.astype(np.int64), int(env.num_features),
+            self.cost_mask.astype(np.float64),
+        )  # fmt: skip
+        records = TaskRecords(
+            demo_rows, demo_start, data.demo_states[demo_rows], data.demo_actions[demo_rows],
+            step_rows, step_start, data.step_states[step_rows], data.step_actions[step_rows],
+            data.step_feedback[step_rows],
+        )  # fmt: skip
+        models = TeacherModels(
+            float(actions.beta), bool(actions.normalized), float(actions.variance_floor),
+            float(feedback.epsilon), float(feedback.alpha), float(feedback.mu_plus),
+            float(feedback.mu_minus),
+        )  # fmt: skip
+        step_settings = StepSettings(
+            optimizer.learning_rate, optimizer.momentum, optimizer.max_step,
+            optimizer.clip == "step", bound,
+        )  # fmt: skip
+        trace = Trace(
+            np.empty((num_data, num_plan, env.num_actions), dtype),
+            np.empty((horizon - 1, num_data, num_plan), dtype),
+            np.empty((horizon - 1, num_data, env.num_actions, num_plan), dtype),
+        )
+        workspace = CostWorkspace(
+            np.empty((num_data, num_plan), dtype),
+            np.empty((num_data, num_plan), dtype),
+            np.empty((num_data, num_plan, env.num_actions), dtype),
+        )
+        state = CostState(costs, velocity, before, demo_values, step_values, codes)
         planning.run_pass(  # by the module, as the passes' are: a benchmark counts them there
             task_chunks(len(env.tasks)),
             _kernels.cost_steps_tasks,
             _kernels.cost_steps_chunks,
             (
-                *operator.rows_in(dtype),
-                *(NO_INCOMING_32 if scatter else operator.incoming_in(dtype)),
-                scatter,
-                operator.next_flat,
-                operator.width,
-                NO_ENTRIES,
-                NO_RUNS,
-                np.empty(0, dtype),
-                np.empty((0, horizon - 1, 0), dtype),
-                np.empty((0, 0, 0), dtype),
-                dtype(actions.beta),
-                horizon,
-                costs,
-                velocity,
-                before,
-                data_row,
-                plan_states,
-                env.state_cells.astype(np.int64),
-                int(env.num_features),
-                self.cost_mask.astype(np.float64),
-                demo_rows,
-                demo_start,
-                data.demo_states[demo_rows],
-                data.demo_actions[demo_rows],
-                step_rows,
-                step_start,
-                data.step_states[step_rows],
-                data.step_actions[step_rows],
-                data.step_feedback[step_rows],
-                float(actions.beta),
-                bool(actions.normalized),
-                float(actions.variance_floor),
-                float(feedback.epsilon),
-                float(feedback.alpha),
-                float(feedback.mu_plus),
-                float(feedback.mu_minus),
-                int(steps),
-                prior_sd**2,
-                optimizer.learning_rate,
-                optimizer.momentum,
-                optimizer.max_step,
-                optimizer.clip == "step",
-                bound,
-                np.empty((num_data, num_plan, env.num_actions), dtype),
-                np.empty((horizon - 1, num_data, num_plan), dtype),
-                np.empty((horizon - 1, num_data, env.num_actions, num_plan), dtype),
-                np.empty((num_data, num_plan), dtype),
-                np.empty((num_data, num_plan), dtype),
-                np.empty((num_data, num_plan, env.num_actions), dtype),
-                demo_values,
-                step_values,
-                codes,
+                *operator.pass_layouts(dtype), NO_GRADIENT[dtype], dtype(actions.beta), horizon,
+                cells, records, models, int(steps), prior_sd**2, step_settings, trace, workspace,
+                state,
             ),
-        )
+        )  # fmt: skip
         for code in codes[codes != 0]:
             if code == GRADIENT_NOT_FINITE:
                 raise FloatingPointError("the objective's gradient is not finite")
@@ -764,6 +750,12 @@ def _primitive_family(model: TransitionModel) -> tuple[int, int] | None:
     if type(model) is SoftmaxRowsModel:
         return _kernels.SOFTMAX_ROWS_PRIMITIVES, model.choices
     return None
+
+
+def _own_probabilities(layout: Any, dtype: type) -> Any:
+    """A pass layout whose probabilities (its arrays in the passes' precision) are copies, for
+    a kernel to fill; its index arrays shared."""
+    return layout._make(a.copy() if a.dtype == dtype else a for a in layout)
 
 
 def _rows_by_task(tasks: np.ndarray, num_tasks: int) -> tuple[np.ndarray, np.ndarray]:

@@ -1,21 +1,37 @@
 """Compiled inner loops of soft value iteration (the forward and the reverse pass) and the
 learners' steps that call them (cost steps, theta steps, dynamics steps).
 
-One module, over 500 lines, on purpose: the passes inline the exp and Boltzmann helpers
-(``inline="always"``), and numba's on-disk cache (``cache=True``) checks only the source file
-of the function it compiled, so a helper edited in another module would leave stale compiled
-passes in the cache. The steps also compile in the likelihood of ``likelihoods.py``
+One module: the passes inline the exp and Boltzmann helpers (``inline="always"``), and the
+steps inline the passes; numba's on-disk cache (``cache=True``) checks only the source file of
+the function it compiled, so a helper edited in another module would leave stale compiled
+passes in the cache, silently. The steps also compile in the likelihood of ``likelihoods.py``
 (``data_log_likelihood_kernel``, ``step_advantages``), as the cloning steps do, and numba's
 cache does not see an edit there: clear ``__pycache__`` after one.
 
-Conventions:
+Conventions (S states, A actions, K tasks, H the horizon, ``width`` entries per table row):
 
+- **Arguments.** A kernel takes what its caller builds once as the named tuples below
+  (``ForwardLayout``, ``ReverseLayout``, ``Trace``, ``TableGradient``, the teacher gradient's
+  ``TeacherPasses``, the cost steps' ``CostCells``, ``TaskRecords``, ``TeacherModels``,
+  ``StepSettings``, ``CostWorkspace``, ``CostState``), each field's shape beside it; numba
+  types them as it types plain tuples. A kernel reads a field by name or unpacks the whole
+  tuple in its fields' order, under their names. A parallel kernel (``*_chunks``) takes no
+  tuple that holds a tuple: numba's parallel loops take tuples of arrays, not nested ones. Indexes are int64; the passes' arrays are in
+  the passes' precision, float64 or float32 (the learners' setting ``planner_precision``),
+  everything else float64. Outputs are written in place.
 - **Rows.** The transitions are the padded sparse layout of ``SparseTransitions`` flattened to
-  the table's rows ``s * A + a``, ``width`` entries each. Inside the passes Q's rows are held
-  action by action, row ``a * S + s`` (``pass_row`` and ``table_row`` convert), as are the
-  value Jacobians of the trace, ``jacobians[t, k, a, s]`` (step t, task k): each state's work
-  over its actions runs as one loop over states per action, which the compiler turns into SIMD
-  code, each state's arithmetic in the order a loop over its actions would do it.
+  the table's rows ``s * A + a``, ``width`` entries each (``next_flat``, ``probs_flat``).
+  Inside the passes Q's rows are held action by action, row ``a * S + s`` (``pass_row`` and
+  ``table_row`` convert), as are the value Jacobians of the trace, ``jacobians[t, k, a, s]``
+  (step t, task k): each state's work over its actions runs as one loop over states per
+  action, which the compiler turns into SIMD code, each state's arithmetic in the order a loop
+  over its actions would do it. Q itself comes out as ``q[k, s, a]``.
+- **What the passes assume.** Every row of the table has a non-zero entry, and every index in
+  a layout lies in its array (``split_rows`` and ``incoming`` build them; the gathers index
+  unsigned, with no test for a negative index). A Boltzmann normaliser is at
+  least 1 (the best action weighs exactly 1), so no division is checked for a zero divisor.
+  Tasks are independent: a pass or a step computes tasks ``first .. last - 1``, and any split of
+  the tasks over threads computes the same bits.
 - **Sums.** A forward pass adds each row's terms level by level, those of one action that lead
   the same distance away as one shifted row (``split_rows``), the rest gathered. A reverse pass
   computes dL/dT only at the entries it is asked for (those the model space moves) and sums
@@ -26,23 +42,30 @@ Conventions:
 - **Bit for bit.** Float64 passes and steps reproduce the published runs to the last bit
   (``tests/learners/test_same_updates.py``): an edit may change where a number is kept, not a
   float64 operation or its order (the five-action code, ``_boltzmann_five``, does the general
-  loops' operations in their order), and any split of the tasks over threads computes the same
-  bits. Nothing is compiled with ``fastmath``, and the passes and steps with NumPy's error
-  model (no check of every division for a zero divisor: a Boltzmann normaliser is at least 1).
+  loops' operations in their order). Nothing is compiled with ``fastmath``, and the passes and
+  steps with NumPy's error model.
 - **No literal arguments between kernels.** A kernel that calls a pass with a constant
   (``True``, ``0``) makes numba compile that pass again for the constant's literal type; such
   calls pass ``np.bool_(True)`` and ``np.int64(0)``, which take the pass compiled for every
   other caller (each pass compiled once per precision, not once per kind of caller).
 - **Error codes.** A compiled step returns 0 or a code of the one block in ``likelihoods.py``
-  (``BAD_INDEX`` .. ``LAYOUT_CHANGED``); its caller raises it (``likelihoods.refuse`` for the
-  likelihood's) or, for ``LAYOUT_CHANGED``, takes over.
+  (whose kernels return the first three, and which ``cloning`` shares); its caller raises it
+  (``likelihoods.refuse`` for the likelihood's) or, for ``LAYOUT_CHANGED``, takes over:
 
-The timings that chose these designs: docs/benchmarks.md, "The kernels' designs, timed".
+  - ``BAD_INDEX`` (1): a task, state or action index out of range;
+  - ``BAD_FEEDBACK`` (2): feedback other than +1, -1 or 0 (none);
+  - ``IMPOSSIBLE_FEEDBACK`` (3): a feedback event of probability 0 under the feedback model;
+  - ``GRADIENT_NOT_FINITE`` (9): a cost, theta, dynamics or cloning step's gradient;
+  - ``LIKELIHOOD_NOT_FINITE`` (10): the teacher data's log-likelihood (Q is not finite);
+  - ``IMPOSSIBLE_TRANSITION`` (11): an observed transition that no theta of the model space
+    gives (``theta_steps``, ``dynamics_steps``, with the observed row);
+  - ``LAYOUT_CHANGED`` (12): not an error; a dynamics step's table has a moved entry zero
+    where the passes' layouts have it not, or the reverse (``dynamics_steps`` stops there).
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from llvmlite import ir
@@ -58,6 +81,143 @@ from server.learners.likelihoods import (
     data_log_likelihood_kernel,
     step_advantages,
 )
+
+# -- the kernels' arguments -----------------------------------------------------------------------
+
+
+class ForwardLayout(NamedTuple):
+    """A table's non-zero entries for forward passes, level by level (``split_rows``): G
+    shifted rows and F flat entries."""
+
+    shifts: np.ndarray  # (G, 4): a shifted row's action a, offset d, its states lo .. hi - 1
+    shifted_probability: np.ndarray  # (G, S): 0 at a state whose entry is not in the row
+    shift_start: np.ndarray  # (levels + 1,): each level's first shifted row
+    flat_rows: np.ndarray  # (F,): a flat entry's pass row a * S + s
+    flat_next: np.ndarray  # (F,): its next state
+    flat_probability: np.ndarray  # (F,)
+    flat_start: np.ndarray  # (levels + 1,): each level's first flat entry
+
+
+class ReverseLayout(NamedTuple):
+    """A table's non-zero entries by next state for float64 reverse passes (``incoming``):
+    the dense levels, then E flat entries. Empty where the reverse pass scatters."""
+
+    dense_sources: np.ndarray  # (dense levels, S): the pass row of state s's entry there
+    dense_probabilities: np.ndarray  # (dense levels, S): 0 where s has no such entry
+    targets: np.ndarray  # (E,): a flat entry's next state
+    sources: np.ndarray  # (E,): its pass row
+    probabilities: np.ndarray  # (E,)
+
+
+class Trace(NamedTuple):
+    """What a forward pass writes, and its reverse pass reads (all but Q)."""
+
+    q: np.ndarray  # (K, S, A): Q after H backups
+    values: np.ndarray  # (H - 1, K, S): V_t of t = 1 .. H - 1; (0, K, S) without a trace
+    jacobians: np.ndarray  # (H - 1, K, A, S): dV_t/dQ_t, by action
+
+
+class TableGradient(NamedTuple):
+    """Where a reverse pass computes dL/dT and how it adds it up (``soft_backward_tasks``):
+    N entries, none (all empty) for a pass of dL/dreward alone."""
+
+    next_flat: np.ndarray  # (S * A * width,): each table entry's next state, row s * A + a
+    width: int
+    entries: np.ndarray  # (N,): the flat table entries it computes, no two of one row and next
+    runs: np.ndarray  # (R, 5): runs of them summed side by side, (a, d, lo, hi, at)
+    slots: np.ndarray  # (N,): each entry's place in the runs (-1: summed alone), or empty
+    d_probs: np.ndarray  # (S * A * width,): dL/dT, added into at ``entries``
+    terms: np.ndarray  # (K - kept_from, H - 1, N): the terms kept for ``add_terms``, or empty
+    kept_from: int  # the first task whose terms are kept (terms empty: none)
+    task_sums: np.ndarray  # (K, 1, N): each task's sums (a whole table's gradient), or empty
+
+
+class TeacherPasses(NamedTuple):
+    """What the teacher data's gradient on a table plans on and writes (``teacher_gradient``),
+    in the passes' precision but for the likelihood's arguments."""
+
+    rows: ForwardLayout
+    incoming: ReverseLayout
+    scatter: bool  # the reverse pass sums dL/dV through ``rows`` (float32), not ``incoming``
+    rewards: np.ndarray  # (K, S)
+    beta: float
+    horizon: int
+    trace: Trace  # written
+    likelihood: tuple[Any, ...]  # as ``data_log_likelihood_kernel`` takes them, but for Q
+    d_reward: np.ndarray  # (K, S): dL/drewards, written
+    gradient: TableGradient  # dL/dT at its distinct entries (no terms kept), written
+    copies: np.ndarray  # the entries whose gradient is another's (``distinct_entries``)
+    originals: np.ndarray  # the entries they copy
+
+
+class CostCells(NamedTuple):
+    """How the cost steps' tasks plan on rewards from costs per cell (C cells)."""
+
+    data_row: np.ndarray  # (tasks,): a task's row in the passes' arrays, -1 without data
+    plan_states: np.ndarray  # (P,): the states planned over, the passes' S
+    state_cells: np.ndarray  # (S of the environment,): each state's cell
+    num_features: int  # states per cell: cell c's are c * num_features + f
+    cost_mask: np.ndarray  # (C,): 1 where a cell carries a cost, else 0
+
+
+class TaskRecords(NamedTuple):
+    """The teacher data by task with data: row r's demonstrations are ``demo_start[r] ..
+    demo_start[r + 1] - 1``, in the data's order, ``demo_rows`` their places in the data;
+    its agent steps likewise."""
+
+    demo_rows: np.ndarray
+    demo_start: np.ndarray  # (rows + 1,)
+    demo_states: np.ndarray
+    demo_actions: np.ndarray
+    step_rows: np.ndarray
+    step_start: np.ndarray  # (rows + 1,)
+    step_states: np.ndarray
+    step_actions: np.ndarray
+    step_feedback: np.ndarray  # +1, -1 or 0 (none)
+
+
+class TeacherModels(NamedTuple):
+    """The action and feedback models' parameters (``likelihoods.ActionModel``,
+    ``FeedbackModel``)."""
+
+    beta: float
+    normalized: bool
+    variance_floor: float
+    epsilon: float
+    alpha: float
+    mu_plus: float
+    mu_minus: float
+
+
+class StepSettings(NamedTuple):
+    """A momentum step's settings (``clipped_momentum_step``)."""
+
+    learning_rate: float
+    momentum: float
+    max_step: float
+    clip_step: bool  # the step is clipped, not the velocity
+    bound: float  # on each parameter's size (inf: none)
+
+
+class CostWorkspace(NamedTuple):
+    """The arrays the cost steps overwrite besides the trace, in the passes' precision, a row
+    per task with data."""
+
+    rewards: np.ndarray  # (rows, P)
+    d_reward: np.ndarray  # (rows, P)
+    d_q: np.ndarray  # (rows, P, A)
+
+
+class CostState(NamedTuple):
+    """What the cost steps step in place and report, a row per task of the environment."""
+
+    costs: np.ndarray  # (tasks, C)
+    velocity: np.ndarray  # (tasks, C): each task's optimiser's
+    before: np.ndarray  # (tasks, C): the costs at the last step's start
+    demo_values: np.ndarray  # (demonstrations,): their log-likelihoods there, the data's order
+    step_values: np.ndarray  # (agent steps,): likewise
+    codes: np.ndarray  # (tasks,): 0, or the error that stopped a task
+
 
 # -- the exp: a polynomial that the compiler vectorises --------------------------------------------
 
@@ -407,7 +567,9 @@ def split_rows(
     offsets per action (flip: 1910 of its 2000 first entries in 9 shifted rows), so a forward
     pass gathers only the rest: the flat triples, row ``rows[e]`` adds ``probability[e]`` times
     the value of ``next[e]``. ``shift_start`` and ``flat_start`` give each level's groups.
-    Every row's terms are added in its own order, each level after the one before."""
+    Every row's terms are added in its own order, each level after the one before. Its four
+    sweeps of the table (entries per row, each level's entries, their offsets, the groups)
+    share the counts of the one before."""
     num_rows = num_states * num_actions
     counts = np.zeros(num_rows, dtype=np.int64)
     for i in range(num_rows):  # the pass's row i is the table's row s * A + a
@@ -500,64 +662,44 @@ def split_rows(
 
 @njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def soft_forward_tasks(
-    shifts: np.ndarray,
-    shifted_probability: np.ndarray,
-    shift_start: np.ndarray,
-    flat_rows: np.ndarray,
-    flat_next: np.ndarray,
-    flat_probability: np.ndarray,
-    flat_start: np.ndarray,
+    rows: ForwardLayout,
     rewards: np.ndarray,
     beta: float,
     horizon: int,
     keep_trace: bool,
-    q: np.ndarray,
-    values: np.ndarray,
-    jacobians: np.ndarray,
+    trace: Trace,
     first: int,
     last: int,
 ) -> None:
-    """Tasks ``first .. last - 1`` of a forward pass, written into ``q`` (tasks, S, A) and, with
-    ``keep_trace``, the values V_t (``values[t - 1, k, s]``) and value Jacobians dV_t/dQ_t
-    (``jacobians[t - 1, k, a, s]``, by action) of t = 1 .. horizon - 1 that the reverse pass
-    needs. The table is given by its non-zero entries as ``split_rows`` returns them. Tasks
-    are independent: any split of them over threads (the kernel releases the GIL) computes the
-    same bits."""
-    num_actions = q.shape[2]
+    """Tasks ``first .. last - 1`` of a forward pass on rewards (K, S), written into
+    ``trace.q`` and, with ``keep_trace``, the values V_t (``values[t - 1, k, s]``) and value
+    Jacobians dV_t/dQ_t (``jacobians[t - 1, k, a, s]``, by action) of t = 1 .. horizon - 1 that
+    the reverse pass needs. The table is given by its non-zero entries as ``split_rows``
+    returns them. Tasks are independent: any split of them over threads (the kernel releases
+    the GIL) computes the same bits."""
+    num_actions = trace.q.shape[2]
     if num_actions == FIVE_ACTIONS:
-        _soft_forward(
-            shifts, shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
-            flat_start, rewards,
-            beta, horizon, keep_trace, q, values, jacobians, first, last, FIVE_ACTIONS,
-        )  # fmt: skip
+        _soft_forward(rows, rewards, beta, horizon, keep_trace, trace, first, last, FIVE_ACTIONS)
     else:
-        _soft_forward(
-            shifts, shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
-            flat_start, rewards,
-            beta, horizon, keep_trace, q, values, jacobians, first, last, num_actions,
-        )  # fmt: skip
+        _soft_forward(rows, rewards, beta, horizon, keep_trace, trace, first, last, num_actions)
 
 
 @njit(inline="always", fastmath=False, error_model="numpy")
 def _soft_forward(
-    shifts: np.ndarray,
-    shifted_probability: np.ndarray,
-    shift_start: np.ndarray,
-    flat_rows: np.ndarray,
-    flat_next: np.ndarray,
-    flat_probability: np.ndarray,
-    flat_start: np.ndarray,
+    layout: ForwardLayout,
     rewards: np.ndarray,
     beta: float,
     horizon: int,
     keep_trace: bool,
-    q: np.ndarray,
-    values: np.ndarray,
-    jacobians: np.ndarray,
+    trace: Trace,
     first: int,
     last: int,
     num_actions: int,
 ) -> None:
+    shifts, shifted_probability, shift_start, flat_rows, flat_next, flat_probability, flat_start = (
+        layout
+    )
+    q, values, jacobians = trace
     num_states = rewards.shape[1]
     n = num_states * num_actions
     dtype = rewards.dtype  # float64, or float32 passes
@@ -780,40 +922,23 @@ def incoming(
 
 @njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def soft_backward_tasks(
-    dense_sources: np.ndarray,
-    dense_probabilities: np.ndarray,
-    targets: np.ndarray,
-    sources: np.ndarray,
-    probabilities: np.ndarray,
+    rows: ForwardLayout,
+    incoming: ReverseLayout,
     scatter: bool,
-    shifts: np.ndarray,
-    shifted_probability: np.ndarray,
-    shift_start: np.ndarray,
-    flat_rows: np.ndarray,
-    flat_next: np.ndarray,
-    flat_probability: np.ndarray,
-    flat_start: np.ndarray,
-    next_flat: np.ndarray,
-    width: int,
-    values: np.ndarray,
-    jacobians: np.ndarray,
+    trace: Trace,
     d_q: np.ndarray,
     horizon: int,
-    gradient_entries: np.ndarray,
-    entry_runs: np.ndarray,
-    entry_slots: np.ndarray,
     d_reward: np.ndarray,
-    d_probs: np.ndarray,
-    terms: np.ndarray,
-    kept_from: int,
-    task_sums: np.ndarray,
+    gradient: TableGradient,
     first: int,
     last: int,
 ) -> None:
-    """Tasks ``first .. last - 1`` of a reverse pass from dL/dQ (tasks, S, A): dL/dreward into
-    ``d_reward`` (tasks, S), and dL/d(table entries) at the flat entry indices
-    ``gradient_entries`` (none: no transition gradient). The table's entries by next state
-    come from ``incoming``, the trace from ``soft_forward_tasks``.
+    """Tasks ``first .. last - 1`` of a reverse pass from dL/dQ (K, S, A): dL/dreward added
+    into ``d_reward`` (K, S), and dL/d(table entries) at the flat entry indices
+    ``gradient.entries`` into ``gradient.d_probs`` (none: no transition gradient). Each next
+    state's dL/dV is summed from the table by next state (``incoming``, float64 passes) or,
+    with ``scatter``, through the forward layout (``rows``, float32 passes). The trace comes
+    from ``soft_forward_tasks`` (its Q is not read).
 
     The transition gradient sums over tasks and backups. Tasks before ``kept_from`` add their
     terms into ``d_probs`` at once (one thread, or the first chunk of a split); from
@@ -825,61 +950,46 @@ def soft_backward_tasks(
     terms are summed from 0 into ``task_sums[k, 0]``, for ``add_terms`` to add task by task
     (the order for every split, one thread's included); every chunk then works on its own."""
     # This chunk's rows of ``terms``: none for tasks before kept_from (they add at once).
+    kept_from = gradient.kept_from
     start = max(0, first - kept_from)
     stop = max(0, last - kept_from) if first >= kept_from else 0
-    chunk_terms = terms[start:stop]
-    chunk_sums = task_sums[first:last]  # none without task sums
+    chunk_terms = gradient.terms[start:stop]
+    chunk_sums = gradient.task_sums[first:last]  # none without task sums
     num_actions = d_q.shape[2]
     if num_actions == FIVE_ACTIONS:
         _soft_backward(
-            dense_sources, dense_probabilities, targets, sources, probabilities, scatter, shifts,
-            shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
-            flat_start, next_flat,
-            width, values, jacobians, d_q, horizon, gradient_entries, entry_runs, entry_slots,
-            d_reward, d_probs, chunk_terms, chunk_sums, first, last, FIVE_ACTIONS,
+            rows, incoming, scatter, trace, d_q, horizon, d_reward, gradient, chunk_terms,
+            chunk_sums, first, last, FIVE_ACTIONS,
         )  # fmt: skip
     else:
         _soft_backward(
-            dense_sources, dense_probabilities, targets, sources, probabilities, scatter, shifts,
-            shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
-            flat_start, next_flat,
-            width, values, jacobians, d_q, horizon, gradient_entries, entry_runs, entry_slots,
-            d_reward, d_probs, chunk_terms, chunk_sums, first, last, num_actions,
+            rows, incoming, scatter, trace, d_q, horizon, d_reward, gradient, chunk_terms,
+            chunk_sums, first, last, num_actions,
         )  # fmt: skip
 
 
 @njit(inline="always", fastmath=False, error_model="numpy")
 def _soft_backward(
-    dense_sources: np.ndarray,
-    dense_probabilities: np.ndarray,
-    targets: np.ndarray,
-    sources: np.ndarray,
-    probabilities: np.ndarray,
+    rows: ForwardLayout,
+    incoming: ReverseLayout,
     scatter: bool,
-    shifts: np.ndarray,
-    shifted_probability: np.ndarray,
-    shift_start: np.ndarray,
-    flat_rows: np.ndarray,
-    flat_next: np.ndarray,
-    flat_probability: np.ndarray,
-    flat_start: np.ndarray,
-    next_flat: np.ndarray,
-    width: int,
-    values: np.ndarray,
-    jacobians: np.ndarray,
+    trace: Trace,
     d_q: np.ndarray,
     horizon: int,
-    gradient_entries: np.ndarray,
-    entry_runs: np.ndarray,
-    entry_slots: np.ndarray,
     d_reward: np.ndarray,
-    d_probs: np.ndarray,
+    gradient: TableGradient,
     terms: np.ndarray,
     task_sums: np.ndarray,
     first: int,
     last: int,
     num_actions: int,
 ) -> None:
+    """``soft_backward_tasks`` with this chunk's rows of the kept terms and task sums (those
+    of ``gradient`` are not read). One loop over tasks and backups whose three ways of summing
+    the transition gradient (terms kept, entries in runs, entries alone) share the scratch
+    arrays set up before it."""
+    _, values, jacobians = trace
+    next_flat, width, gradient_entries, entry_runs, entry_slots, d_probs, _, _, _ = gradient
     num_states = d_q.shape[1]
     n = num_states * num_actions
     num_entries = gradient_entries.shape[0]
@@ -920,7 +1030,7 @@ def _soft_backward(
                 alone[num_alone] = e
                 num_alone += 1
     g = np.empty(n, dtype)  # dL/dQ_t, row a * S + s
-    shifted_flat = shifted_probability.reshape(-1)
+    shifted_flat = rows.shifted_probability.reshape(-1)
     g_v = np.empty(num_states, dtype)
     acc = np.empty(num_states, dtype)
     for k in range(first, last):
@@ -967,12 +1077,10 @@ def _soft_backward(
                     for e in range(num_entries):
                         entry_sums[e] += g[np.uint64(entry_rows[e])] * v[np.uint64(entry_next[e])]
             if scatter:
-                _scatter_levels(
-                    g_v, g, shifts, shifted_flat, shift_start, flat_rows, flat_next,
-                    flat_probability, flat_start,
-                )  # fmt: skip
+                _scatter_levels(g_v, g, rows, shifted_flat)
             else:
-                _dense_levels(g_v, dense_sources, dense_probabilities, g)
+                _dense_levels(g_v, incoming.dense_sources, incoming.dense_probabilities, g)
+                _, _, targets, sources, probabilities = incoming
                 for e in range(targets.shape[0]):
                     target = np.uint64(targets[e])
                     g_v[target] = g_v[target] + probabilities[e] * g[np.uint64(sources[e])]
@@ -1044,20 +1152,14 @@ def _dense_levels(
 
 @njit(inline="always", fastmath=False, error_model="numpy")
 def _scatter_levels(
-    g_v: np.ndarray,
-    g: np.ndarray,
-    shifts: np.ndarray,
-    shifted_flat: np.ndarray,
-    shift_start: np.ndarray,
-    flat_rows: np.ndarray,
-    flat_next: np.ndarray,
-    flat_probability: np.ndarray,
-    flat_start: np.ndarray,
+    g_v: np.ndarray, g: np.ndarray, rows: ForwardLayout, shifted_flat: np.ndarray
 ) -> None:
-    """dL/dV_t-1 into ``g_v`` from dL/dQ_t (``g``) through the forward pass's layout
-    (``split_rows``): each shifted row's terms added into the next states at its offset as one
-    SIMD loop over states, then the flat triples, level by level. Each next state's terms are
-    summed in the forward layout's order, not the table's (the float32 passes' reverse pass)."""
+    """dL/dV_t-1 into ``g_v`` from dL/dQ_t (``g``) through the forward pass's layout (``rows``,
+    its shifted rows' probabilities flat in ``shifted_flat``): each shifted row's terms added
+    into the next states at its offset as one SIMD loop over states, then the flat triples,
+    level by level. Each next state's terms are summed in the forward layout's order, not the
+    table's (the float32 passes' reverse pass)."""
+    shifts, _, shift_start, flat_rows, flat_next, flat_probability, flat_start = rows
     num_states = g_v.shape[0]
     for s in range(num_states):
         g_v[s] = 0.0
@@ -1143,74 +1245,21 @@ def probe_parallel(x: np.ndarray) -> None:
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def soft_forward_chunks(
-    shifts: np.ndarray,
-    shifted_probability: np.ndarray,
-    shift_start: np.ndarray,
-    flat_rows: np.ndarray,
-    flat_next: np.ndarray,
-    flat_probability: np.ndarray,
-    flat_start: np.ndarray,
-    rewards: np.ndarray,
-    beta: float,
-    horizon: int,
-    keep_trace: bool,
-    q: np.ndarray,
-    values: np.ndarray,
-    jacobians: np.ndarray,
-    firsts: np.ndarray,
-    lasts: np.ndarray,
-) -> None:
+def soft_forward_chunks(rows, rewards, beta, horizon, keep_trace, trace, firsts, lasts):  # type: ignore[no-untyped-def]
     """``soft_forward_tasks`` on the task ranges ``firsts[c] .. lasts[c] - 1``, in parallel."""
     for c in prange(firsts.shape[0]):
-        soft_forward_tasks(
-            shifts, shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
-            flat_start, rewards,
-            beta, horizon, keep_trace, q, values, jacobians, firsts[c], lasts[c],
-        )  # fmt: skip
+        soft_forward_tasks(rows, rewards, beta, horizon, keep_trace, trace, firsts[c], lasts[c])
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def soft_backward_chunks(
-    dense_sources: np.ndarray,
-    dense_probabilities: np.ndarray,
-    targets: np.ndarray,
-    sources: np.ndarray,
-    probabilities: np.ndarray,
-    scatter: bool,
-    shifts: np.ndarray,
-    shifted_probability: np.ndarray,
-    shift_start: np.ndarray,
-    flat_rows: np.ndarray,
-    flat_next: np.ndarray,
-    flat_probability: np.ndarray,
-    flat_start: np.ndarray,
-    next_flat: np.ndarray,
-    width: int,
-    values: np.ndarray,
-    jacobians: np.ndarray,
-    d_q: np.ndarray,
-    horizon: int,
-    gradient_entries: np.ndarray,
-    entry_runs: np.ndarray,
-    entry_slots: np.ndarray,
-    d_reward: np.ndarray,
-    d_probs: np.ndarray,
-    terms: np.ndarray,
-    kept_from: int,
-    task_sums: np.ndarray,
-    firsts: np.ndarray,
-    lasts: np.ndarray,
-) -> None:
+def soft_backward_chunks(  # type: ignore[no-untyped-def]
+    rows, incoming, scatter, trace, d_q, horizon, d_reward, gradient, firsts, lasts
+):
     """``soft_backward_tasks`` on the task ranges ``firsts[c] .. lasts[c] - 1``, in parallel."""
     for c in prange(firsts.shape[0]):
         soft_backward_tasks(
-            dense_sources, dense_probabilities, targets, sources, probabilities, scatter, shifts,
-            shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
-            flat_start, next_flat,
-            width, values, jacobians, d_q, horizon, gradient_entries, entry_runs, entry_slots,
-            d_reward, d_probs, terms, kept_from, task_sums, firsts[c], lasts[c],
-        )  # fmt: skip
+            rows, incoming, scatter, trace, d_q, horizon, d_reward, gradient, firsts[c], lasts[c]
+        )
 
 
 # -- a learner's cost steps, compiled whole --------------------------------------------------------
@@ -1261,91 +1310,55 @@ def clipped_momentum_step(
 
 @njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def cost_steps_tasks(
-    shifts: np.ndarray,
-    shifted_probability: np.ndarray,
-    shift_start: np.ndarray,
-    flat_rows: np.ndarray,
-    flat_next: np.ndarray,
-    flat_probability: np.ndarray,
-    flat_start: np.ndarray,
-    dense_sources: np.ndarray,
-    dense_probabilities: np.ndarray,
-    targets: np.ndarray,
-    sources: np.ndarray,
-    probabilities: np.ndarray,
+    rows: ForwardLayout,
+    incoming: ReverseLayout,
     scatter: bool,
-    next_flat: np.ndarray,
-    width: int,
-    no_entries: np.ndarray,
-    no_runs: np.ndarray,
-    no_probabilities: np.ndarray,
-    no_terms: np.ndarray,
-    no_sums: np.ndarray,
+    no_gradient: TableGradient,
     pass_beta: float,
     horizon: int,
-    costs: np.ndarray,
-    velocity: np.ndarray,
-    before: np.ndarray,
-    data_row: np.ndarray,
-    plan_states: np.ndarray,
-    state_cells: np.ndarray,
-    num_features: int,
-    cost_mask: np.ndarray,
-    demo_rows: np.ndarray,
-    demo_start: np.ndarray,
-    demo_states: np.ndarray,
-    demo_actions: np.ndarray,
-    step_rows: np.ndarray,
-    step_start: np.ndarray,
-    step_states: np.ndarray,
-    step_actions: np.ndarray,
-    step_feedback: np.ndarray,
-    beta: float,
-    normalized: bool,
-    variance_floor: float,
-    epsilon: float,
-    alpha: float,
-    mu_plus: float,
-    mu_minus: float,
+    cells: CostCells,
+    records: TaskRecords,
+    models: TeacherModels,
     steps: int,
     prior_variance: float,
-    learning_rate: float,
-    momentum: float,
-    max_step: float,
-    clip_step: bool,
-    bound: float,
-    q: np.ndarray,
-    values: np.ndarray,
-    jacobians: np.ndarray,
-    rewards: np.ndarray,
-    d_reward: np.ndarray,
-    d_q: np.ndarray,
-    demo_values: np.ndarray,
-    step_values: np.ndarray,
-    codes: np.ndarray,
+    step_settings: StepSettings,
+    trace: Trace,
+    workspace: CostWorkspace,
+    state: CostState,
     first: int,
     last: int,
 ) -> None:
     """``steps`` cost steps of the tasks ``first .. last - 1`` (the environment's), each task's
-    costs (``costs[task]``, per cell) with an optimiser of its own (``velocity[task]``): what
-    ``PlannerLearner.cost_step`` does, element by element in the same order, but for the
+    costs (``state.costs[task]``, per cell) with an optimiser of its own (its velocity): what
+    ``CellCosts.step`` (cost_fit) does, element by element in the same order, but for the
     norm that clips a step (``norm_in_fours``) and a feedback step's sigmoid (the C library's
-    tanh). A task with data (``data_row[task]``, its row in the passes' arrays) plans on
+    tanh). A task with data (``cells.data_row[task]``, its row in the passes' arrays) plans on
     rewards from its costs over ``plan_states`` (a forward pass), takes its demonstrations'
-    and agent steps' log-likelihood (``demo_rows[demo_start[row]:demo_start[row + 1]]`` and
-    the like, in the data's order) and dL/dQ, and the reverse pass's dL/drewards summed to
-    its cells; every task adds its costs' prior. Tasks are independent: any split of them
-    over threads computes the same bits. Called once an update, it is split over Python
-    threads (it holds no GIL), not by a parallel version of its own, which only took as long
-    again to compile (about 20 s of a core). At the last step's start each task's costs go to
-    ``before`` and its records' log-likelihoods to ``demo_values`` and ``step_values`` (at
-    their places in the data), for the objective; an error stops the task with its code in
-    ``codes[task]`` (the likelihood's, ``GRADIENT_NOT_FINITE``, ``LIKELIHOOD_NOT_FINITE``)."""
+    and agent steps' log-likelihood (``records``, in the data's order) and dL/dQ, and the
+    reverse pass's dL/drewards (``no_gradient``: of the rewards alone) summed to its cells;
+    every task adds its costs' prior. Tasks are independent: any split of them over threads
+    computes the same bits. Called once an update, it is split over Python threads (it holds
+    no GIL), not by a parallel version of its own, which only took as long again to compile
+    (about 20 s of a core). At the last step's start each task's costs go to ``state.before``
+    and its records' log-likelihoods to ``demo_values`` and ``step_values`` (at their places in
+    the data), for the objective; an error stops the task with its code in ``codes[task]`` (the
+    likelihood's, ``GRADIENT_NOT_FINITE``, ``LIKELIHOOD_NOT_FINITE``). One loop over a task's
+    steps, as ``cost_step`` is one step: each step's stages (rewards, forward pass, likelihood,
+    reverse pass, the gradient by cell, the prior, the momentum step) read the one before's
+    arrays."""
+    data_row, plan_states, state_cells, num_features, cost_mask = cells
+    (
+        demo_rows, demo_start, demo_states, demo_actions, step_rows, step_start, step_states,
+        step_actions, step_feedback,
+    ) = records  # fmt: skip
+    beta, normalized, variance_floor, epsilon, alpha, mu_plus, mu_minus = models
+    rewards, d_reward, d_q = workspace
+    costs, velocity, before, demo_values, step_values, codes = state
+    q = trace.q
     num_cells = costs.shape[1]
     num_plan = plan_states.shape[0]
     num_actions = q.shape[2]
     any_steps = step_rows.shape[0] > 0
-    data_tasks = q.shape[0]
     gradient = np.empty(num_cells)
     d_full = np.zeros(state_cells.shape[0])
     q_row = np.empty((1, num_plan, num_actions))
@@ -1365,9 +1378,7 @@ def cost_steps_tasks(
                 for j in range(num_plan):
                     rewards[row, j] = parameters[state_cells[plan_states[j]]]
                 soft_forward_tasks(
-                    shifts, shifted_probability, shift_start, flat_rows, flat_next,
-                    flat_probability, flat_start, rewards,
-                    pass_beta, horizon, np.bool_(True), q, values, jacobians, row, row + 1,  # type: ignore[arg-type]  # a NumPy scalar: no literal
+                    rows, rewards, pass_beta, horizon, np.bool_(True), trace, row, row + 1,  # type: ignore[arg-type]  # a NumPy scalar: no literal
                 )  # fmt: skip
                 for s in range(num_plan):
                     for a in range(num_actions):
@@ -1419,11 +1430,8 @@ def cost_steps_tasks(
                 for s in range(num_plan):
                     d_reward[row, s] = 0.0
                 soft_backward_tasks(
-                    dense_sources, dense_probabilities, targets, sources, probabilities,
-                    scatter, shifts, shifted_probability, shift_start, flat_rows, flat_next,
-                    flat_probability, flat_start, next_flat,
-                    width, values, jacobians, d_q, horizon, no_entries, no_runs, no_entries,
-                    d_reward, no_probabilities, no_terms, data_tasks, no_sums, row, row + 1,
+                    rows, incoming, scatter, trace, d_q, horizon, d_reward, no_gradient, row,
+                    row + 1,
                 )  # fmt: skip
                 # dL/dcost of a cell: its states' dL/dreward (0 out of the data's reach) in
                 # feature order, as NumPy's sum over the features adds them.
@@ -1438,6 +1446,7 @@ def cost_steps_tasks(
                 gradient[:] = 0.0
             for c in range(num_cells):
                 gradient[c] = gradient[c] + -(parameters[c] - 0.0) / prior_variance
+            learning_rate, momentum, max_step, clip_step, bound = step_settings
             if not clipped_momentum_step(
                 parameters, velocity[task], gradient, learning_rate, momentum, max_step,
                 clip_step, bound,
@@ -1586,7 +1595,7 @@ def theta_steps(
     """``steps`` momentum steps on ``theta`` (and ``velocity``, in place) for the observed
     transitions' log-likelihood, the dynamics prior and, if ``d_teacher`` is not empty, the
     teacher data's gradient on the entries theta moves of the table it was planned on (the same
-    at every step: one step of BAM): ``PlannerLearner.transition_objective``, ``pullback`` and
+    at every step: one step of BAM): ``ThetaFit.transition_objective`` (dynamics_fit), ``pullback`` and
     ``theta_step`` element by element in their order, but for sums NumPy takes pairwise (the
     log-likelihood's value), the norm that clips a step (``norm_in_fours``) and the C library's
     tanh and exp. ``model``: the primitives' family and a softmax row's length; the observed
@@ -1619,37 +1628,20 @@ def theta_steps(
 
 
 @njit(inline="always", fastmath=False, error_model="numpy")
-def _teacher_gradient(
-    incoming: tuple,  # type: ignore[type-arg]
-    scatter: bool,
-    rows: tuple,  # type: ignore[type-arg]
-    next_flat: np.ndarray,
-    width: int,
-    rewards: np.ndarray,
-    pass_beta: float,
-    horizon: int,
-    trace: tuple,  # type: ignore[type-arg]
-    likelihood: tuple,  # type: ignore[type-arg]
-    reverse: tuple,  # type: ignore[type-arg]
-) -> tuple[np.ndarray, np.ndarray, int]:
-    """``teacher_gradient`` (its arguments grouped as it describes them)."""
-    dense_sources, dense_probabilities, targets, sources, probabilities = incoming
-    shifts, shifted_probability, shift_start, flat_rows, flat_next, flat_probability, flat_start = (
-        rows
-    )
-    q, values, jacobians = trace
+def _teacher_gradient(passes: TeacherPasses) -> tuple[np.ndarray, np.ndarray, int]:
+    """``teacher_gradient``."""
+    (
+        rows, incoming, scatter, rewards, pass_beta, horizon, trace, likelihood, d_reward, gradient,
+        copies, originals,
+    ) = passes  # fmt: skip
     (
         demo_tasks, demo_states, demo_actions, beta, normalized, variance_floor, step_tasks,
         step_states, step_actions, step_feedback, epsilon, alpha, mu_plus, mu_minus,
     ) = likelihood  # fmt: skip
-    (
-        gradient_entries, entry_runs, entry_slots, d_reward, d_probs, no_terms, no_sums, copies,
-        originals,
-    ) = reverse  # fmt: skip
+    q, d_probs = trace.q, gradient.d_probs
     num_tasks = q.shape[0]
     soft_forward_tasks(
-        shifts, shifted_probability, shift_start, flat_rows, flat_next, flat_probability,
-        flat_start, rewards, pass_beta, horizon, np.bool_(True), q, values, jacobians,  # type: ignore[arg-type]  # a NumPy scalar: no literal
+        rows, rewards, pass_beta, horizon, np.bool_(True), trace,  # type: ignore[arg-type]  # a NumPy scalar: no literal
         np.int64(0), num_tasks,  # type: ignore[arg-type]  # a NumPy scalar: no literal
     )  # fmt: skip
     q_data = q.astype(np.float64)
@@ -1693,10 +1685,8 @@ def _teacher_gradient(
     for j in range(d_probs.shape[0]):
         d_probs[j] = 0.0
     soft_backward_tasks(
-        dense_sources, dense_probabilities, targets, sources, probabilities, scatter, shifts,
-        shifted_probability, shift_start, flat_rows, flat_next, flat_probability, flat_start,
-        next_flat, width, values, jacobians, g_q, horizon, gradient_entries, entry_runs,
-        entry_slots, d_reward, d_probs, no_terms, num_tasks, no_sums, np.int64(0), num_tasks,  # type: ignore[arg-type]  # a NumPy scalar: no literal
+        rows, incoming, scatter, trace, g_q, horizon, d_reward, gradient, np.int64(0),  # type: ignore[arg-type]  # a NumPy scalar: no literal
+        num_tasks,
     )  # fmt: skip
     # Entries of a row that lead to one next state have one gradient (``distinct_entries``).
     for j in range(copies.shape[0]):
@@ -1705,38 +1695,18 @@ def _teacher_gradient(
 
 
 @njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
-def teacher_gradient(
-    incoming: tuple,  # type: ignore[type-arg]
-    scatter: bool,
-    rows: tuple,  # type: ignore[type-arg]
-    next_flat: np.ndarray,
-    width: int,
-    rewards: np.ndarray,
-    pass_beta: float,
-    horizon: int,
-    trace: tuple,  # type: ignore[type-arg]
-    likelihood: tuple,  # type: ignore[type-arg]
-    reverse: tuple,  # type: ignore[type-arg]
-) -> tuple[np.ndarray, np.ndarray, int]:
+def teacher_gradient(passes: TeacherPasses) -> tuple[np.ndarray, np.ndarray, int]:
     """The teacher data's log-likelihood under a table and the learner's rewards, and its
     gradient on the table's entries and on the rewards, every task in this thread: what
     ``planned_teacher_log_likelihood`` with the transition gradient does on one planner thread
     (a forward pass of every task, the data's likelihood and dL/dQ from
     ``data_log_likelihood_kernel``, the reverse pass), the same operations in the same order but for
-    a feedback step's sigmoid (the C library's tanh). The table by next state (``incoming``,
-    empty where the reverse pass ``scatter``s through the forward layout) and for forward
-    passes (``rows``), as ``soft_backward_tasks`` takes them; ``trace``: Q and the trace for
-    the passes to write; ``likelihood``: the data and models as ``data_log_likelihood_kernel`` takes
-    them; ``reverse``: the distinct gradient entries, their runs and places, dL/drewards and
-    dL/dT to write (zeroed here), empty kept terms and task sums, and the entries that copy
-    another's gradient and the ones they copy (``TransitionOperator.reverse_entries``).
-    Returns the demonstrations' and agent steps' log-likelihoods (for the caller to sum as
-    NumPy sums them) and an error code (the likelihood's, ``LIKELIHOOD_NOT_FINITE``), the
-    gradients unwritten on an error."""
-    return _teacher_gradient(
-        incoming, scatter, rows, next_flat, width, rewards, pass_beta, horizon, trace,
-        likelihood, reverse,
-    )  # fmt: skip
+    a feedback step's sigmoid (the C library's tanh). dL/drewards and dL/dT written into
+    ``passes``, then the entries ``copies`` given the gradient of the ``originals`` they copy
+    (``TransitionOperator.reverse_entries``). Returns the demonstrations' and agent steps'
+    log-likelihoods (for the caller to sum as NumPy sums them) and an error code (the
+    likelihood's, ``LIKELIHOOD_NOT_FINITE``), the gradients unwritten on an error."""
+    return _teacher_gradient(passes)
 
 
 @njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
@@ -1745,39 +1715,27 @@ def dynamics_steps(
     velocity: np.ndarray,
     model: tuple,  # type: ignore[type-arg]
     steps: int,
-    table: np.ndarray,
+    probs_flat: np.ndarray,
     taught_entries: np.ndarray,
     nonzero: np.ndarray,
     layout_sources: tuple,  # type: ignore[type-arg]
-    incoming: tuple,  # type: ignore[type-arg]
-    scatter: bool,
-    rows: tuple,  # type: ignore[type-arg]
-    next_flat: np.ndarray,
-    width: int,
-    rewards: np.ndarray,
-    pass_beta: float,
-    horizon: int,
-    trace: tuple,  # type: ignore[type-arg]
-    likelihood: tuple,  # type: ignore[type-arg]
-    reverse: tuple,  # type: ignore[type-arg]
+    passes: TeacherPasses,
 ) -> tuple[float, np.ndarray, np.ndarray, int, int, int]:
-    """``steps`` of BAM's dynamics steps: at each, the teacher's table at theta (``table``,
-    the model's flat table with its moved entries ``taught_entries`` set from theta's
-    primitives, and gathered into the passes' layouts by ``layout_sources``: the shifted rows'
-    and flat triples' entries, the dense levels' and the scattered entries', -1 for a
-    probability 0), ``teacher_gradient``'s passes and likelihood on it, and ``theta_steps``'
-    step with its gradient. Where a step's table has a moved entry zero that ``nonzero`` says
-    is not, or the reverse, the layouts no longer fit: the steps stop before it
-    (``LAYOUT_CHANGED``) for the caller to take the rest. Returns the objective besides the
-    teacher's (likelihood plus prior) at the last step's start, the teacher data's
-    log-likelihoods there, an error code, the steps done and the observed row of an error.
-    ``model`` as ``theta_steps`` takes it."""
+    """``steps`` of BAM's dynamics steps: at each, the teacher's table at theta
+    (``probs_flat``, the model's flat table with its moved entries ``taught_entries`` set from
+    theta's primitives, and gathered into the layouts of ``passes`` (``rows``, ``incoming``),
+    whose probabilities are its own, by ``layout_sources``: the shifted rows' and flat triples' entries, the dense
+    levels' and the scattered entries', -1 for a probability 0), ``teacher_gradient``'s passes
+    and likelihood on it, and ``theta_steps``' step with its gradient. Where a step's table has a moved entry zero that ``nonzero`` says is not, or the
+    reverse, the layouts no longer fit: the steps stop before it (``LAYOUT_CHANGED``) for the
+    caller to take the rest. Returns the objective besides the teacher's (likelihood plus
+    prior) at the last step's start, the teacher data's log-likelihoods there, an error code,
+    the steps done and the observed row of an error. ``model`` as ``theta_steps`` takes it."""
     family, choices, taught = model[0], model[1], model[7]
     learning_rate, momentum, max_step, clip_step, bound = model[11]
-    shifted_source, flat_source, dense_source, target_source = layout_sources
-    d_probs = reverse[4]
+    d_probs = passes.gradient.d_probs
     p = np.empty(theta.shape[0])
-    gradient = np.empty(theta.shape[0])
+    theta_gradient = np.empty(theta.shape[0])
     d_teacher = np.empty(taught_entries.shape[0])
     value = 0.0
     demo_values = np.empty(0)
@@ -1789,52 +1747,41 @@ def dynamics_steps(
             probability = taught_const[e] + taught_coef[e] * p[taught_index[e]]
             if (probability != 0.0) != nonzero[e]:
                 return value, demo_values, step_values, LAYOUT_CHANGED, step, -1
-            table[taught_entries[e]] = probability
-        _fill_layouts(table, shifted_source, flat_source, dense_source, target_source, rows,
-                      incoming, scatter)  # fmt: skip
-        demo_values, step_values, code = _teacher_gradient(
-            incoming, scatter, rows, next_flat, width, rewards, pass_beta, horizon, trace,
-            likelihood, reverse,
-        )  # fmt: skip
+            probs_flat[taught_entries[e]] = probability
+        _fill_layouts(probs_flat, layout_sources, passes)
+        demo_values, step_values, code = _teacher_gradient(passes)
         if code:
             return value, demo_values, step_values, code, step, -1
         for e in range(taught_entries.shape[0]):
             d_teacher[e] = np.float64(d_probs[taught_entries[e]])
-        value, code, row = _theta_gradient(theta, p, model, d_teacher, gradient)
+        value, code, row = _theta_gradient(theta, p, model, d_teacher, theta_gradient)
         if code:
             return value, demo_values, step_values, code, step, row
         if not clipped_momentum_step(
-            theta, velocity, gradient, learning_rate, momentum, max_step, clip_step, bound
+            theta, velocity, theta_gradient, learning_rate, momentum, max_step, clip_step, bound
         ):
             return value, demo_values, step_values, GRADIENT_NOT_FINITE, step, -1
     return value, demo_values, step_values, 0, steps, -1
 
 
 @njit(inline="always", fastmath=False, error_model="numpy")
-def _fill_layouts(
-    table: np.ndarray,
-    shifted_source: np.ndarray,
-    flat_source: np.ndarray,
-    dense_source: np.ndarray,
-    target_source: np.ndarray,
-    rows: tuple,  # type: ignore[type-arg]
-    incoming: tuple,  # type: ignore[type-arg]
-    scatter: bool,
-) -> None:
+def _fill_layouts(probs_flat: np.ndarray, layout_sources: tuple, passes: TeacherPasses) -> None:  # type: ignore[type-arg]
     """The table's probabilities into the passes' layouts in their precision (rounded from
-    float64, as ``planning._PassLayout`` gathers them; source -1: 0)."""
-    shifted_probability, flat_probability = rows[1], rows[5]
+    float64, as ``planning._PassLayout`` gathers them; source -1: 0): ``layout_sources``, the
+    places' entries in the table (``dynamics_steps``)."""
+    shifted_source, flat_source, dense_source, target_source = layout_sources
+    _, shifted_probability, _, _, _, flat_probability, _ = passes.rows
     for g in range(shifted_source.shape[0]):
         for s in range(shifted_source.shape[1]):
             j = shifted_source[g, s]
-            shifted_probability[g, s] = table[j] if j >= 0 else 0.0
+            shifted_probability[g, s] = probs_flat[j] if j >= 0 else 0.0
     for e in range(flat_source.shape[0]):
-        flat_probability[e] = table[flat_source[e]]
-    if not scatter:
-        dense_probabilities, probabilities = incoming[1], incoming[4]
+        flat_probability[e] = probs_flat[flat_source[e]]
+    if not passes.scatter:
+        _, dense_probabilities, _, _, probabilities = passes.incoming
         for level in range(dense_source.shape[0]):
             for s in range(dense_source.shape[1]):
                 j = dense_source[level, s]
-                dense_probabilities[level, s] = table[j] if j >= 0 else 0.0
+                dense_probabilities[level, s] = probs_flat[j] if j >= 0 else 0.0
         for e in range(target_source.shape[0]):
-            probabilities[e] = table[target_source[e]]
+            probabilities[e] = probs_flat[target_source[e]]

@@ -167,7 +167,7 @@ class BAM(PlannerLearner):
         assert layout is not None
         teacher = self.plan_model(data)
         model = dynamics.kernel_model(observed, teacher)
-        arguments, _ = self.cost_fit.teacher_pass_arguments(operator, data, fresh_rows=True)
+        passes, _ = self.cost_fit.teacher_pass_arguments(operator, data, fresh_rows=True)
         theta = np.array(self.theta, dtype=np.float64)
         velocity = np.array(dynamics.optimizer.velocity, dtype=np.float64)
         kernel_arguments = (
@@ -179,7 +179,7 @@ class BAM(PlannerLearner):
             teacher.flat_parametric_entries,
             layout.nonzero,
             (layout.shifted_source, layout.flat_source, layout.dense_source, layout.target_source),
-            *arguments,
+            passes,
         )
         value, demo_values, step_values, code, done, row = _kernels.dynamics_steps(
             *kernel_arguments

@@ -18,6 +18,17 @@ import numpy as np
 
 from server.domains.base import Environment, check_finite
 from server.learners import _kernels, planning
+from server.learners._kernels import (
+    CostCells,
+    CostState,
+    CostWorkspace,
+    StepSettings,
+    TableGradient,
+    TaskRecords,
+    TeacherModels,
+    TeacherPasses,
+    Trace,
+)
 from server.learners.fits import Bounds
 from server.learners.likelihoods import (
     GRADIENT_NOT_FINITE,
@@ -37,9 +48,8 @@ from server.learners.objective import (
     planned_teacher_log_likelihood,
 )
 from server.learners.planning import (
-    NO_ENTRIES,
-    NO_INCOMING_32,
-    NO_RUNS,
+    NO_GRADIENT,
+    NO_TERMS,
     PRECISIONS,
     TransitionOperator,
     check_horizon,
@@ -118,8 +128,8 @@ class CellCosts:
             value, _, d_transitions = self.teacher_objective(operator, data, need_transitions=True)
             assert d_transitions is not None
             return value, d_transitions
-        arguments, d_probs = self.teacher_pass_arguments(operator, data, fresh_rows=False)
-        demo_values, step_values, code = _kernels.teacher_gradient(*arguments)
+        passes, d_probs = self.teacher_pass_arguments(operator, data, fresh_rows=False)
+        demo_values, step_values, code = _kernels.teacher_gradient(passes)
         value = teacher_value(demo_values, step_values, code, q_shape(operator, data))
         return value, d_probs.astype(np.float64).reshape(
             operator.num_states, operator.num_actions, operator.width
@@ -127,7 +137,7 @@ class CellCosts:
 
     def teacher_pass_arguments(
         self, operator: TransitionOperator, data: TeacherData, fresh_rows: bool
-    ) -> tuple[tuple[Any, ...], np.ndarray]:
+    ) -> tuple[TeacherPasses, np.ndarray]:
         """``_kernels.teacher_gradient``'s arguments for the costs' rewards on ``operator``
         (with ``fresh_rows``, the passes' probabilities in arrays of their own, for a kernel to
         fill), and the dL/dT it writes."""
@@ -139,37 +149,34 @@ class CellCosts:
             rewards = rewards[:, data.plan_states]
         shape = (rewards.shape[0], operator.num_states, operator.num_actions)
         entries, copies, originals, runs, slots = operator.reverse_entries()
-        scatter = dtype == np.float32
-        incoming = NO_INCOMING_32 if scatter else operator.incoming_in(dtype)
-        rows = operator.rows_in(dtype)
+        rows, incoming, scatter = operator.pass_layouts(dtype)
         if fresh_rows:
-            rows = tuple(a.copy() if a.dtype == dtype else a for a in rows)  # type: ignore[assignment]
-            incoming = tuple(a.copy() if a.dtype == dtype else a for a in incoming)  # type: ignore[assignment]
+            rows, incoming = _own_probabilities(rows, dtype), _own_probabilities(incoming, dtype)
         d_probs: np.ndarray = np.zeros(operator.next_flat.shape[0], dtype)
-        no_terms: np.ndarray = np.empty((0, 0, 0), dtype)
-        trace: tuple[np.ndarray, ...] = (
-            np.empty(shape, dtype),
-            np.empty((horizon - 1, shape[0], shape[1]), dtype),
-            np.empty((horizon - 1, shape[0], shape[2], shape[1]), dtype),
-        )
-        reverse = (
-            entries, runs, slots, np.zeros(shape[:2], dtype), d_probs, no_terms, no_terms,
-            copies, originals,
+        no_terms = NO_TERMS[dtype]
+        gradient = TableGradient(
+            operator.next_flat, operator.width, entries, runs, slots, d_probs, no_terms, shape[0],
+            no_terms,
         )  # fmt: skip
-        arguments: tuple[Any, ...] = (
+        passes = TeacherPasses(
+            rows,
             incoming,
             scatter,
-            rows,
-            operator.next_flat,
-            operator.width,
             np.ascontiguousarray(rewards, dtype),
             dtype(action_model(settings).beta),
             horizon,
-            trace,
+            Trace(
+                np.empty(shape, dtype),
+                np.empty((horizon - 1, shape[0], shape[1]), dtype),
+                np.empty((horizon - 1, shape[0], shape[2], shape[1]), dtype),
+            ),
             likelihood_arguments(data, settings),
-            reverse,
+            np.zeros(shape[:2], dtype),
+            gradient,
+            copies,
+            originals,
         )
-        return arguments, d_probs
+        return passes, d_probs
 
     # -- momentum steps ---------------------------------------------------------------------
     def step(self, operator: TransitionOperator, data: TeacherData) -> float:
@@ -275,63 +282,42 @@ class CellCosts:
         data_row[data.tasks] = np.arange(num_data)
         demo_rows, demo_start = _rows_by_task(data.demo_tasks, num_data)
         step_rows, step_start = _rows_by_task(data.step_tasks, num_data)
-        scatter = dtype == np.float32
         bound = float(settings.cost_bound)
         prior_sd = float(settings.cost_prior_sd)
-        return (
-            *operator.rows_in(dtype),
-            *(NO_INCOMING_32 if scatter else operator.incoming_in(dtype)),
-            scatter,
-            operator.next_flat,
-            operator.width,
-            NO_ENTRIES,
-            NO_RUNS,
-            np.empty(0, dtype),
-            np.empty((0, horizon - 1, 0), dtype),
-            np.empty((0, 0, 0), dtype),
-            dtype(actions.beta),
-            horizon,
-            costs,
-            velocity,
-            before,
-            data_row,
-            plan_states,
-            env.state_cells.astype(np.int64),
-            int(env.num_features),
+        cells = CostCells(
+            data_row, plan_states, env.state_cells.astype(np.int64), int(env.num_features),
             self.mask.astype(np.float64),
-            demo_rows,
-            demo_start,
-            data.demo_states[demo_rows],
-            data.demo_actions[demo_rows],
-            step_rows,
-            step_start,
-            data.step_states[step_rows],
-            data.step_actions[step_rows],
+        )  # fmt: skip
+        records = TaskRecords(
+            demo_rows, demo_start, data.demo_states[demo_rows], data.demo_actions[demo_rows],
+            step_rows, step_start, data.step_states[step_rows], data.step_actions[step_rows],
             data.step_feedback[step_rows],
-            float(actions.beta),
-            bool(actions.normalized),
-            float(actions.variance_floor),
-            float(feedback.epsilon),
-            float(feedback.alpha),
-            float(feedback.mu_plus),
+        )  # fmt: skip
+        models = TeacherModels(
+            float(actions.beta), bool(actions.normalized), float(actions.variance_floor),
+            float(feedback.epsilon), float(feedback.alpha), float(feedback.mu_plus),
             float(feedback.mu_minus),
-            int(steps),
-            prior_sd**2,
-            optimizer.learning_rate,
-            optimizer.momentum,
-            optimizer.max_step,
-            optimizer.clip == "step",
-            bound,
+        )  # fmt: skip
+        step_settings = StepSettings(
+            optimizer.learning_rate, optimizer.momentum, optimizer.max_step,
+            optimizer.clip == "step", bound,
+        )  # fmt: skip
+        trace = Trace(
             np.empty((num_data, num_plan, env.num_actions), dtype),
             np.empty((horizon - 1, num_data, num_plan), dtype),
             np.empty((horizon - 1, num_data, env.num_actions, num_plan), dtype),
+        )
+        workspace = CostWorkspace(
             np.empty((num_data, num_plan), dtype),
             np.empty((num_data, num_plan), dtype),
             np.empty((num_data, num_plan, env.num_actions), dtype),
-            demo_values,
-            step_values,
-            codes,
         )
+        state = CostState(costs, velocity, before, demo_values, step_values, codes)
+        return (
+            *operator.pass_layouts(dtype), NO_GRADIENT[dtype], dtype(actions.beta), horizon,
+            cells, records, models, int(steps), prior_sd**2, step_settings, trace, workspace,
+            state,
+        )  # fmt: skip
 
     # -- L-BFGS-B over packed parameter vectors ------------------------------------------
     def vector(self, data: TeacherData) -> np.ndarray:
@@ -415,3 +401,9 @@ def _rows_by_task(tasks: np.ndarray, num_tasks: int) -> tuple[np.ndarray, np.nda
     rows = np.argsort(tasks, kind="stable").astype(np.int64)
     start = np.searchsorted(tasks[rows], np.arange(num_tasks + 1)).astype(np.int64)
     return rows, start
+
+
+def _own_probabilities(layout: Any, dtype: type) -> Any:
+    """A pass layout whose probabilities (its arrays in the passes' precision) are copies, for
+    a kernel to fill; its index arrays shared."""
+    return layout._make(a.copy() if a.dtype == dtype else a for a in layout)

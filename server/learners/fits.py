@@ -19,6 +19,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from server.domains.base import ObservedTransitions, TransitionModel
+from server.learners._kernels import TeacherPasses
 from server.learners.objective import MomentumAscent, TeacherData
 from server.learners.planning import TransitionOperator
 from server.learners.settings import PlannerSettings
@@ -148,7 +149,7 @@ class CostFit(Protocol):
 
     def teacher_pass_arguments(
         self, operator: TransitionOperator, data: TeacherData, fresh_rows: bool
-    ) -> tuple[tuple[Any, ...], np.ndarray]:
+    ) -> tuple[TeacherPasses, np.ndarray]:
         """The compiled teacher gradient's arguments, and the dL/dT it writes."""
         ...
 

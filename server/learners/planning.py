@@ -1,9 +1,11 @@
 """Finite-horizon planning: soft value iteration (the paper's equations (1)-(2)) with an exact
 reverse-mode gradient, hard-max value iteration for the teacher, and exact expected returns.
 
-Over 500 lines because the passes, the transition operator's layouts and the thread pool share
-this module's per-process state (the pool and its owner after a fork, the scratch buffers,
-``run_pass``, which the benchmark's pass counter wraps), kept in one place.
+The planner's Python side in one module: the passes, the transition operator whose layouts
+they read (sorted out once per model and process), and the threads a pass splits over, whose
+state is per process (the pool and its owner after a fork, whether OpenMP's threads run the
+chunks, the scratch buffers, and ``run_pass``, through which every pass and compiled cost step
+runs and which a benchmark wraps to count them). The compiled kernels are in ``_kernels``.
 
 Conventions. Rewards are per state, ``reward[k, s]`` for task k (the paper's cost is
 C = -reward). Q after ``horizon`` backups is the expected sum of ``horizon`` rewards:
@@ -38,6 +40,7 @@ import scipy.sparse as sp
 
 from server.domains.base import SparseTransitions, TransitionModel, check_finite
 from server.learners import _kernels
+from server.learners._kernels import ForwardLayout, ReverseLayout, TableGradient, Trace
 
 # -- threads ----------------------------------------------------------------------------------
 # A pass's tasks are independent, and the compiled kernels release the GIL, so a pass can split
@@ -215,16 +218,26 @@ def scratch(name: str, shape: tuple[int, ...], dtype: type = np.float64) -> np.n
 # The padding's probability in the passes' layouts (their source -1), in each precision.
 ZERO = {dtype: np.zeros(1, dtype) for dtype in (np.float64, np.float32)}
 # No kept terms, in each pass precision.
-NO_TERMS = {dtype: np.empty((0, 0, 0), dtype) for dtype in (np.float64, np.float32)}
+NO_TERMS: dict[type, np.ndarray] = {
+    dtype: np.empty((0, 0, 0), dtype) for dtype in (np.float64, np.float32)
+}
 NO_ENTRIES = np.empty(0, dtype=np.int64)
 NO_RUNS = np.empty((0, 5), dtype=np.int64)
-
-# A table's non-zero entries for forward passes (``_kernels.split_rows``) and by next state for
-# reverse passes (``_kernels.incoming``).
-ForwardRows = tuple[
-    np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray
-]
-IncomingEntries = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+# A reverse pass's transition gradient where it computes dL/dreward alone, in each precision.
+NO_GRADIENT: dict[type, TableGradient] = {
+    dtype: TableGradient(
+        next_flat=NO_ENTRIES,  # not read without entries, nor the width
+        width=0,
+        entries=NO_ENTRIES,
+        runs=NO_RUNS,
+        slots=NO_ENTRIES,
+        d_probs=np.empty(0, dtype),
+        terms=NO_TERMS[dtype],
+        kept_from=0,
+        task_sums=NO_TERMS[dtype],
+    )
+    for dtype in (np.float64, np.float32)
+}
 
 
 @dataclass(frozen=True)
@@ -295,10 +308,10 @@ class _PassLayout:
             slots,
         )
 
-    def rows(self, probs_flat: np.ndarray) -> ForwardRows:
+    def rows(self, probs_flat: np.ndarray) -> ForwardLayout:
         # Source -1: a shifted row's probability 0 (in the table's own precision).
         padded = np.concatenate((probs_flat, ZERO[probs_flat.dtype.type]))
-        return (
+        return ForwardLayout(
             self.shifts,
             padded[self.shifted_source],
             self.shift_start,
@@ -308,9 +321,9 @@ class _PassLayout:
             self.flat_start,
         )
 
-    def incoming(self, probs_flat: np.ndarray) -> IncomingEntries:
+    def incoming(self, probs_flat: np.ndarray) -> ReverseLayout:
         padded = np.concatenate((probs_flat, ZERO[np.float64]))  # source -1: padding's 0
-        return (
+        return ReverseLayout(
             self.dense_rows,
             padded[self.dense_source],
             self.targets,
@@ -428,11 +441,11 @@ class TransitionOperator:
         # (gradient_entries, distinct ones, [copies; their originals]), see distinct_entries.
         self._distinct: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._matrix: sp.csr_matrix | None = None
-        self._rows: ForwardRows | None = None
-        self._incoming: IncomingEntries | None = None
+        self._rows: ForwardLayout | None = None
+        self._incoming: ReverseLayout | None = None
         # rows and incoming with their probabilities in float32, for float32 passes.
-        self._single_rows: ForwardRows | None = None
-        self._single_incoming: IncomingEntries | None = None
+        self._single_rows: ForwardLayout | None = None
+        self._single_incoming: ReverseLayout | None = None
         self._layout: _PassLayout | None = None
 
     @classmethod
@@ -519,8 +532,12 @@ class TransitionOperator:
             np.stack([entries[copied], entries[first[inverse[copied]]]]),
         )
 
+    def _flat_table(self) -> tuple[np.ndarray, np.ndarray, int, int, int]:
+        """The table as ``_kernels.split_rows`` and ``_kernels.incoming`` take it."""
+        return self.next_flat, self.probs_flat, self.width, self.num_states, self.num_actions
+
     @property
-    def rows(self) -> ForwardRows:
+    def rows(self) -> ForwardLayout:
         """The non-zero entries for forward passes, as ``_kernels.split_rows`` gives them
         (padding is most of the table in gravity and farming: 73% of flip's entries are zero).
         Built on first use: a learner's cost steps plan on one table many times."""
@@ -528,25 +545,21 @@ class TransitionOperator:
             if self._layout is not None:
                 self._rows = self._layout.rows(self.probs_flat)
             else:
-                self._rows = _kernels.split_rows(
-                    self.next_flat, self.probs_flat, self.width, self.num_states, self.num_actions
-                )
+                self._rows = ForwardLayout(*_kernels.split_rows(*self._flat_table()))
         return self._rows
 
     @property
-    def incoming(self) -> IncomingEntries:
+    def incoming(self) -> ReverseLayout:
         """The non-zero entries by next state for reverse passes, as ``_kernels.incoming``
         gives them, built on first use."""
         if self._incoming is None:
             if self._layout is not None:
                 self._incoming = self._layout.incoming(self.probs_flat)
             else:
-                self._incoming = _kernels.incoming(
-                    self.next_flat, self.probs_flat, self.width, self.num_states, self.num_actions
-                )
+                self._incoming = ReverseLayout(*_kernels.incoming(*self._flat_table()))
         return self._incoming
 
-    def rows_in(self, dtype: type) -> ForwardRows:
+    def rows_in(self, dtype: type) -> ForwardLayout:
         """``rows`` with their probabilities in ``dtype`` (float64: themselves; float32: a
         rounded copy, made once per table)."""
         if _check_pass_dtype(dtype) == np.float64:
@@ -560,7 +573,7 @@ class TransitionOperator:
                 self._single_rows = _in_float32(self.rows)
         return self._single_rows
 
-    def incoming_in(self, dtype: type) -> IncomingEntries:
+    def incoming_in(self, dtype: type) -> ReverseLayout:
         """``incoming`` in ``dtype``, as ``rows_in``; float32 reverse passes do not read it
         (they scatter through ``rows``), so it is made only when asked for."""
         if _check_pass_dtype(dtype) == np.float64:
@@ -568,6 +581,14 @@ class TransitionOperator:
         if self._single_incoming is None:
             self._single_incoming = _in_float32(self.incoming)
         return self._single_incoming
+
+    def pass_layouts(self, dtype: type) -> tuple[ForwardLayout, ReverseLayout, bool]:
+        """The table as the passes in ``dtype`` read it: ``rows``, ``incoming`` and whether
+        reverse passes scatter through ``rows`` (float32) instead of summing by next state
+        (float64; float32 passes get an empty ``incoming``)."""
+        scatter = _check_pass_dtype(dtype) == np.float32
+        incoming = NO_INCOMING_32 if scatter else self.incoming_in(dtype)
+        return self.rows_in(dtype), incoming, scatter
 
     @property
     def matrix(self) -> sp.csr_matrix:
@@ -589,7 +610,7 @@ def _check_pass_dtype(dtype: type) -> type:
 
 # A reverse pass's table by next state when it scatters through the forward layout instead
 # (float32 passes): empty, of the types the kernel is compiled for.
-NO_INCOMING_32: IncomingEntries = (
+NO_INCOMING_32 = ReverseLayout(
     np.empty((0, 0), dtype=np.int64),
     np.empty((0, 0), dtype=np.float32),
     NO_ENTRIES,
@@ -598,9 +619,10 @@ NO_INCOMING_32: IncomingEntries = (
 )
 
 
-def _in_float32(arrays: tuple[np.ndarray, ...]) -> Any:
-    """The float arrays of a pass layout rounded to float32, the index arrays as they are."""
-    return tuple(a.astype(np.float32) if a.dtype == np.float64 else a for a in arrays)
+def _in_float32(layout: Any) -> Any:
+    """A pass layout (``ForwardLayout``, ``ReverseLayout``) with its float arrays rounded to
+    float32, the index arrays as they are."""
+    return layout._make(a.astype(np.float32) if a.dtype == np.float64 else a for a in layout)
 
 
 # The passes' precisions (the learners' setting ``planner_precision``).
@@ -686,32 +708,20 @@ class SoftPlan:
             if by_task
             else NO_TERMS[dtype]
         )
-        g_q = np.ascontiguousarray(g_q, dtype)
-        scatter = dtype == np.float32
-
+        gradient = TableGradient(
+            op.next_flat, op.width, entries, runs, slots, d_probs, terms, kept_from, task_sums
+        )
         run_pass(
             chunks,
             _kernels.soft_backward_tasks,
             _kernels.soft_backward_chunks,
             (
-                # Float32 passes sum dL/dV by the forward layout (``_kernels._scatter_levels``).
-                *(NO_INCOMING_32 if scatter else op.incoming_in(dtype)),
-                scatter,
-                *op.rows_in(dtype),
-                op.next_flat,
-                op.width,
-                self.values,
-                self.jacobians_by_action,
-                g_q,
+                *op.pass_layouts(dtype),
+                Trace(self.q_all, self.values, self.jacobians_by_action),
+                np.ascontiguousarray(g_q, dtype),
                 self.horizon,
-                entries,
-                runs,
-                slots,
                 d_reward,
-                d_probs,
-                terms,
-                kept_from,
-                task_sums,
+                gradient,
             ),
         )
         if split:
@@ -809,7 +819,7 @@ def checked_soft_plan(
         task_chunks(num_tasks),
         _kernels.soft_forward_tasks,
         _kernels.soft_forward_chunks,
-        (*rows, rewards, dtype(beta), horizon, bool(keep_trace), q, values, jacobians),
+        (rows, rewards, dtype(beta), horizon, bool(keep_trace), Trace(q, values, jacobians)),
     )
     return SoftPlan(
         q_all=q,

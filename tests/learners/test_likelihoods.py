@@ -465,3 +465,22 @@ def test_the_compiled_pass_gives_the_numpy_code_s_results_to_the_last_bit(
         np.testing.assert_array_equal(
             negative, (1.0 - feedback.mu_minus) * (scale * (1.0 - sig) + feedback.epsilon)
         )
+
+
+def test_the_kernels_front_page_names_every_error_code_with_its_number() -> None:
+    """``_kernels``' docstring says what each compiled error code means: every code of the one
+    block here, by name and number, and none that is not in it."""
+    import re
+
+    from server.learners import _kernels, likelihoods
+
+    documented = {
+        name: int(number)
+        for name, number in re.findall(r"``([A-Z_]+)`` \((\d+)\):", _kernels.__doc__ or "")
+    }
+    codes = {
+        name: value
+        for name, value in vars(likelihoods).items()
+        if name.isupper() and type(value) is int
+    }
+    assert documented == codes and len(codes) == 7

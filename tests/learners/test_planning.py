@@ -613,38 +613,38 @@ def test_five_action_code_computes_what_the_general_code_does() -> None:
     tasks, horizon = len(env.tasks), env.horizon
 
     def forward(kernel, *five):  # type: ignore[no-untyped-def]
-        out = (
+        trace = _kernels.Trace(
             np.empty((tasks, env.num_states, 5)),
             np.empty((horizon - 1, tasks, env.num_states)),
             np.empty((horizon - 1, tasks, 5, env.num_states)),  # by action, as the passes keep it
         )
-        kernel(*op.rows, rewards, 1.0, horizon, True, *out, 0, tasks, *five)
-        return out
+        kernel(op.rows, rewards, 1.0, horizon, True, trace, 0, tasks, *five)
+        return trace
 
     special, general = forward(_kernels.soft_forward_tasks), forward(_kernels._soft_forward, 5)
     for a, b in zip(special, general, strict=True):
         np.testing.assert_array_equal(a, b)
-    d_q = rng.normal(size=special[0].shape)
+    d_q = rng.normal(size=special.q.shape)
+    no_terms = np.empty((0, 0, 0))
 
-    def backward(kernel, scatter, *terms_and_the_rest):  # type: ignore[no-untyped-def]
-        out = (np.zeros((tasks, env.num_states)), np.zeros(op.next_flat.shape[0]))
-        kernel(
-            *op.incoming, scatter, *op.rows, op.next_flat, op.width, special[1], special[2],
-            d_q, horizon, op.gradient_entries, planning.NO_RUNS, planning.NO_ENTRIES, *out,
-            *terms_and_the_rest,
+    def backward(kernel, scatter, *chunk_and_the_rest):  # type: ignore[no-untyped-def]
+        d_reward, d_probs = np.zeros((tasks, env.num_states)), np.zeros(op.next_flat.shape[0])
+        gradient = _kernels.TableGradient(
+            op.next_flat, op.width, op.gradient_entries, planning.NO_RUNS, planning.NO_ENTRIES,
+            d_probs, no_terms, tasks, no_terms,
         )  # fmt: skip
-        return out
+        kernel(
+            op.rows, op.incoming, scatter, special, d_q, horizon, d_reward, gradient,
+            *chunk_and_the_rest,
+        )  # fmt: skip
+        return d_reward, d_probs
 
-    no_terms, no_gradients = np.empty((0, 0, 0)), np.empty((0, 0, 0))
     # Both orders of summing dL/dV: the table's (float64 passes) and the forward layout's.
     for scatter in (False, True):
-        # The public kernel takes where kept terms start (none kept: all tasks add at once).
-        special_back = backward(
-            _kernels.soft_backward_tasks, scatter, no_terms, tasks, no_gradients, 0, tasks
-        )
-        general_back = backward(
-            _kernels._soft_backward, scatter, no_terms, no_gradients, 0, tasks, 5
-        )
+        # The public kernel slices the chunk's kept terms and task sums (none kept: all tasks
+        # add at once); the general code is handed them.
+        special_back = backward(_kernels.soft_backward_tasks, scatter, 0, tasks)
+        general_back = backward(_kernels._soft_backward, scatter, no_terms, no_terms, 0, tasks, 5)
         for a, b in zip(special_back, general_back, strict=True):
             np.testing.assert_array_equal(a, b)
 

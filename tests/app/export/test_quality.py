@@ -117,6 +117,7 @@ def take_part_side_by_side(url: str, first: int, plans: list[TeachingPlan]) -> l
     return [int(run.participant_id or 0) for run in runs]
 
 
+@pytest.mark.slow  # seven simulated participants, one away for 20 s: about a minute a database
 def test_each_check_separates_careful_teachers_from_key_mashers_and_idle_participants(
     served: str, db: Database
 ) -> None:

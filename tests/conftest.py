@@ -10,7 +10,7 @@ import pytest
 
 from server import domains
 
-pytest_plugins = ["tests.support.server"]
+pytest_plugins = ["tests.support.server", "tests.support.demo"]
 
 
 @pytest.fixture(autouse=True)

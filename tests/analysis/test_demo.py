@@ -16,6 +16,7 @@ import pytest
 from sqlalchemy import create_engine, text
 
 from server.commands.main import main
+from tests.support.demo import DemoRun, run_small_demo
 
 LEARNERS = {"bam": "BAM", "model-based": "Model-Based IRL", "cloning": "Behavioral Cloning"}
 ENVIRONMENTS = {
@@ -24,9 +25,6 @@ ENVIRONMENTS = {
     "two-fields": "Two Fields",
     "three-fields": "Three Fields",
 }
-
-# Two participants, one round each, two update processes: a whole study in about a minute.
-SMALL_DEMO = ("--participants", 2, "--concurrency", 2, "--rounds", 1, "--workers", 2)
 
 
 def run(capsys: pytest.CaptureFixture[str], *args: str | Path) -> tuple[int, str, str]:
@@ -39,10 +37,11 @@ def run(capsys: pytest.CaptureFixture[str], *args: str | Path) -> tuple[int, str
 
 
 @pytest.mark.slow
-def test_the_demo_runs_a_whole_study(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    out = tmp_path / "demo"
-    code, stdout, stderr = run(capsys, "demo", "--out", out, *SMALL_DEMO)
-    assert code == 0, stderr
+def test_the_demo_runs_a_whole_study(
+    small_demo: DemoRun, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out, stdout, stderr = small_demo.out, small_demo.stdout, small_demo.stderr
+    assert small_demo.code == 0, stderr
     assert "2/2 participants 100%" in stderr  # the progress bar reached the end
 
     # The command printed to open the dashboard runs as printed: its program exists (the
@@ -113,20 +112,19 @@ def test_the_demo_runs_a_whole_study(tmp_path: Path, capsys: pytest.CaptureFixtu
 
 @pytest.mark.slow
 def test_the_demo_gives_the_same_results_with_the_same_seed(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    small_demo: DemoRun, tmp_path: Path
 ) -> None:
-    """Two runs with the default seed: the same Table 1 and the same curves, and the output
-    names the seed and says where the figures come from."""
+    """Two runs with the default seed (the shared one and one of this test's own): the same
+    Table 1 and the same curves, and the output names the seed and says where the figures
+    come from."""
     outputs = []
-    for run_number in (1, 2):
-        out = tmp_path / f"demo-{run_number}"
-        code, stdout, stderr = run(capsys, "demo", "--out", out, *SMALL_DEMO)
-        assert code == 0, stderr
+    for demo in (small_demo, run_small_demo(tmp_path / "demo-2")):
+        assert demo.code == 0, demo.stderr
         assert (
             "Seed 0 (`--seed` draws others): these figures come from 2 simulated participants, "
             "not from people, and differ from the paper's."
-        ) in stdout
-        outputs.append(out)
+        ) in demo.stdout
+        outputs.append(demo.out)
     first, second = ((out / "analysis" / "table1.md").read_text() for out in outputs)
     assert first == second
     columns = ["participant_id", "environment", "learner", "position", "seed", "episodes"]

@@ -33,7 +33,9 @@ from tests.browser.conftest import (
     study_toml,
 )
 
-pytestmark = pytest.mark.browser
+# Whole studies driven in Chromium to reach every page, each checked in three window sizes
+# (about three minutes): the slow tier, which CI runs.
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 DOMAINS = ("navigation", "farming", "gravity")
 TUTORIAL_STEPS = (

@@ -29,7 +29,9 @@ from tests.browser.conftest import (
     study_toml,
 )
 
-pytestmark = pytest.mark.browser
+# Whole HITs driven in Chromium through the replica, every agent taught (about 30 s a test):
+# the slow tier, which CI runs.
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 DOMAINS = domain_toml("navigation", "two-rooms") + domain_toml("farming", "two-fields")
 

@@ -79,6 +79,22 @@ def build_context(destination: Path) -> list[str]:
     return kept
 
 
+def compiled_kernels(destination: Path) -> int:
+    """The image's last RUN, which compiles the learners' kernels into numba's cache in the
+    image: here the kernels this checkout compiled before the tests (tests/conftest.py) copied
+    beside the build context's sources, so that the server's update processes load them as in
+    the image instead of compiling them for minutes (numba keys each cached kernel by its
+    source's hash, not its path). Returns the files copied (none where numba's cache is kept
+    elsewhere, under NUMBA_CACHE_DIR: then the update processes compile them)."""
+    copied = 0
+    for cached in sorted((ROOT / "server").glob("**/__pycache__/*.nb[ic]")):
+        target = destination / cached.relative_to(ROOT)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(cached, target)
+        copied += 1
+    return copied
+
+
 def test_the_build_context_keeps_data_out_and_the_server_in() -> None:
     patterns = dockerignore()
     # Study data and local environments never go into the image.
@@ -116,6 +132,8 @@ def test_the_containers_commands_run_a_server_on_postgresql(
     assert dockerfile()["WORKDIR"] == "/app"
     kept = build_context(app)
     assert "server/config/study.toml" in kept
+    assert "warm_up()" in dockerfile()["RUN"]  # the image compiles the kernels as it is built
+    compiled_kernels(app)
     compose = yaml.safe_load((ROOT / "compose.yaml").read_text())
     services = compose["services"]
     port = free_port()

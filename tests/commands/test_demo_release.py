@@ -6,11 +6,9 @@ simulated."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
 
-from server.commands.main import main
 from tests.app.export.test_release import (
     check_croissant,
     check_data_package,
@@ -19,14 +17,13 @@ from tests.app.export.test_release import (
     hub_offline,  # noqa: F401  (the fixture: datasets and the Hub offline)
     row_counts,
 )
-
-SMALL_DEMO = ("--participants", "2", "--concurrency", "2", "--rounds", "1", "--workers", "2")
+from tests.support.demo import DemoRun
 
 
 @pytest.mark.slow
-def test_the_demo_writes_every_format_of_the_release(tmp_path: Path) -> None:
-    assert main(["demo", "--out", str(tmp_path / "demo"), *SMALL_DEMO]) == 0
-    export = tmp_path / "demo" / "export"
+def test_the_demo_writes_every_format_of_the_release(small_demo: DemoRun) -> None:
+    assert small_demo.code == 0, small_demo.stderr
+    export = small_demo.out / "export"
     counts = row_counts(export)
     assert counts["participants"] == 2 and counts["events"] > 0
     check_data_package(export)

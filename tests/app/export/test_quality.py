@@ -7,21 +7,33 @@ each row names the Prolific ground that applies, if any."""
 
 from __future__ import annotations
 
-from concurrent.futures import ProcessPoolExecutor
+import threading
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import replace
 
+import httpx
 import pandas as pd
+import pytest
 from fastapi.testclient import TestClient
 
+from server.app.config import StudyConfig
 from server.app.export.columns import DICTIONARY
 from server.app.export.quality import Thresholds, quality_table
 from server.app.export.tables import export_tables
 from server.app.main import create_app
+from server.app.settings import Settings
 from server.app.storage.db import Database
-from server.commands.simulated import SimulatedParticipant, TeachingPlan
+from server.commands.simulated import (
+    LightClient,
+    ParticipantRun,
+    SimulatedParticipant,
+    TeachingPlan,
+)
 from tests.app.rights.test_erasure import study as study
 from tests.support.server import (
     ADMIN_TOKEN,
+    live,
     make_settings,
     study_config,
     wait_for_updates,
@@ -73,15 +85,49 @@ def by_kind(quality: pd.DataFrame, ids: dict[str, list[int]], column: str) -> di
     return {kind: [rows.loc[i, column] for i in members] for kind, members in ids.items()}
 
 
+@pytest.fixture
+def served(
+    db: Database, settings: Settings, study: StudyConfig, executor: ProcessPoolExecutor
+) -> Iterator[str]:
+    """The study served over HTTP (uvicorn in a thread), ready for its first participant; its
+    URL."""
+    with live(create_app(settings, study, db=db, executor=executor)) as url:
+        with httpx.Client(base_url=url, timeout=60) as client:
+            wait_until_ready(client)  # the first participant waits for no update process
+        yield url
+
+
+def take_part_side_by_side(url: str, first: int, plans: list[TeachingPlan]) -> list[int]:
+    """Simulated participants ``first``, ``first + 1``, ... taking part at the same time (their
+    pauses overlap), each arriving and consenting once the one before has, so that their
+    participant ids follow their order as if one came after the other. Their ids."""
+    consented = [threading.Event() for _ in range(len(plans) + 1)]
+    consented[0].set()
+
+    def one(slot: int) -> ParticipantRun:
+        with LightClient(url) as client:
+            turn = (consented[slot], consented[slot + 1])
+            return SimulatedParticipant(
+                url, first + slot, 11, plans[slot], client=client, turn=turn
+            ).take_part()
+
+    with ThreadPoolExecutor(len(plans)) as pool:
+        runs = list(pool.map(one, range(len(plans))))
+    assert [run.error for run in runs] == [None] * len(plans), [run.error for run in runs]
+    return [int(run.participant_id or 0) for run in runs]
+
+
+@pytest.mark.slow  # seven simulated participants, one away for 20 s: about a minute a database
 def test_each_check_separates_careful_teachers_from_key_mashers_and_idle_participants(
-    client: TestClient, db: Database
+    served: str, db: Database
 ) -> None:
-    wait_until_ready(client)  # the first participant waits for no update process
-    for index in range(4):
-        take_part(client, index, CAREFUL)
-    take_part(client, 4, MASHER)
+    # The careful teachers side by side; the key-masher after them, alone, as it hurries
+    # (beside them, its tries would wait for the learners behind theirs).
+    careful = take_part_side_by_side(served, 0, [CAREFUL] * 4)
+    (masher,) = take_part_side_by_side(served, 4, [MASHER])
     wait_for_updates(db)
-    ids = {"careful": [1, 2, 3, 4], "masher": [5]}
+    ids = {"careful": careful, "masher": [masher]}
+    assert ids == {"careful": [1, 2, 3, 4], "masher": [5]}
 
     # Completion time: the key-masher is the fastest, and no careful teacher is exceptionally
     # fast. (Four careful teachers on a loaded machine are too few and too uneven for the
@@ -92,9 +138,9 @@ def test_each_check_separates_careful_teachers_from_key_mashers_and_idle_partici
     fast = by_kind(quality, ids, "exceptionally_fast")
     assert fast["careful"] == [False] * 4, quality.to_string()
 
-    take_part(client, 5, IDLE)
+    ids["idle"] = take_part_side_by_side(served, 5, [IDLE])
     wait_for_updates(db)
-    ids["idle"] = [6]
+    assert ids["idle"] == [6]
     quality = quality_table(export_tables(db), THRESHOLDS)
     assert list(quality["participant_id"]) == [1, 2, 3, 4, 5, 6]
     # Idle stretches: only the idle participant's.
@@ -125,7 +171,7 @@ def test_each_check_separates_careful_teachers_from_key_mashers_and_idle_partici
     flagged = by_kind(quality, ids, "inconsistent_feedback")
     assert flagged["careful"] + flagged["idle"] == [False] * 5, quality.to_string()
     # With about 400 random + and -, the key-masher is flagged.
-    take_part(client, 6, LONG_MASHER)
+    assert take_part_side_by_side(served, 6, [LONG_MASHER]) == [7]
     wait_for_updates(db)
     long = quality_table(export_tables(db), THRESHOLDS).set_index("participant_id").loc[7]
     assert long["feedback_signals"] >= 300, long

@@ -132,7 +132,8 @@ def test_the_containers_commands_run_a_server_on_postgresql(
     assert dockerfile()["WORKDIR"] == "/app"
     kept = build_context(app)
     assert "server/config/study.toml" in kept
-    assert "warm_up()" in dockerfile()["RUN"]  # the image compiles the kernels as it is built
+    # The image compiles the kernels as it is built (in two processes side by side).
+    assert "warm_up_in_processes(" in dockerfile()["RUN"]
     compiled_kernels(app)
     compose = yaml.safe_load((ROOT / "compose.yaml").read_text())
     services = compose["services"]

@@ -1,7 +1,7 @@
 """The local Prolific replica, served by the study server to rehearse a Prolific study offline.
 
 - ``/prolific/api/v1/...``: the subset of Prolific's API the study server's client uses
-  (``platforms/prolific_replica.py``), with ``Authorization: Token $BAM_ADMIN_TOKEN``.
+  (``platforms/prolific_replica/``), with ``Authorization: Token $BAM_ADMIN_TOKEN``.
 - ``/prolific``: the researcher's view (each study, its places, each submission with Prolific's
   statuses and times, the bonuses paid), behind the admin sign-in, and the participant's way
   in: take part with a generated PROLIFIC_PID (the study's external URL, its placeholders

@@ -48,84 +48,30 @@ DIRECTIONS = gravity.GRAVITIES
 
 @dataclass(frozen=True)
 class EnvironmentSpec:
-    """An environment as a study file defines it (see the module docstring): its name, then
-    one ``[environments.NAME]`` table's keys. Each key's ``metadata`` holds its description and
-    the bounds a study file's value must keep (``ge``, ``le``): the study file's schema
-    (``server.app.study_file.environments``) and its docs are made from them. Trapped starts
-    (``max_trapped_start_share``) are those from which a task's goal can never be reached
-    (``reachability.py``)."""
+    """An environment as a study file defines it (see the module docstring).
+
+    ``colours``: {name: "#rrggbb"}, the colour drawn for a terrain, machine or gravity colour;
+    ``gravity_colours``: {lower-case letter: colour} added to orange (o), green (g) and
+    purple (p); ``gravity``: {colour: north, south, east or west} (a map's ``gravity of``
+    lines give it too); ``terrains``: {lower-case letter: terrain} added to soil (s), grass (i)
+    and crops (c); ``machines``: {capital letter: machine} added to the plow (P), sprinkler (W)
+    and harvester (H); ``works_on``: {machine: terrain}, the terrain each machine enters
+    (required for a new machine; the paper's machines keep theirs unless given);
+    ``max_trapped_start_share``: the share of a task's start probability (in the simulations
+    or in the user study) that may lie on trapped starts, states from which its goal can never
+    be reached (``reachability.py``); above it the map is refused."""
 
     name: str
-    family: str = field(
-        metadata={"description": "The environment's family: navigation, gravity or farming."}
-    )
-    map: str = field(
-        metadata={
-            "description": "The map's text: header lines (task:, start:, gravity of ...:), the "
-            "column digits, then one numbered line per row."
-        }
-    )
-    horizon: int | None = field(
-        default=None,
-        metadata={
-            "ge": 1,
-            "le": 1000,
-            "description": "Steps per task; unset: the family's own (navigation 2 x (width + "
-            "height), gravity and farming 4 x (width + height)).",
-        },
-    )
-    colours: dict[str, str] = field(
-        default_factory=dict,
-        metadata={
-            "description": "The colour drawn for each new terrain, machine or gravity colour, "
-            'e.g. { vines = "#6b8e23" }.'
-        },
-    )
-    gravity_colours: dict[str, str] = field(
-        default_factory=dict,
-        metadata={
-            "description": "Gravity only: colours beyond orange (o), green (g) and purple (p), "
-            'each a lower-case letter and its name, e.g. { y = "yellow" }.'
-        },
-    )
-    gravity: dict[str, str] = field(
-        default_factory=dict,
-        metadata={
-            "description": "Gravity only: the gravity each colour sets (north, south, east or "
-            "west); the map's 'gravity of COLOUR:' lines may give it instead."
-        },
-    )
-    terrains: dict[str, str] = field(
-        default_factory=dict,
-        metadata={
-            "description": "Farming only: field terrains beyond soil (s), grass (i) and crops "
-            '(c), each a lower-case letter and its name, e.g. { v = "vines" }.'
-        },
-    )
-    machines: dict[str, str] = field(
-        default_factory=dict,
-        metadata={
-            "description": "Farming only: machines beyond the plow (P), sprinkler (W) and "
-            'harvester (H), each a capital letter and its name, e.g. { T = "trellis" }.'
-        },
-    )
-    works_on: dict[str, str] = field(
-        default_factory=dict,
-        metadata={
-            "description": "Farming only: the terrain each machine enters (required for a new "
-            'machine; the others keep theirs unless given), e.g. { trellis = "vines" }.'
-        },
-    )
-    max_trapped_start_share: float = field(
-        default=0.0,
-        metadata={
-            "ge": 0,
-            "le": 1,
-            "description": "The share of a task's start probability (the simulations' or the "
-            "user study's) that may lie on starts from which its goal can never be reached, "
-            "whatever the agent does; 0: none (bam-study check names them).",
-        },
-    )
+    family: str
+    map: str
+    horizon: int | None = None
+    colours: dict[str, str] = field(default_factory=dict)
+    gravity_colours: dict[str, str] = field(default_factory=dict)
+    gravity: dict[str, str] = field(default_factory=dict)
+    terrains: dict[str, str] = field(default_factory=dict)
+    machines: dict[str, str] = field(default_factory=dict)
+    works_on: dict[str, str] = field(default_factory=dict)
+    max_trapped_start_share: float = 0.0
 
     # -- the checks -----------------------------------------------------------------------
     def problems(self, max_states: int = DEFAULT_MAX_STATES) -> list[Problem]:

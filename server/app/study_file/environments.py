@@ -1,8 +1,9 @@
 """The study's own environments (``[environments.NAME]``) and its domains (``[[domains]]``).
 
-An environment's keys are ``EnvironmentSpec``'s (``server.domains.spec``), with their
-descriptions and bounds: the table's model is made from that dataclass's fields, so that the
-two cannot drift apart. Only ``map_file`` (the map read from a file) is the study file's own.
+An environment's keys are ``EnvironmentSpec``'s fields (``server.domains.spec``), their types
+and defaults: the table's model is made from that dataclass, so that the two cannot drift
+apart. What the study file adds is here: each key's description (the docs' table) and the
+bounds of its value (``KEYS``), and ``map_file``, the map read from a file.
 """
 
 from __future__ import annotations
@@ -17,6 +18,52 @@ from pydantic import Field, ValidationInfo, create_model, model_validator
 from server.app.study_file.base import Table
 from server.domains.spec import DEFAULT_MAX_STATES, FAMILIES, EnvironmentSpec
 
+# Each of EnvironmentSpec's fields but its name (the table's own name): its description and
+# the bounds the study file sets on its value.
+KEYS: dict[str, dict[str, Any]] = {
+    "family": {"description": "The environment's family: navigation, gravity or farming."},
+    "map": {
+        "description": "The map's text: header lines (task:, start:, gravity of ...:), the "
+        "column digits, then one numbered line per row."
+    },
+    "horizon": {
+        "ge": 1,
+        "le": 1000,
+        "description": "Steps per task; unset: the family's own (navigation 2 x (width + "
+        "height), gravity and farming 4 x (width + height)).",
+    },
+    "colours": {
+        "description": "The colour drawn for each new terrain, machine or gravity colour, e.g. "
+        '{ vines = "#6b8e23" }.'
+    },
+    "gravity_colours": {
+        "description": "Gravity only: colours beyond orange (o), green (g) and purple (p), "
+        'each a lower-case letter and its name, e.g. { y = "yellow" }.'
+    },
+    "gravity": {
+        "description": "Gravity only: the gravity each colour sets (north, south, east or "
+        "west); the map's 'gravity of COLOUR:' lines may give it instead."
+    },
+    "terrains": {
+        "description": "Farming only: field terrains beyond soil (s), grass (i) and crops (c), "
+        'each a lower-case letter and its name, e.g. { v = "vines" }.'
+    },
+    "machines": {
+        "description": "Farming only: machines beyond the plow (P), sprinkler (W) and "
+        'harvester (H), each a capital letter and its name, e.g. { T = "trellis" }.'
+    },
+    "works_on": {
+        "description": "Farming only: the terrain each machine enters (required for a new "
+        'machine; the others keep theirs unless given), e.g. { trellis = "vines" }.'
+    },
+    "max_trapped_start_share": {
+        "ge": 0,
+        "le": 1,
+        "description": "The share of a task's start probability (the simulations' or the user "
+        "study's) that may lie on starts from which its goal can never be reached, whatever "
+        "the agent does; 0: none (bam-study check names them).",
+    },
+}
 MAP_FILE = Field(
     None,
     description="Instead of map: a file holding the map, its path relative to the study file.",
@@ -24,16 +71,20 @@ MAP_FILE = Field(
 
 
 def _table_fields() -> dict[str, Any]:
-    """The keys of an ``[environments.NAME]`` table: ``EnvironmentSpec``'s fields but its name
-    (the table's own name), in its order, each with its description and bounds; the family one
-    of ``FAMILIES``, and the map optional, as ``map_file`` may stand for it."""
+    """The keys of an ``[environments.NAME]`` table: ``EnvironmentSpec``'s fields but its name,
+    in its order, with their types and defaults and ``KEYS``' descriptions and bounds; the
+    family one of ``FAMILIES``, and the map optional, as ``map_file`` may stand for it."""
+    spec_fields = [f for f in dataclasses.fields(EnvironmentSpec) if f.name != "name"]
+    if [f.name for f in spec_fields] != list(KEYS):
+        raise TypeError(
+            f"KEYS ({', '.join(KEYS)}) must describe EnvironmentSpec's fields, in their order: "
+            f"{', '.join(f.name for f in spec_fields)}"
+        )
     hints = typing.get_type_hints(EnvironmentSpec)
     fields: dict[str, Any] = {}
-    for spec_field in dataclasses.fields(EnvironmentSpec):
-        if spec_field.name == "name":
-            continue
+    for spec_field in spec_fields:
         annotation: Any = hints[spec_field.name]
-        options = dict(spec_field.metadata)
+        options = dict(KEYS[spec_field.name])
         if spec_field.default_factory is not dataclasses.MISSING:
             options["default_factory"] = spec_field.default_factory
         elif spec_field.default is not dataclasses.MISSING:

@@ -62,13 +62,17 @@ def test_an_inline_map_is_an_environment_of_the_study(forget: None) -> None:
 
 
 def test_an_environment_table_has_the_keys_of_an_environment_spec() -> None:
-    """The table's keys are ``EnvironmentSpec``'s (but its name), each with the description
-    and the bounds its field carries, and ``map_file``; a definition gives back the spec."""
+    """The table's keys are ``EnvironmentSpec``'s fields (but its name), in their order, with
+    their defaults and the study file's descriptions and bounds, and ``map_file``; a definition
+    gives back the spec."""
     keys = [f for f in dataclasses.fields(EnvironmentSpec) if f.name != "name"]
     table = EnvironmentDefinition.model_fields
     assert list(table) == ["family", "map", "map_file", *(f.name for f in keys[2:])]
-    for spec_field in keys:
-        assert table[spec_field.name].description == spec_field.metadata["description"]
+    plain = EnvironmentSpec("corridor", "navigation", CORRIDOR)
+    for spec_field in keys[2:]:
+        default = table[spec_field.name].get_default(call_default_factory=True)
+        assert default == getattr(plain, spec_field.name)
+    assert all(table[name].description for name in table)
     with pytest.raises(ValidationError, match="less than or equal to 1000"):
         EnvironmentDefinition(family="navigation", map=CORRIDOR, horizon=1001)
     with pytest.raises(ValidationError, match="'navigation', 'gravity' or 'farming'"):

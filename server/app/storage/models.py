@@ -349,7 +349,7 @@ class AssignmentReview(Base):
     """The experimenter's decision on a participant's submitted work (an MTurk assignment or a
     Prolific submission): one per participant, final. The row is written as ``pending`` before
     the platform is called and becomes ``done`` once the platform has taken the decision, so
-    that a decision the platform carried out is never missing here (``platforms/review.py``)."""
+    that a decision the platform carried out is never missing here (``platforms/review/``)."""
 
     __tablename__ = "assignment_reviews"
 

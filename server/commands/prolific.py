@@ -7,6 +7,9 @@ through the Prolific replica of a running study server (its ``/prolific/api/v1``
 A refusal (Prolific's 4xx) is printed as one line with Prolific's message and exit status 1;
 bad arguments or a study file that cannot run on Prolific get exit status 2. No token is ever
 printed.
+
+One module for the one command: its subcommands side by side, each a short function over
+the client.
 """
 
 from __future__ import annotations

@@ -10,6 +10,9 @@
   study's maximum time.
 - ``/prolific/submissions/complete?cc=CODE``: where the study's completion redirect lands; the
   code is checked against the study's completion codes.
+
+One router for everything under ``/prolific`` (routers never import one another), so the
+pages, the API and the completion redirect of the replica are one module.
 """
 
 from __future__ import annotations

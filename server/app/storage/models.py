@@ -11,6 +11,9 @@ participants ─< status_changes
              ─< assignment_reviews (the experimenter's approval or rejection of the submission)
              ─< bonuses
 erasures (one per participant erased: no link to any other row, no personal data)
+
+Every table is in this one module, beside the diagram above: the one schema that the
+migrations build, read as one.
 """
 
 from __future__ import annotations

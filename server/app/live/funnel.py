@@ -159,9 +159,8 @@ def funnel(c: Connection, now: datetime) -> dict[str, Any]:
         statuses[status] += 1
         since = changed.get(person.id, person.created_at)
         session = active.get(person.id)
-        stage, since, agent = _stage(
-            status, since, session, checking.get(person.id, False), pending
-        )
+        check = (person.id in checking, checking.get(person.id))
+        stage, since, agent = _stage(status, since, session, check, pending)
         if agent is not None:
             agents[agent] = agents.get(agent, 0) + 1
         stages[stage] += 1

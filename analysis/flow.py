@@ -98,7 +98,10 @@ def participant_flow(
 ) -> ParticipantFlow | None:
     """The flow of the export's ``tables`` (``analysis.data.load_tables``' ``tables``), with
     ``counted_sessions`` the learning sessions Table 1 counts under these options; None when
-    there is no ``participants.csv`` with a ``status`` to count from."""
+    there is no ``participants.csv`` with a ``status`` to count from.
+
+    Long on purpose: each box of the flow diagram is one ``add`` (its stage, label and rule
+    side by side), in the diagram's order, so the function reads as the diagram does."""
     participants = tables.get("participants")
     if participants is None or not {"participant_id", "status"} <= set(participants.columns):
         return None

@@ -4,7 +4,7 @@ A page asks for one with a line ``<!-- generated: NAME -->``; ``on_page_markdown
 table in its place. NAME is one of ``GENERATORS``:
 
 - ``study-file``: every key of the study file, from the pydantic models in
-  ``server/app/config.py`` (their field types, defaults and descriptions);
+  ``server/app/study_file/`` (their field types, defaults and descriptions);
 - ``domains``: the domains, their environments and tutorials, from ``server.domains``;
 - ``environment-legend``: each family's map letters, from the families in ``server.domains``;
 - ``learner-settings``: every learner's settings, their types, defaults and descriptions, from
@@ -260,7 +260,7 @@ def study_file(root: type[BaseModel] | None = None) -> str:
     top-level keys, then each nested table (breadth first), each model's table once (a model
     met again points to where it is)."""
     if root is None:
-        from server.app.config import StudyConfig
+        from server.app.study_file import StudyConfig
 
         root = StudyConfig
     lines = ["### Top-level keys", "", *model_table(root, "")]

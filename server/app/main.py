@@ -131,6 +131,79 @@ async def _no_receive() -> Message:
     return {"type": "http.disconnect"}
 
 
+# Teaching's requests come first: the router tries the routers in this order, and they are
+# most of a study's requests.
+ROUTERS = (
+    sessions.router,
+    study.router,
+    arrivals.router,
+    participant.router,
+    admin.router,
+    live.router,
+    pages.router,
+    dashboard.pages,
+    live.pages,
+    mturk.router,
+    prolific.router,
+)
+
+
+def _handle_errors(app: FastAPI) -> None:
+    """The app's answers to refusals: an ``ApiError`` as its status and message, a request
+    FastAPI finds invalid as FastAPI's own 422, both written as strict JSON."""
+
+    @app.exception_handler(ApiError)
+    async def api_error(request: Request, error: ApiError) -> JSONResponse:
+        content: dict[str, Any] = {"detail": error.message}
+        if error.status == 422:
+            # Every 422 in the shape of FastAPI's own (HTTPValidationError): a list of problems.
+            loc = list(error.loc) if isinstance(error, InvalidInput) else []
+            content = {"detail": [{"type": "value_error", "loc": loc, "msg": error.message}]}
+        if isinstance(error, TurnedAway):
+            content["turned_away"] = True
+        # The message may quote the request (a question id), which may hold a lone surrogate.
+        return JSONResponse(_writable(content), status_code=error.status, headers=error.headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(request: Request, error: RequestValidationError) -> JSONResponse:
+        # FastAPI's own handler echoes the input as it was parsed, which JSON cannot always
+        # write (NaN, Infinity, a lone surrogate): the echo is made writable here.
+        return JSONResponse({"detail": _writable(list(error.errors()))}, status_code=422)
+
+
+async def _update_manager(
+    state: ServerState,
+    executor: Executor | None,
+    updates_cluster: UpdateCluster | None,
+    measure_capacity: bool,
+    server_share: Callable[[threading.Event], float] | None,
+) -> UpdateManager:
+    """The server's update manager, as ``create_app`` describes its arguments."""
+    return UpdateManager(
+        state.db,
+        state.policies,
+        state.study.settings_of,
+        workers=state.settings.update_workers,
+        niceness=state.settings.update_worker_niceness,
+        threads=state.settings.update_threads,
+        executor=executor,
+        cluster=updates_cluster,
+        update_interval_seconds=state.settings.update_interval_seconds,
+        reference_jobs=(
+            reference_jobs(state.study.pairs(), state.study.settings_of)
+            if measure_capacity
+            else None
+        ),
+        server_share=server_share if measure_capacity else None,
+        database_cpu=(
+            await asyncio.to_thread(postgres_cpu_reader, state.db.engine)
+            if updates_cluster is None
+            else None
+        ),
+        lease_seconds=state.settings.update_lease_seconds,
+    )
+
+
 def create_app(
     settings: Settings | None = None,
     study_config: StudyConfig | None = None,
@@ -176,28 +249,8 @@ def create_app(
                 UpdateCluster.connect, settings.update_scheduler
             )
             own_cluster = True
-        manager = UpdateManager(
-            db,
-            state.policies,
-            study_config.settings_of,
-            workers=settings.update_workers,
-            niceness=settings.update_worker_niceness,
-            threads=settings.update_threads,
-            executor=executor,
-            cluster=updates_cluster,
-            update_interval_seconds=settings.update_interval_seconds,
-            reference_jobs=(
-                reference_jobs(study_config.pairs(), study_config.settings_of)
-                if measure_capacity
-                else None
-            ),
-            server_share=server_share if measure_capacity else None,
-            database_cpu=(
-                await asyncio.to_thread(postgres_cpu_reader, db.engine)
-                if updates_cluster is None
-                else None
-            ),
-            lease_seconds=settings.update_lease_seconds,
+        manager = await _update_manager(
+            state, executor, updates_cluster, measure_capacity, server_share
         )
         state.updates = manager
         await manager.start()
@@ -231,39 +284,8 @@ def create_app(
     answers = {"/api/participant/questionnaire": study_config.questionnaire.largest_answers_bytes()}
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes, larger=answers)
 
-    @app.exception_handler(ApiError)
-    async def api_error(request: Request, error: ApiError) -> JSONResponse:
-        content: dict[str, Any] = {"detail": error.message}
-        if error.status == 422:
-            # Every 422 in the shape of FastAPI's own (HTTPValidationError): a list of problems.
-            loc = list(error.loc) if isinstance(error, InvalidInput) else []
-            content = {"detail": [{"type": "value_error", "loc": loc, "msg": error.message}]}
-        if isinstance(error, TurnedAway):
-            content["turned_away"] = True
-        # The message may quote the request (a question id), which may hold a lone surrogate.
-        return JSONResponse(_writable(content), status_code=error.status, headers=error.headers)
-
-    @app.exception_handler(RequestValidationError)
-    async def invalid_request(request: Request, error: RequestValidationError) -> JSONResponse:
-        # FastAPI's own handler echoes the input as it was parsed, which JSON cannot always
-        # write (NaN, Infinity, a lone surrogate): the echo is made writable here.
-        return JSONResponse({"detail": _writable(list(error.errors()))}, status_code=422)
-
-    # Teaching's requests come first: the router tries the routers in this order, and they are
-    # most of a study's requests.
-    for router in (
-        sessions.router,
-        study.router,
-        arrivals.router,
-        participant.router,
-        admin.router,
-        live.router,
-        pages.router,
-        dashboard.pages,
-        live.pages,
-        mturk.router,
-        prolific.router,
-    ):
+    _handle_errors(app)
+    for router in ROUTERS:
         app.include_router(router)
     if STATIC_DIR.is_dir():
         app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")

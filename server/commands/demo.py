@@ -228,6 +228,26 @@ def check(options: DemoOptions) -> None:
         )
 
 
+def _write_study(options: DemoOptions, out: Path) -> tuple[Path, str]:
+    """The demo's study file and its admin token, written into ``out`` (the study's own
+    environments registered)."""
+    study = out / "study.toml"
+    text = study_text(options)
+    if options.platform == "prolific":
+        text = on_prolific(text)
+    text = with_dataset(text)
+    study.write_text(text + options.learner_settings)
+    admin_token = write_admin_token(out)
+    if options.study is not None:
+        from server.commands.studies import StudyEnvironmentsError, register_study
+
+        try:  # the simulated participants find the study's environments by name too
+            register_study(study)
+        except StudyEnvironmentsError as error:
+            raise DemoError(str(error)) from None
+    return study, admin_token
+
+
 def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
     """Run the demo into ``options.out`` (checked by ``check``); returns Table 1 as text."""
     from analysis.data import load_tables as load_export
@@ -248,20 +268,7 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
     out = options.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     url = f"sqlite:///{out / 'study.sqlite'}"
-    study = out / "study.toml"
-    text = study_text(options)
-    if options.platform == "prolific":
-        text = on_prolific(text)
-    text = with_dataset(text)
-    study.write_text(text + options.learner_settings)
-    admin_token = write_admin_token(out)
-    if options.study is not None:
-        from server.commands.studies import StudyEnvironmentsError, register_study
-
-        try:  # the simulated participants find the study's environments by name too
-            register_study(study)
-        except StudyEnvironmentsError as error:
-            raise DemoError(str(error)) from None
+    study, admin_token = _write_study(options, out)
     db = Database.from_url(url)
     try:
         upgrade(db.engine)

@@ -7,6 +7,9 @@ through the Prolific replica of a running study server (its ``/prolific/api/v1``
 A refusal (Prolific's 4xx) is printed as one line with Prolific's message and exit status 1;
 bad arguments or a study file that cannot run on Prolific get exit status 2. No token is ever
 printed.
+
+One module for the one command: its subcommands side by side, each a short function over
+the client.
 """
 
 from __future__ import annotations
@@ -182,6 +185,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     places = action("add-places", "Raise the study's places to N (places only go up).")
     places.add_argument("study_id", metavar="STUDY_ID", type=study_id)
     places.add_argument("places", metavar="N", type=positive, help="the new number of places")
+    _add_message(action)
+
+
+def _add_message(action: Callable[[str, str], argparse.ArgumentParser]) -> None:
+    """``bam-study prolific message`` and its arguments (``action`` makes a subcommand)."""
     message = action(
         "message",
         "Send a message through Prolific's messages API to participants of the study: those "
@@ -487,13 +495,63 @@ def add_places(client: ProlificClient, study_id: str, places: int) -> None:
 MESSAGE_BATCH = 1000
 
 
+def _recipients(args: argparse.Namespace, client: ProlificClient, db: Any) -> dict[str, int]:
+    """The participants to message (``--to``, or those whose submission has ``--status``),
+    each PROLIFIC_PID with its participant's row; empty, and said, when there is none."""
+    from sqlalchemy import select
+
+    from server.app.storage.models import Participant
+
+    if args.to:
+        wanted = list(dict.fromkeys(args.to))
+    else:
+        wanted = list(
+            dict.fromkeys(
+                str(s["participant_id"])
+                for s in client.submissions(args.study)
+                if s.get("status") == args.status
+            )
+        )
+        if not wanted:
+            print(f"no submission of study {args.study} is {args.status}: nothing sent")
+            return {}
+    with db.read() as s:
+        found = s.execute(
+            select(Participant.worker_id, Participant.id)
+            .where(
+                Participant.platform == "prolific",
+                Participant.hit_id == args.study,
+                Participant.worker_id.in_(wanted),
+            )
+            .order_by(Participant.id)
+        ).all()
+    ours = {str(worker): int(number) for worker, number in found}  # the newest wins
+    missing = [who for who in wanted if who not in ours]
+    if missing and args.to:
+        raise Refused(
+            f"{', '.join(missing)}: no participant of study {args.study} in the "
+            "database (an unknown PROLIFIC_PID, another study's, or one erased or "
+            "scrubbed); nothing was sent"
+        )
+    if missing:
+        print(
+            f"bam-study prolific message: {len(missing)} submission(s) that are "
+            f"{args.status} belong to no participant in the database (erased, or never "
+            "arrived): not messaged",
+            file=sys.stderr,
+        )
+    recipients = {who: ours[who] for who in wanted if who in ours}
+    if not recipients:
+        print(f"no participant of study {args.study} to message: nothing sent")
+    return recipients
+
+
 def message(args: argparse.Namespace, settings: Settings) -> None:
     """Send the message to the recipients through Prolific and store each one it took (one
     row per recipient in ``messages``); nothing is stored for a message it refused."""
-    from sqlalchemy import select
 
     from server.app.storage import db as database
-    from server.app.storage.models import Message, Participant, utcnow
+    from server.app.storage.models import Message, utcnow
 
     try:
         db = database.Database.from_url(settings.database_url)
@@ -508,48 +566,10 @@ def message(args: argparse.Namespace, settings: Settings) -> None:
             )
         client = client_for(args, settings)
         try:
-            if args.to:
-                wanted = list(dict.fromkeys(args.to))
-            else:
-                wanted = list(
-                    dict.fromkeys(
-                        str(s["participant_id"])
-                        for s in client.submissions(args.study)
-                        if s.get("status") == args.status
-                    )
-                )
-                if not wanted:
-                    print(f"no submission of study {args.study} is {args.status}: nothing sent")
-                    return
-            with db.read() as s:
-                found = s.execute(
-                    select(Participant.worker_id, Participant.id)
-                    .where(
-                        Participant.platform == "prolific",
-                        Participant.hit_id == args.study,
-                        Participant.worker_id.in_(wanted),
-                    )
-                    .order_by(Participant.id)
-                ).all()
-            ours = {str(worker): int(number) for worker, number in found}  # the newest wins
-            missing = [who for who in wanted if who not in ours]
-            if missing and args.to:
-                raise Refused(
-                    f"{', '.join(missing)}: no participant of study {args.study} in the "
-                    "database (an unknown PROLIFIC_PID, another study's, or one erased or "
-                    "scrubbed); nothing was sent"
-                )
-            if missing:
-                print(
-                    f"bam-study prolific message: {len(missing)} submission(s) that are "
-                    f"{args.status} belong to no participant in the database (erased, or never "
-                    "arrived): not messaged",
-                    file=sys.stderr,
-                )
-            recipients = [who for who in wanted if who in ours]
-            if not recipients:
-                print(f"no participant of study {args.study} to message: nothing sent")
+            ours = _recipients(args, client, db)
+            if not ours:
                 return
+            recipients = list(ours)
             backend = "prolific-replica" if args.replica else "prolific"
             sent = 0
             for start in range(0, len(recipients), MESSAGE_BATCH):

@@ -32,7 +32,7 @@ import tempfile
 import threading
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -154,6 +154,48 @@ def _answer(connection: Connection, *args: Any) -> None:
         connection.send(answer)
 
 
+def _teach(
+    base: str,
+    index: int,
+    stop: threading.Event,
+    timing: threading.Event,
+    own: list[float],
+    errors: list[str],
+) -> None:
+    """Simulated participant ``index`` takes the scratch study at ``base`` until ``stop``; its
+    CPU seconds from the first request once ``timing`` is set go to ``own``, its error (if
+    any) to ``errors``."""
+    from server.commands.simulated import STUDY_PLAN, SimulatedParticipant
+
+    run = SimulatedParticipant(base, index, 0, STUDY_PLAN, stop=stop)
+    started: float | None = None
+
+    def timed(*args: Any, **kwargs: Any) -> Any:
+        nonlocal started
+        if started is None and timing.is_set():
+            started = time.thread_time()
+        return send(*args, **kwargs)
+
+    send, run.client.request = run.client.request, timed  # type: ignore[method-assign]
+    outcome = run.take_part()
+    if started is not None:
+        own.append(time.thread_time() - started)
+    if outcome.error is not None:
+        errors.append(outcome.error)
+
+
+def _database_cpu(db: Any, url: str) -> Callable[[], float] | None:
+    """The reader of the scratch study's own backends' CPU seconds (a scratch schema's
+    connections are named after it): not those of a study already under way on the same
+    database server (None: no such reader)."""
+    from sqlalchemy.engine import make_url
+
+    from server.app.storage.database_cpu import application_cpu_reader
+
+    application = make_url(url).query.get("application_name")
+    return application_cpu_reader(db.engine, application) if isinstance(application, str) else None
+
+
 def _scratch_study(
     stopping: threading.Event,
     settings: Settings,
@@ -164,14 +206,11 @@ def _scratch_study(
 ) -> ServerShare:
     import uvicorn
     from sqlalchemy import func, select
-    from sqlalchemy.engine import make_url
 
     from server.app.main import create_app
-    from server.app.storage.database_cpu import application_cpu_reader
     from server.app.storage.db import Database, upgrade
     from server.app.storage.models import LearnerUpdate
     from server.commands.live import free_port
-    from server.commands.simulated import STUDY_PLAN, SimulatedParticipant
 
     with scratch_database(settings.database_url) as url:
         scratch = settings.model_copy(
@@ -183,12 +222,7 @@ def _scratch_study(
             synchronous=settings.sqlite_synchronous,
         )
         upgrade(db.engine)
-        # The scratch study's own backends (a scratch schema's connections are named after it):
-        # not those of a study already under way on the same database server.
-        application = make_url(url).query.get("application_name")
-        database_cpu = (
-            application_cpu_reader(db.engine, application) if isinstance(application, str) else None
-        )
+        database_cpu = _database_cpu(db, url)
         # The simulated participants arrive as from MTurk's replica, whatever the platform:
         # an arrival and a completion are a few of a participant's hundreds of requests.
         copy = study.model_copy(
@@ -214,23 +248,6 @@ def _scratch_study(
             own: list[float] = []  # the participants' CPU seconds while timed
             errors: list[str] = []
 
-            def teach(index: int) -> None:
-                run = SimulatedParticipant(base, index, 0, STUDY_PLAN, stop=stop)
-                started: float | None = None
-
-                def timed(*args: Any, **kwargs: Any) -> Any:
-                    nonlocal started
-                    if started is None and timing.is_set():
-                        started = time.thread_time()
-                    return send(*args, **kwargs)
-
-                send, run.client.request = run.client.request, timed  # type: ignore[method-assign]
-                outcome = run.take_part()
-                if started is not None:
-                    own.append(time.thread_time() - started)
-                if outcome.error is not None:
-                    errors.append(outcome.error)
-
             def updates() -> int:
                 with db.read() as s:
                     return s.scalar(select(func.count()).select_from(LearnerUpdate)) or 0
@@ -238,7 +255,10 @@ def _scratch_study(
             def database() -> float:
                 return database_cpu() if database_cpu is not None else 0.0
 
-            threads = [threading.Thread(target=teach, args=(i,)) for i in range(participants)]
+            threads = [
+                threading.Thread(target=_teach, args=(base, i, stop, timing, own, errors))
+                for i in range(participants)
+            ]
             for thread in threads:
                 thread.start()
             try:

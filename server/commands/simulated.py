@@ -10,6 +10,9 @@ finishes, checks its completion code and records the submission. Requests are re
 same sequence number through connection losses and server restarts, so every request is
 acknowledged exactly once; ``ParticipantRun`` counts them and times them, each from its first
 attempt (what a participant would wait), and counts the requests that needed a retry.
+
+``SimulatedParticipant`` (about 360 lines) is a participant's whole way through the study,
+step by step in the order of the pages, so it is one class in one module.
 """
 
 from __future__ import annotations

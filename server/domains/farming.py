@@ -87,7 +87,11 @@ def build(
 ) -> Environment:
     """The environment of a farming map. ``horizon_steps``: the horizon, unless the family's
     own, 4 * (width + height); ``rules``: the variant's letters and rule (the paper's unless
-    given)."""
+    given).
+
+    One function, as the other families' ``build``: the map's cells, the rule's transitions,
+    the model, the tasks and the layout, in the order the environment is made of them, each
+    reading the names the step before defined."""
     rules = Rules() if rules is None else rules
     features, machines, terrains = rules.features, rules.machines, rules.terrains
     grid_map.check_characters("".join(rules.terrain_of_letter) + "".join(rules.machine_of_letter))

@@ -71,7 +71,11 @@ def build(
     """The environment of a gravity map. ``horizon_steps``: the horizon, unless the family's
     own, 4 * (width + height); ``colours``: {map letter: colour} (``COLOURS`` unless given),
     whose order is the order of the model's softmax rows; ``palette``: {colour: "#rrggbb"} for
-    colours the page does not know."""
+    colours the page does not know.
+
+    One function, as the other families' ``build``: the map's colours, the rule's transitions,
+    the model, the tasks and the layout, in the order the environment is made of them, each
+    reading the names the step before defined."""
     colours = dict(COLOURS) if colours is None else colours
     steps = horizon_steps or horizon(grid_map.height, grid_map.width)
     grid_map.check_characters(PLAIN + "".join(colours))

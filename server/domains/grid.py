@@ -38,6 +38,9 @@ for the browser page; plain lists, ints and strings only) has these keys in ever
 - ``drawing``: ``{"terrains", "machines", "colours"}``, each kind of the environment (its
   terrains, its machines, its gravity colours) with its name for people and its colour
   (``drawing.py``): the page draws a study's own kinds from it.
+
+The map format is read in this one module (the header, the regions, the grid and the table
+builder every family uses), as a map file is written: one format, one reader.
 """
 
 from __future__ import annotations

@@ -145,6 +145,10 @@ def render_report(
     figures: Sequence[str],
     command: str,
 ) -> str:
+    """The experiment's report in Markdown: its description, its settings (with the command
+    that ran it), the results with the figures, and the time it took. One ``add`` per line of
+    the report, in the order it is read, so the function is as long as the report's
+    template."""
     lines: list[str] = []
     add = lines.append
     add(f"# Simulated-teacher experiment: {config.experiment}")

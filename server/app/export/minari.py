@@ -153,30 +153,46 @@ def study_datasets(
         )
     when = (exported_at or datetime.now(UTC)).isoformat()
     return [
-        Dataset(
-            environment=environment,
-            name=DATASET_NAME,
-            episodes=found,
-            description=(
-                f"BAM Study: the participants' episodes in {environment}: demonstrations and "
-                "the agents' tries, with the participants' feedback on the agents' steps."
-            ),
-            algorithm="human teaching (demonstrations, and feedback on the agent's tries)",
-            metadata={
-                "study_file": study.name,
-                "study_sha256": study.sha256,
-                "exported_at": when,
-                "participants": len(counts[environment]["participants"]),
-                "episodes": len(found),
-                "demonstrations": counts[environment][EpisodeKind.DEMONSTRATION],
-                "agent_episodes": counts[environment][EpisodeKind.AGENT],
-                "excluded_participants": "included" if include_excluded else "left out",
-                "pseudonymised": pseudonymize,
-                "infos": INFOS,
-            },
+        _dataset(
+            environment, found, counts[environment], study, when, include_excluded, pseudonymize
         )
         for environment, found in sorted(by_environment.items())
     ]
+
+
+def _dataset(
+    environment: str,
+    found: list[DatasetEpisode],
+    count: dict[str, Any],
+    study: StudyFile,
+    when: str,
+    include_excluded: bool,
+    pseudonymize: bool,
+) -> Dataset:
+    """The dataset of one environment's episodes, ``count`` its participants and episodes of
+    each kind."""
+    return Dataset(
+        environment=environment,
+        name=DATASET_NAME,
+        episodes=found,
+        description=(
+            f"BAM Study: the participants' episodes in {environment}: demonstrations and "
+            "the agents' tries, with the participants' feedback on the agents' steps."
+        ),
+        algorithm="human teaching (demonstrations, and feedback on the agent's tries)",
+        metadata={
+            "study_file": study.name,
+            "study_sha256": study.sha256,
+            "exported_at": when,
+            "participants": len(count["participants"]),
+            "episodes": len(found),
+            "demonstrations": count[EpisodeKind.DEMONSTRATION],
+            "agent_episodes": count[EpisodeKind.AGENT],
+            "excluded_participants": "included" if include_excluded else "left out",
+            "pseudonymised": pseudonymize,
+            "infos": INFOS,
+        },
+    )
 
 
 Step = dict[str, Any]

@@ -66,6 +66,48 @@ def _seconds(now: datetime, since: datetime | None) -> float | None:
     return None if since is None else round(max(0.0, (now - since).total_seconds()), 1)
 
 
+def _active_sessions(c: Connection) -> dict[int, Any]:
+    """Each participant's active learning session (its row), by participant."""
+    s = SESSIONS.c
+    return {
+        row.participant_id: row
+        for row in c.execute(
+            select(
+                s.id,
+                s.participant_id,
+                s.kind,
+                s.position,
+                s.mode,
+                s.started_at,
+                s.updates_requested,
+                s.updates_processed,
+            ).where(s.status == SessionStatus.ACTIVE)
+        )
+    }
+
+
+def _stage(
+    status: ParticipantStatus,
+    since: datetime | None,
+    session: Any,
+    check: tuple[bool, datetime | None],
+    pending: dict[int, datetime],
+) -> tuple[str, datetime | None, int | None]:
+    """A participant's stage, since when they are in it, and the agent (from 1) they teach:
+    their status's stage, made finer while they teach (``check``: whether they take an
+    attention check, and when it began)."""
+    if status not in (ParticipantStatus.TUTORIAL, ParticipantStatus.TEACHING):
+        return OF_STATUS[status], since, None
+    in_check, check_started = check
+    if in_check:
+        return "attention_check", check_started or since, None
+    if session is not None and session.mode == Mode.AGENT and session.id in pending:
+        return "updating", pending[session.id], None
+    if session is not None and session.kind == SessionKind.STUDY:
+        return "agent", session.started_at or since, int(session.position) + 1
+    return "tutorial", (session.started_at or since) if session is not None else since, None
+
+
 def funnel(c: Connection, now: datetime) -> dict[str, Any]:
     """The funnel at ``now``, from the database as ``c`` reads it (one transaction: the counts of
     one moment): ``stages`` (participants per stage; ``agents``: per agent k while teaching),
@@ -87,21 +129,7 @@ def funnel(c: Connection, now: datetime) -> dict[str, Any]:
             .group_by(s.participant_id)
         ).all()
     )
-    active = {
-        row.participant_id: row
-        for row in c.execute(
-            select(
-                s.id,
-                s.participant_id,
-                s.kind,
-                s.position,
-                s.mode,
-                s.started_at,
-                s.updates_requested,
-                s.updates_processed,
-            ).where(s.status == SessionStatus.ACTIVE)
-        )
-    }
+    active = _active_sessions(c)
     checking = dict(
         c.execute(
             select(k.participant_id, k.started_at).where(k.status == CheckStatus.ACTIVE)
@@ -131,22 +159,10 @@ def funnel(c: Connection, now: datetime) -> dict[str, Any]:
         statuses[status] += 1
         since = changed.get(person.id, person.created_at)
         session = active.get(person.id)
-        agent: int | None = None
-        if status in (ParticipantStatus.TUTORIAL, ParticipantStatus.TEACHING):
-            if person.id in checking:
-                stage, since = "attention_check", checking[person.id] or since
-            elif session is not None and session.mode == Mode.AGENT and session.id in pending:
-                stage, since = "updating", pending[session.id]
-            elif session is not None and session.kind == SessionKind.STUDY:
-                stage, since = "agent", session.started_at or since
-                agent = int(session.position) + 1
-                agents[agent] = agents.get(agent, 0) + 1
-            else:
-                stage = "tutorial"
-                if session is not None:
-                    since = session.started_at or since
-        else:
-            stage = OF_STATUS[status]
+        check = (person.id in checking, checking.get(person.id))
+        stage, since, agent = _stage(status, since, session, check, pending)
+        if agent is not None:
+            agents[agent] = agents.get(agent, 0) + 1
         stages[stage] += 1
         if status in LISTED:
             rows.append(

@@ -6,6 +6,9 @@ nowhere else (never logged, never in an error message); a 429 or a 5xx is retrie
 exponential back-off; a 4xx becomes ``ProlificRefused`` with Prolific's own message. Every call
 is scoped to one study: submissions are listed with ``?study=`` (never the account's whole
 list), and a submission or bonus of another study is refused here before anything is sent.
+
+``ProlificClient`` (about 370 lines) has one method per call of Prolific's API that the
+server makes, each beside the others it shares its retries and scoping with.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ from typing import Any
 
 import httpx
 
-from server.app.config import StudyConfig
+from server.app.config import Completion, ProlificStudy, StudyConfig
 from server.app.platforms.review import (
     Reviewed,
     ReviewRefused,
@@ -549,6 +552,39 @@ def draft_study(
         )
     if max_concurrent < 1:
         raise ValueError("max_concurrent_submissions must be at least 1")
+    codes = _completion_codes(completion)
+    fields: dict[str, Any] = {
+        "name": prolific.name,
+        "internal_name": study.title,
+        "description": prolific.description,
+        "external_study_url": prolific.study_link(base_url),
+        "prolific_id_option": "url_parameters",
+        "completion_codes": codes,
+        "total_available_places": prolific.places,
+        "reward": prolific.reward_cents,
+        "estimated_completion_time": prolific.estimated_minutes,
+        "maximum_allowed_time": prolific.maximum_minutes,
+        "device_compatibility": ["desktop"],
+        "submissions_config": {"max_concurrent_submissions": max_concurrent},
+    }
+    groups = groups or {}
+    filters = _filters(prolific, groups)
+    # The finishers (the COMPLETED code) join the family's group and the follow-up's.
+    joined = dict.fromkeys(
+        groups[name] for name in (prolific.family_group, prolific.follow_up_group) if name
+    )
+    codes[0]["actions"] += [
+        {"action": "ADD_TO_PARTICIPANT_GROUP", "participant_group": group} for group in joined
+    ]
+    if filters:
+        fields["filters"] = filters
+    return fields
+
+
+def _completion_codes(completion: Completion) -> list[dict[str, Any]]:
+    """The study's completion codes: COMPLETED for manual review (first), and NO_CONSENT and
+    INCOMPATIBLE_DEVICE, where the study file gives them, asking for a return."""
+    assert completion.prolific_code is not None
     codes: list[dict[str, Any]] = [
         {
             "code": completion.prolific_code,
@@ -577,20 +613,12 @@ def draft_study(
                 ],
             }
         )
-    fields: dict[str, Any] = {
-        "name": prolific.name,
-        "internal_name": study.title,
-        "description": prolific.description,
-        "external_study_url": prolific.study_link(base_url),
-        "prolific_id_option": "url_parameters",
-        "completion_codes": codes,
-        "total_available_places": prolific.places,
-        "reward": prolific.reward_cents,
-        "estimated_completion_time": prolific.estimated_minutes,
-        "maximum_allowed_time": prolific.maximum_minutes,
-        "device_compatibility": ["desktop"],
-        "submissions_config": {"max_concurrent_submissions": max_concurrent},
-    }
+    return codes
+
+
+def _filters(prolific: ProlificStudy, groups: dict[str, str]) -> list[dict[str, Any]]:
+    """Who may not take part: the studies of ``previous_studies_blocklist``, the family's
+    group; and who alone may: the only group (a ValueError for a group without its id)."""
     filters: list[dict[str, Any]] = []
     if prolific.previous_studies_blocklist:
         filters.append(
@@ -599,7 +627,6 @@ def draft_study(
                 "selected_values": list(prolific.previous_studies_blocklist),
             }
         )
-    groups = groups or {}
     named = (prolific.family_group, prolific.follow_up_group, prolific.only_group)
     missing = [name for name in named if name is not None and name not in groups]
     if missing:
@@ -618,13 +645,4 @@ def draft_study(
                 "selected_values": [groups[prolific.only_group]],
             }
         )
-    # The finishers (the COMPLETED code) join the family's group and the follow-up's.
-    joined = dict.fromkeys(
-        groups[name] for name in (prolific.family_group, prolific.follow_up_group) if name
-    )
-    codes[0]["actions"] += [
-        {"action": "ADD_TO_PARTICIPANT_GROUP", "participant_group": group} for group in joined
-    ]
-    if filters:
-        fields["filters"] = filters
-    return fields
+    return filters

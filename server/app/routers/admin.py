@@ -1,4 +1,8 @@
-"""The experimenter's endpoints, behind ``Authorization: Bearer $BAM_ADMIN_TOKEN``."""
+"""The experimenter's endpoints, behind ``Authorization: Bearer $BAM_ADMIN_TOKEN``.
+
+One router (``/api/admin``, the admin token checked once for all): every endpoint of the
+experimenter's dashboard, in the order the OpenAPI document lists them.
+"""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """The local Prolific replica, served by the study server to rehearse a Prolific study offline.
 
 - ``/prolific/api/v1/...``: the subset of Prolific's API the study server's client uses
-  (``platforms/prolific_replica.py``), with ``Authorization: Token $BAM_ADMIN_TOKEN``.
+  (``platforms/prolific_replica/``), with ``Authorization: Token $BAM_ADMIN_TOKEN``.
 - ``/prolific``: the researcher's view (each study, its places, each submission with Prolific's
   statuses and times, the bonuses paid), behind the admin sign-in, and the participant's way
   in: take part with a generated PROLIFIC_PID (the study's external URL, its placeholders
@@ -10,6 +10,9 @@
   study's maximum time.
 - ``/prolific/submissions/complete?cc=CODE``: where the study's completion redirect lands; the
   code is checked against the study's completion codes.
+
+One router for everything under ``/prolific`` (routers never import one another), so the
+pages, the API and the completion redirect of the replica are one module.
 """
 
 from __future__ import annotations

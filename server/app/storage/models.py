@@ -11,6 +11,9 @@ participants ─< status_changes
              ─< assignment_reviews (the experimenter's approval or rejection of the submission)
              ─< bonuses
 erasures (one per participant erased: no link to any other row, no personal data)
+
+Every table is in this one module, beside the diagram above: the one schema that the
+migrations build, read as one.
 """
 
 from __future__ import annotations
@@ -349,7 +352,7 @@ class AssignmentReview(Base):
     """The experimenter's decision on a participant's submitted work (an MTurk assignment or a
     Prolific submission): one per participant, final. The row is written as ``pending`` before
     the platform is called and becomes ``done`` once the platform has taken the decision, so
-    that a decision the platform carried out is never missing here (``platforms/review.py``)."""
+    that a decision the platform carried out is never missing here (``platforms/review/``)."""
 
     __tablename__ = "assignment_reviews"
 

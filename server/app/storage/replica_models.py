@@ -78,7 +78,7 @@ class ReplicaBonus(Base):
     granted_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
 
 
-# -- the local Prolific replica (``platforms/prolific_replica.py``, ``routers/prolific.py``) --
+# -- the local Prolific replica (``platforms/prolific_replica/``, ``routers/prolific.py``) --
 class ProlificReplicaStudy(Base):
     """A study as Prolific keeps it: made as a draft (UNPUBLISHED) through ``POST /studies/``,
     with the fields it was made with."""

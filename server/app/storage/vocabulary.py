@@ -170,7 +170,7 @@ class ReviewState(Vocabulary):
 
 @unique
 class BonusState(Vocabulary):
-    """Where a bonus's payment is (``bonuses.state``; ``platforms/review.py``)."""
+    """Where a bonus's payment is (``bonuses.state``; ``platforms/review/``)."""
 
     PENDING = "pending"  # recorded before the platform is called
     IN_DOUBT = "in_doubt"  # pending past the platform's memory of its token: paid or not unknown

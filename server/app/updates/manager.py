@@ -41,6 +41,9 @@ every server. SQLite has one server: it takes back every claim when it starts.
 The manager puts together three parts: ``queue`` (the order and the waits), ``store`` (the
 database work) and ``runners`` (the local processes or the cluster); it dispatches, and says
 the capacity.
+
+One module of about 550 lines: ``UpdateManager`` is the one class that hands each update
+between those three parts, and its dispatch reads as one.
 """
 
 from __future__ import annotations

@@ -4,13 +4,16 @@ the two example studies."""
 
 from __future__ import annotations
 
+import dataclasses
 import tomllib
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from pydantic import ValidationError
 
 from server import domains
+from server.app import config, study_file
 from server.app.config import (
     DEFAULT_STUDY_CONFIG,
     StudyConfig,
@@ -18,7 +21,9 @@ from server.app.config import (
     load_study_config,
     parse_study_config,
 )
+from server.app.study_file import EnvironmentDefinition
 from server.commands.main import main
+from server.domains.spec import EnvironmentSpec
 
 EXAMPLES = Path(__file__).resolve().parents[3] / "server" / "examples"
 CORRIDOR = """task: A
@@ -54,6 +59,34 @@ def test_an_inline_map_is_an_environment_of_the_study(forget: None) -> None:
     env = domains.make("corridor")
     assert (env.height, env.width, env.horizon, env.task_names) == (2, 4, 9, ("A",))
     assert domains.domain_of("corridor") == "navigation"
+
+
+def test_an_environment_table_has_the_keys_of_an_environment_spec() -> None:
+    """The table's keys are ``EnvironmentSpec``'s fields (but its name), in their order, with
+    their defaults and the study file's descriptions and bounds, and ``map_file``; a definition
+    gives back the spec."""
+    keys = [f for f in dataclasses.fields(EnvironmentSpec) if f.name != "name"]
+    table = EnvironmentDefinition.model_fields
+    assert list(table) == ["family", "map", "map_file", *(f.name for f in keys[2:])]
+    plain = EnvironmentSpec("corridor", "navigation", CORRIDOR)
+    for spec_field in keys[2:]:
+        default = table[spec_field.name].get_default(call_default_factory=True)
+        assert default == getattr(plain, spec_field.name)
+    assert all(table[name].description for name in table)
+    with pytest.raises(ValidationError, match="less than or equal to 1000"):
+        EnvironmentDefinition(family="navigation", map=CORRIDOR, horizon=1001)
+    with pytest.raises(ValidationError, match="'navigation', 'gravity' or 'farming'"):
+        EnvironmentDefinition(family="cooking", map=CORRIDOR)
+    every = {"horizon": 9, "colours": {"vines": "#6b8e23"}, "max_trapped_start_share": 0.5}
+    definition = EnvironmentDefinition(family="navigation", map=CORRIDOR, **every)
+    assert definition.spec("corridor") == EnvironmentSpec(
+        "corridor", "navigation", CORRIDOR, **every
+    )
+
+
+def test_the_former_module_path_gives_the_same_names() -> None:
+    for name in study_file.__all__:
+        assert getattr(config, name) is getattr(study_file, name)
 
 
 def test_a_map_file_is_read_relative_to_the_study_file(tmp_path: Path) -> None:

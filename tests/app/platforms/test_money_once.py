@@ -23,7 +23,7 @@ from server.app.errors import ApiError
 from server.app.export.tables import export_tables
 from server.app.platforms import review
 from server.app.platforms.mturk import MTurkClientBackend, MTurkReplicaBackend
-from server.app.platforms.review import parse_amount
+from server.app.platforms.review import bonuses, decisions, parse_amount
 from server.app.storage.db import Database
 from server.app.storage.models import AssignmentReview, Bonus, Participant, utcnow
 from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus
@@ -280,9 +280,9 @@ def test_a_bonus_refused_while_its_duplicate_waits_is_refused_to_both(
         second_waits.set()
         return settle(*args)
 
-    budget, settle = review._check_budget, review._wait_for
-    monkeypatch.setattr(review, "_check_budget", check_budget)
-    monkeypatch.setattr(review, "_wait_for", wait_for)
+    budget, settle = bonuses._check_budget, bonuses._wait_for
+    monkeypatch.setattr(bonuses, "_check_budget", check_budget)
+    monkeypatch.setattr(bonuses, "_wait_for", wait_for)
     answers: dict[str, Any] = {}
 
     def pay() -> None:
@@ -337,7 +337,7 @@ def test_an_approval_refused_while_its_duplicate_waits_is_refused_to_both(
         return database_read()
 
     database_read = db.read
-    monkeypatch.setattr(review, "utcnow", now)
+    monkeypatch.setattr(decisions, "utcnow", now)
     monkeypatch.setattr(db, "read", read)
     answers: dict[str, Any] = {}
 

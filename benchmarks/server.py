@@ -9,6 +9,7 @@ acknowledged against events stored.
     python benchmarks/server.py --servers 3 --database-url postgresql+psycopg://...
                                                    # three servers behind nginx, one database
     python benchmarks/server.py --dashboards 3                  # with three live dashboards open
+    python benchmarks/server.py --dashboards 3 --alternate 10   # ... open and closed in turns
 
 The server is ``bam-study serve`` in its own process (a fresh SQLite file in a temporary folder
 unless --database-url is given; a PostgreSQL database is migrated first), with the paper's study
@@ -61,6 +62,7 @@ from pathlib import Path
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
 import httpx
+import numpy as np
 from sqlalchemy import func, select
 
 from server.app.config import DEFAULT_STUDY_CONFIG
@@ -86,6 +88,8 @@ WAIT_P95_SECONDS = 2.0
 MOVE_P95_SECONDS = 0.050
 DRAINED_WITHIN_SECONDS = 10.0
 MIRROR_P95_SECONDS = 1.0  # a participant's move on the dashboard's mirror (--dashboards)
+MOVE_RISE_WITH_DASHBOARDS = 0.10  # the move p95's rise with them open (--alternate)
+ALTERNATE_SETTLE_SECONDS = 1.0  # the start of each turn, left out (streams opening or closing)
 DRAIN_WATCH_SECONDS = 120.0  # how long the drain of the updates is followed after the stop
 
 
@@ -328,23 +332,25 @@ def sse_events(response: httpx.Response) -> Iterator[dict[str, object]]:
 
 class Dashboards:
     """``count`` dashboards open on the live views while the participants teach, as the live
-    page opens them: each follows the funnel and one participant's mirror (a participant who is
+    page opens them: each follows the funnel, the curves and one participant's mirror (a participant who is
     teaching, another once that one has finished). The mirror's delay: from a participant's
-    event committed (its time in the view) to the view that shows it received here."""
+    event committed (its time in the view) to the view that shows it received here.
+
+    Open for the whole run, or (``alternate``) open and closed in turns of that many seconds
+    from the end of the arrivals on, each turn's times kept in ``phases``."""
 
     def __init__(self, url: str, token: str, count: int, stop: threading.Event) -> None:
-        self.url, self.token, self.count, self.stop = url, token, count, stop
+        self.url, self.token, self.count, self.run_stop = url, token, count, stop
+        self.stop = threading.Event()  # this opening's: set at the run's stop or a turn's end
         self.delays: list[float] = []
-        self.funnel_events = 0
+        self.snapshots: dict[str, int] = {}  # received, by view
         self.errors: list[str] = []
-        self.threads = [
-            threading.Thread(target=target, args=(i,), daemon=True)
-            for i in range(count)
-            for target in (self.follow_funnel, self.follow_mirror)
-        ]
+        self.threads: list[threading.Thread] = []
         self.lock = threading.Lock()
         self.watched: set[int] = set()
         self.clients: list[httpx.Client] = []
+        self.phases: list[Phase] = []
+        self.watched_count = 0  # over every opening
 
     def client(self) -> httpx.Client:
         client = httpx.Client(
@@ -356,29 +362,67 @@ class Dashboards:
             self.clients.append(client)
         return client
 
-    def close(self) -> None:
-        """Close every stream (after the stop), so that the server stops with none open."""
-        with self.lock:
-            for client in self.clients:
-                client.close()
-
-    def start(self) -> None:
+    def open(self) -> None:
+        """Open every dashboard: its funnel stream and its mirror."""
+        self.stop = threading.Event()
+        self.watched = set()  # a new opening watches whoever is teaching now
+        self.threads = [
+            threading.Thread(target=target, args=(self.stop,), daemon=True)
+            for _ in range(self.count)
+            for target in (self.follow_funnel, self.follow_curves, self.follow_mirror)
+        ]
         for thread in self.threads:
             thread.start()
 
-    def follow_funnel(self, _: int) -> None:
+    def close(self) -> None:
+        """Close every stream, so that the server stops (or goes on) with none open."""
+        self.stop.set()
+        with self.lock:
+            clients, self.clients = self.clients, []
+        for client in clients:
+            client.close()
+        for thread in self.threads:
+            thread.join(timeout=10.0)
+
+    def alternate(self, seconds: float, after: float) -> None:
+        """Closed and open in turns of ``seconds`` (closed first), from ``after`` seconds on,
+        until the run stops; the last turn, cut short by the stop, is not kept."""
+        if self.run_stop.wait(after):
+            return
+        is_open = False
+        while True:
+            began = time.perf_counter()
+            if is_open:
+                self.open()
+            if self.run_stop.wait(seconds):
+                if is_open:
+                    self.close()
+                return
+            if is_open:
+                self.close()
+            self.phases.append(Phase(began, time.perf_counter(), is_open))
+            is_open = not is_open
+
+    def follow_funnel(self, stop: threading.Event) -> None:
+        self.follow(stop, "funnel")
+
+    def follow_curves(self, stop: threading.Event) -> None:
+        self.follow(stop, "curves")
+
+    def follow(self, stop: threading.Event, view: str) -> None:
+        """The live page's stream of ``view`` (the funnel or the curves), until the stop."""
         try:
             with (
                 self.client() as client,
-                client.stream("GET", "/api/admin/live/funnel/stream") as r,
+                client.stream("GET", f"/api/admin/live/{view}/stream") as r,
             ):
                 for _snapshot in sse_events(r):
-                    self.funnel_events += 1
-                    if self.stop.is_set():
+                    self.snapshots[view] = self.snapshots.get(view, 0) + 1
+                    if stop.is_set():
                         return
         except Exception as error:
-            if not self.stop.is_set():
-                self.errors.append(f"funnel: {error!r}")
+            if not stop.is_set():
+                self.errors.append(f"{view}: {error!r}")
 
     def someone_teaching(self, client: httpx.Client) -> int | None:
         rows = client.get("/api/admin/live/funnel").json()["participants"]
@@ -386,31 +430,32 @@ class Dashboards:
             for row in rows:
                 if row["session_id"] is not None and row["participant_id"] not in self.watched:
                     self.watched.add(row["participant_id"])
+                    self.watched_count += 1
                     return int(row["participant_id"])
         return None
 
-    def follow_mirror(self, _: int) -> None:
+    def follow_mirror(self, stop: threading.Event) -> None:
         try:
             with self.client() as client:
-                while not self.stop.is_set():
+                while not stop.is_set():
                     participant = self.someone_teaching(client)
                     if participant is None:
                         time.sleep(0.5)
                         continue
-                    self.watch(client, participant)
+                    self.watch(client, participant, stop)
         except Exception as error:
-            if not self.stop.is_set():
+            if not stop.is_set():
                 self.errors.append(f"mirror: {error!r}")
 
-    def watch(self, client: httpx.Client, participant: int) -> None:
+    def watch(self, client: httpx.Client, participant: int, stop: threading.Event) -> None:
         newest = None
         path = f"/api/admin/live/participants/{participant}/mirror/stream"
         with client.stream("GET", path) as response:
             for view in sse_events(response):
                 received = datetime.now(UTC)
                 session = view.get("session")
-                if self.stop.is_set() or not isinstance(session, dict):
-                    return  # the run is over, or the participant is no longer teaching
+                if stop.is_set() or not isinstance(session, dict):
+                    return  # the turn is over, or the participant is no longer teaching
                 recent = session["recent"]
                 if not recent:
                     continue
@@ -418,6 +463,48 @@ class Dashboards:
                 if newest is not None and at > newest:
                     self.delays.append((received - at).total_seconds())
                 newest = at if newest is None else max(newest, at)
+
+
+@dataclasses.dataclass(frozen=True)
+class Phase:
+    """One turn of --alternate: from ``began`` to ``ended`` (time.perf_counter), the
+    dashboards open or closed."""
+
+    began: float
+    ended: float
+    open: bool
+
+
+def p95_rise(
+    phases: list[Phase], moves: list[tuple[float, float]], settle: float, seed: int
+) -> tuple[list[float], list[float], float, tuple[float, float]]:
+    """The moves sent in closed and in open turns (the first ``settle`` seconds of each turn
+    left out: streams opening or closing), the open turns' move p95 over the closed turns' less
+    one, and its 95% interval from resampling the turns of each kind (the moves of a turn stay
+    together: a turn's moves share its load)."""
+    by_phase: list[list[float]] = [[] for _ in phases]
+    for sent, latency in moves:
+        for i, phase in enumerate(phases):
+            if phase.began + settle <= sent < phase.ended:
+                by_phase[i].append(latency)
+                break
+    closed = [by_phase[i] for i, phase in enumerate(phases) if not phase.open]
+    opened = [by_phase[i] for i, phase in enumerate(phases) if phase.open]
+
+    def rise(a: list[list[float]], b: list[list[float]]) -> float:
+        return float(np.percentile(np.concatenate(b), 95) / np.percentile(np.concatenate(a), 95))
+
+    rng = np.random.default_rng(seed)
+    draws = [
+        rise(
+            [closed[i] for i in rng.integers(len(closed), size=len(closed))],
+            [opened[i] for i in rng.integers(len(opened), size=len(opened))],
+        )
+        for _ in range(2000)
+    ]
+    low, high = np.percentile(draws, [2.5, 97.5])
+    flat = [x for turn in closed for x in turn], [x for turn in opened for x in turn]
+    return flat[0], flat[1], rise(closed, opened) - 1, (float(low) - 1, float(high) - 1)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -475,8 +562,21 @@ def main(argv: list[str] | None = None) -> int:
         "--dashboards",
         type=int,
         default=0,
-        help="live dashboards open meanwhile: each follows the funnel and one participant's "
-        "mirror (the mirror's delay is measured)",
+        help="live dashboards open meanwhile: each follows the funnel, the curves and one "
+        "participant's mirror (the mirror's delay is measured)",
+    )
+    parser.add_argument(
+        "--live-reader",
+        choices=("process", "server"),
+        default="process",
+        help="where the live views read the database (BAM_LIVE_READER; default process)",
+    )
+    parser.add_argument(
+        "--alternate",
+        type=float,
+        metavar="SECONDS",
+        help="with --dashboards: open and close them in turns of SECONDS, from the end of the "
+        "arrivals on, and compare the moves' p95 in open turns with closed ones",
     )
     args = parser.parse_args(argv)
     cluster_workers = None
@@ -491,6 +591,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.optimizer != "warm-lbfgs":
             parser.error("--warm-alternations needs --optimizer warm-lbfgs")
 
+    if args.alternate is not None and (
+        args.alternate < 2 * ALTERNATE_SETTLE_SECONDS or not args.dashboards
+    ):
+        parser.error(
+            f"--alternate needs --dashboards and a turn of at least "
+            f"{2 * ALTERNATE_SETTLE_SECONDS:.0f} s"
+        )
     if args.servers < 1:
         parser.error("--servers must be at least 1")
     if args.servers > 1 and not (args.database_url or "").startswith("postgresql"):
@@ -518,6 +625,7 @@ def main(argv: list[str] | None = None) -> int:
         "BAM_STUDY_CONFIG": str(study),
         "BAM_UPDATE_WORKERS": str(args.workers),
         "BAM_SQLITE_SYNCHRONOUS": args.sqlite_synchronous,
+        "BAM_LIVE_READER": args.live_reader,
     }
     plan = dataclasses.replace(
         STUDY_PLAN,
@@ -592,13 +700,22 @@ def main(argv: list[str] | None = None) -> int:
             return total
 
         dashboards = Dashboards(server.url, admin_token, args.dashboards, stop)
-        dashboards.start()
+        turns = threading.Thread(
+            target=dashboards.alternate, args=(args.alternate, args.ramp_seconds), daemon=True
+        )
+        if args.alternate is not None:
+            turns.start()
+        elif args.dashboards:
+            dashboards.open()
         cpu_before = cpu()
         started, started_at = time.perf_counter(), datetime.now(UTC)
         thread.start()
         thread.join(timeout=args.seconds)
         stop.set()
-        dashboards.close()
+        if args.alternate is not None:
+            turns.join()
+        else:
+            dashboards.close()
         stopped, stopped_at = time.perf_counter(), datetime.now(UTC)
         cpu_after = cpu()
         # From the latest updates and, where they share its cores, the server's CPU time (with
@@ -692,11 +809,31 @@ def main(argv: list[str] | None = None) -> int:
     print(f"server CPU per request     {1000 * server_cpu / max(1, requests):.2f} ms")
     if args.dashboards:
         print(
-            f"dashboards open            {args.dashboards}: {dashboards.funnel_events} funnel "
-            f"snapshots received, {len(dashboards.watched)} participants watched"
+            f"dashboards open            {args.dashboards}: "
+            f"{dashboards.snapshots.get('funnel', 0)} funnel and "
+            f"{dashboards.snapshots.get('curves', 0)} curves snapshots received, {dashboards.watched_count} participants watched"
         )
         if dashboards.delays:
             print(latency_row("a move to the mirror", dashboards.delays, 26))
+    rise = None
+    if args.alternate is not None:
+        kept = dashboards.phases
+        closed_turns = sum(1 for phase in kept if not phase.open)
+        if closed_turns and len(kept) > closed_turns:
+            closed, opened, rise, (low, high) = p95_rise(
+                kept, run.timed("move"), ALTERNATE_SETTLE_SECONDS, args.seed
+            )
+            print(
+                f"{f'turns of {args.alternate:.0f} s':<27}{closed_turns} closed, "
+                f"{len(kept) - closed_turns} open (each turn's first "
+                f"{ALTERNATE_SETTLE_SECONDS:.0f} s left out)"
+            )
+            print(latency_row("move, dashboards closed", closed, 26))
+            print(latency_row("move, dashboards open", opened, 26))
+            print(
+                f"move p95 with them open    {rise:+.1%} (95% interval {low:+.1%} to "
+                f"{high:+.1%}, the turns resampled)"
+            )
         for problem in dashboards.errors[:5]:
             print(f"  dashboard: {problem}", file=sys.stderr)
     print(f"participants with errors   {len(errors)}")
@@ -722,6 +859,16 @@ def main(argv: list[str] | None = None) -> int:
                 )
             ]
             if args.dashboards
+            else []
+        ),
+        *(
+            [
+                (
+                    f"move p95 rises <= {MOVE_RISE_WITH_DASHBOARDS:.0%} with them open",
+                    rise is not None and rise <= MOVE_RISE_WITH_DASHBOARDS,
+                )
+            ]
+            if args.alternate is not None
             else []
         ),
         (

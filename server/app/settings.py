@@ -200,6 +200,12 @@ class Settings(BaseSettings):
         description="How often a watched participant's view is asked whether it changed: a move "
         "reaches the one-way mirror within this and the time to read it.",
     )
+    live_reader: Literal["process", "server"] = Field(
+        "process",
+        description="Where the live views read the database while dashboards are open: in a "
+        "process of their own at the update processes' priority (process), beside the server on "
+        "another core, or in the server's process (server: a one-core machine).",
+    )
     sqlite_busy_timeout_ms: int = Field(
         10_000, ge=0, description="How long a SQLite connection waits for a lock held elsewhere."
     )

@@ -147,6 +147,8 @@ class ParticipantRun:
     attention_checks: int = 0  # checks taken
     failed_checks: int = 0  # of them failed (as the server decided)
     latencies: dict[str, list[float]] = field(default_factory=dict)
+    # When each of ``latencies`` was first sent (time.perf_counter), in the same order.
+    sent: dict[str, list[float]] = field(default_factory=dict)
     update_waits: list[float] = field(default_factory=list)
     error: str | None = None
 
@@ -302,6 +304,7 @@ class SimulatedParticipant:
             self.run.update_waits.append(elapsed)
             return data
         self.run.latencies.setdefault(kind, []).append(elapsed)
+        self.run.sent.setdefault(kind, []).append(first_sent)
         return data
 
     def act(self, path: str, kind: str, **fields: Any) -> dict[str, Any]:
@@ -688,6 +691,14 @@ class StudyRun:
 
     def latencies(self, kind: str) -> list[float]:
         return [x for p in self.participants for x in p.latencies.get(kind, [])]
+
+    def timed(self, kind: str) -> list[tuple[float, float]]:
+        """Each request of the kind as (when it was first sent, its latency)."""
+        return [
+            pair
+            for p in self.participants
+            for pair in zip(p.sent.get(kind, []), p.latencies.get(kind, []), strict=True)
+        ]
 
     @property
     def update_waits(self) -> list[float]:

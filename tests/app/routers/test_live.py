@@ -7,6 +7,9 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
+import signal
+import time
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
@@ -20,12 +23,14 @@ from sqlalchemy import func, select, text
 
 from analysis.options import DEFAULT_THRESHOLDS
 from server.app.config import StudyConfig
-from server.app.live import curves
+from server.app.live import curves, funnel
 from server.app.live.broadcast import Broadcast
+from server.app.live.mirror import mirror_view
+from server.app.live.views import LiveViews
 from server.app.main import create_app
 from server.app.settings import Settings
 from server.app.storage.db import Database
-from server.app.storage.models import Event, Participant
+from server.app.storage.models import Event, Participant, utcnow
 from tests.support.server import (
     ADMIN_TOKEN,
     demonstrate_each_task,
@@ -34,6 +39,7 @@ from tests.support.server import (
     run_apart,
     study_config,
     teaching_participant,
+    wait_for_updates,
 )
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
@@ -268,3 +274,56 @@ def test_the_live_curves_are_the_analysis_s_computation() -> None:
     assert np.allclose(mean, [0.4, 0.3, 0.6, 0.8])
     assert list(n) == [1, 2, 2, 2]
     assert np.isnan(se[0]) and np.isclose(se[1], np.std([0.2, 0.4], ddof=1) / np.sqrt(2))
+
+
+def test_the_live_views_read_in_a_process_of_their_own_that_is_replaced_when_it_dies(
+    client: TestClient, db: Database
+) -> None:
+    """BAM_LIVE_READER=process (the default): the funnel, the curves and the mirror are read in
+    another process, and they are what the server's own reads give; a reader killed is
+    replaced at the next read, and the server's stop takes the reader with it."""
+    several_stages(client)
+    teacher, tutorial = teaching_participant(client, "WREAD", "AREAD")
+    teacher.act(f"/api/sessions/{tutorial}/open")
+    teacher.act(f"/api/sessions/{tutorial}/move", action="LEFT")
+    wait_for_updates(db)  # the funnel's queue is the same at both reads
+    with db.read() as s:
+        participant_id = s.scalar(select(Participant.id).where(Participant.worker_id == "WREAD"))
+    assert participant_id is not None
+    state = client.app.state.server  # type: ignore[attr-defined]
+    assert state.settings.live_reader == "process"
+
+    def without_clock(snapshot: dict[str, Any]) -> dict[str, Any]:
+        return {k: v for k, v in snapshot.items() if k not in ("participants", "at", "queue")}
+
+    async def scenario() -> tuple[Any, ...]:
+        views = LiveViews(state)
+        assert views.reader is not None
+        funnel_read = await views._funnel()
+        first = views.reader.pid
+        curves_read = await views._curves()
+        mirror = views.mirror(participant_id)
+        await mirror._tick()
+        mirrored = json.loads(mirror.latest or "null")
+        assert first is not None
+        os.kill(first, signal.SIGKILL)
+        teacher.act(f"/api/sessions/{tutorial}/move", action="RIGHT")
+        await mirror._tick()  # the reader was killed: another reads
+        second = views.reader.pid
+        moved = json.loads(mirror.latest or "null")
+        await views.stop()
+        return funnel_read, curves_read, mirrored, moved, first, second
+
+    funnel_read, curves_read, mirrored, moved, first, second = run_apart(scenario)
+    assert first is not None and second is not None and len({first, second, os.getpid()}) == 3
+    with db.connect() as c:
+        assert without_clock(funnel_read) == without_clock(funnel.funnel(c, utcnow()))
+        assert curves_read == curves.live_curves(c)
+        view = mirror_view(c, state.study, participant_id)
+    assert moved == json.loads(json.dumps(view))
+    assert [e["action"] for e in moved["session"]["recent"][:2]] == ["RIGHT", "LEFT"]
+    assert [e["action"] for e in mirrored["session"]["recent"][:1]] == ["LEFT"]
+    with pytest.raises(ProcessLookupError):  # the reader stopped with the views
+        for _ in range(100):
+            os.kill(second, 0)
+            time.sleep(0.05)

@@ -28,6 +28,13 @@ With --servers N (PostgreSQL), N ``serve`` processes share the database behind D
 processes, and the participants go through the proxy; the capacity is the deployment's (every
 server's, once each has timed its own), and the servers' CPU is their sum.
 
+With --dashboards N, N live dashboards follow the funnel, the curves and one participant's
+mirror each (from a process of their own, as a researcher's browser is), and the delay from a
+participant's event to the mirror that shows it is timed. With --alternate SECONDS they are open
+and closed in turns from the end of the arrivals on, and the moves sent in open turns are
+compared with those sent in closed ones of the same run (between runs, the moves' p95 varies
+more than the rise to be judged).
+
 The server measures its capacity at start (the participants who can teach at once without
 waiting, ``server.app.capacity``); the participants arrive once it has, so that the measurement
 does not compete with them, and the study lets all of them in at once (max_active_participants).
@@ -45,6 +52,7 @@ import argparse
 import contextlib
 import dataclasses
 import json
+import multiprocessing
 import os
 import secrets
 import signal
@@ -56,6 +64,7 @@ import time
 from collections.abc import Callable, Iterator
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
+from typing import Any
 
 # This file is benchmarks/server.py: run as a script, its folder comes first on sys.path and
 # would shadow the ``server`` package.
@@ -339,8 +348,9 @@ class Dashboards:
     Open for the whole run, or (``alternate``) open and closed in turns of that many seconds
     from the end of the arrivals on, each turn's times kept in ``phases``."""
 
-    def __init__(self, url: str, token: str, count: int, stop: threading.Event) -> None:
-        self.url, self.token, self.count, self.run_stop = url, token, count, stop
+    def __init__(self, url: str, token: str, count: int, stop: Any = None) -> None:
+        self.url, self.token, self.count = url, token, count
+        self.run_stop = stop if stop is not None else threading.Event()  # the run's stop
         self.stop = threading.Event()  # this opening's: set at the run's stop or a turn's end
         self.delays: list[float] = []
         self.snapshots: dict[str, int] = {}  # received, by view
@@ -361,6 +371,22 @@ class Dashboards:
         with self.lock:
             self.clients.append(client)
         return client
+
+    def seen(self) -> dict[str, Any]:
+        """What they saw, in plain values (sent from their process to the benchmark's)."""
+        return {
+            "delays": self.delays,
+            "snapshots": self.snapshots,
+            "watched_count": self.watched_count,
+            "errors": self.errors,
+            "phases": [dataclasses.astuple(phase) for phase in self.phases],
+        }
+
+    def take(self, seen: dict[str, Any]) -> None:
+        """``seen()`` of the dashboards' process, here."""
+        self.delays, self.snapshots, self.errors = seen["delays"], seen["snapshots"], seen["errors"]
+        self.watched_count = seen["watched_count"]
+        self.phases = [Phase(*phase) for phase in seen["phases"]]
 
     def open(self) -> None:
         """Open every dashboard: its funnel stream and its mirror."""
@@ -463,6 +489,31 @@ class Dashboards:
                 if newest is not None and at > newest:
                     self.delays.append((received - at).total_seconds())
                 newest = at if newest is None else max(newest, at)
+
+
+def watch_dashboards(
+    url: str,
+    token: str,
+    count: int,
+    alternate: float | None,
+    after: float,
+    stop: Any,
+    results: Any,
+) -> None:
+    """The dashboards' process: open (or open and closed in turns) until ``stop`` (a
+    multiprocessing event), then what they saw put on ``results``. A researcher's browser is
+    on another machine; here it shares the server's cores, so it runs at the lowest priority
+    and takes from the server only the cores it leaves idle."""
+    if hasattr(os, "nice"):
+        os.nice(19)
+    dashboards = Dashboards(url, token, count, stop)
+    if alternate is not None:
+        dashboards.alternate(alternate, after)
+    else:
+        dashboards.open()
+        stop.wait()
+        dashboards.close()
+    results.put(dashboards.seen())
 
 
 @dataclasses.dataclass(frozen=True)
@@ -699,23 +750,37 @@ def main(argv: list[str] | None = None) -> int:
                 total[group] = sum(each[group] for each in groups)
             return total
 
-        dashboards = Dashboards(server.url, admin_token, args.dashboards, stop)
-        turns = threading.Thread(
-            target=dashboards.alternate, args=(args.alternate, args.ramp_seconds), daemon=True
+        # The dashboards in a process of their own, as a researcher's browser is: in the
+        # participants' process, their threads took the participants' interpreter lock, and
+        # the participants' latencies rose by the client's work, not the server's.
+        spawn = multiprocessing.get_context("spawn")
+        stop_dashboards, watched = spawn.Event(), spawn.Queue()
+        watching = spawn.Process(
+            target=watch_dashboards,
+            args=(
+                server.url,
+                admin_token,
+                args.dashboards,
+                args.alternate,
+                args.ramp_seconds,
+                stop_dashboards,
+                watched,
+            ),
+            daemon=True,
         )
-        if args.alternate is not None:
-            turns.start()
-        elif args.dashboards:
-            dashboards.open()
+        if args.dashboards:
+            watching.start()
         cpu_before = cpu()
         started, started_at = time.perf_counter(), datetime.now(UTC)
         thread.start()
         thread.join(timeout=args.seconds)
         stop.set()
-        if args.alternate is not None:
-            turns.join()
-        else:
-            dashboards.close()
+        stop_dashboards.set()
+        dashboards = Dashboards(server.url, admin_token, args.dashboards)
+        if args.dashboards:
+            dashboards_cpu = (_proc_stat(watching.pid or 0) or (0, 0.0))[1]
+            dashboards.take(watched.get(timeout=120))
+            watching.join(timeout=30)
         stopped, stopped_at = time.perf_counter(), datetime.now(UTC)
         cpu_after = cpu()
         # From the latest updates and, where they share its cores, the server's CPU time (with
@@ -811,7 +876,9 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"dashboards open            {args.dashboards}: "
             f"{dashboards.snapshots.get('funnel', 0)} funnel and "
-            f"{dashboards.snapshots.get('curves', 0)} curves snapshots received, {dashboards.watched_count} participants watched"
+            f"{dashboards.snapshots.get('curves', 0)} curves snapshots received, "
+            f"{dashboards.watched_count} participants watched; their process used "
+            f"{dashboards_cpu / (stopped - started):.2f} cores"
         )
         if dashboards.delays:
             print(latency_row("a move to the mirror", dashboards.delays, 26))

@@ -110,12 +110,14 @@ def test_a_demonstration_ended_by_the_participant_gets_a_synthetic_stay(
     env = make(participant.get(base)["summary"]["environment"])
     # One demonstrated move that does not reach the goal (start again if it did: an episode
     # that reaches the goal leaves the mode idle, so demonstrating is chosen on every try).
+    demonstrated = 0  # moves demonstrated, in this try and in those that reached the goal
     for _ in range(20):
         start = participant.act(f"{base}/reset")["session"]["agent"]["state"]
         if env.is_goal(0, start):
             continue
         participant.act(f"{base}/mode", mode="demonstrate")
         moved = participant.act(f"{base}/move", action="UP")
+        demonstrated += 1
         if not moved["outcome"]["episode_ended"]:
             break
     else:
@@ -127,7 +129,8 @@ def test_a_demonstration_ended_by_the_participant_gets_a_synthetic_stay(
     assert ended["session"]["mode"] == "idle" and ended["session"]["episode"] is None
     stay_state = env.step(at, STAY, None)
     assert ended["session"]["agent"]["state"] == stay_state
-    assert ended["session"]["actions"] == 1  # the STAY is the learner's, not a demonstrated move
+    # The STAY is the learner's, not a demonstrated move.
+    assert ended["session"]["actions"] == demonstrated
     with db.read() as s:
         last = s.scalars(select(Event).order_by(Event.id.desc())).first()
         assert (last.kind, last.record, last.episode_end) == ("end_episode", None, "end")

@@ -26,10 +26,10 @@ from typing import TYPE_CHECKING, Any
 import httpx
 
 if TYPE_CHECKING:
-    from server.app.config import StudyConfig
     from server.app.platforms.prolific import ProlificClient
     from server.app.settings import Settings
     from server.app.storage.db import Database
+    from server.app.study_file import StudyConfig
 
 STUDY_ID = re.compile(r"[0-9a-f]{24}")
 
@@ -313,8 +313,8 @@ def max_concurrent(args: argparse.Namespace, study: StudyConfig, settings: Setti
 
 
 def create(args: argparse.Namespace, settings: Settings) -> None:
-    from server.app.config import StudyConfigError, load_study_config
     from server.app.platforms.prolific import draft_study
+    from server.app.study_file import StudyConfigError, load_study_config
 
     try:
         study = load_study_config(args.study_file)

@@ -9,13 +9,13 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from server.app.config import (
+from server.app.settings import Settings
+from server.app.study_file import (
     DEFAULT_STUDY_CONFIG,
     StudyConfigError,
     load_study_config,
     parse_study_config,
 )
-from server.app.settings import Settings
 from server.commands.main import main
 
 PAPER = DEFAULT_STUDY_CONFIG.read_text()

@@ -19,7 +19,6 @@ import httpx
 import pytest
 from sqlalchemy import select
 
-from server.app.config import DEFAULT_STUDY_CONFIG, StudyConfigError, load_study_config
 from server.app.export.columns import DICTIONARY
 from server.app.export.tables import export_tables
 from server.app.main import create_app
@@ -34,6 +33,7 @@ from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Message, Participant, utcnow
 from server.app.storage.replica_models import ProlificReplicaSubmission
+from server.app.study_file import DEFAULT_STUDY_CONFIG, StudyConfigError, load_study_config
 from server.commands import prolific as prolific_command
 from server.commands.main import main
 from tests.support.server import ADMIN_TOKEN, live, study_config

@@ -341,7 +341,7 @@ def test_a_study_file_goes_on_prolific_for_the_demo() -> None:
     file said; the file still reads as a study."""
     import tomllib
 
-    from server.app.config import DEFAULT_STUDY_CONFIG, parse_study_config
+    from server.app.study_file import DEFAULT_STUDY_CONFIG, parse_study_config
     from server.commands.demo import on_prolific
 
     for path in (DEFAULT_STUDY_CONFIG, EXAMPLES / "office-study.toml"):
@@ -391,9 +391,9 @@ def test_teach_refuses_a_study_whose_environments_it_was_not_given(
     then failed with 'unknown environment'); with the study file, the same server is taught."""
     import tomllib
 
-    from server.app.config import parse_study_config
     from server.app.main import create_app
     from server.app.storage.db import Database
+    from server.app.study_file import parse_study_config
     from tests.support.databases import migrated_sqlite
     from tests.support.server import FAST_LEARNERS, live, make_settings
 

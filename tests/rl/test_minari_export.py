@@ -20,10 +20,10 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 
 from server import domains, learners
-from server.app.config import DEFAULT_STUDY_CONFIG
 from server.app.export.minari import INFOS
 from server.app.storage.db import Database
 from server.app.storage.models import Event, LearnerUpdate, LearningSession
+from server.app.study_file import DEFAULT_STUDY_CONFIG
 from server.app.updates.policies import decode
 from server.app.updates.worker import apply_records, records_of
 from server.commands.main import main

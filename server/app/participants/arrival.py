@@ -12,7 +12,6 @@ from sqlalchemy import ColumnElement, Connection, func, select
 from sqlalchemy.exc import IntegrityError
 
 from server.app import platform_registry as registry
-from server.app.config import StudyConfig
 from server.app.errors import ApiError, TurnedAway
 from server.app.participants.statuses import reactivate, restore_status, set_status
 from server.app.participants.tokens import ADD_TOKEN, new_token, participant_by_token
@@ -26,6 +25,7 @@ from server.app.storage.models import utcnow
 from server.app.storage.records import Record, add, load, load_all
 from server.app.storage.tables import ERASURES, PARTICIPANTS
 from server.app.storage.vocabulary import IN_PROGRESS, ParticipantStatus
+from server.app.study_file import StudyConfig
 
 # A worker's participations that no longer count: the task returned, consent declined, or the
 # device turned away by the device check (the worker may come back on another device).

@@ -30,11 +30,11 @@ from server.app.errors import ApiError
 if TYPE_CHECKING:
     from sqlalchemy import Connection, Table
 
-    from server.app.config import StudyConfig
     from server.app.platforms.review import ReviewBackend
     from server.app.settings import Settings
     from server.app.storage.db import Database
     from server.app.storage.vocabulary import ReviewDecision
+    from server.app.study_file import StudyConfig
 
 ID_PATTERN = r"^[A-Za-z0-9_\-]{1,128}$"
 

@@ -28,7 +28,7 @@ from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus, R
 from server.app.storage.vocabulary import ReplicaAssignmentStatus, ReviewDecision
 
 if TYPE_CHECKING:
-    from server.app.config import StudyConfig
+    from server.app.study_file import StudyConfig
 
 # The assignmentId of a HIT's preview, before a worker accepts it.
 PREVIEW_ASSIGNMENT = "ASSIGNMENT_ID_NOT_AVAILABLE"

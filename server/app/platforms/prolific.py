@@ -20,13 +20,13 @@ from typing import Any
 
 import httpx
 
-from server.app.config import Completion, ProlificStudy, StudyConfig
 from server.app.platforms.review import (
     Reviewed,
     ReviewRefused,
     ReviewUnavailable,
 )
 from server.app.storage.vocabulary import ReviewDecision
+from server.app.study_file import Completion, ProlificStudy, StudyConfig
 
 # Prolific's submission statuses (the submission object's ``status``).
 SUBMISSION_STATUSES = (

@@ -41,9 +41,9 @@ from server.app.storage.replica_models import (
 from server.app.storage.vocabulary import ReviewDecision
 
 if TYPE_CHECKING:
-    from server.app.config import StudyConfig
     from server.app.settings import Settings
     from server.app.storage.db import Database
+    from server.app.study_file import StudyConfig
 
 # Prolific approves, and pays, a submission still AWAITING REVIEW this long after it was
 # completed: "Submissions that are awaiting review are automatically approved after 21 days"

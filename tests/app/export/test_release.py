@@ -26,13 +26,13 @@ import pandas as pd
 import pytest
 from fastapi.testclient import TestClient
 
-from server.app.config import DEFAULT_STUDY_CONFIG, load_study_config
 from server.app.export.columns import DICTIONARY, FILES, INT
 from server.app.export.release import FOREIGN_KEYS, HUMAN_ANSWERS
 from server.app.export.release.feedback import FEEDBACK
 from server.app.export.release.psych_ds import DESCRIPTION_FILE
 from server.app.main import create_app
 from server.app.storage.db import Database
+from server.app.study_file import DEFAULT_STUDY_CONFIG, load_study_config
 from server.commands.main import main
 from server.commands.simulated import SimulatedParticipant, TeachingPlan
 from tests.support.databases import migrated_sqlite

@@ -13,15 +13,14 @@ import pytest
 from pydantic import ValidationError
 
 from server import domains
-from server.app import config, study_file
-from server.app.config import (
+from server.app.study_file import (
     DEFAULT_STUDY_CONFIG,
+    EnvironmentDefinition,
     StudyConfig,
     StudyConfigError,
     load_study_config,
     parse_study_config,
 )
-from server.app.study_file import EnvironmentDefinition
 from server.commands.main import main
 from server.domains.spec import EnvironmentSpec
 
@@ -82,11 +81,6 @@ def test_an_environment_table_has_the_keys_of_an_environment_spec() -> None:
     assert definition.spec("corridor") == EnvironmentSpec(
         "corridor", "navigation", CORRIDOR, **every
     )
-
-
-def test_the_former_module_path_gives_the_same_names() -> None:
-    for name in study_file.__all__:
-        assert getattr(config, name) is getattr(study_file, name)
 
 
 def test_a_map_file_is_read_relative_to_the_study_file(tmp_path: Path) -> None:

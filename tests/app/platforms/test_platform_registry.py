@@ -10,8 +10,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from server.app import config, schemas
-from server.app.config import StudyConfig, StudyConfigError
+from server.app import schemas, study_file
 from server.app.platform_registry import PLATFORMS, arrival_parameters, names, platform
 from server.app.platforms.base import ID_PATTERN, BasePlatform, Handing
 from server.app.rights.scrub import with_ids
@@ -19,6 +18,7 @@ from server.app.rights.withdrawal import Withdrawal
 from server.app.settings import Settings, review_backends
 from server.app.storage.db import Database
 from server.app.storage.models import Participant as ParticipantRow
+from server.app.study_file import StudyConfig, StudyConfigError
 from tests.support.server import Participant, demonstrate_each_task, study_config
 
 
@@ -109,7 +109,7 @@ def enum(model: Any, field: str) -> list[str]:
 def test_every_list_of_platform_names_is_the_registry_s() -> None:
     every = ["lab", "mturk", "prolific", "toy"]
     assert list(names()) == every
-    assert enum(config.Completion, "mode") == every
+    assert enum(study_file.Completion, "mode") == every
     assert enum(schemas.Completion, "mode") == every
     assert enum(schemas.ParticipantState, "platform") == every
     assert enum(Withdrawal, "platform") == every

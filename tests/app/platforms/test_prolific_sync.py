@@ -17,7 +17,6 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from server.app.config import StudyConfig
 from server.app.export.tables import export_tables
 from server.app.main import create_app
 from server.app.platforms.prolific import ProlificClient
@@ -32,6 +31,7 @@ from server.app.platforms.prolific_sync import (
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Participant, StatusChange
+from server.app.study_file import StudyConfig
 from tests.app.platforms.test_prolific import ADMIN, draft
 from tests.support.server import ADMIN_TOKEN, live, make_settings, study_config
 from tests.support.server import Participant as Participant_

@@ -14,12 +14,12 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from server.app.config import StudyConfig
 from server.app.main import create_app
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Participant
 from server.app.storage.replica_models import ReplicaAssignment, ReplicaHit
+from server.app.study_file import StudyConfig
 from tests.support.server import ADMIN_TOKEN, BOUND, live
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}

@@ -13,7 +13,6 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
-from server.app.config import StudyConfig
 from server.app.errors import ApiError
 from server.app.export.files import dictionary_frame
 from server.app.export.tables import export_tables
@@ -24,6 +23,7 @@ from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import AssignmentReview, Bonus
 from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus
+from server.app.study_file import StudyConfig
 from tests.support.server import (
     ADMIN_TOKEN,
     Participant,

@@ -13,7 +13,6 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from server.app.config import StudyConfig
 from server.app.errors import ApiError
 from server.app.export.minari import StudyFile, study_datasets
 from server.app.export.tables import export_tables
@@ -27,6 +26,7 @@ from server.app.storage.models import (
     LearningSession,
     Participant,
 )
+from server.app.study_file import StudyConfig
 from tests.support.server import (
     ADMIN_TOKEN,
     demonstrate_each_task,

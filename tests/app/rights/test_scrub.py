@@ -12,12 +12,12 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
-from server.app.config import StudyConfig
 from server.app.export.minari import StudyFile, study_datasets
 from server.app.export.tables import export_tables
 from server.app.rights.scrub import scrub
 from server.app.storage.db import Database
 from server.app.storage.models import Erasure, Participant, utcnow
+from server.app.study_file import StudyConfig
 from server.commands.main import main
 from tests.app.rights.test_erasure import replica_worker, snapshot, text_in_database
 from tests.app.rights.test_erasure import study as study

@@ -9,12 +9,12 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
-from server.app.config import StudyConfig
 from server.app.platforms.mturk import MTURK
 from server.app.platforms.prolific_platform import PROLIFIC
 from server.app.rights.pseudonyms import database_secret, pseudonym
 from server.app.storage.db import Database
 from server.app.storage.models import Erasure, Participant
+from server.app.study_file import StudyConfig
 from server.commands.main import main
 from tests.support.server import (
     ADMIN_TOKEN,
@@ -101,7 +101,7 @@ def test_a_prolific_participant_is_sent_back_with_the_no_consent_code(
 
 
 def test_the_study_file_checks_the_no_consent_code() -> None:
-    from server.app.config import StudyConfigError
+    from server.app.study_file import StudyConfigError
 
     with pytest.raises(StudyConfigError, match="prolific_no_consent_code"):
         study_config(

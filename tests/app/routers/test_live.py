@@ -22,7 +22,6 @@ from pydantic import ValidationError
 from sqlalchemy import func, select, text
 
 from analysis.options import DEFAULT_THRESHOLDS
-from server.app.config import StudyConfig
 from server.app.live import curves, funnel
 from server.app.live.broadcast import Broadcast
 from server.app.live.mirror import mirror_view
@@ -31,6 +30,7 @@ from server.app.main import create_app
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Event, Participant, utcnow
+from server.app.study_file import StudyConfig
 from tests.support.server import (
     ADMIN_TOKEN,
     demonstrate_each_task,

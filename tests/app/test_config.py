@@ -198,7 +198,7 @@ EXAMPLES = Path(__file__).resolve().parents[2] / "server" / "examples"
     ("key", "expected"),
     [
         ("horizn", "unknown key; did you mean horizon?"),
-        ("zzzz", "unknown key; valid keys: colours, family, gravity, gravity_colours, horizon"),
+        ("zzzz", "unknown key; valid keys: colours, domain, gravity, gravity_colours, horizon"),
     ],
 )
 def test_an_unknown_key_inside_an_environment_is_named_with_the_environments_keys(

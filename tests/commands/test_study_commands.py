@@ -84,7 +84,7 @@ def test_check_refuses_a_gravity_map_with_trapped_starts_and_names_them(
     """The map of the issue: every start on the bottom row, no colour on it."""
     study = tmp_path / "newcomer-study.toml"
     text = (EXAMPLES / "office-study.toml").read_text()
-    text = text.replace('family = "navigation"\nmap_file = "office-floor.txt"', f"""family = "gravity"
+    text = text.replace('domain = "navigation"\nmap_file = "office-floor.txt"', f"""domain = "gravity"
 map = '''
 {NEWCOMER}'''""").replace('name = "navigation"\nenvironments = ["office-floor"]',
         'name = "gravity"\nenvironments = ["office-floor"]')  # fmt: skip
@@ -106,11 +106,11 @@ def test_a_study_file_may_accept_trapped_starts_up_to_its_share(
     """``max_trapped_start_share`` in the environment's table: the share the message offers
     (0.37 covers both tasks) is accepted; one below the larger share still refuses."""
     text = (EXAMPLES / "office-study.toml").read_text()
-    navigation = 'family = "navigation"\nmap_file = "office-floor.txt"'
+    navigation = 'domain = "navigation"\nmap_file = "office-floor.txt"'
     domain = 'name = "navigation"\nenvironments = ["office-floor"]'
     study = tmp_path / "newcomer-study.toml"
     for share, code in ((0.36, 2), (0.37, 0)):
-        gravity = f'family = "gravity"\nmax_trapped_start_share = {share}\nmap = """\n{NEWCOMER}"""'
+        gravity = f'domain = "gravity"\nmax_trapped_start_share = {share}\nmap = """\n{NEWCOMER}"""'
         gravity_domain = domain.replace("navigation", "gravity")
         study.write_text(text.replace(navigation, gravity).replace(domain, gravity_domain))
         assert main(["check", str(study), "--out", str(tmp_path / f"out-{share}")]) == code

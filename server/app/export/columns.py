@@ -424,11 +424,10 @@ REVIEWS = (
     ),
     Column("decision", "approved or rejected (final; sent to the review backend)."),
     Column(
-        "requester_feedback",
+        "message",
         "The review's message, sent to the participant with the decision "
-        "(MTurk's RequesterFeedback, Prolific's rejection message; the column keeps its "
-        "published name, the API and the database call it message).",
-        value=lambda r, ctx: r.message,
+        "(MTurk's RequesterFeedback, Prolific's rejection message; formerly "
+        "requester_feedback).",
     ),
     Column("rejection_category", "Prolific's rejection category (empty otherwise)."),
     Column("backend", f"Where the decision was sent: {BACKENDS}"),

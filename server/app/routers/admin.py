@@ -75,7 +75,7 @@ STATUSES = tuple(ParticipantStatus)
 router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
 
 
-def _last_returns(s: Session, session_ids: list[int]) -> dict[int, float | None]:
+def _final_returns(s: Session, session_ids: list[int]) -> dict[int, float | None]:
     if not session_ids:
         return {}
     latest = (
@@ -95,7 +95,7 @@ def _last_returns(s: Session, session_ids: list[int]) -> dict[int, float | None]
 
 
 def _admin_sessions(s: Session, sessions: list[LearningSession]) -> list[AdminSession]:
-    returns = _last_returns(s, [x.id for x in sessions])
+    returns = _final_returns(s, [x.id for x in sessions])
     return [
         AdminSession(
             session_id=x.id,
@@ -116,7 +116,7 @@ def _admin_sessions(s: Session, sessions: list[LearningSession]) -> list[AdminSe
             episodes=x.episodes,
             actions=x.actions,
             pending_updates=max(0, x.updates_requested - x.updates_processed),
-            last_normalized_return=returns.get(x.id),
+            final_normalized_return=returns.get(x.id),
         )
         for x in sessions
     ]

@@ -229,7 +229,7 @@ class AdminSession(BaseModel):
     episodes: int
     actions: int
     pending_updates: int
-    last_normalized_return: float | None
+    final_normalized_return: float | None
 
 
 class AdminParticipantDetail(AdminParticipant):

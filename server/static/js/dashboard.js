@@ -138,7 +138,7 @@ async function showParticipant(id, { reveal = false } = {}) {
         session.kind === "tutorial" ? "Tutorial" : `Agent ${session.position + 1} · ${environmentTitle(session.environment)}`),
       h("p", {}, `${session.learner} · ${session.colour} · `, badge(session.status)),
       h("p", { class: "muted" }, `${count(session.episodes, "episode")}, ${count(session.actions, "action")}`,
-        session.last_normalized_return !== null ? `, return ${(100 * session.last_normalized_return).toFixed(0)}%` : ""),
+        session.final_normalized_return !== null ? `, return ${(100 * session.final_normalized_return).toFixed(0)}%` : ""),
       h("div", { class: "curve-box" }, h("p", { class: "muted" }, "Loading the curve…")),
       h("button", { class: "btn quiet", type: "button", "data-action": "replay", onclick: () => showReplay(session.session_id) }, "Replay"));
     sessions.appendChild(card);

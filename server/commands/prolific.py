@@ -517,11 +517,11 @@ def _recipients(args: argparse.Namespace, client: ProlificClient, db: Any) -> di
             return {}
     with db.read() as s:
         found = s.execute(
-            select(Participant.worker_id, Participant.id)
+            select(Participant.platform_participant_id, Participant.id)
             .where(
                 Participant.platform == "prolific",
-                Participant.hit_id == args.study,
-                Participant.worker_id.in_(wanted),
+                Participant.platform_study_id == args.study,
+                Participant.platform_participant_id.in_(wanted),
             )
             .order_by(Participant.id)
         ).all()
@@ -590,7 +590,7 @@ def message(args: argparse.Namespace, settings: Settings) -> None:
                         s.add_all(
                             Message(
                                 participant_id=ours[who],
-                                worker_id=who,
+                                platform_participant_id=who,
                                 study_id=args.study,
                                 body=args.body,
                                 backend=backend,

@@ -329,9 +329,9 @@ def test_demo_runs_on_the_prolific_replica(tmp_path: Path) -> None:
         db.dispose()
     assert [row.status for row in submissions] == ["AWAITING REVIEW"] * 2
     assert {row.study_code for row in submissions} == {"C1DEMO01"}
-    assert sorted((p.platform, p.status, p.worker_id) for p in participants) == sorted(
-        ("prolific", "submitted", row.participant_id) for row in submissions
-    )
+    assert sorted(
+        (p.platform, p.status, p.platform_participant_id) for p in participants
+    ) == sorted(("prolific", "submitted", row.participant_id) for row in submissions)
     with (options.out / "export" / "participants.csv").open() as file:
         assert [row["platform"] for row in csv.DictReader(file)] == ["prolific"] * 2
 

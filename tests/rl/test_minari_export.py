@@ -137,7 +137,7 @@ def test_the_minari_export_has_the_csv_exports_episodes_and_actions(
             assert int(infos["participant"][0]) == row["participant_id"]
             session = sessions.loc[row["session"]]
             assert infos["learner"][0].decode() == session["learner"]
-            worker = participants.loc[row["participant_id"], "worker_id"]
+            worker = participants.loc[row["participant_id"], "platform_participant_id"]
             assert infos["worker"][0].decode() == worker and worker.startswith("w_")
             steps = steps_of(episode)
             assert steps == by_episode[(row["session"], row["index"])]

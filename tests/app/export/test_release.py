@@ -519,7 +519,7 @@ def test_after_an_erasure_every_format_validates_without_the_participant(
     check_psych_ds(out / "psych-ds", counts)
     assert counts["erasures"] == 1 and counts["participants"] == 1
     who = int(erased["participant_id"])
-    pseudonyms = {erased["worker_id"], erased["assignment_id"]}
+    pseudonyms = {erased["platform_participant_id"], erased["platform_submission_id"]}
     for path in out.rglob("*"):
         if path.is_dir() or "erasures" in path.name:
             continue

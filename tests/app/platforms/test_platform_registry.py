@@ -26,7 +26,7 @@ class Toy(BasePlatform):
     name = "toy"
     display_name = "Toy Crowd"
     parameters = {"TOY_ID": ID_PATTERN, "TOY_TURN": ID_PATTERN}
-    ids = {"worker_id": "TOY_ID", "assignment_id": "TOY_TURN"}
+    ids = {"platform_participant_id": "TOY_ID", "platform_submission_id": "TOY_TURN"}
     done = "Your data has been deleted. Toy Crowd forgets your turn too."
 
     def handing(self, participant: Any, study: StudyConfig, code: str) -> Handing:
@@ -75,7 +75,11 @@ def test_a_toy_participant_takes_the_study_to_its_completion(
     assert participant.act("/api/participant/submission")["participant"]["status"] == "submitted"
     with db.read() as s:
         row = s.scalars(select(ParticipantRow)).one()
-        assert (row.platform, row.worker_id, row.assignment_id) == ("toy", "TOY1", "TTOY1")
+        assert (row.platform, row.platform_participant_id, row.platform_submission_id) == (
+            "toy",
+            "TOY1",
+            "TTOY1",
+        )
     # The same ids again: the same participant, resumed.
     again = client.post("/api/arrivals", json={"TOY_ID": "TOY1", "TOY_TURN": "TTOY1"})
     assert again.status_code == 200 and again.json()["resumed"]

@@ -359,9 +359,9 @@ def prolific_participant(
         p = Participant(
             token_hash=os.urandom(32).hex(),
             platform="prolific",
-            worker_id=pid,
-            assignment_id=submission,
-            hit_id=study["id"],
+            platform_participant_id=pid,
+            platform_submission_id=submission,
+            platform_study_id=study["id"],
             status="submitted",
         )
         s.add(p)

@@ -148,7 +148,9 @@ def participant_of(
     arrived = httpx.post(f"{base}/api/arrivals", json=ids)
     assert arrived.status_code == 201, arrived.text
     with db.read() as s:
-        p = s.scalar(select(Participant).where(Participant.assignment_id == ids["SESSION_ID"]))
+        p = s.scalar(
+            select(Participant).where(Participant.platform_submission_id == ids["SESSION_ID"])
+        )
         assert p is not None
         return ids["SESSION_ID"], p.id
 

@@ -75,8 +75,8 @@ def test_the_holder_of_a_reused_assignment_keeps_it(client: TestClient, db: Data
 
     def server_statuses() -> dict[str, str]:
         with db.read() as s:
-            rows = s.execute(select(Participant.worker_id, Participant.status)).all()
-        return {row.worker_id: row.status for row in rows}
+            rows = s.execute(select(Participant.platform_participant_id, Participant.status)).all()
+        return {row.platform_participant_id: row.status for row in rows}
 
     def replica_statuses() -> list[tuple[str, str]]:
         with db.read() as s:

@@ -32,7 +32,8 @@ ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
 def participants(db: Database) -> list[tuple[int, str | None]]:
     with db.read() as s:
         return [
-            (p.id, p.worker_id) for p in s.scalars(select(Participant).order_by(Participant.id))
+            (p.id, p.platform_participant_id)
+            for p in s.scalars(select(Participant).order_by(Participant.id))
         ]
 
 
@@ -126,7 +127,7 @@ def test_the_experimenter_erases_from_the_admin_api(
     erased = client.post(f"/api/admin/participants/{first}/erasure", headers=ADMIN)
     assert erased.status_code == 200, erased.text
     secret = database_secret(db)
-    assert erased.json()["worker_pseudonym"] == pseudonym(secret, "W1", "w")
+    assert erased.json()["platform_participant_pseudonym"] == pseudonym(secret, "W1", "w")
     assert erased.json()["rows"]["participants"] == 1
     again = client.post(f"/api/admin/participants/{second}/erasure", headers=ADMIN)
     assert again.status_code == 200, again.text

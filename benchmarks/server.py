@@ -74,9 +74,9 @@ import httpx
 import numpy as np
 from sqlalchemy import func, select
 
-from server.app.config import DEFAULT_STUDY_CONFIG
 from server.app.storage.db import Database, upgrade
 from server.app.storage.models import Event, LearnerUpdate
+from server.app.study_file import DEFAULT_STUDY_CONFIG
 from server.commands.live import Proxy, ServerProcess, free_port
 from server.commands.simulated import (
     STUDY_PLAN,

@@ -9,7 +9,7 @@ from sqlalchemy.pool import NullPool
 
 import server.app.storage.replica_models  # noqa: F401  (its tables are in Base.metadata too)
 from server.app.settings import Settings
-from server.app.storage.db import create_db_engine
+from server.app.storage.db import create_db_engine, migration_connection
 from server.app.storage.models import Base
 
 config = context.config
@@ -35,9 +35,8 @@ def run_online() -> None:
     url = config.attributes.get("database_url") or Settings().database_url
     engine = create_db_engine(url, poolclass=NullPool)
     try:
-        with engine.connect() as connection:
+        with migration_connection(engine) as connection:  # SQLite: foreign keys off, checked
             run(connection)
-            connection.commit()
     finally:
         engine.dispose()
 

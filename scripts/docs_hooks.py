@@ -6,7 +6,7 @@ table in its place. NAME is one of ``GENERATORS``:
 - ``study-file``: every key of the study file, from the pydantic models in
   ``server/app/study_file/`` (their field types, defaults and descriptions);
 - ``domains``: the domains, their environments and tutorials, from ``server.domains``;
-- ``environment-legend``: each family's map letters, from the families in ``server.domains``;
+- ``environment-legend``: each domain's map letters, from the domains in ``server.domains``;
 - ``learner-settings``: every learner's settings, their types, defaults and descriptions, from
   the learners' ``settings_type`` dataclasses (``server/learners/settings.py`` and each
   learner's module);
@@ -302,10 +302,10 @@ def domains_table() -> str:
 
 
 def environment_legend() -> str:
-    """Each family's map letters, from ``server.domains``' families."""
+    """Each domain's map letters, from ``server.domains``."""
     from server.domains import farming, gravity, navigation
 
-    rows = ["| family | letter | meaning |", "| --- | --- | --- |"]
+    rows = ["| domain | letter | meaning |", "| --- | --- | --- |"]
     rows.append(f"| navigation | `{navigation.WALL}` | wall |")
     rows.append(f"| navigation | `{navigation.FLOOR}` | floor |")
     rows.append("| navigation, gravity | a capital letter | the goal of the task it names |")

@@ -101,7 +101,7 @@ def study_keys(model: type[BaseModel]) -> list[tuple[str, str]]:
 
 
 def test_every_study_file_key_is_described_in_its_table(site: Path) -> None:
-    from server.app.config import StudyConfig
+    from server.app.study_file import StudyConfig
 
     found = sections(page_text(site, "study-file"))
     keys = study_keys(StudyConfig)

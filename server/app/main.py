@@ -20,7 +20,6 @@ from fastapi.staticfiles import StaticFiles
 from fastapi.telemetry import TelemetryConfig
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from server.app.config import StudyConfig, load_study_config
 from server.app.errors import ApiError, InvalidInput, TurnedAway
 from server.app.live.views import LiveViews
 from server.app.participants import statuses
@@ -43,6 +42,7 @@ from server.app.state import ServerState
 from server.app.storage.database_cpu import postgres_cpu_reader
 from server.app.storage.db import Database, SchemaError, current_revision, head_revision
 from server.app.storage.periodic import once_per_period
+from server.app.study_file import StudyConfig, load_study_config
 from server.app.updates.capacity import reference_jobs
 from server.app.updates.manager import UpdateManager
 

@@ -1,7 +1,7 @@
 """The study server's deployment settings, read from the environment (prefix ``BAM_``).
 
-The study itself (domains, environments, learners, texts) is in the study configuration file
-(``config.py``); these settings say where and how the server runs.
+The study itself (domains, environments, learners, texts) is in the study file (its schema and
+loader: ``server.app.study_file``); these settings say where and how the server runs.
 """
 
 from __future__ import annotations

@@ -10,11 +10,11 @@ from typing import TYPE_CHECKING, TypeVar
 from starlette.concurrency import run_in_threadpool
 
 from server.app.admin_auth import AdminSessions, SignInGuard
-from server.app.config import StudyConfig
 from server.app.platforms.backends import make_backend
 from server.app.platforms.review import ReviewBackend
 from server.app.settings import Settings
 from server.app.storage.db import Database
+from server.app.study_file import StudyConfig
 from server.app.updates.policies import PolicyCache
 
 if TYPE_CHECKING:

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from server.app.config import StudyConfig
+    from server.app.study_file import StudyConfig
     from server.domains.base import Environment
 
 PROG = "bam-study check"
@@ -113,7 +113,7 @@ def calibrate(learner_names: tuple[str, ...]) -> dict[str, float]:
 
 def run(args: argparse.Namespace) -> int:
     from server import domains
-    from server.app.config import StudyConfigError, load_study_config
+    from server.app.study_file import StudyConfigError, load_study_config
     from server.domains.figure import environment_figure
     from server.learners.evaluation import optimal_returns
 

@@ -256,10 +256,10 @@ def run_demo(options: DemoOptions, stream: TextIO | None = None) -> str:
     from analysis.report import write_outputs
     from analysis.results import analyze
     from analysis.tables import table1_markdown
-    from server.app.config import load_study_config
     from server.app.export.release import RELEASE_FORMATS, About, write_release
     from server.app.export.tables import export_tables
     from server.app.storage.db import Database, upgrade
+    from server.app.study_file import load_study_config
     from server.commands.live import ServerProcess, WarmUpNotice
     from server.commands.simulated import TeachingPlan, run_participants
     from server.simulation.progress import Progress
@@ -402,8 +402,8 @@ def publish_on_replica(
 ) -> ProlificArrival:
     """Make the study on the server's Prolific replica and publish it; how the simulated
     participants arrive there."""
-    from server.app.config import StudyConfigError, load_study_config
     from server.app.platforms.prolific import ProlificClient, ProlificRefused, draft_study
+    from server.app.study_file import StudyConfigError, load_study_config
     from server.commands.simulated import ProlificArrival
 
     try:
@@ -431,7 +431,7 @@ def study_text(options: DemoOptions) -> str:
     absolute so that the copy in the output folder reads them."""
     import re
 
-    from server.app.config import DEFAULT_STUDY_CONFIG
+    from server.app.study_file import DEFAULT_STUDY_CONFIG
 
     if options.study is None:
         return DEFAULT_STUDY_CONFIG.read_text()

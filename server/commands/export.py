@@ -54,11 +54,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from server.app.config import DEFAULT_STUDY_CONFIG
     from server.app.export.files import write_export
     from server.app.export.tables import export_tables
     from server.app.settings import SettingsError, load_settings
     from server.app.storage import db as database
+    from server.app.study_file import DEFAULT_STUDY_CONFIG
     from server.commands.studies import StudyEnvironmentsError, register_study
     from server.rl.datasets import DatasetError, check_out_folder
 
@@ -144,8 +144,8 @@ def run(args: argparse.Namespace) -> int:
 def write_formats(args: argparse.Namespace, tables: dict, study_file: Path) -> list[Path]:
     """The release formats asked for, written with the study file's [dataset] table; says on
     stderr which of the authors' answers it leaves open."""
-    from server.app.config import load_study_config
     from server.app.export.release import About, write_release
+    from server.app.study_file import load_study_config
 
     study = load_study_config(study_file)
     about = About(tables, study, pseudonymized=args.pseudonymize)

@@ -140,7 +140,7 @@ def error(message: str) -> int:
 def run(args: argparse.Namespace) -> int:
     from analysis.names import learner_display, threshold_label
     from analysis.power_bank import BankPlan, Population, check_bank_folder
-    from server.app.config import StudyConfigError, load_study_config
+    from server.app.study_file import StudyConfigError, load_study_config
     from server.cores import available_cores
     from server.simulation.config import ConfigError
 

@@ -26,10 +26,10 @@ from typing import TYPE_CHECKING, Any
 import httpx
 
 if TYPE_CHECKING:
-    from server.app.config import StudyConfig
     from server.app.platforms.prolific import ProlificClient
     from server.app.settings import Settings
     from server.app.storage.db import Database
+    from server.app.study_file import StudyConfig
 
 STUDY_ID = re.compile(r"[0-9a-f]{24}")
 
@@ -313,8 +313,8 @@ def max_concurrent(args: argparse.Namespace, study: StudyConfig, settings: Setti
 
 
 def create(args: argparse.Namespace, settings: Settings) -> None:
-    from server.app.config import StudyConfigError, load_study_config
     from server.app.platforms.prolific import draft_study
+    from server.app.study_file import StudyConfigError, load_study_config
 
     try:
         study = load_study_config(args.study_file)
@@ -517,11 +517,11 @@ def _recipients(args: argparse.Namespace, client: ProlificClient, db: Any) -> di
             return {}
     with db.read() as s:
         found = s.execute(
-            select(Participant.worker_id, Participant.id)
+            select(Participant.platform_participant_id, Participant.id)
             .where(
                 Participant.platform == "prolific",
-                Participant.hit_id == args.study,
-                Participant.worker_id.in_(wanted),
+                Participant.platform_study_id == args.study,
+                Participant.platform_participant_id.in_(wanted),
             )
             .order_by(Participant.id)
         ).all()
@@ -590,7 +590,7 @@ def message(args: argparse.Namespace, settings: Settings) -> None:
                         s.add_all(
                             Message(
                                 participant_id=ours[who],
-                                worker_id=who,
+                                platform_participant_id=who,
                                 study_id=args.study,
                                 body=args.body,
                                 backend=backend,

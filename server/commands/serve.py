@@ -12,8 +12,8 @@ if TYPE_CHECKING:
     import uvicorn
     from fastapi import FastAPI
 
-    from server.app.config import StudyConfig
     from server.app.settings import Settings
+    from server.app.study_file import StudyConfig
 
 PROG = "bam-study serve"
 
@@ -61,8 +61,8 @@ def listen(host: str, port: int) -> socket.socket:
 
 
 def run(args: argparse.Namespace) -> int:
-    from server.app.config import StudyConfigError, load_study_config
     from server.app.settings import SettingsError, load_settings
+    from server.app.study_file import StudyConfigError, load_study_config
 
     try:
         settings = load_settings(

@@ -40,8 +40,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from multiprocessing.connection import Connection
 
-    from server.app.config import StudyConfig
     from server.app.settings import Settings
+    from server.app.study_file import StudyConfig
 
 PARTICIPANTS = 6  # teaching the scratch study at once
 WARM_SECONDS = 5.0  # untimed: what the server does once only (its first requests, imports)

@@ -19,7 +19,7 @@ def study_name(path: Path) -> str:
 def register_study(path: Path | str) -> tuple[str, ...]:
     """Register the study's own environments; returns their names in the study's order."""
     path = Path(path)
-    from server.app.config import StudyConfigError, load_study_config
+    from server.app.study_file import StudyConfigError, load_study_config
     from server.rl.environments import register_study_environments
 
     try:

@@ -7,7 +7,7 @@
 
 Eight environments are used in the simulations and the user study (``ENVIRONMENTS``); three
 tutorials teach participants the interface (``TUTORIALS``). Layouts are the text maps in
-``maps/``; the families' rules are in ``navigation.py``, ``gravity.py`` and ``farming.py``; the
+``maps/``; the domains' rules are in ``navigation.py``, ``gravity.py`` and ``farming.py``; the
 keys of ``Environment.layout`` (walls, terrain, machines, colours, gravity_of_colour) are
 described in ``grid.py``. ``make`` returns a shared, cached instance whose arrays are
 read-only.
@@ -57,7 +57,7 @@ NAMES: tuple[str, ...] = (
     "gravity-tutorial",
 )
 
-_FAMILIES: dict[str, ModuleType] = {
+_MODULES: dict[str, ModuleType] = {
     "navigation": navigation,
     "gravity": gravity,
     "farming": farming,
@@ -139,15 +139,15 @@ def unregister(name: str) -> None:
 
 @cache
 def _make(name: str) -> Environment:
-    family = _FAMILIES[domain_of(name)]
-    return family.build(name, load_map(_MAP_OF.get(name, name)))
+    module = _MODULES[domain_of(name)]
+    return module.build(name, load_map(_MAP_OF.get(name, name)))
 
 
 def true_model_parameters(env: Environment) -> np.ndarray:
     """Dynamics parameters under which ``env.model`` reproduces ``env``'s true dynamics."""
-    if env.domain not in _FAMILIES:
+    if env.domain not in _MODULES:
         raise ValueError(f"unknown domain {env.domain!r}")
-    result: np.ndarray = _FAMILIES[env.domain].true_model_parameters(env)
+    result: np.ndarray = _MODULES[env.domain].true_model_parameters(env)
     return result
 
 

@@ -101,7 +101,7 @@ class Environment:
     # The cells whose cost the learners fit (the authors' learners: in farming only the
     # fields, never the dirt); left empty: every cell.
     cost_cells: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
-    # How the map draws the environment and the family's rule, for drawings and checks (not
+    # How the map draws the environment and the domain's rule, for drawings and checks (not
     # sent to the page): ``letters`` {map letter: wall, floor, terrain, colour or machine},
     # ``palette`` {name: "#rrggbb"} for names the page's palette lacks, and in farming
     # ``works_on`` {machine: terrain}.

@@ -85,11 +85,11 @@ def horizon(height: int, width: int) -> int:
 def build(
     name: str, grid_map: GridMap, horizon_steps: int | None = None, rules: Rules | None = None
 ) -> Environment:
-    """The environment of a farming map. ``horizon_steps``: the horizon, unless the family's
+    """The environment of a farming map. ``horizon_steps``: the horizon, unless the domain's
     own, 4 * (width + height); ``rules``: the variant's letters and rule (the paper's unless
     given).
 
-    One function, as the other families' ``build``: the map's cells, the rule's transitions,
+    One function, as the other domains' ``build``: the map's cells, the rule's transitions,
     the model, the tasks and the layout, in the order the environment is made of them, each
     reading the names the step before defined."""
     rules = Rules() if rules is None else rules

@@ -68,12 +68,12 @@ def build(
     colours: dict[str, str] | None = None,
     palette: dict[str, str] | None = None,
 ) -> Environment:
-    """The environment of a gravity map. ``horizon_steps``: the horizon, unless the family's
+    """The environment of a gravity map. ``horizon_steps``: the horizon, unless the domain's
     own, 4 * (width + height); ``colours``: {map letter: colour} (``COLOURS`` unless given),
     whose order is the order of the model's softmax rows; ``palette``: {colour: "#rrggbb"} for
     colours the page does not know.
 
-    One function, as the other families' ``build``: the map's colours, the rule's transitions,
+    One function, as the other domains' ``build``: the map's colours, the rule's transitions,
     the model, the tasks and the layout, in the order the environment is made of them, each
     reading the names the step before defined."""
     colours = dict(COLOURS) if colours is None else colours

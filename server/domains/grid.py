@@ -1,4 +1,4 @@
-"""Reading the text maps in ``maps/`` and the helpers every family shares to turn a map into an
+"""Reading the text maps in ``maps/`` and the helpers every domain shares to turn a map into an
 :class:`~server.domains.base.Environment`.
 
 A map file is a small header followed by the grid, drawn exactly as in the reference (column
@@ -17,7 +17,7 @@ digits on top, row numbers on the left, one character per cell)::
 
 Regions are ``anywhere``, ``rows a-b``, ``columns a-b`` or ``rows a-b, columns c-d`` (inclusive;
 ``rows 4`` is a single row). Which cells of a start region a task can start on, and what the
-other characters mean, is the family's business (``navigation.py``, ``gravity.py``,
+other characters mean, is the domain's business (``navigation.py``, ``gravity.py``,
 ``farming.py``). Tasks keep the order of their ``task:`` lines.
 
 The ``layout`` dictionary every environment carries (merged into ``Environment.describe()``
@@ -40,7 +40,7 @@ for the browser page; plain lists, ints and strings only) has these keys in ever
   (``drawing.py``): the page draws a study's own kinds from it.
 
 The map format is read in this one module (the header, the regions, the grid and the table
-builder every family uses), as a map file is written: one format, one reader.
+builder every domain uses), as a map file is written: one format, one reader.
 """
 
 from __future__ import annotations
@@ -184,7 +184,7 @@ class GridMap:
         return self.places.get(key, (self.row_lines[0] if self.row_lines else 1, 1))
 
     def check_characters(self, allowed: str) -> None:
-        """Reject a map drawing a character its family does not know (goal letters aside)."""
+        """Reject a map drawing a character its domain does not know (goal letters aside)."""
         for cell in self.cells():
             char = self.char(cell)
             if char not in allowed and char not in self.goal_letters:

@@ -40,7 +40,7 @@ def horizon(height: int, width: int) -> int:
 
 def build(name: str, grid_map: GridMap, horizon_steps: int | None = None) -> Environment:
     """The environment of a navigation map (``horizon_steps``: the horizon, unless the
-    family's own, 2 * (width + height))."""
+    domain's own, 2 * (width + height))."""
     grid_map.check_characters(WALL + FLOOR)
     height, width = grid_map.height, grid_map.width
     walls = [cell for cell in grid_map.cells() if grid_map.char(cell) == WALL]

@@ -1,19 +1,19 @@
-"""Environments defined by a study rather than shipped: a specification (name, family, map text
-and the family's options) that is checked for every problem at once, then built exactly as the
+"""Environments defined by a study rather than shipped: a specification (name, domain, map text
+and the domain's options) that is checked for every problem at once, then built exactly as the
 built-in environments are.
 
     >>> from server.domains.spec import EnvironmentSpec
-    >>> spec = EnvironmentSpec(name="corridor", family="navigation", map=CORRIDOR)  # doctest: +SKIP
+    >>> spec = EnvironmentSpec(name="corridor", domain="navigation", map=CORRIDOR)  # doctest: +SKIP
     >>> spec.problems()  # every problem, each with its line and column in the map   # doctest: +SKIP
     []
 
 The map is text in the format of ``maps/`` (``grid.py``). Beyond the built-in maps' header, a
-specification may give its horizon (else the family's own), the colours drawn for names the
-page's palette lacks, and its family's rule: in gravity, more colours (a lower-case letter and
+specification may give its horizon (else the domain's own), the colours drawn for names the
+page's palette lacks, and its domain's rule: in gravity, more colours (a lower-case letter and
 a name) and each colour's gravity; in farming, more terrains (a lower-case letter), more
 machines (a capital letter) and the terrain each machine works on.
 
-The checks (``problems``): a letter the family does not know; a goal that is a wall, a colour,
+The checks (``problems``): a letter the domain does not know; a goal that is a wall, a colour,
 dirt or a mix of fields; a task whose goal no start can reach within the horizon; a start
 region with no start cell, or with start cells cut off from a goal; trapped starts (states of a
 task's start distribution from which its goal can never be reached) above the share the
@@ -35,7 +35,7 @@ from server.domains.base import Environment
 from server.domains.grid import GridMap, MapProblems, Problem, can_reach, reachable_from, read_map
 from server.domains.reachability import trapped_states
 
-FAMILIES: tuple[str, ...] = ("navigation", "gravity", "farming")
+DOMAIN_NAMES: tuple[str, ...] = ("navigation", "gravity", "farming")
 # The most states a study's environment may have unless the study says otherwise: about the
 # size at which one BAM update takes a few seconds on a 2-core AMD EPYC (``bam-study check``
 # prints the estimate per learner).
@@ -62,7 +62,7 @@ class EnvironmentSpec:
     be reached (``reachability.py``); above it the map is refused."""
 
     name: str
-    family: str
+    domain: str
     map: str
     horizon: int | None = None
     colours: dict[str, str] = field(default_factory=dict)
@@ -86,15 +86,15 @@ class EnvironmentSpec:
             raise MapProblems(self.name, problems)
         return environment
 
-    # -- the family's options -------------------------------------------------------------
+    # -- the domain's options -------------------------------------------------------------
     def _options(self, problems: list[Problem]) -> dict[str, Any]:
-        """The family's keyword arguments to ``build``; problems of the keys listed."""
+        """The domain's keyword arguments to ``build``; problems of the keys listed."""
         say = _spec_problem(problems)
         used = {navigation.WALL, navigation.FLOOR}
         for name, hex_colour in self.colours.items():
             if not HEX.match(hex_colour):
                 say(f"colours.{name}: {hex_colour!r} is not a colour #rrggbb")
-        if self.family == "gravity":
+        if self.domain == "gravity":
             for key in ("terrains", "machines", "works_on"):
                 if getattr(self, key):
                     say(f"{key}: a gravity environment has no {key.replace('_', ' ')}")
@@ -103,7 +103,7 @@ class EnvironmentSpec:
                 _check_thing(say, "gravity_colours", letter, colour, str.islower, used, colours)
                 colours[letter] = colour
             return {"colours": colours, "palette": dict(self.colours)}
-        if self.family == "farming":
+        if self.domain == "farming":
             for key in ("gravity_colours", "gravity"):
                 if getattr(self, key):
                     say(f"{key}: a farming environment has no {key.replace('_', ' ')}")
@@ -162,7 +162,7 @@ def _check_thing(
     if not THING_NAME.match(name):
         say(f"{key}.{letter}: {name!r} is not a name (lower-case words, up to 30 characters)")
     elif name in existing.values() or name == "dirt":
-        say(f"{key}.{letter}: {name!r} is already a name of the family")
+        say(f"{key}.{letter}: {name!r} is already a name of the domain")
 
 
 # -- checking -----------------------------------------------------------------------------
@@ -173,8 +173,8 @@ def _check(spec: EnvironmentSpec, max_states: int) -> tuple[Environment | None, 
     say = _spec_problem(problems)
     if not NAME.match(spec.name):
         say(f"name {spec.name!r}: lower-case letters, digits and '-', starting with a letter")
-    if spec.family not in FAMILIES:
-        say(f"family {spec.family!r} is not one of {', '.join(FAMILIES)}")
+    if spec.domain not in DOMAIN_NAMES:
+        say(f"domain {spec.domain!r} is not one of {', '.join(DOMAIN_NAMES)}")
         return None, problems
     if spec.horizon is not None and (
         isinstance(spec.horizon, bool) or not isinstance(spec.horizon, int) or spec.horizon < 1
@@ -191,9 +191,9 @@ def _check(spec: EnvironmentSpec, max_states: int) -> tuple[Environment | None, 
     # Problems of the definition's keys, the size or the gravity rule leave nothing to build;
     # with those of the text and the cells alone, the rest of the map is built and checked too.
     blocked = any(problem.line == 0 for problem in problems)
-    letters, features = _letters(spec.family, options)
-    fields = set(options["rules"].terrains[1:]) if spec.family == "farming" else set()
-    grid_map = _check_cells(grid_map, spec.family, letters, fields, problems)
+    letters, features = _letters(spec.domain, options)
+    fields = set(options["rules"].terrains[1:]) if spec.domain == "farming" else set()
+    grid_map = _check_cells(grid_map, spec.domain, letters, fields, problems)
     states = grid_map.height * grid_map.width * features
     if states > max_states:
         problems.append(
@@ -204,27 +204,27 @@ def _check(spec: EnvironmentSpec, max_states: int) -> tuple[Environment | None, 
             )
         )
         blocked = True
-    if spec.family == "gravity":
+    if spec.domain == "gravity":
         blocked |= _check_gravity_rule(spec, grid_map, options["colours"], problems)
         mapping = {**grid_map.gravity_of_colour, **spec.gravity}
         grid_map = replace(grid_map, gravity_of_colour=mapping)
-    blocked |= _check_starts(grid_map, spec.family, letters, problems)
+    blocked |= _check_starts(grid_map, spec.domain, letters, problems)
     if blocked or not grid_map.tasks:
         return None, sorted(problems)
-    family = {"navigation": navigation, "gravity": gravity, "farming": farming}[spec.family]
+    module = {"navigation": navigation, "gravity": gravity, "farming": farming}[spec.domain]
     try:
-        environment = family.build(spec.name, grid_map, spec.horizon, **options)
+        environment = module.build(spec.name, grid_map, spec.horizon, **options)
     except ValueError as error:  # a rule the checks above missed: still one clear problem
         return None, [Problem(1, 1, str(error))]
     _check_reach(environment, grid_map, spec.max_trapped_start_share, problems)
     return (None if problems else environment), sorted(problems)
 
 
-def _letters(family: str, options: dict[str, Any]) -> tuple[dict[str, str], int]:
-    """The family's letters {letter: meaning} and the number of features per cell."""
-    if family == "navigation":
+def _letters(domain: str, options: dict[str, Any]) -> tuple[dict[str, str], int]:
+    """The domain's letters {letter: meaning} and the number of features per cell."""
+    if domain == "navigation":
         return {navigation.WALL: "wall", navigation.FLOOR: "floor"}, 1
-    if family == "gravity":
+    if domain == "gravity":
         return {gravity.PLAIN: "plain cell", **options["colours"]}, len(gravity.GRAVITIES)
     rules: farming.Rules = options["rules"]
     return {**rules.terrain_of_letter, **rules.machine_of_letter}, len(rules.features)
@@ -232,7 +232,7 @@ def _letters(family: str, options: dict[str, Any]) -> tuple[dict[str, str], int]
 
 def _check_cells(
     grid_map: GridMap,
-    family: str,
+    domain: str,
     letters: dict[str, str],
     fields: set[str],
     problems: list[Problem],
@@ -240,7 +240,7 @@ def _check_cells(
     """Unknown letters, goals on cells that cannot be goals, study starts outside navigation
     (``fields``: the field terrains of a farming map). Returns the map without them (unknown
     letters drawn '.', those tasks and study starts left out) for the checks that follow."""
-    goal_letters = set() if family == "farming" else set(grid_map.goal_letters)
+    goal_letters = set() if domain == "farming" else set(grid_map.goal_letters)
     grid = [list(row) for row in grid_map.grid]
     bad_tasks: set[str] = set()
     legend = ", ".join(f"{letter} {meaning}" for letter, meaning in letters.items())
@@ -251,8 +251,8 @@ def _check_cells(
                 Problem(
                     *grid_map.where(cell),
                     f"unknown character {char!r} at (row {cell[0]}, column {cell[1]}); "
-                    f"a {family} map draws {legend}"
-                    + ("" if family == "farming" else ", or a task's goal letter"),
+                    f"a {domain} map draws {legend}"
+                    + ("" if domain == "farming" else ", or a task's goal letter"),
                 )
             )
             grid[cell[0]][cell[1]] = "."
@@ -260,7 +260,7 @@ def _check_cells(
         place = grid_map.place(f"task {task.name}")
         chars = {grid_map.char(cell) for cell in task.goal_cells}
         count = len(problems)
-        if family == "farming":
+        if domain == "farming":
             kinds = {letters.get(char, repr(char)) for char in chars}
             if len(kinds) != 1 or not kinds <= fields:
                 problems.append(
@@ -270,31 +270,31 @@ def _check_cells(
                         f"{', '.join(sorted(kinds))}",
                     )
                 )
-        elif family == "navigation" and navigation.WALL in chars:
+        elif domain == "navigation" and navigation.WALL in chars:
             problems.append(Problem(*place, f"the goal of task {task.name!r} is a wall"))
-        elif family == "gravity" and chars & (set(letters) - {gravity.PLAIN}):
+        elif domain == "gravity" and chars & (set(letters) - {gravity.PLAIN}):
             problems.append(Problem(*place, f"the goal of task {task.name!r} is coloured"))
         if len(problems) > count:
             bad_tasks.add(task.name)
-    if family != "navigation":
+    if domain != "navigation":
         for task_name in grid_map.study_starts:
             problems.append(
                 Problem(
                     *grid_map.place(f"study-start {task_name}"),
-                    f"{family} maps have no study starts (every task starts in the start region)",
+                    f"{domain} maps have no study starts (every task starts in the start region)",
                 )
             )
     return replace(
         grid_map,
         grid=tuple("".join(row) for row in grid),
         tasks=tuple(task for task in grid_map.tasks if task.name not in bad_tasks),
-        goal_letters=grid_map.goal_letters if family != "farming" else frozenset(),
-        study_starts=grid_map.study_starts if family == "navigation" else {},
+        goal_letters=grid_map.goal_letters if domain != "farming" else frozenset(),
+        study_starts=grid_map.study_starts if domain == "navigation" else {},
     )
 
 
 def _check_starts(
-    grid_map: GridMap, family: str, letters: dict[str, str], problems: list[Problem]
+    grid_map: GridMap, domain: str, letters: dict[str, str], problems: list[Problem]
 ) -> bool:
     """Each task's start region has a cell to start on (navigation: a free cell; farming: a
     dirt cell without a machine; gravity: any cell); whether some has none."""
@@ -303,9 +303,9 @@ def _check_starts(
         task.name: grid_map.study_starts.get(task.name, grid_map.start) for task in grid_map.tasks
     }
     for task_name, region in regions.items():
-        if family == "navigation":
+        if domain == "navigation":
             cells = [c for c in grid_map.cells() if grid_map.char(c) != navigation.WALL]
-        elif family == "farming":
+        elif domain == "farming":
             cells = [c for c in grid_map.cells() if letters.get(grid_map.char(c)) == "dirt"]
         else:
             cells = list(grid_map.cells())

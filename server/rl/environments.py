@@ -293,7 +293,7 @@ def _layout_planes(env: Environment) -> tuple[tuple[str, ...], np.ndarray]:
 
 
 def _text_cells(env: Environment) -> list[str]:
-    """The grid in the map files' legend (the families' letters)."""
+    """The grid in the map files' legend (the domains' letters)."""
     letter_of_terrain = {terrain: letter for letter, terrain in farming.TERRAIN_OF_LETTER.items()}
     # A study's own environment draws its own letters.
     letter_of_terrain.update(

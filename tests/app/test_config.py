@@ -9,13 +9,13 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from server.app.config import (
+from server.app.settings import Settings
+from server.app.study_file import (
     DEFAULT_STUDY_CONFIG,
     StudyConfigError,
     load_study_config,
     parse_study_config,
 )
-from server.app.settings import Settings
 from server.commands.main import main
 
 PAPER = DEFAULT_STUDY_CONFIG.read_text()
@@ -198,7 +198,7 @@ EXAMPLES = Path(__file__).resolve().parents[2] / "server" / "examples"
     ("key", "expected"),
     [
         ("horizn", "unknown key; did you mean horizon?"),
-        ("zzzz", "unknown key; valid keys: colours, family, gravity, gravity_colours, horizon"),
+        ("zzzz", "unknown key; valid keys: colours, domain, gravity, gravity_colours, horizon"),
     ],
 )
 def test_an_unknown_key_inside_an_environment_is_named_with_the_environments_keys(

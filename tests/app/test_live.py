@@ -14,9 +14,9 @@ import httpx
 import pytest
 from sqlalchemy import func, select
 
-from server.app.config import DEFAULT_STUDY_CONFIG
 from server.app.storage.db import Database
 from server.app.storage.models import Event, LearnerUpdate, LearningSession
+from server.app.study_file import DEFAULT_STUDY_CONFIG
 from server.commands.live import ServerProcess
 from server.commands.simulated import TeachingPlan, run_participants
 from tests.support.server import ADMIN_TOKEN, FAST_LEARNERS, count_events, wait_for_updates

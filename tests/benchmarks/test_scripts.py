@@ -118,7 +118,7 @@ def test_compare_times_both_versions_of_the_same_update(tmp_path: Path) -> None:
 def test_the_server_benchmark_s_learner_settings_are_a_valid_study_file(tmp_path: Path) -> None:
     """--fast-learners, --optimizer and --warm-alternations become [learner_settings] tables
     that the study file loader accepts, each for the learners that have the setting."""
-    from server.app.config import DEFAULT_STUDY_CONFIG, load_study_config
+    from server.app.study_file import DEFAULT_STUDY_CONFIG, load_study_config
 
     module = load_script(BENCHMARKS / "server.py", "server_benchmark")
     study = tmp_path / "study.toml"

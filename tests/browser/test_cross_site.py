@@ -106,7 +106,7 @@ def test_the_study_works_in_a_cross_site_iframe_without_its_cookie(
     token = api_requests[-1].headers[HEADER]
     assert token not in frame.url
     (participant,) = server.query(
-        "SELECT id, status FROM participants WHERE worker_id = 'CROSSSITE1'"
+        "SELECT id, status FROM participants WHERE platform_participant_id = 'CROSSSITE1'"
     )
     assert participant.status == "tutorial"
     rows = server.query(

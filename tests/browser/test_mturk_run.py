@@ -141,7 +141,7 @@ def full_run(page: Page, server: LiveServer, worker: str, shots: Path, preview: 
     agents = int(
         server.query(
             "SELECT count(*) FROM learning_sessions s JOIN participants p "
-            "ON p.id = s.participant_id WHERE p.worker_id = :w AND s.kind = 'study'",
+            "ON p.id = s.participant_id WHERE p.platform_participant_id = :w AND s.kind = 'study'",
             w=worker,
         )[0][0]
     )
@@ -156,7 +156,8 @@ def full_run(page: Page, server: LiveServer, worker: str, shots: Path, preview: 
     code = study.frame.locator('[data-testid="completion-code"]')
     expect(code).to_be_visible(timeout=WAIT_MS)
     (stored,) = server.query(
-        "SELECT completion_code, status, assignment_id FROM participants WHERE worker_id = :w",
+        "SELECT completion_code, status, platform_submission_id FROM participants "
+        "WHERE platform_participant_id = :w",
         w=worker,
     )
     assert code.inner_text() == stored.completion_code
@@ -165,7 +166,7 @@ def full_run(page: Page, server: LiveServer, worker: str, shots: Path, preview: 
     study.frame.locator('[data-action="submit-hit"]').click()
     # The form posts from the top window to {turkSubmitTo}/mturk/externalSubmit.
     page.wait_for_url(f"{server.url}/mturk/externalSubmit")
-    expect(page.locator('[data-testid="assignment"]')).to_have_text(stored.assignment_id)
+    expect(page.locator('[data-testid="assignment"]')).to_have_text(stored.platform_submission_id)
     expect(page.locator('tr[data-field="completionCode"] td').nth(1)).to_have_text(
         stored.completion_code
     )
@@ -175,9 +176,11 @@ def full_run(page: Page, server: LiveServer, worker: str, shots: Path, preview: 
         w=worker,
     )
     fields = json.loads(submission.fields)
-    assert submission.assignment_id == stored.assignment_id == fields["assignmentId"]
+    assert submission.assignment_id == stored.platform_submission_id == fields["assignmentId"]
     assert fields["completionCode"] == stored.completion_code
-    (status,) = server.query("SELECT status FROM participants WHERE worker_id = :w", w=worker)
+    (status,) = server.query(
+        "SELECT status FROM participants WHERE platform_participant_id = :w", w=worker
+    )
     assert status.status == "submitted"
     return domain_name
 
@@ -224,11 +227,12 @@ def test_a_returned_hit_goes_to_the_next_worker_without_mixing_data(
     # MTurk gives the same assignment id to the next worker who accepts.
     domain = full_run(page, server, "WORKERCHARLIE", screenshot_dir, preview=False)
     rows = server.query(
-        "SELECT id, worker_id, assignment_id, status, domain FROM participants ORDER BY id"
+        "SELECT id, platform_participant_id, platform_submission_id, status, domain "
+        "FROM participants ORDER BY id"
     )
-    by_worker = {row.worker_id: row for row in rows}
+    by_worker = {row.platform_participant_id: row for row in rows}
     bravo, charlie = by_worker["WORKERBRAVO"], by_worker["WORKERCHARLIE"]
-    assert bravo.assignment_id == charlie.assignment_id == assignment
+    assert bravo.platform_submission_id == charlie.platform_submission_id == assignment
     assert bravo.status == "returned" and charlie.status == "submitted"
     # Balanced assignment: the first worker completed one domain, the next got the other.
     assert {by_worker["WORKERALPHA"].domain, domain} == {"navigation", "farming"}

@@ -57,7 +57,7 @@ def test_a_prolific_participant_is_sent_back_with_the_code(page: Page, server: L
     # Sent back automatically (Prolific's guidance), without a click.
     page.wait_for_url("https://app.prolific.com/**", timeout=WAIT_MS)
     assert landed == [f"https://app.prolific.com/submissions/complete?cc={CODE}"]
-    (row,) = server.query("SELECT status FROM participants WHERE worker_id = 'PID42'")
+    (row,) = server.query("SELECT status FROM participants WHERE platform_participant_id = 'PID42'")
     assert row.status == "submitted"
     # Nothing but the redirect the participant asked for left the server.
     assert watch.foreign == landed
@@ -76,9 +76,9 @@ def test_a_bonus_in_doubt_is_shown_as_such_and_settled_from_the_dashboard(
         p = Participant(
             token_hash=os.urandom(32).hex(),
             platform="prolific",
-            worker_id="PIDDOUBT",
-            assignment_id="SESSIONDOUBT",
-            hit_id="STUDYDOUBT",
+            platform_participant_id="PIDDOUBT",
+            platform_submission_id="SESSIONDOUBT",
+            platform_study_id="STUDYDOUBT",
             status="submitted",
         )
         s.add(p)
@@ -86,8 +86,8 @@ def test_a_bonus_in_doubt_is_shown_as_such_and_settled_from_the_dashboard(
         s.add(
             Bonus(
                 participant_id=p.id,
-                assignment_id="SESSIONDOUBT",
-                worker_id="PIDDOUBT",
+                platform_submission_id="SESSIONDOUBT",
+                platform_participant_id="PIDDOUBT",
                 amount_cents=125,
                 currency="GBP",
                 reason="Taught well",

@@ -74,7 +74,7 @@ def test_approve_and_pay_a_bonus_from_the_dashboard(page: Page, server: LiveServ
     page.once("dialog", lambda dialog: (asked.append(dialog.message), dialog.dismiss()))
     detail.locator('[data-action="approve"]').click()
     expect(detail.locator('[data-action="approve"]')).to_be_enabled()
-    assert server.query("SELECT id FROM assignment_reviews") == []
+    assert server.query("SELECT id FROM reviews") == []
     page.on("dialog", lambda dialog: (asked.append(dialog.message), dialog.accept()))
     detail.locator('[data-action="approve"]').click()
     expect(detail.locator('[data-review="approved"]')).to_contain_text("Thank you!")
@@ -84,7 +84,7 @@ def test_approve_and_pay_a_bonus_from_the_dashboard(page: Page, server: LiveServ
     detail.locator('[data-action="bonus"]').click()
     expect(detail.locator('.bonuses li[data-amount="1.25"]')).to_contain_text("Taught every task")
 
-    (review,) = server.query("SELECT decision, message, backend FROM assignment_reviews")
+    (review,) = server.query("SELECT decision, message, backend FROM reviews")
     assert tuple(review) == ("approved", "Thank you!", "mturk-replica")
     assert [m.split("?")[0] for m in asked] == [
         "Approve this submission",
@@ -193,7 +193,9 @@ def test_the_review_shows_the_ground_the_quality_checks_suggest(
     page: Page, server: LiveServer
 ) -> None:
     submit_a_hit(page, server, "WSUGGEST")
-    (participant,) = server.query("SELECT id FROM participants WHERE worker_id = 'WSUGGEST'")
+    (participant,) = server.query(
+        "SELECT id FROM participants WHERE platform_participant_id = 'WSUGGEST'"
+    )
     page.goto(f"{server.url}/dashboard")
     page.locator(f'#participants tr[data-participant="{participant.id}"]').click()
     detail = page.locator("#detail")
@@ -250,8 +252,8 @@ def test_reject_asks_first_and_the_opened_participant_is_scrolled_to_and_focused
     detail.locator('[data-action="reject"]').click()
     expect(detail.locator('[data-action="reject"]')).to_be_enabled()
     reviews = (
-        "SELECT r.decision FROM assignment_reviews r JOIN participants p "
-        "ON p.id = r.participant_id WHERE p.worker_id = 'WREJECT'"
+        "SELECT r.decision FROM reviews r JOIN participants p "
+        "ON p.id = r.participant_id WHERE p.platform_participant_id = 'WREJECT'"
     )
     assert server.query(reviews) == []
     assert asked == [

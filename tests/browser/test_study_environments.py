@@ -221,7 +221,7 @@ def test_the_dashboard_replays_a_vineyard_session_in_the_study_s_drawing(
 # -- a gravity study with a colour of its own ---------------------------------------------------
 GRAVITY_STUDY = """
 [environments.sunset]
-family = "gravity"
+domain = "gravity"
 gravity_colours = { r = "sky blue" }
 colours = { "sky blue" = "#56B4E9" }
 map = '''

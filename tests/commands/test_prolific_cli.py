@@ -19,7 +19,6 @@ import httpx
 import pytest
 from sqlalchemy import select
 
-from server.app.config import DEFAULT_STUDY_CONFIG, StudyConfigError, load_study_config
 from server.app.export.columns import DICTIONARY
 from server.app.export.tables import export_tables
 from server.app.main import create_app
@@ -34,6 +33,7 @@ from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Message, Participant, utcnow
 from server.app.storage.replica_models import ProlificReplicaSubmission
+from server.app.study_file import DEFAULT_STUDY_CONFIG, StudyConfigError, load_study_config
 from server.commands import prolific as prolific_command
 from server.commands.main import main
 from tests.support.server import ADMIN_TOKEN, live, study_config
@@ -385,9 +385,9 @@ def test_a_study_runs_on_the_replica_from_the_command_line(
     assert len(arrived) == 2
     for participant in arrived:
         assert participant.platform == "prolific"
-        assert participant.hit_id == study_id
-        submission = submissions[participant.worker_id]
-        assert participant.assignment_id == submission["id"]
+        assert participant.platform_study_id == study_id
+        submission = submissions[participant.platform_participant_id]
+        assert participant.platform_submission_id == submission["id"]
         assert (submission["status"], submission["study_code"]) == ("AWAITING REVIEW", "C1A2B3C4")
 
     status, out, err = run_command(["prolific", "status", study_id, *replica], capsys)
@@ -729,7 +729,10 @@ def test_message_sends_through_prolific_and_keeps_each_message_until_the_partici
     def stored() -> list[tuple[str, str, str, int, str]]:
         with db.read() as s:
             rows = s.scalars(select(Message).order_by(Message.id)).all()
-            return [(m.worker_id, m.body, m.sent_with, m.answer_status, m.backend) for m in rows]
+            return [
+                (m.platform_participant_id, m.body, m.sent_with, m.answer_status, m.backend)
+                for m in rows
+            ]
 
     # One participant: POST /messages/; Prolific keeps it, and so do we.
     thanks = "Thank you for teaching the robots! Your submission will be reviewed today."
@@ -797,9 +800,12 @@ def test_message_sends_through_prolific_and_keeps_each_message_until_the_partici
     assert list(messages["body"]) == [thanks, later, later]
     assert list(messages["prolific_answer"]) == [204, 204, 204]
     for _, row in messages.iterrows():
-        assert row["worker_id"].startswith("w_") and row["study_id"] == study_id
-        assert participants.loc[row["participant_id"], "worker_id"] == row["worker_id"]
-    first_pseudonym = messages["worker_id"].iloc[0]
+        assert row["platform_participant_id"].startswith("w_") and row["study_id"] == study_id
+        assert (
+            participants.loc[row["participant_id"], "platform_participant_id"]
+            == row["platform_participant_id"]
+        )
+    first_pseudonym = messages["platform_participant_id"].iloc[0]
 
     # Erased with the participant: their two rows go, and the audit row counts them.
     status, out, err = run_command(["erase", first, "--yes"], capsys)
@@ -808,13 +814,17 @@ def test_message_sends_through_prolific_and_keeps_each_message_until_the_partici
     assert [row[0] for row in stored()] == [second]
     erasures = export_tables(db)["erasures"]
     assert list(erasures["messages_rows"]) == [2]
-    assert list(erasures["worker_id"]) == [first_pseudonym]
+    assert list(erasures["platform_participant_id"]) == [first_pseudonym]
     # Scrubbed like the other ids: the raw PROLIFIC_PID is replaced by its pseudonym.
     status, out, err = run_command(["db", "scrub"], capsys)
     assert status == 0, err
     with db.read() as s:
-        assert s.scalars(select(Message.worker_id)).all() == [messages["worker_id"].iloc[2]]
-    assert list(export_tables(db)["messages"]["worker_id"]) == list(messages["worker_id"][2:])
+        assert s.scalars(select(Message.platform_participant_id)).all() == [
+            messages["platform_participant_id"].iloc[2]
+        ]
+    assert list(export_tables(db)["messages"]["platform_participant_id"]) == list(
+        messages["platform_participant_id"][2:]
+    )
     client.close()
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from server.app.config import load_study_config
+from server.app.study_file import load_study_config
 from server.commands.main import main
 from server.commands.serve import listening_address, startup_notes
 from tests.support.server import free_port

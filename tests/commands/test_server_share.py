@@ -14,10 +14,10 @@ import pytest
 from sqlalchemy import create_engine, func, select, text
 from sqlalchemy.engine import make_url
 
-from server.app.config import StudyConfig
 from server.app.settings import Settings
 from server.app.storage.db import Database, upgrade
 from server.app.storage.models import LearnerUpdate, Participant
+from server.app.study_file import StudyConfig
 from server.commands.server_share import (
     SCRATCH_SCHEMA,
     Stopped,

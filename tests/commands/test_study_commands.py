@@ -84,7 +84,7 @@ def test_check_refuses_a_gravity_map_with_trapped_starts_and_names_them(
     """The map of the issue: every start on the bottom row, no colour on it."""
     study = tmp_path / "newcomer-study.toml"
     text = (EXAMPLES / "office-study.toml").read_text()
-    text = text.replace('family = "navigation"\nmap_file = "office-floor.txt"', f"""family = "gravity"
+    text = text.replace('domain = "navigation"\nmap_file = "office-floor.txt"', f"""domain = "gravity"
 map = '''
 {NEWCOMER}'''""").replace('name = "navigation"\nenvironments = ["office-floor"]',
         'name = "gravity"\nenvironments = ["office-floor"]')  # fmt: skip
@@ -106,11 +106,11 @@ def test_a_study_file_may_accept_trapped_starts_up_to_its_share(
     """``max_trapped_start_share`` in the environment's table: the share the message offers
     (0.37 covers both tasks) is accepted; one below the larger share still refuses."""
     text = (EXAMPLES / "office-study.toml").read_text()
-    navigation = 'family = "navigation"\nmap_file = "office-floor.txt"'
+    navigation = 'domain = "navigation"\nmap_file = "office-floor.txt"'
     domain = 'name = "navigation"\nenvironments = ["office-floor"]'
     study = tmp_path / "newcomer-study.toml"
     for share, code in ((0.36, 2), (0.37, 0)):
-        gravity = f'family = "gravity"\nmax_trapped_start_share = {share}\nmap = """\n{NEWCOMER}"""'
+        gravity = f'domain = "gravity"\nmax_trapped_start_share = {share}\nmap = """\n{NEWCOMER}"""'
         gravity_domain = domain.replace("navigation", "gravity")
         study.write_text(text.replace(navigation, gravity).replace(domain, gravity_domain))
         assert main(["check", str(study), "--out", str(tmp_path / f"out-{share}")]) == code
@@ -329,9 +329,9 @@ def test_demo_runs_on_the_prolific_replica(tmp_path: Path) -> None:
         db.dispose()
     assert [row.status for row in submissions] == ["AWAITING REVIEW"] * 2
     assert {row.study_code for row in submissions} == {"C1DEMO01"}
-    assert sorted((p.platform, p.status, p.worker_id) for p in participants) == sorted(
-        ("prolific", "submitted", row.participant_id) for row in submissions
-    )
+    assert sorted(
+        (p.platform, p.status, p.platform_participant_id) for p in participants
+    ) == sorted(("prolific", "submitted", row.participant_id) for row in submissions)
     with (options.out / "export" / "participants.csv").open() as file:
         assert [row["platform"] for row in csv.DictReader(file)] == ["prolific"] * 2
 
@@ -341,7 +341,7 @@ def test_a_study_file_goes_on_prolific_for_the_demo() -> None:
     file said; the file still reads as a study."""
     import tomllib
 
-    from server.app.config import DEFAULT_STUDY_CONFIG, parse_study_config
+    from server.app.study_file import DEFAULT_STUDY_CONFIG, parse_study_config
     from server.commands.demo import on_prolific
 
     for path in (DEFAULT_STUDY_CONFIG, EXAMPLES / "office-study.toml"):
@@ -391,9 +391,9 @@ def test_teach_refuses_a_study_whose_environments_it_was_not_given(
     then failed with 'unknown environment'); with the study file, the same server is taught."""
     import tomllib
 
-    from server.app.config import parse_study_config
     from server.app.main import create_app
     from server.app.storage.db import Database
+    from server.app.study_file import parse_study_config
     from tests.support.databases import migrated_sqlite
     from tests.support.server import FAST_LEARNERS, live, make_settings
 

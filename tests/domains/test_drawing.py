@@ -73,7 +73,7 @@ def test_the_built_in_colours_are_the_page_s() -> None:
 def test_a_study_s_own_terrain_and_machines_have_the_study_s_colours_and_names() -> None:
     env = EnvironmentSpec(
         name="custom",
-        family="farming",
+        domain="farming",
         map=VINEYARD,
         terrains={"v": "vines"},
         machines={"T": "trellis", "Q": "quad bike"},
@@ -108,7 +108,7 @@ def test_a_study_s_own_terrain_and_machines_have_the_study_s_colours_and_names()
 def test_a_study_s_own_gravity_colour_has_the_study_s_colour() -> None:
     env = EnvironmentSpec(
         name="custom",
-        family="gravity",
+        domain="gravity",
         map=GRAVITY,
         gravity_colours={"y": "yellow"},
         colours={"yellow": "#F0E442"},

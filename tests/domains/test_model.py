@@ -106,8 +106,8 @@ def test_model_space(name: str) -> None:
 def test_true_model_parameters_reproduce_true_dynamics(name: str) -> None:
     env = domains.make(name)
     theta = domains.true_model_parameters(env)
-    family = {"navigation": navigation, "gravity": gravity, "farming": farming}[env.domain]
-    assert np.array_equal(theta, family.true_model_parameters(env))
+    module = {"navigation": navigation, "gravity": gravity, "farming": farming}[env.domain]
+    assert np.array_equal(theta, module.true_model_parameters(env))
     assert theta.shape == (env.model.num_parameters,)
     np.testing.assert_allclose(
         env.model.probabilities(theta), env.true_transitions.probabilities, rtol=0, atol=1e-9
@@ -123,10 +123,10 @@ def test_true_model_parameters_reproduce_true_dynamics(name: str) -> None:
 @pytest.mark.parametrize("name", ["wall", "flip", "two-fields"])
 def test_true_model_parameters_reject_other_domains(name: str) -> None:
     env = domains.make(name)
-    for family in (navigation, gravity, farming):
-        if family.DOMAIN != env.domain:
+    for module in (navigation, gravity, farming):
+        if module.DOMAIN != env.domain:
             with pytest.raises(ValueError, match="not"):
-                family.true_model_parameters(env)
+                module.true_model_parameters(env)
 
 
 @pytest.mark.parametrize("name", domains.NAMES)

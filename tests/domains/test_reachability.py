@@ -50,7 +50,7 @@ def states(env: Environment, *cells: tuple[int, int, str]) -> list[int]:
 
 
 def tiny(start: str) -> Environment:
-    """Built by the family without the study's checks (its orange cell is cut off)."""
+    """Built by the domain without the study's checks (its orange cell is cut off)."""
     grid_map, problems = read_map("tiny", TINY.format(start=start))
     assert grid_map is not None and not problems
     return gravity.build("tiny", grid_map)

@@ -1,4 +1,4 @@
-"""Each family's rules, checked by hand on a few cells: the true dynamics (through ``step``,
+"""Each domain's rules, checked by hand on a few cells: the true dynamics (through ``step``,
 which the parametrised tests tie to ``transition_probabilities()``) and the model rows."""
 
 from __future__ import annotations

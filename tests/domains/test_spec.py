@@ -1,6 +1,6 @@
 """Environments a study defines (server.domains.spec): one test per problem the checks report,
 with its line and column; every problem of a map reported at once; registration by name; and
-properties over many random valid maps of each family."""
+properties over many random valid maps of each domain."""
 
 from __future__ import annotations
 
@@ -36,8 +36,8 @@ start: rows 3-4
 """
 
 
-def spec(text: str = NAVIGATION, family: str = "navigation", **keys: object) -> EnvironmentSpec:
-    return EnvironmentSpec(name="custom", family=family, map=text, **keys)  # type: ignore[arg-type]
+def spec(text: str = NAVIGATION, domain: str = "navigation", **keys: object) -> EnvironmentSpec:
+    return EnvironmentSpec(name="custom", domain=domain, map=text, **keys)  # type: ignore[arg-type]
 
 
 def only(problems: list[Problem]) -> Problem:
@@ -63,8 +63,8 @@ def test_the_built_in_maps_pass_the_checks_and_build_the_same_environments() -> 
     accepted = {"choices": 0.02}
     for name in ("doorway", "two-rooms", "choices", "two-fields"):
         text = resources.files("server.domains").joinpath(f"maps/{name}.txt").read_text()
-        family = domains.domain_of(name)
-        copy = EnvironmentSpec(f"copy-{name}", family, text)
+        domain = domains.domain_of(name)
+        copy = EnvironmentSpec(f"copy-{name}", domain, text)
         assert bool(copy.problems()) == (name in accepted)
         env = replace(copy, max_trapped_start_share=accepted.get(name, 0.0)).build()
         built_in = domains.make(name)
@@ -182,11 +182,11 @@ def test_the_text_s_own_problems_keep_their_lines() -> None:
 
 
 def test_problems_of_the_definition_s_keys() -> None:
-    bad = spec(family="navigation", terrains={"v": "vines"}, horizon=0)
+    bad = spec(domain="navigation", terrains={"v": "vines"}, horizon=0)
     messages = [str(problem) for problem in bad.problems()]
     assert any("horizon 0 is not a whole number" in m for m in messages)
     assert any("terrains: a navigation environment has no terrains" in m for m in messages)
-    assert "family 'kitchen'" in str(only(spec(family="kitchen").problems()))
+    assert "domain 'kitchen'" in str(only(spec(domain="kitchen").problems()))
     farm = "task: F = rows 0, columns 0-1\nstart: anywhere\n    0123\n  0 vv.T\n  1 P...\n"
     messages = [
         str(p)
@@ -239,7 +239,7 @@ def test_an_unregistered_or_built_in_name_is_refused() -> None:
     with pytest.raises(ValueError, match="unknown environment 'custom'"):
         domains.make("custom")
     with pytest.raises(ValueError, match="built in"):
-        domains.register(EnvironmentSpec(name="doorway", family="navigation", map=NAVIGATION))
+        domains.register(EnvironmentSpec(name="doorway", domain="navigation", map=NAVIGATION))
 
 
 # -- properties over random maps -----------------------------------------------------------
@@ -390,7 +390,7 @@ def test_random_maps_checks_agree_with_brute_force(
     env = definition.build()
     # No start of the simulations is trapped either.
     assert np.all(_distances(env, 0)[env.tasks[0].start > 0] >= 0)
-    assert env.domain == definition.family
+    assert env.domain == definition.domain
     # Transition rows sum to one: the true table and the model's at a random theta.
     assert np.allclose(env.true_transitions.probabilities.sum(axis=2), 1.0)
     theta = np.random.default_rng(0).normal(size=env.model.num_parameters)

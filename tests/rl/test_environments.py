@@ -338,7 +338,7 @@ start: rows 3-4
 """
     env = EnvironmentSpec(
         name="own-kinds",
-        family="farming",
+        domain="farming",
         map=text,
         terrains={"v": "vines", "m": "moss"},
         machines={"T": "trellis", "Q": "quad"},

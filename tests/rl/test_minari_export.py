@@ -20,10 +20,10 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 
 from server import domains, learners
-from server.app.config import DEFAULT_STUDY_CONFIG
 from server.app.export.minari import INFOS
 from server.app.storage.db import Database
 from server.app.storage.models import Event, LearnerUpdate, LearningSession
+from server.app.study_file import DEFAULT_STUDY_CONFIG
 from server.app.updates.policies import decode
 from server.app.updates.worker import apply_records, records_of
 from server.commands.main import main
@@ -137,7 +137,7 @@ def test_the_minari_export_has_the_csv_exports_episodes_and_actions(
             assert int(infos["participant"][0]) == row["participant_id"]
             session = sessions.loc[row["session"]]
             assert infos["learner"][0].decode() == session["learner"]
-            worker = participants.loc[row["participant_id"], "worker_id"]
+            worker = participants.loc[row["participant_id"], "platform_participant_id"]
             assert infos["worker"][0].decode() == worker and worker.startswith("w_")
             steps = steps_of(episode)
             assert steps == by_episode[(row["session"], row["index"])]

@@ -21,12 +21,12 @@ from fastapi import FastAPI
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, func, select, text
 
-from server.app.config import DEFAULT_STUDY_CONFIG, StudyConfig, parse_study_config
 from server.app.main import create_app
 from server.app.participants.tokens import TOKEN_HEADER
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Event, LearnerUpdate
+from server.app.study_file import DEFAULT_STUDY_CONFIG, StudyConfig, parse_study_config
 from server.app.updates.pool import new_executor
 from server.app.updates.worker import run_update
 from server.commands.live import free_port

@@ -82,18 +82,20 @@ PARTICIPANTS = (
     Column("participant_id", "Participant number (database id).", INT, lambda p, ctx: p.id),
     Column("platform", "mturk, prolific or lab."),
     _pseudonymised(
-        "worker_id",
+        "platform_participant_id",
         WORKER,
-        "MTurk workerId or Prolific PROLIFIC_PID (pseudonymised: w_ + salted hash).",
+        "MTurk workerId or Prolific PROLIFIC_PID (pseudonymised: w_ + salted hash; formerly "
+        "worker_id).",
         owner="id",
     ),
     _pseudonymised(
-        "assignment_id",
+        "platform_submission_id",
         ASSIGNMENT,
-        "MTurk assignmentId or Prolific SESSION_ID (pseudonymised: a_ + hash).",
+        "MTurk assignmentId or Prolific SESSION_ID (pseudonymised: a_ + hash; formerly "
+        "assignment_id).",
         owner="id",
     ),
-    Column("hit_id", "MTurk hitId or Prolific STUDY_ID."),
+    Column("platform_study_id", "MTurk hitId or Prolific STUDY_ID (formerly hit_id)."),
     Column(
         "status",
         "Latest status: arrived, incompatible (turned away by the device check before "
@@ -410,25 +412,25 @@ BACKENDS = "mturk, prolific, mturk-replica or prolific-replica."
 REVIEWS = (
     Column("participant_id", "The participant.", INT),
     _pseudonymised(
-        "assignment_id",
+        "platform_submission_id",
         ASSIGNMENT,
         "The MTurk assignmentId or Prolific submission id reviewed "
-        "(pseudonymised as in participants.csv).",
+        "(pseudonymised as in participants.csv; formerly assignment_id).",
         owner="participant_id",
     ),
     _pseudonymised(
-        "worker_id",
+        "platform_participant_id",
         WORKER,
-        "The MTurk worker or Prolific participant (pseudonymised as in participants.csv).",
+        "The MTurk worker or Prolific participant (pseudonymised as in participants.csv; "
+        "formerly worker_id).",
         owner="participant_id",
     ),
     Column("decision", "approved or rejected (final; sent to the review backend)."),
     Column(
-        "requester_feedback",
+        "message",
         "The review's message, sent to the participant with the decision "
-        "(MTurk's RequesterFeedback, Prolific's rejection message; the column keeps its "
-        "published name, the API and the database call it message).",
-        value=lambda r, ctx: r.message,
+        "(MTurk's RequesterFeedback, Prolific's rejection message; formerly "
+        "requester_feedback).",
     ),
     Column("rejection_category", "Prolific's rejection category (empty otherwise)."),
     Column("backend", f"Where the decision was sent: {BACKENDS}"),
@@ -446,15 +448,16 @@ REVIEWS = (
 BONUSES = (
     Column("participant_id", "The participant.", INT),
     _pseudonymised(
-        "assignment_id",
+        "platform_submission_id",
         ASSIGNMENT,
-        "The MTurk assignmentId or Prolific submission id the bonus was paid for (pseudonymised).",
+        "The MTurk assignmentId or Prolific submission id the bonus was paid for "
+        "(pseudonymised; formerly assignment_id).",
         owner="participant_id",
     ),
     _pseudonymised(
-        "worker_id",
+        "platform_participant_id",
         WORKER,
-        "The MTurk worker or Prolific participant paid (pseudonymised).",
+        "The MTurk worker or Prolific participant paid (pseudonymised; formerly worker_id).",
         owner="participant_id",
     ),
     Column(
@@ -499,9 +502,10 @@ MESSAGES = (
     ),
     Column("participant_id", "The participant messaged.", INT),
     _pseudonymised(
-        "worker_id",
+        "platform_participant_id",
         WORKER,
-        "The Prolific participant messaged (pseudonymised as in participants.csv).",
+        "The Prolific participant messaged (pseudonymised as in participants.csv; formerly "
+        "worker_id).",
         owner="participant_id",
     ),
     Column("study_id", "The Prolific STUDY_ID the message was about."),
@@ -575,7 +579,7 @@ ERASED_TABLES = (
     "questionnaire_answers",
     "attention_checks",
     "participant_tokens",
-    "assignment_reviews",
+    "reviews",
     "bonuses",
     "messages",
     "mturk_replica_assignments",
@@ -584,10 +588,15 @@ ERASED_TABLES = (
 )
 
 
+# The tables renamed since: their former names, for the columns named after them.
+_FORMER_TABLE = {"reviews": "assignment_reviews"}
+
+
 def _erased(table: str) -> Column:
+    former = _FORMER_TABLE.get(table)
     return Column(
         f"{table}_rows",
-        f"Rows of the {table} table erased.",
+        f"Rows of the {table} table erased" + (f" (formerly {former}_rows)." if former else "."),
         INT,
         lambda e, ctx: e.rows.get(table, 0),
     )
@@ -609,15 +618,16 @@ ERASURES = (
     ),
     Column("platform", "mturk, prolific or lab."),
     Column(
-        "worker_id",
-        "The participant's worker pseudonym, as in earlier exports (w_ + salted "
-        "hash; empty for lab participants).",
-        value=lambda e, ctx: e.worker_pseudonym,
+        "platform_participant_id",
+        "The participant's platform_participant_id pseudonym, as in earlier exports (w_ + "
+        "salted hash; empty for lab participants; formerly worker_id).",
+        value=lambda e, ctx: e.platform_participant_pseudonym,
     ),
     Column(
-        "assignment_id",
-        "The participant's assignment pseudonym (a_ + salted hash).",
-        value=lambda e, ctx: e.assignment_pseudonym,
+        "platform_submission_id",
+        "The participant's platform_submission_id pseudonym (a_ + salted hash; formerly "
+        "assignment_id).",
+        value=lambda e, ctx: e.platform_submission_pseudonym,
     ),
     *(_erased(table) for table in ERASED_TABLES),
 )

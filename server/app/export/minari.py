@@ -124,7 +124,7 @@ def study_datasets(
         if not taken:
             continue
         participant = participants[session.participant_id]
-        worker = participant.worker_id
+        worker = participant.platform_participant_id
         if pseudonymize:
             assert secret is not None
             worker, _ = participant_pseudonyms(participant, secret)

@@ -20,7 +20,6 @@ from server.app.storage.figures import (
     study_sessions_by_participant,
 )
 from server.app.storage.models import (
-    AssignmentReview,
     AttentionCheck,
     Bonus,
     Episode,
@@ -31,6 +30,7 @@ from server.app.storage.models import (
     Message,
     Participant,
     QuestionnaireAnswer,
+    Review,
     StatusChange,
 )
 from server.app.storage.vocabulary import EpisodeKind, Observed, ParticipantStatus, UpdateStatus
@@ -43,7 +43,7 @@ class Study:
     participants: Sequence[Participant]
     changes: Sequence[StatusChange]
     answers: Sequence[QuestionnaireAnswer]
-    reviews: Sequence[AssignmentReview]
+    reviews: Sequence[Review]
     bonuses: Sequence[Bonus]
     messages: Sequence[Message]
     erasures: Sequence[Erasure]
@@ -93,7 +93,7 @@ def read_study(db: Database) -> Study:
             participants=s.scalars(select(Participant).order_by(Participant.id)).all(),
             changes=s.scalars(select(StatusChange).order_by(StatusChange.id)).all(),
             answers=s.scalars(select(QuestionnaireAnswer).order_by(QuestionnaireAnswer.id)).all(),
-            reviews=s.scalars(select(AssignmentReview).order_by(AssignmentReview.id)).all(),
+            reviews=s.scalars(select(Review).order_by(Review.id)).all(),
             bonuses=s.scalars(select(Bonus).order_by(Bonus.id)).all(),
             messages=s.scalars(select(Message).order_by(Message.id)).all(),
             erasures=s.scalars(select(Erasure).order_by(Erasure.id)).all(),

@@ -15,7 +15,6 @@ from typing import Any
 
 from sqlalchemy import Connection, func, select
 
-from server.app.config import StudyConfig
 from server.app.participants import teaching, views
 from server.app.storage.records import load, load_all
 from server.app.storage.tables import EVENTS, PARTICIPANTS, SESSIONS, UPDATES
@@ -27,6 +26,7 @@ from server.app.storage.vocabulary import (
     SessionStatus,
     UpdateStatus,
 )
+from server.app.study_file import StudyConfig
 from server.domains import make as make_environment
 from server.domains.base import ACTIONS
 

@@ -12,7 +12,6 @@ from sqlalchemy import ColumnElement, Connection, func, select
 from sqlalchemy.exc import IntegrityError
 
 from server.app import platform_registry as registry
-from server.app.config import StudyConfig
 from server.app.errors import ApiError, TurnedAway
 from server.app.participants.statuses import reactivate, restore_status, set_status
 from server.app.participants.tokens import ADD_TOKEN, new_token, participant_by_token
@@ -26,6 +25,7 @@ from server.app.storage.models import utcnow
 from server.app.storage.records import Record, add, load, load_all
 from server.app.storage.tables import ERASURES, PARTICIPANTS
 from server.app.storage.vocabulary import IN_PROGRESS, ParticipantStatus
+from server.app.study_file import StudyConfig
 
 # A worker's participations that no longer count: the task returned, consent declined, or the
 # device turned away by the device check (the worker may come back on another device).
@@ -111,13 +111,14 @@ def _arrive(
         if cookie_token and len(cookie_token) <= 128:
             current = participant_by_token(c, cookie_token)
         platform = registry.platform(ids.name)
-        if ids.worker_id is None:  # no platform ids (the lab): the cookie says who it is
+        # No platform ids (the lab): the cookie says who it is.
+        if ids.platform_participant_id is None:
             if current is not None and current.platform == ids.name:
                 reactivate(c, current, now)
                 current.save(c)
                 return Arrival(current, None, True)
             return Arrival(*_create(c, ids, now, room), False)
-        worker = (ids.worker_id or "").lower()
+        worker = (ids.platform_participant_id or "").lower()
         if c.dialect.name == "postgresql" and not study.allow_repeat_workers:
             # One worker's arrivals one at a time, until this one commits (SQLite's writes are
             # one at a time already: BEGIN IMMEDIATE).
@@ -125,7 +126,7 @@ def _arrive(
             c.execute(select(func.pg_advisory_xact_lock(key)))
         if c.dialect.name == "postgresql" and platform.exclusive_assignments:
             # And one assignment's (who holds it is decided below), always after the worker's.
-            key = advisory_lock_key(f"bam-study assignment {ids.assignment_id}")
+            key = advisory_lock_key(f"bam-study assignment {ids.platform_submission_id}")
             c.execute(select(func.pg_advisory_xact_lock(key)))
         # (Ids that differ in case only, stored before they were compared so, are one worker:
         # the participation with the id as given comes first, then the oldest.)
@@ -134,10 +135,14 @@ def _arrive(
             PARTICIPANTS,
             PARTICIPANTS.c.platform == ids.name,
             same_worker(worker),
-            PARTICIPANTS.c.assignment_id == ids.assignment_id,
+            PARTICIPANTS.c.platform_submission_id == ids.platform_submission_id,
             order_by=PARTICIPANTS.c.id,
         )
-        existing = min(candidates, key=lambda p: p.worker_id != ids.worker_id, default=None)
+        existing = min(
+            candidates,
+            key=lambda p: p.platform_participant_id != ids.platform_participant_id,
+            default=None,
+        )
         coming_back = existing is None or existing.status == ParticipantStatus.RETURNED
         if (
             coming_back
@@ -156,7 +161,7 @@ def _arrive(
                 c,
                 PARTICIPANTS,
                 PARTICIPANTS.c.platform == ids.name,
-                PARTICIPANTS.c.assignment_id == ids.assignment_id,
+                PARTICIPANTS.c.platform_submission_id == ids.platform_submission_id,
                 ~same_worker(worker),
                 PARTICIPANTS.c.status.not_in(NOT_COUNTED),
             )
@@ -201,7 +206,7 @@ def _took_part(c: Connection, ids: ArrivalIds, other_than: int | None) -> bool:
         .select_from(PARTICIPANTS)
         .where(
             PARTICIPANTS.c.platform == ids.name,
-            same_worker(ids.worker_id or ""),
+            same_worker(ids.platform_participant_id or ""),
             PARTICIPANTS.c.status.not_in(NOT_COUNTED),
         )
     )
@@ -210,10 +215,10 @@ def _took_part(c: Connection, ids: ArrivalIds, other_than: int | None) -> bool:
     return bool(c.scalar(query))
 
 
-def same_worker(worker_id: str) -> ColumnElement[bool]:
+def same_worker(platform_participant_id: str) -> ColumnElement[bool]:
     """The participant is this worker's, whatever the case of the id: an id typed or pasted in
     another case is the same worker (ids are stored as they came, so no stored row changes)."""
-    return func.lower(PARTICIPANTS.c.worker_id) == worker_id.lower()
+    return func.lower(PARTICIPANTS.c.platform_participant_id) == platform_participant_id.lower()
 
 
 def mark_returned(c: Connection, participants: list[Record], now: datetime, note: str) -> None:
@@ -222,15 +227,17 @@ def mark_returned(c: Connection, participants: list[Record], now: datetime, note
         participant.save(c)
 
 
-def return_assignment(c: Connection, worker_id: str, assignment_id: str) -> None:
+def return_assignment(
+    c: Connection, platform_participant_id: str, platform_submission_id: str
+) -> None:
     """The worker returned the HIT (the local MTurk replica says so at once; MTurk itself does
     not): their participation with that assignment, if it is going on, is returned."""
     going_on = load_all(
         c,
         PARTICIPANTS,
         PARTICIPANTS.c.platform == "mturk",
-        same_worker(worker_id),
-        PARTICIPANTS.c.assignment_id == assignment_id,
+        same_worker(platform_participant_id),
+        PARTICIPANTS.c.platform_submission_id == platform_submission_id,
         PARTICIPANTS.c.status.in_(GOING_ON),
     )
     mark_returned(c, going_on, utcnow(), "returned the HIT")
@@ -248,9 +255,9 @@ def _create(c: Connection, ids: ArrivalIds, now: datetime, room: Room | None) ->
         **_next_number(c),
         token_hash=token_hash,
         platform=ids.name,
-        worker_id=ids.worker_id,
-        assignment_id=ids.assignment_id,
-        hit_id=ids.hit_id,
+        platform_participant_id=ids.platform_participant_id,
+        platform_submission_id=ids.platform_submission_id,
+        platform_study_id=ids.platform_study_id,
         submit_to=submit_to,
         status=status,
         next_seq=1,

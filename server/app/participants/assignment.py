@@ -12,7 +12,6 @@ from typing import Any
 import numpy as np
 from sqlalchemy import Connection, and_, func, or_, select
 
-from server.app.config import AttentionChecks, StudyConfig
 from server.app.errors import ApiError
 from server.app.participants import tokens
 from server.app.participants.completion import complete
@@ -30,6 +29,7 @@ from server.app.storage.vocabulary import (
     SessionKind,
     SessionStatus,
 )
+from server.app.study_file import AttentionChecks, StudyConfig
 from server.domains import make as make_environment
 
 DOMAIN_LOCK_KEY = advisory_lock_key("bam-study domain assignment")

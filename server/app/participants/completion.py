@@ -8,7 +8,6 @@ from dataclasses import asdict
 from typing import Any
 
 from server.app import platform_registry as registry
-from server.app.config import LikertQuestion, Question, StudyConfig, TextQuestion
 from server.app.errors import ApiError, InvalidInput
 from server.app.participants import tokens
 from server.app.participants.statuses import set_status
@@ -20,6 +19,7 @@ from server.app.schemas import (
 from server.app.storage.records import add
 from server.app.storage.tables import ANSWERS
 from server.app.storage.vocabulary import FINISHED_STATUSES, ParticipantStatus
+from server.app.study_file import LikertQuestion, Question, StudyConfig, TextQuestion
 
 
 def answer_questionnaire(transaction: Transaction, answers: dict[str, int | str]) -> None:

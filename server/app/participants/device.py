@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import re
 
-from server.app.config import DeviceCheck
 from server.app.errors import ApiError
 from server.app.participants.statuses import set_status
 from server.app.participants.transaction import Transaction
 from server.app.schemas import DeviceCheckRequest
 from server.app.storage.vocabulary import ParticipantStatus
+from server.app.study_file import DeviceCheck
 
 FEATURE_NAMES = {"fetch": "fetch", "dialog": "dialogs", "svg": "SVG drawing"}
 # A browser's name and major version in its User-Agent, most specific first (Edge and Opera

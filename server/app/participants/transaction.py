@@ -19,7 +19,6 @@ import numpy as np
 from sqlalchemy import Connection, bindparam, select
 
 from server.app import platform_registry as registry
-from server.app.config import StudyConfig
 from server.app.errors import ApiError
 from server.app.participants.statuses import reactivate
 from server.app.participants.tokens import participant_for
@@ -34,6 +33,7 @@ from server.app.storage.models import (
 from server.app.storage.records import Record, add
 from server.app.storage.tables import EVENTS, UPDATES
 from server.app.storage.vocabulary import ParticipantStatus, UpdateStatus
+from server.app.study_file import StudyConfig
 
 # Prepared: the event a retried request's sequence number stored.
 STORED_EVENT = select(EVENTS.c.request_hash, EVENTS.c.response).where(

@@ -6,7 +6,6 @@ from typing import Any
 
 from sqlalchemy import Connection, select
 
-from server.app.config import StudyConfig
 from server.app.participants.completion import completion
 from server.app.schemas import (
     AttentionCheckView,
@@ -18,6 +17,7 @@ from server.app.schemas import (
 from server.app.storage.records import load_all
 from server.app.storage.tables import CHECKS, SESSIONS
 from server.app.storage.vocabulary import CheckStatus, SessionKind, SessionStatus
+from server.app.study_file import StudyConfig
 
 
 def current_session_id(c: Connection, participant: Any) -> int | None:

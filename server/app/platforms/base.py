@@ -30,11 +30,11 @@ from server.app.errors import ApiError
 if TYPE_CHECKING:
     from sqlalchemy import Connection, Table
 
-    from server.app.config import StudyConfig
     from server.app.platforms.review import ReviewBackend
     from server.app.settings import Settings
     from server.app.storage.db import Database
     from server.app.storage.vocabulary import ReviewDecision
+    from server.app.study_file import StudyConfig
 
 ID_PATTERN = r"^[A-Za-z0-9_\-]{1,128}$"
 
@@ -46,9 +46,9 @@ class ArrivalIds:
     """One arrival's platform and the participant's ids there (none in a lab)."""
 
     name: str  # the platform's
-    worker_id: str | None = None  # MTurk's workerId, Prolific's PROLIFIC_PID
-    assignment_id: str | None = None  # MTurk's assignmentId, Prolific's SESSION_ID
-    hit_id: str | None = None  # MTurk's hitId, Prolific's STUDY_ID
+    platform_participant_id: str | None = None  # MTurk's workerId, Prolific's PROLIFIC_PID
+    platform_submission_id: str | None = None  # MTurk's assignmentId, Prolific's SESSION_ID
+    platform_study_id: str | None = None  # MTurk's hitId, Prolific's STUDY_ID
     submit_to: str | None = None  # where the completion is submitted, when the link says
 
 
@@ -87,7 +87,8 @@ class Platform(Protocol):
     display_name: str  # in the participants' pages: "Mechanical Turk"
     # The study link's URL parameters (empty: none, a lab), each with its value's pattern.
     parameters: Mapping[str, str]
-    # Which of them holds which of the participant's ids (worker_id, assignment_id, hit_id).
+    # Which of them holds which of the participant's ids (platform_participant_id,
+    # platform_submission_id, platform_study_id).
     ids: Mapping[str, str]
     # An assignment is one worker's at a time, and a returned one goes to the next (MTurk).
     exclusive_assignments: bool
@@ -168,7 +169,8 @@ class BasePlatform:
     name: ClassVar[str]
     display_name: ClassVar[str]
     parameters: ClassVar[Mapping[str, str]] = {}
-    ids: ClassVar[Mapping[str, str]] = {}  # worker_id, assignment_id, hit_id -> parameter
+    # platform_participant_id, platform_submission_id, platform_study_id -> its parameter
+    ids: ClassVar[Mapping[str, str]] = {}
     exclusive_assignments: ClassVar[bool] = False
     reviews: ClassVar[bool] = False
     released: ClassVar[Released | None] = None

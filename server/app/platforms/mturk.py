@@ -28,7 +28,7 @@ from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus, R
 from server.app.storage.vocabulary import ReplicaAssignmentStatus, ReviewDecision
 
 if TYPE_CHECKING:
-    from server.app.config import StudyConfig
+    from server.app.study_file import StudyConfig
 
 # The assignmentId of a HIT's preview, before a worker accepts it.
 PREVIEW_ASSIGNMENT = "ASSIGNMENT_ID_NOT_AVAILABLE"
@@ -92,14 +92,14 @@ class MTurkReplicaBackend:
             row.requester_feedback = message
 
     def approve(self, who: Reviewed, message: str | None) -> None:
-        self._decide(who.assignment_id, ReviewDecision.APPROVED, message)
+        self._decide(who.platform_submission_id, ReviewDecision.APPROVED, message)
 
     def reject(self, who: Reviewed, message: str, category: str | None) -> None:
-        self._decide(who.assignment_id, ReviewDecision.REJECTED, message)
+        self._decide(who.platform_submission_id, ReviewDecision.REJECTED, message)
 
     def decision_of(self, who: Reviewed) -> ReviewDecision | None:
         with self.db.read() as s:
-            status = self._latest(s, who.assignment_id).status
+            status = self._latest(s, who.platform_submission_id).status
         return ReviewDecision(status) if status in DECISIONS else None
 
     def set_up_bonus(self, who: Reviewed, amount: str, reason: str) -> str | None:
@@ -111,7 +111,9 @@ class MTurkReplicaBackend:
     def pay_bonus(
         self, who: Reviewed, amount: str, reason: str, token: str, setup_id: str | None
     ) -> None:
-        self.send_bonus(who.worker_id, who.assignment_id, amount, reason, token)
+        self.send_bonus(
+            who.platform_participant_id, who.platform_submission_id, amount, reason, token
+        )
 
     def send_bonus(
         self, worker_id: str, assignment_id: str, amount: str, reason: str, token: str
@@ -169,16 +171,18 @@ class MTurkClientBackend:
             raise ReviewUnavailable(f"MTurk's {method} failed: {message}") from None
 
     def approve(self, who: Reviewed, message: str | None) -> None:
-        arguments: dict[str, Any] = {"AssignmentId": who.assignment_id}
+        arguments: dict[str, Any] = {"AssignmentId": who.platform_submission_id}
         if message:
             arguments["RequesterFeedback"] = message
         self._call("approve_assignment", **arguments)
 
     def reject(self, who: Reviewed, message: str, category: str | None) -> None:
-        self._call("reject_assignment", AssignmentId=who.assignment_id, RequesterFeedback=message)
+        self._call(
+            "reject_assignment", AssignmentId=who.platform_submission_id, RequesterFeedback=message
+        )
 
     def decision_of(self, who: Reviewed) -> ReviewDecision | None:
-        answer = self._call("get_assignment", AssignmentId=who.assignment_id) or {}
+        answer = self._call("get_assignment", AssignmentId=who.platform_submission_id) or {}
         status = answer.get("Assignment", {}).get("AssignmentStatus")
         return MTURK_DECISIONS.get(status)
 
@@ -193,9 +197,9 @@ class MTurkClientBackend:
     ) -> None:
         self._call(
             "send_bonus",
-            WorkerId=who.worker_id,
+            WorkerId=who.platform_participant_id,
             BonusAmount=amount,
-            AssignmentId=who.assignment_id,
+            AssignmentId=who.platform_submission_id,
             Reason=reason,
             UniqueRequestToken=token,
         )
@@ -233,7 +237,11 @@ class MTurk(BasePlatform):
         "workerId": ID_PATTERN,
         "turkSubmitTo": r"^[\s\S]{0,512}$",
     }
-    ids = {"worker_id": "workerId", "assignment_id": "assignmentId", "hit_id": "hitId"}
+    ids = {
+        "platform_participant_id": "workerId",
+        "platform_submission_id": "assignmentId",
+        "platform_study_id": "hitId",
+    }
     exclusive_assignments = True
     reviews = True
     done = (
@@ -250,12 +258,21 @@ class MTurk(BasePlatform):
         ids = super().arrival(params, settings, own_origin)
         assert ids is not None
         submit_to = check_submit_to(params["turkSubmitTo"], settings, own_origin)
-        return ArrivalIds(ids.name, ids.worker_id, ids.assignment_id, ids.hit_id, submit_to)
+        return ArrivalIds(
+            ids.name,
+            ids.platform_participant_id,
+            ids.platform_submission_id,
+            ids.platform_study_id,
+            submit_to,
+        )
 
     def handing(self, participant: Any, study: StudyConfig, code: str) -> Handing:
         return Handing(
             submit_url=f"{participant.submit_to}/mturk/externalSubmit",
-            submit_fields={"assignmentId": str(participant.assignment_id), "completionCode": code},
+            submit_fields={
+                "assignmentId": str(participant.platform_submission_id),
+                "completionCode": code,
+            },
         )
 
     def review_backend(
@@ -266,7 +283,7 @@ class MTurk(BasePlatform):
         return MTurkClientBackend(mturk_client(settings))
 
     def own_replica_rows(self, participant: Any) -> Rows:
-        worker, assignment = participant.worker_id, participant.assignment_id
+        worker, assignment = participant.platform_participant_id, participant.platform_submission_id
         if not worker or not assignment:
             return []
         turn = and_(

@@ -20,13 +20,13 @@ from typing import Any
 
 import httpx
 
-from server.app.config import Completion, ProlificStudy, StudyConfig
 from server.app.platforms.review import (
     Reviewed,
     ReviewRefused,
     ReviewUnavailable,
 )
 from server.app.storage.vocabulary import ReviewDecision
+from server.app.study_file import Completion, ProlificStudy, StudyConfig
 
 # Prolific's submission statuses (the submission object's ``status``).
 SUBMISSION_STATUSES = (
@@ -496,24 +496,24 @@ class ProlificBackend:
         return who.study_id
 
     def approve(self, who: Reviewed, message: str | None) -> None:
-        self.client.transition_submission(self._study(who), who.assignment_id, "APPROVE")
+        self.client.transition_submission(self._study(who), who.platform_submission_id, "APPROVE")
 
     def reject(self, who: Reviewed, message: str, category: str | None) -> None:
         self.client.transition_submission(
             self._study(who),
-            who.assignment_id,
+            who.platform_submission_id,
             "REJECT",
             message=message,
             rejection_category=category,
         )
 
     def decision_of(self, who: Reviewed) -> ReviewDecision | None:
-        status = self.client.submission(self._study(who), who.assignment_id).get("status")
+        status = self.client.submission(self._study(who), who.platform_submission_id).get("status")
         return PROLIFIC_DECISIONS.get(str(status))
 
     def set_up_bonus(self, who: Reviewed, amount: str, reason: str) -> str | None:
         self._check_currency(self._study(who))
-        made = self.client.set_up_bonuses(self._study(who), [(who.worker_id, amount)])
+        made = self.client.set_up_bonuses(self._study(who), [(who.platform_participant_id, amount)])
         return str(made["id"])
 
     def pay_bonus(
@@ -524,7 +524,7 @@ class ProlificBackend:
         self.client.pay_bonuses(setup_id)
 
     def bonuses_paid(self, who: Reviewed) -> list[int] | None:
-        return self.client.bonus_payments(self._study(who), who.assignment_id)
+        return self.client.bonus_payments(self._study(who), who.platform_submission_id)
 
 
 def draft_study(

@@ -41,9 +41,9 @@ from server.app.storage.replica_models import (
 from server.app.storage.vocabulary import ReviewDecision
 
 if TYPE_CHECKING:
-    from server.app.config import StudyConfig
     from server.app.settings import Settings
     from server.app.storage.db import Database
+    from server.app.study_file import StudyConfig
 
 # Prolific approves, and pays, a submission still AWAITING REVIEW this long after it was
 # completed: "Submissions that are awaiting review are automatically approved after 21 days"
@@ -63,7 +63,11 @@ class Prolific(BasePlatform):
     name = "prolific"
     display_name = "Prolific"
     parameters = {"PROLIFIC_PID": ID_PATTERN, "STUDY_ID": ID_PATTERN, "SESSION_ID": ID_PATTERN}
-    ids = {"worker_id": "PROLIFIC_PID", "assignment_id": "SESSION_ID", "hit_id": "STUDY_ID"}
+    ids = {
+        "platform_participant_id": "PROLIFIC_PID",
+        "platform_submission_id": "SESSION_ID",
+        "platform_study_id": "STUDY_ID",
+    }
     reviews = True
     done = (
         "Your data has been deleted. Please return your submission on Prolific (\u201cReturn\u201d "
@@ -81,7 +85,7 @@ class Prolific(BasePlatform):
 
     def submit_to(self, c: Connection, ids: ArrivalIds) -> str | None:
         # A study of this server's Prolific replica: the participant goes back to it.
-        if ids.hit_id is not None and is_replica_study(c, ids.hit_id):
+        if ids.platform_study_id is not None and is_replica_study(c, ids.platform_study_id):
             return REPLICA_PATH
         return None
 
@@ -178,25 +182,36 @@ class Prolific(BasePlatform):
         return None if budget is None else int(budget * 100)
 
     def own_replica_rows(self, participant: Any) -> Rows:
-        worker, submission = participant.worker_id, participant.assignment_id
+        worker, submission = participant.platform_participant_id, participant.platform_submission_id
         if not worker or not submission:
             return []
         setups = select(PROLIFIC_BONUS_SETUPS.c.id).where(
-            PROLIFIC_BONUS_SETUPS.c.study_id == participant.hit_id
+            PROLIFIC_BONUS_SETUPS.c.study_id == participant.platform_study_id
         )
         payments, submissions = PROLIFIC_PAYMENTS.c, PROLIFIC_SUBMISSIONS.c
         messages = PROLIFIC_MESSAGES.c
         return [
             (PROLIFIC_PAYMENTS, and_(payments.participant_id == worker, payments.setup_id.in_(setups))),
-            (PROLIFIC_MESSAGES, and_(messages.recipient_id == worker, messages.study_id == participant.hit_id)),
+            (
+                PROLIFIC_MESSAGES,
+                and_(
+                    messages.recipient_id == worker,
+                    messages.study_id == participant.platform_study_id,
+                ),
+            ),
             (PROLIFIC_SUBMISSIONS, and_(submissions.id == submission, submissions.participant_id == worker)),
             (PROLIFIC_GROUP_MEMBERS, PROLIFIC_GROUP_MEMBERS.c.participant_id == worker),
         ]  # fmt: skip
 
     def shared_replica_rows(self, participant: Any) -> Rows:
         """A bonus set-up's CSV, one line per participant of the study."""
-        if participant.worker_id and participant.hit_id:
-            return [(PROLIFIC_BONUS_SETUPS, PROLIFIC_BONUS_SETUPS.c.study_id == participant.hit_id)]
+        if participant.platform_participant_id and participant.platform_study_id:
+            return [
+                (
+                    PROLIFIC_BONUS_SETUPS,
+                    PROLIFIC_BONUS_SETUPS.c.study_id == participant.platform_study_id,
+                )
+            ]
         return []
 
 

@@ -162,10 +162,10 @@ def _apply_status(
     if status not in SUBMISSION_STATUSES:
         raise ValueError(f"unknown Prolific submission status {status!r}")
     query = select(Participant).where(
-        Participant.platform == "prolific", Participant.assignment_id == submission_id
+        Participant.platform == "prolific", Participant.platform_submission_id == submission_id
     )
     if study_id:
-        query = query.where(Participant.hit_id == study_id)
+        query = query.where(Participant.platform_study_id == study_id)
     p = s.scalar(query.with_for_update())
     if p is None:
         return UNKNOWN
@@ -363,7 +363,7 @@ def returns_of(s: Session, study_id: str) -> dict[str, int]:
     ``returned on Prolific``, ``timed out``, ``had declined consent`` (among the returned)."""
     rows = s.execute(
         select(Participant.status, Participant.platform_status).where(
-            Participant.platform == "prolific", Participant.hit_id == study_id
+            Participant.platform == "prolific", Participant.platform_study_id == study_id
         )
     ).all()
     returned = [

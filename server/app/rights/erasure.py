@@ -44,8 +44,8 @@ class Erased(BaseModel):
     erasure_id: int
     participant_id: int
     platform: str
-    worker_pseudonym: str | None
-    assignment_pseudonym: str | None
+    platform_participant_pseudonym: str | None
+    platform_submission_pseudonym: str | None
     rows: dict[str, int] = Field(description="Rows removed, per table.")
 
 
@@ -59,16 +59,20 @@ def find_participant(c: Connection, who: str, secret: str) -> Any:
     else:
         # A raw id (scrubbed participants keep its pseudonym), or a scrubbed one's pseudonym.
         named = (who, pseudonym(secret, who, WORKER))
-        rows = c.execute(select(PARTICIPANTS).where(p.worker_id.in_(named))).mappings().all()
+        rows = (
+            c.execute(select(PARTICIPANTS).where(p.platform_participant_id.in_(named)))
+            .mappings()
+            .all()
+        )
         if not rows and who.startswith("w_"):  # the pseudonym of a participant not scrubbed
             rows = [
                 row
                 for row in c.execute(
                     select(PARTICIPANTS).where(
-                        p.worker_id.is_not(None), p.identifiers_scrubbed_at.is_(None)
+                        p.platform_participant_id.is_not(None), p.identifiers_scrubbed_at.is_(None)
                     )
                 ).mappings()
-                if pseudonym(secret, row["worker_id"], WORKER) == who
+                if pseudonym(secret, row["platform_participant_id"], WORKER) == who
             ]
     if not rows:
         raise ApiError(
@@ -114,16 +118,16 @@ def erase(
         erased_by=by,
         participant_id=participant_id,
         platform=participant["platform"],
-        worker_pseudonym=worker,
-        assignment_pseudonym=assignment,
+        platform_participant_pseudonym=worker,
+        platform_submission_pseudonym=assignment,
         rows=rows,
     )
     return Erased(
         erasure_id=erasure_id,
         participant_id=participant_id,
         platform=participant["platform"],
-        worker_pseudonym=worker,
-        assignment_pseudonym=assignment,
+        platform_participant_pseudonym=worker,
+        platform_submission_pseudonym=assignment,
         rows=rows,
     )
 

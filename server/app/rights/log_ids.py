@@ -21,7 +21,7 @@ from server.app.rights.pseudonyms import ASSIGNMENT, WORKER, pseudonym
 
 # Loggers whose lines carry URLs: uvicorn's access log, httpx's line per request sent.
 LOGGERS = ("uvicorn.access", "httpx")
-_PREFIX = {"worker_id": WORKER, "assignment_id": ASSIGNMENT}
+_PREFIX = {"platform_participant_id": WORKER, "platform_submission_id": ASSIGNMENT}
 # A Prolific id: 24 hexadecimal digits (the platform's ID_PATTERN).
 _SUBMISSION = re.compile(r"(/submissions/)([0-9a-fA-F]{24})(?=[/?\s\"']|$)")
 

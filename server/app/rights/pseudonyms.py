@@ -54,20 +54,25 @@ def database_secret(db: Database) -> str:
 
 
 def platform_pseudonyms(
-    secret: str, worker_id: str | None, assignment_id: str | None, scrubbed: bool = False
+    secret: str,
+    platform_participant_id: str | None,
+    platform_submission_id: str | None,
+    scrubbed: bool = False,
 ) -> tuple[str | None, str | None]:
     """The worker and assignment pseudonyms of these ids; ``scrubbed``: the ids are pseudonyms
     already, and are returned as they are."""
     if scrubbed:
-        return worker_id, assignment_id
-    return pseudonym(secret, worker_id, WORKER), pseudonym(secret, assignment_id, ASSIGNMENT)
+        return platform_participant_id, platform_submission_id
+    return pseudonym(secret, platform_participant_id, WORKER), pseudonym(
+        secret, platform_submission_id, ASSIGNMENT
+    )
 
 
 def participant_pseudonyms(participant: Any, secret: str) -> tuple[str | None, str | None]:
     """The participant's worker and assignment pseudonyms, as the export writes them."""
     return platform_pseudonyms(
         secret,
-        participant.worker_id,
-        participant.assignment_id,
+        participant.platform_participant_id,
+        participant.platform_submission_id,
         participant.identifiers_scrubbed_at is not None,
     )

@@ -44,8 +44,8 @@ def with_ids() -> list[str]:
 def replacements(participant: Any, secret: str) -> dict[str, str]:
     """Raw id -> its pseudonym, for the participant's ids that are set."""
     pairs = (
-        (participant.worker_id, WORKER),
-        (participant.assignment_id, ASSIGNMENT),
+        (participant.platform_participant_id, WORKER),
+        (participant.platform_submission_id, ASSIGNMENT),
         (participant.completion_code, COMPLETION_CODE),
     )
     return {raw: str(pseudonym(secret, raw, prefix)) for raw, prefix in pairs if raw}

@@ -7,12 +7,12 @@ from __future__ import annotations
 from pydantic import BaseModel, Field
 
 from server.app import platform_registry as registry
-from server.app.config import StudyConfig
 from server.app.participants.tokens import participant_for
 from server.app.platform_registry import PlatformName
 from server.app.rights.erasure import erase, installation_secret
 from server.app.storage.db import Database
 from server.app.storage.vocabulary import ErasedBy
+from server.app.study_file import StudyConfig
 
 
 class Withdrawal(BaseModel):

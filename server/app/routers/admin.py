@@ -48,13 +48,13 @@ from server.app.schemas import (
 from server.app.state import ServerState
 from server.app.storage.figures import participant_figures
 from server.app.storage.models import (
-    AssignmentReview,
     Bonus,
     Event,
     LearnerUpdate,
     LearningSession,
     Participant,
     ProlificStudy,
+    Review,
     StatusChange,
     utcnow,
 )
@@ -75,7 +75,7 @@ STATUSES = tuple(ParticipantStatus)
 router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
 
 
-def _last_returns(s: Session, session_ids: list[int]) -> dict[int, float | None]:
+def _final_returns(s: Session, session_ids: list[int]) -> dict[int, float | None]:
     if not session_ids:
         return {}
     latest = (
@@ -95,7 +95,7 @@ def _last_returns(s: Session, session_ids: list[int]) -> dict[int, float | None]
 
 
 def _admin_sessions(s: Session, sessions: list[LearningSession]) -> list[AdminSession]:
-    returns = _last_returns(s, [x.id for x in sessions])
+    returns = _final_returns(s, [x.id for x in sessions])
     return [
         AdminSession(
             session_id=x.id,
@@ -116,7 +116,7 @@ def _admin_sessions(s: Session, sessions: list[LearningSession]) -> list[AdminSe
             episodes=x.episodes,
             actions=x.actions,
             pending_updates=max(0, x.updates_requested - x.updates_processed),
-            last_normalized_return=returns.get(x.id),
+            final_normalized_return=returns.get(x.id),
         )
         for x in sessions
     ]
@@ -136,9 +136,9 @@ def _admin_participant(
     return AdminParticipant(
         participant_id=p.id,
         platform=p.platform,
-        worker_id=p.worker_id,
-        assignment_id=p.assignment_id,
-        hit_id=p.hit_id,
+        platform_participant_id=p.platform_participant_id,
+        platform_submission_id=p.platform_submission_id,
+        platform_study_id=p.platform_study_id,
         status=p.status,
         prolific_status=p.platform_status,
         return_requested_at=p.platform_return_requested_at,
@@ -211,7 +211,7 @@ def _participant_detail(s: Session, participant_id: int) -> AdminParticipantDeta
         select(StatusChange).where(StatusChange.participant_id == p.id).order_by(StatusChange.id)
     ).all()
     base = _admin_participant(p, sessions, _completed_at(s, [p.id]).get(p.id))
-    decision = s.scalar(select(AssignmentReview).where(AssignmentReview.participant_id == p.id))
+    decision = s.scalar(select(Review).where(Review.participant_id == p.id))
     bonuses = s.scalars(select(Bonus).where(Bonus.participant_id == p.id).order_by(Bonus.id))
     return AdminParticipantDetail(
         **base.model_dump(),
@@ -606,8 +606,8 @@ def prolific_studies(state: StateDep) -> list[ProlificStudyView]:
         known = {row.study_id: row for row in s.scalars(select(ProlificStudy))}
         ids = set(known) | set(
             s.scalars(
-                select(Participant.hit_id).where(
-                    Participant.platform == "prolific", Participant.hit_id.is_not(None)
+                select(Participant.platform_study_id).where(
+                    Participant.platform == "prolific", Participant.platform_study_id.is_not(None)
                 )
             )
         )

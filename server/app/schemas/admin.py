@@ -170,9 +170,9 @@ class QueueView(BaseModel):
 class AdminParticipant(BaseModel):
     participant_id: int
     platform: str
-    worker_id: str | None
-    assignment_id: str | None
-    hit_id: str | None
+    platform_participant_id: str | None
+    platform_submission_id: str | None
+    platform_study_id: str | None
     status: str
     prolific_status: str | None = Field(
         None, description="Prolific's status of the submission (from its webhook or a poll)."
@@ -229,7 +229,7 @@ class AdminSession(BaseModel):
     episodes: int
     actions: int
     pending_updates: int
-    last_normalized_return: float | None
+    final_normalized_return: float | None
 
 
 class AdminParticipantDetail(AdminParticipant):

@@ -197,7 +197,7 @@ def _truncate_wal(engine: Engine, busy_timeout_ms: int) -> bool:
 # (tests/app/rights/test_forget_removed.py checks that every table with such a column is here).
 PLATFORM_ID_TABLES = (
     "participants",
-    "assignment_reviews",
+    "reviews",
     "bonuses",
     "messages",
     "mturk_replica_hits",
@@ -315,12 +315,44 @@ def current_revision(engine: Engine) -> str | None:
         return MigrationContext.configure(connection).get_current_revision()
 
 
+@contextmanager
+def migration_connection(engine: Engine) -> Iterator[Connection]:
+    """A connection in a transaction for the migrations. On SQLite, foreign keys are off while
+    they run and checked before the commit, SQLite's own way to change a table that others
+    refer to: a migration's batch copies the table and drops the original, which with foreign
+    keys on would drop it under the rows that refer to it (``PRAGMA foreign_keys`` does nothing
+    inside a transaction, so it is set before the transaction begins)."""
+    with engine.connect() as connection:
+        sqlite = engine.dialect.name == "sqlite"
+
+        def foreign_keys(on: bool) -> None:
+            cursor = connection.connection.cursor()  # the driver's: no transaction begun
+            cursor.execute(f"PRAGMA foreign_keys={'ON' if on else 'OFF'}")
+            cursor.close()
+
+        if sqlite:
+            foreign_keys(False)
+        try:
+            with connection.begin():
+                yield connection
+                if sqlite:
+                    broken = connection.exec_driver_sql("PRAGMA foreign_key_check").all()
+                    if broken:
+                        raise SchemaError(
+                            f"the migration left {len(broken)} rows whose foreign key refers "
+                            f"to no row, e.g. {tuple(broken[0])}: nothing was changed"
+                        )
+        finally:
+            if sqlite:
+                foreign_keys(True)
+
+
 def upgrade(engine: Engine, revision: str = "head") -> None:
     """Apply the migrations up to ``revision`` on the engine's database."""
     from alembic import command
 
     config = alembic_config()
-    with engine.begin() as connection:
+    with migration_connection(engine) as connection:
         config.attributes["connection"] = connection
         command.upgrade(config, revision)
 
@@ -329,7 +361,7 @@ def downgrade(engine: Engine, revision: str) -> None:
     from alembic import command
 
     config = alembic_config()
-    with engine.begin() as connection:
+    with migration_connection(engine) as connection:
         config.attributes["connection"] = connection
         command.downgrade(config, revision)
 

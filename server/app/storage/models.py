@@ -8,7 +8,7 @@ participants ─< status_changes
              ─< events            (append-only, one per acknowledged request, keyed by seq)
              ─< attention_checks   (the instructional attention checks between agents)
              ─< questionnaire_answers
-             ─< assignment_reviews (the experimenter's approval or rejection of the submission)
+             ─< reviews           (the experimenter's approval or rejection of the submission)
              ─< bonuses
 erasures (one per participant erased: no link to any other row, no personal data)
 
@@ -101,8 +101,15 @@ class Installation(Base):
 class Participant(Base):
     __tablename__ = "participants"
     __table_args__ = (
-        UniqueConstraint("platform", "worker_id", "assignment_id"),
-        Index("ix_participants_worker_id", "worker_id"),
+        # Named, as the naming convention's name (the three columns) is longer than PostgreSQL's
+        # 63 characters.
+        UniqueConstraint(
+            "platform",
+            "platform_participant_id",
+            "platform_submission_id",
+            name="uq_participants_platform_ids",
+        ),
+        Index("ix_participants_platform_participant_id", "platform_participant_id"),
         Index("ix_participants_status_domain", "status", "domain"),
     )
 
@@ -110,9 +117,13 @@ class Participant(Base):
     # SHA-256 of the participant's bearer token; the token itself is never stored.
     token_hash: Mapped[str] = mapped_column(String(64), unique=True)
     platform: Mapped[str] = mapped_column(String(16))  # mturk, prolific or lab
-    worker_id: Mapped[str | None] = mapped_column(String(128))  # workerId or PROLIFIC_PID
-    assignment_id: Mapped[str | None] = mapped_column(String(128))  # assignmentId or SESSION_ID
-    hit_id: Mapped[str | None] = mapped_column(String(128))  # hitId or STUDY_ID
+    # The participant's ids on their platform (0019 renamed them from MTurk's words, worker_id,
+    # assignment_id and hit_id): MTurk's workerId or Prolific's PROLIFIC_PID, ...
+    platform_participant_id: Mapped[str | None] = mapped_column(String(128))
+    # ... MTurk's assignmentId or Prolific's SESSION_ID (the submission's id), ...
+    platform_submission_id: Mapped[str | None] = mapped_column(String(128))
+    # ... and MTurk's hitId or Prolific's STUDY_ID.
+    platform_study_id: Mapped[str | None] = mapped_column(String(128))
     submit_to: Mapped[str | None] = mapped_column(String(512))  # turkSubmitTo
     status: Mapped[str] = mapped_column(String(16))  # ParticipantStatus
     domain: Mapped[str | None] = mapped_column(String(32))
@@ -123,7 +134,7 @@ class Participant(Base):
     # Exclusion is the experimenter's judgement, beside the flow status, which it leaves as is.
     excluded_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     exclusion_reason: Mapped[str | None] = mapped_column(Text)
-    # When worker, assignment and Prolific ids and the completion code were replaced by their
+    # When the platform ids and the completion code were replaced by their
     # pseudonyms (``rights.scrub``); None while they are as the platform gave them.
     identifiers_scrubbed_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
@@ -348,19 +359,19 @@ class QuestionnaireAnswer(Base):
     answered_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
 
 
-class AssignmentReview(Base):
+class Review(Base):
     """The experimenter's decision on a participant's submitted work (an MTurk assignment or a
     Prolific submission): one per participant, final. The row is written as ``pending`` before
     the platform is called and becomes ``done`` once the platform has taken the decision, so
     that a decision the platform carried out is never missing here (``platforms/review/``)."""
 
-    __tablename__ = "assignment_reviews"
+    __tablename__ = "reviews"
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), unique=True)
     # The MTurk assignmentId or the Prolific submission id (SESSION_ID).
-    assignment_id: Mapped[str] = mapped_column(String(128), unique=True)
-    worker_id: Mapped[str] = mapped_column(String(128))  # workerId or PROLIFIC_PID
+    platform_submission_id: Mapped[str] = mapped_column(String(128), unique=True)
+    platform_participant_id: Mapped[str] = mapped_column(String(128))  # workerId or PROLIFIC_PID
     decision: Mapped[str] = mapped_column(String(16))  # ReviewDecision
     message: Mapped[str | None] = mapped_column(Text)  # shown to the participant
     rejection_category: Mapped[str | None] = mapped_column(String(32))  # Prolific's category
@@ -382,8 +393,8 @@ class Bonus(Base):
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), index=True)
-    assignment_id: Mapped[str] = mapped_column(String(128))
-    worker_id: Mapped[str] = mapped_column(String(128))
+    platform_submission_id: Mapped[str] = mapped_column(String(128))
+    platform_participant_id: Mapped[str] = mapped_column(String(128))
     amount_cents: Mapped[int] = mapped_column(Integer)  # cents of ``currency``
     currency: Mapped[str] = mapped_column(String(3), default="USD")
     reason: Mapped[str] = mapped_column(Text)  # shown to the participant
@@ -405,7 +416,9 @@ class Message(Base):
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), index=True)
-    worker_id: Mapped[str] = mapped_column(String(128))  # the recipient's PROLIFIC_PID
+    platform_participant_id: Mapped[str] = mapped_column(
+        String(128)
+    )  # the recipient's PROLIFIC_PID
     study_id: Mapped[str] = mapped_column(String(128))  # the STUDY_ID the message is about
     body: Mapped[str] = mapped_column(Text)
     backend: Mapped[str] = mapped_column(String(24))  # prolific or prolific-replica
@@ -487,8 +500,12 @@ class Erasure(Base):
     erased_by: Mapped[str] = mapped_column(String(16))  # ErasedBy
     participant_id: Mapped[int] = mapped_column(Integer)
     platform: Mapped[str] = mapped_column(String(16))
-    worker_pseudonym: Mapped[str | None] = mapped_column(String(32))  # w_ + salted hash
-    assignment_pseudonym: Mapped[str | None] = mapped_column(String(32))  # a_ + salted hash
+    platform_participant_pseudonym: Mapped[str | None] = mapped_column(
+        String(32)
+    )  # w_ + salted hash
+    platform_submission_pseudonym: Mapped[str | None] = mapped_column(
+        String(32)
+    )  # a_ + salted hash
     rows: Mapped[dict[str, int]] = mapped_column(JSON)  # table -> rows removed
 
 

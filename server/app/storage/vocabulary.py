@@ -154,7 +154,7 @@ class CheckStatus(Vocabulary):
 
 @unique
 class ReviewDecision(Vocabulary):
-    """The experimenter's decision on a submission (``assignment_reviews.decision``)."""
+    """The experimenter's decision on a submission (``reviews.decision``)."""
 
     APPROVED = "approved"
     REJECTED = "rejected"
@@ -162,7 +162,7 @@ class ReviewDecision(Vocabulary):
 
 @unique
 class ReviewState(Vocabulary):
-    """Whether the platform has taken a review's decision (``assignment_reviews.state``)."""
+    """Whether the platform has taken a review's decision (``reviews.state``)."""
 
     PENDING = "pending"  # recorded before the platform is called
     DONE = "done"  # the platform took it

@@ -3,7 +3,8 @@
 An environment's keys are ``EnvironmentSpec``'s fields (``server.domains.spec``), their types
 and defaults: the table's model is made from that dataclass, so that the two cannot drift
 apart. What the study file adds is here: each key's description (the docs' table) and the
-bounds of its value (``KEYS``), and ``map_file``, the map read from a file.
+bounds of its value (``KEYS``), ``map_file``, the map read from a file, and ``family``, the
+former name of ``domain``, still accepted for the study files written with it.
 """
 
 from __future__ import annotations
@@ -16,12 +17,15 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import Field, ValidationInfo, create_model, model_validator
 
 from server.app.study_file.base import Table
-from server.domains.spec import DEFAULT_MAX_STATES, FAMILIES, EnvironmentSpec
+from server.domains.spec import DEFAULT_MAX_STATES, DOMAIN_NAMES, EnvironmentSpec
 
 # Each of EnvironmentSpec's fields but its name (the table's own name): its description and
 # the bounds the study file sets on its value.
 KEYS: dict[str, dict[str, Any]] = {
-    "family": {"description": "The environment's family: navigation, gravity or farming."},
+    "domain": {
+        "description": "The environment's domain: navigation, gravity or farming (formerly "
+        "family, which is still accepted)."
+    },
     "map": {
         "description": "The map's text: header lines (task:, start:, gravity of ...:), the "
         "column digits, then one numbered line per row."
@@ -29,7 +33,7 @@ KEYS: dict[str, dict[str, Any]] = {
     "horizon": {
         "ge": 1,
         "le": 1000,
-        "description": "Steps per task; unset: the family's own (navigation 2 x (width + "
+        "description": "Steps per task; unset: the domain's own (navigation 2 x (width + "
         "height), gravity and farming 4 x (width + height)).",
     },
     "colours": {
@@ -73,7 +77,7 @@ MAP_FILE = Field(
 def _table_fields() -> dict[str, Any]:
     """The keys of an ``[environments.NAME]`` table: ``EnvironmentSpec``'s fields but its name,
     in its order, with their types and defaults and ``KEYS``' descriptions and bounds; the
-    family one of ``FAMILIES``, and the map optional, as ``map_file`` may stand for it."""
+    domain one of ``DOMAIN_NAMES``, and the map optional, as ``map_file`` may stand for it."""
     spec_fields = [f for f in dataclasses.fields(EnvironmentSpec) if f.name != "name"]
     if [f.name for f in spec_fields] != list(KEYS):
         raise TypeError(
@@ -89,8 +93,8 @@ def _table_fields() -> dict[str, Any]:
             options["default_factory"] = spec_field.default_factory
         elif spec_field.default is not dataclasses.MISSING:
             options["default"] = spec_field.default
-        if spec_field.name == "family":
-            annotation = Literal[FAMILIES]
+        if spec_field.name == "domain":
+            annotation = Literal[DOMAIN_NAMES]
         if spec_field.name == "map":
             annotation, options["default"] = str | None, None
         fields[spec_field.name] = (annotation, Field(**options))
@@ -106,12 +110,24 @@ _EnvironmentTable = create_model(
 
 class EnvironmentDefinition(_EnvironmentTable):
     """An environment of the study's own, ``[environments.NAME]``: used as the built-in ones
-    are (list NAME in its family's ``[[domains]]``). The map is text in the format of the
+    are (list NAME in its domain's ``[[domains]]``). The map is text in the format of the
     built-in maps (docs: Designing your own environments), inline or in a file."""
 
     if TYPE_CHECKING:  # for the type checker, the fields that the code reads by name
-        family: str
+        domain: str
         map: str | None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _former_key(cls, data: Any) -> Any:
+        """``family``, the key's former name, read as ``domain``."""
+        if not isinstance(data, dict) or "family" not in data:
+            return data
+        if "domain" in data:
+            raise ValueError("give domain or family (its former name), not both")
+        data = dict(data)
+        data["domain"] = data.pop("family")
+        return data
 
     @model_validator(mode="before")
     @classmethod

@@ -108,7 +108,7 @@ class StudyConfig(Table):
     environments: dict[str, EnvironmentDefinition] = Field(
         default_factory=dict,
         description="The study's own environments, one [environments.NAME] table each (NAME: "
-        "lower-case letters, digits and '-'), listed in a domain of their family.",
+        "lower-case letters, digits and '-'), listed in their domain's [[domains]] table.",
     )
     attention_checks: AttentionChecks = Field(
         AttentionChecks(),
@@ -191,7 +191,7 @@ class StudyConfig(Table):
         return value
 
     def _check_environments(self) -> None:
-        """Each domain's environments are built in or the study's own, of its family (each
+        """Each domain's environments are built in or the study's own, of its domain (each
         map was checked on its own)."""
         from server import domains
 
@@ -210,10 +210,10 @@ class StudyConfig(Table):
                         f"{environment!r}; valid: "
                         f"{', '.join((*domains.DOMAINS[domain.name], *self.environments))}"
                     )
-                elif own.family != domain.name:
+                elif own.domain != domain.name:
                     problems.append(
                         f"{where[environment]}: domain {domain.name!r}: {environment!r} is a "
-                        f"{own.family} environment"
+                        f"{own.domain} environment"
                     )
         if problems:
             raise ValueError("\n    ".join(problems))

@@ -56,8 +56,8 @@ async function loadParticipants() {
     const row = h("tr", { class: `clickable ${p.participant_id === selected ? "selected" : ""}`, tabindex: 0, "data-participant": p.participant_id, "data-status": p.status },
       h("td", {}, p.participant_id),
       h("td", {}, p.platform),
-      h("td", { class: "mono" }, p.worker_id ?? ""),
-      h("td", { class: "mono" }, p.assignment_id ?? ""),
+      h("td", { class: "mono" }, p.platform_participant_id ?? ""),
+      h("td", { class: "mono" }, p.platform_submission_id ?? ""),
       h("td", {}, badge(p.status), p.excluded ? [" ", badge("excluded")] : null, platformBadges(p)),
       h("td", {}, p.domain ?? ""),
       h("td", {}, `${p.agents_finished} / ${p.agents}`),
@@ -115,8 +115,8 @@ async function showParticipant(id, { reveal = false } = {}) {
     h("div", { class: "card-head" }, h("h2", { id: "detail-heading", tabindex: -1 }, `Participant ${p.participant_id}`), badge(p.status)),
     h("div", { class: "detail-grid" },
       h("div", {},
-        h("p", {}, h("strong", {}, "Worker "), h("span", { class: "mono" }, p.worker_id ?? "(none)")),
-        h("p", {}, h("strong", {}, "Assignment "), h("span", { class: "mono" }, p.assignment_id ?? "(none)")),
+        h("p", {}, h("strong", {}, "Worker "), h("span", { class: "mono" }, p.platform_participant_id ?? "(none)")),
+        h("p", {}, h("strong", {}, "Assignment "), h("span", { class: "mono" }, p.platform_submission_id ?? "(none)")),
         h("p", {}, h("strong", {}, "Domain "), p.domain ?? "(not yet)", h("strong", {}, "  Time "), `${p.minutes.toFixed(1)} min`),
         h("p", {}, h("a", { href: `/dashboard/live/participants/${p.participant_id}`, "data-action": "watch-live" }, "Watch this participant live (read only)")),
         exclusionForm(p),
@@ -138,7 +138,7 @@ async function showParticipant(id, { reveal = false } = {}) {
         session.kind === "tutorial" ? "Tutorial" : `Agent ${session.position + 1} · ${environmentTitle(session.environment)}`),
       h("p", {}, `${session.learner} · ${session.colour} · `, badge(session.status)),
       h("p", { class: "muted" }, `${count(session.episodes, "episode")}, ${count(session.actions, "action")}`,
-        session.last_normalized_return !== null ? `, return ${(100 * session.last_normalized_return).toFixed(0)}%` : ""),
+        session.final_normalized_return !== null ? `, return ${(100 * session.final_normalized_return).toFixed(0)}%` : ""),
       h("div", { class: "curve-box" }, h("p", { class: "muted" }, "Loading the curve…")),
       h("button", { class: "btn quiet", type: "button", "data-action": "replay", onclick: () => showReplay(session.session_id) }, "Replay"));
     sessions.appendChild(card);
@@ -210,7 +210,7 @@ function erasureSection(p) {
   const message = h("p", { class: "form-error", role: "alert", hidden: true });
   const button = h("button", { class: "btn danger", type: "button", "data-action": "erase" }, "Erase this participant's data");
   button.addEventListener("click", async () => {
-    const who = p.worker_id ? `worker ${p.worker_id}` : `participant ${p.participant_id}`;
+    const who = p.platform_participant_id ? `worker ${p.platform_participant_id}` : `participant ${p.participant_id}`;
     if (!window.confirm(`Erase every record of ${who}? Their events, agents, answers and payments records are deleted for good; only an audit row with their pseudonym is kept.`)) return;
     button.disabled = true;
     try {

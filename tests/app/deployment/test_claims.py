@@ -15,10 +15,10 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import update
 
-from server.app.config import StudyConfig
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import LearnerUpdate, utcnow
+from server.app.study_file import StudyConfig
 from server.app.updates.notices import Listener, channel_of
 from server.app.updates.queue import UpdateQueue
 from server.app.updates.store import Job, Stored, UpdateStore

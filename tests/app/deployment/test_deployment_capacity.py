@@ -10,11 +10,11 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import update
 
-from server.app.config import StudyConfig
 from server.app.main import create_app
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import StudyServer, utcnow
+from server.app.study_file import StudyConfig
 from server.app.updates.capacity import (
     ServerSlots,
     deployment_participants,

@@ -7,10 +7,10 @@ from concurrent.futures import ProcessPoolExecutor
 
 from fastapi.testclient import TestClient
 
-from server.app.config import StudyConfig
 from server.app.main import create_app
 from server.app.settings import Settings
 from server.app.storage.db import Database
+from server.app.study_file import StudyConfig
 from server.app.updates.servers import this_machine
 from server.cores import available_cores
 from tests.support.server import ADMIN_TOKEN

@@ -8,10 +8,10 @@ from __future__ import annotations
 from fastapi.testclient import TestClient
 
 from server.app.admin_auth import FAILURES_ALLOWED
-from server.app.config import StudyConfig
 from server.app.main import create_app
 from server.app.settings import Settings
 from server.app.storage.db import Database
+from server.app.study_file import StudyConfig
 from tests.support.server import ADMIN_TOKEN
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}

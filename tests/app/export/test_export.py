@@ -172,10 +172,12 @@ def check_pseudonyms(study_run: list, url: str, tmp_path: Path) -> None:
     again = export(url, tmp_path / "again")["participants"]
     shown = export(url, tmp_path / "shown", "--no-pseudonymize")["participants"]
     workers = {run.worker_id for run in study_run}
-    assert set(shown["worker_id"]) == workers
-    assert not set(hidden["worker_id"]) & workers
-    assert hidden["worker_id"].str.match(r"^w_[0-9a-f]{16}$").all()
-    assert list(hidden["worker_id"]) == list(again["worker_id"])  # stable for one database
+    assert set(shown["platform_participant_id"]) == workers
+    assert not set(hidden["platform_participant_id"]) & workers
+    assert hidden["platform_participant_id"].str.match(r"^w_[0-9a-f]{16}$").all()
+    assert list(hidden["platform_participant_id"]) == list(
+        again["platform_participant_id"]
+    )  # stable for one database
     assert hidden["completion_code"].isna().all()
     assert set(shown["completion_code"]) == {run.completion_code for run in study_run}
     for text in (tmp_path / "hidden").glob("*.csv"):
@@ -249,7 +251,7 @@ def test_text_cells_that_a_spreadsheet_would_run_are_neutralised(
         dictionary = archive.read("data_dictionary.csv").decode()
     written = [row["exclusion_reason"] for row in participants]
     assert written == ["'" + r if r != "left early" else r for r in reasons.values()]
-    assert participants[0]["worker_id"] == "'-W"
+    assert participants[0]["platform_participant_id"] == "'-W"
     notes = [row["note"] for row in changes if row["status"] == "excluded"]
     assert notes == written
     # The numbers stay numbers, and the data dictionary says what was done.

@@ -17,13 +17,13 @@ import pandas as pd
 import pytest
 from fastapi.testclient import TestClient
 
-from server.app.config import StudyConfig
 from server.app.export.columns import DICTIONARY
 from server.app.export.quality import Thresholds, quality_table
 from server.app.export.tables import export_tables
 from server.app.main import create_app
 from server.app.settings import Settings
 from server.app.storage.db import Database
+from server.app.study_file import StudyConfig
 from server.commands.simulated import (
     LightClient,
     ParticipantRun,

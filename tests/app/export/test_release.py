@@ -26,13 +26,13 @@ import pandas as pd
 import pytest
 from fastapi.testclient import TestClient
 
-from server.app.config import DEFAULT_STUDY_CONFIG, load_study_config
 from server.app.export.columns import DICTIONARY, FILES, INT
 from server.app.export.release import FOREIGN_KEYS, HUMAN_ANSWERS
 from server.app.export.release.feedback import FEEDBACK
 from server.app.export.release.psych_ds import DESCRIPTION_FILE
 from server.app.main import create_app
 from server.app.storage.db import Database
+from server.app.study_file import DEFAULT_STUDY_CONFIG, load_study_config
 from server.commands.main import main
 from server.commands.simulated import SimulatedParticipant, TeachingPlan
 from tests.support.databases import migrated_sqlite
@@ -519,7 +519,7 @@ def test_after_an_erasure_every_format_validates_without_the_participant(
     check_psych_ds(out / "psych-ds", counts)
     assert counts["erasures"] == 1 and counts["participants"] == 1
     who = int(erased["participant_id"])
-    pseudonyms = {erased["worker_id"], erased["assignment_id"]}
+    pseudonyms = {erased["platform_participant_id"], erased["platform_submission_id"]}
     for path in out.rglob("*"):
         if path.is_dir() or "erasures" in path.name:
             continue

@@ -47,7 +47,11 @@ def test_mturk_arrival_creates_a_participant_with_an_httponly_cookie(
     with db.read() as s:
         row = s.scalars(select(ParticipantRow)).one()
         assert body["token"] not in row.token_hash  # only a hash is stored
-        assert row.worker_id == "W1" and row.assignment_id == "A1" and row.submit_to == MTURK
+        assert (
+            row.platform_participant_id == "W1"
+            and row.platform_submission_id == "A1"
+            and row.submit_to == MTURK
+        )
 
 
 def test_preview_creates_nothing(client: TestClient, db: Database) -> None:
@@ -460,7 +464,9 @@ def test_the_submit_url_is_built_from_the_accepted_origin(client: TestClient, db
         assert response.status_code == 201, (value, response.text)
         with db.read() as s:
             stored = s.scalar(
-                select(ParticipantRow.submit_to).where(ParticipantRow.worker_id == f"W{number}")
+                select(ParticipantRow.submit_to).where(
+                    ParticipantRow.platform_participant_id == f"W{number}"
+                )
             )
         assert stored == origin
     # Another port of this server's host is another origin.

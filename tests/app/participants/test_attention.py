@@ -12,11 +12,11 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
-from server.app.config import AttentionChecks, StudyConfig, StudyConfigError
 from server.app.participants.assignment import draw_check_cells
 from server.app.rights.erasure import erase_participant
 from server.app.storage.db import Database
 from server.app.storage.models import AttentionCheck, Event
+from server.app.study_file import AttentionChecks, StudyConfig, StudyConfigError
 from tests.support.server import (
     Participant,
     demonstrate_each_task,

@@ -14,11 +14,11 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from server.app.config import StudyConfig
 from server.app.participants.device import browser_name
 from server.app.platforms.prolific import INCOMPATIBLE_DEVICE_REASON, draft_study
 from server.app.storage.db import Database
 from server.app.storage.models import Participant, StatusChange
+from server.app.study_file import StudyConfig
 from tests.support.server import ADMIN_TOKEN, TOKEN_HEADER, new_participant, study_config
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}

@@ -15,13 +15,13 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select, update
 
-from server.app.config import StudyConfig
 from server.app.participants import assignment, tokens
 from server.app.participants.statuses import mark_abandoned
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import LearningSession, StatusChange, utcnow
 from server.app.storage.models import Participant as ParticipantRow
+from server.app.study_file import StudyConfig
 from tests.support.server import (
     ADMIN_TOKEN,
     Participant,

@@ -127,14 +127,14 @@ def test_a_waiting_participant_is_not_abandoned_nor_assigned_a_domain(
         s.execute(update(ParticipantRow).values(last_seen_at=long_ago))
     assert mark_abandoned(db, settings) == 2  # the two in the study, not the one waiting
     with db.read() as s:
-        rows = {p.worker_id: p for p in s.query(ParticipantRow)}
+        rows = {p.platform_participant_id: p for p in s.query(ParticipantRow)}
     assert rows["W3"].status == "waiting" and rows["W3"].domain is None
     # The abandoned ones hold no place any more: the waiting one goes in, and only then is
     # assigned a domain, at consent.
     assert place(waiting)["admitted"] is True
     waiting.act("/api/participant/consent", agree=True)
     with db.read() as s:
-        row = s.query(ParticipantRow).filter_by(worker_id="W3").one()
+        row = s.query(ParticipantRow).filter_by(platform_participant_id="W3").one()
     assert row.status == "consented" and row.domain is not None
 
 
@@ -149,7 +149,7 @@ def test_a_waiting_page_that_stopped_asking_leaves_the_line(
     with db.write() as s:
         s.execute(
             update(ParticipantRow)
-            .where(ParticipantRow.worker_id == "W3")
+            .where(ParticipantRow.platform_participant_id == "W3")
             .values(last_seen_at=utcnow() - timedelta(minutes=5))
         )
     assert place(still)["ahead"] == 0

@@ -13,17 +13,17 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
-from server.app.config import (
+from server.app.export.files import dictionary_frame
+from server.app.export.tables import export_tables
+from server.app.storage.db import Database
+from server.app.storage.models import QuestionnaireAnswer, StatusChange
+from server.app.study_file import (
     DEFAULT_STUDY_CONFIG,
     StudyConfig,
     StudyConfigError,
     load_study_config,
     parse_study_config,
 )
-from server.app.export.files import dictionary_frame
-from server.app.export.tables import export_tables
-from server.app.storage.db import Database
-from server.app.storage.models import QuestionnaireAnswer, StatusChange
 from tests.support.server import FAST_LEARNERS, Participant, demonstrate_each_task
 
 EXAMPLE = Path(__file__).resolve().parents[3] / "server" / "examples" / "questionnaire-study.toml"

@@ -10,11 +10,11 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from server.app.config import StudyConfig
 from server.app.main import create_app
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import LearnerUpdate
+from server.app.study_file import StudyConfig
 from server.domains import make
 from server.domains.base import ACTIONS
 from server.teacher import Teacher

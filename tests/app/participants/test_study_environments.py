@@ -13,15 +13,14 @@ import pytest
 from pydantic import ValidationError
 
 from server import domains
-from server.app import config, study_file
-from server.app.config import (
+from server.app.study_file import (
     DEFAULT_STUDY_CONFIG,
+    EnvironmentDefinition,
     StudyConfig,
     StudyConfigError,
     load_study_config,
     parse_study_config,
 )
-from server.app.study_file import EnvironmentDefinition
 from server.commands.main import main
 from server.domains.spec import EnvironmentSpec
 
@@ -51,14 +50,23 @@ def forget() -> Iterator[None]:
 
 def test_an_inline_map_is_an_environment_of_the_study(forget: None) -> None:
     study = parse_study_config(
-        study_data(corridor={"family": "navigation", "map": CORRIDOR, "horizon": 9})
+        study_data(corridor={"domain": "navigation", "map": CORRIDOR, "horizon": 9})
     )
     (spec,) = study.environment_specs()
-    assert (spec.name, spec.family, spec.horizon) == ("corridor", "navigation", 9)
+    assert (spec.name, spec.domain, spec.horizon) == ("corridor", "navigation", 9)
     study.register_environments()
     env = domains.make("corridor")
     assert (env.height, env.width, env.horizon, env.task_names) == (2, 4, 9, ("A",))
     assert domains.domain_of("corridor") == "navigation"
+
+
+def test_family_the_former_name_of_domain_is_still_accepted_but_not_beside_it() -> None:
+    study = parse_study_config(study_data(corridor={"family": "navigation", "map": CORRIDOR}))
+    assert study.environments["corridor"].domain == "navigation"
+    assert study.environment_specs()[0].domain == "navigation"
+    both = {"family": "navigation", "domain": "navigation", "map": CORRIDOR}
+    with pytest.raises(StudyConfigError, match="give domain or family \\(its former name\\)"):
+        parse_study_config(study_data(corridor=both))
 
 
 def test_an_environment_table_has_the_keys_of_an_environment_spec() -> None:
@@ -67,32 +75,27 @@ def test_an_environment_table_has_the_keys_of_an_environment_spec() -> None:
     gives back the spec."""
     keys = [f for f in dataclasses.fields(EnvironmentSpec) if f.name != "name"]
     table = EnvironmentDefinition.model_fields
-    assert list(table) == ["family", "map", "map_file", *(f.name for f in keys[2:])]
+    assert list(table) == ["domain", "map", "map_file", *(f.name for f in keys[2:])]
     plain = EnvironmentSpec("corridor", "navigation", CORRIDOR)
     for spec_field in keys[2:]:
         default = table[spec_field.name].get_default(call_default_factory=True)
         assert default == getattr(plain, spec_field.name)
     assert all(table[name].description for name in table)
     with pytest.raises(ValidationError, match="less than or equal to 1000"):
-        EnvironmentDefinition(family="navigation", map=CORRIDOR, horizon=1001)
+        EnvironmentDefinition(domain="navigation", map=CORRIDOR, horizon=1001)
     with pytest.raises(ValidationError, match="'navigation', 'gravity' or 'farming'"):
-        EnvironmentDefinition(family="cooking", map=CORRIDOR)
+        EnvironmentDefinition(domain="cooking", map=CORRIDOR)
     every = {"horizon": 9, "colours": {"vines": "#6b8e23"}, "max_trapped_start_share": 0.5}
-    definition = EnvironmentDefinition(family="navigation", map=CORRIDOR, **every)
+    definition = EnvironmentDefinition(domain="navigation", map=CORRIDOR, **every)
     assert definition.spec("corridor") == EnvironmentSpec(
         "corridor", "navigation", CORRIDOR, **every
     )
 
 
-def test_the_former_module_path_gives_the_same_names() -> None:
-    for name in study_file.__all__:
-        assert getattr(config, name) is getattr(study_file, name)
-
-
 def test_a_map_file_is_read_relative_to_the_study_file(tmp_path: Path) -> None:
     (tmp_path / "maps").mkdir()
     (tmp_path / "maps" / "corridor.txt").write_text(CORRIDOR)
-    data = study_data(corridor={"family": "navigation", "map_file": "maps/corridor.txt"})
+    data = study_data(corridor={"domain": "navigation", "map_file": "maps/corridor.txt"})
     study = parse_study_config(data, base=tmp_path)
     assert study.environments["corridor"].map == CORRIDOR
     with pytest.raises(StudyConfigError, match="cannot read map_file"):
@@ -101,9 +104,9 @@ def test_a_map_file_is_read_relative_to_the_study_file(tmp_path: Path) -> None:
 
 def test_every_problem_of_every_map_is_listed_with_its_line_and_column() -> None:
     data = study_data(
-        first={"family": "navigation", "map": CORRIDOR.replace("  1 ....", "  1 ..x.")},
-        second={"family": "gravity", "map": "task: A\nstart: anywhere\n    01\n  0 Ao\n"},
-        third={"family": "navigation", "map": CORRIDOR, "terrains": {"v": "vines"}},
+        first={"domain": "navigation", "map": CORRIDOR.replace("  1 ....", "  1 ..x.")},
+        second={"domain": "gravity", "map": "task: A\nstart: anywhere\n    01\n  0 Ao\n"},
+        third={"domain": "navigation", "map": CORRIDOR, "terrains": {"v": "vines"}},
     )
     with pytest.raises(StudyConfigError) as raised:
         parse_study_config(data, "study.toml")
@@ -115,14 +118,14 @@ def test_every_problem_of_every_map_is_listed_with_its_line_and_column() -> None
 
 
 def test_a_map_larger_than_the_study_allows_is_refused() -> None:
-    data = study_data(corridor={"family": "navigation", "map": CORRIDOR})
+    data = study_data(corridor={"domain": "navigation", "map": CORRIDOR})
     data["max_environment_states"] = 7
     with pytest.raises(StudyConfigError, match=r"8 states .* more than the 7 the study allows"):
         parse_study_config(data)
 
 
 def test_a_domain_lists_only_its_family_s_environments_and_known_names() -> None:
-    data = study_data(corridor={"family": "navigation", "map": CORRIDOR})
+    data = study_data(corridor={"domain": "navigation", "map": CORRIDOR})
     data["domains"] = [{"name": "farming", "environments": ["corridor", "two-fields"]}]
     with pytest.raises(StudyConfigError, match="'corridor' is a navigation environment"):
         parse_study_config(data)
@@ -130,7 +133,7 @@ def test_a_domain_lists_only_its_family_s_environments_and_known_names() -> None
     with pytest.raises(StudyConfigError, match="no environment 'kitchen'; valid: wall, "):
         parse_study_config(data)
     for name in ("doorway", "Bad_Name"):
-        bad = study_data(**{name: {"family": "navigation", "map": CORRIDOR}})
+        bad = study_data(**{name: {"domain": "navigation", "map": CORRIDOR}})
         with pytest.raises(StudyConfigError, match=f"'{name}'"):
             parse_study_config(bad)
 

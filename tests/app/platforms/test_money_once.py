@@ -25,7 +25,7 @@ from server.app.platforms import review
 from server.app.platforms.mturk import MTurkClientBackend, MTurkReplicaBackend
 from server.app.platforms.review import bonuses, decisions, parse_amount
 from server.app.storage.db import Database
-from server.app.storage.models import AssignmentReview, Bonus, Participant, utcnow
+from server.app.storage.models import Bonus, Participant, Review, utcnow
 from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus
 from tests.support.server import ADMIN_TOKEN, BOUND
 
@@ -111,9 +111,9 @@ def submitted(db: Database, worker: str, assignment: str, platform: str = "mturk
         p = Participant(
             token_hash=os.urandom(32).hex(),
             platform=platform,
-            worker_id=worker,
-            assignment_id=assignment,
-            hit_id="HIT1",
+            platform_participant_id=worker,
+            platform_submission_id=assignment,
+            platform_study_id="HIT1",
             status="submitted",
         )
         s.add(p)
@@ -198,9 +198,7 @@ def test_an_mturk_decision_taken_then_lost_is_recorded_once(
     late = client.post(f"{BASE}/{participant}/rejection", json={"message": "no"}, headers=ADMIN)
     assert late.status_code == 409 and "already approved" in late.text
     with db.read() as s:
-        assert list(s.execute(select(AssignmentReview.decision, AssignmentReview.state))) == [
-            ("approved", "done")
-        ]
+        assert list(s.execute(select(Review.decision, Review.state))) == [("approved", "done")]
 
 
 def test_concurrent_duplicate_bonuses_pay_once_and_both_answer_the_bonus(
@@ -362,7 +360,7 @@ def test_an_approval_refused_while_its_duplicate_waits_is_refused_to_both(
     assert answers == {"first": refusal, "second": refusal}
     assert backend.calls == 2  # the second asked the platform itself
     with db.read() as s:
-        assert s.scalars(select(AssignmentReview)).all() == []
+        assert s.scalars(select(Review)).all() == []
 
 
 def test_reconcile_settles_every_unsettled_mturk_bonus_without_paying_again(
@@ -499,7 +497,7 @@ def test_bad_amounts_and_texts_are_refused_by_the_dashboard_and_store_nothing(
         assert answer.status_code == 422 and "message" in answer.text, answer.text
     assert our_bonuses(db) == []
     with db.read() as s:
-        assert s.scalar(select(AssignmentReview)) is None
+        assert s.scalar(select(Review)) is None
 
 
 def test_the_reconciliation_endpoint_settles_a_dropped_bonus_once(

@@ -10,8 +10,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from server.app import config, schemas
-from server.app.config import StudyConfig, StudyConfigError
+from server.app import schemas, study_file
 from server.app.platform_registry import PLATFORMS, arrival_parameters, names, platform
 from server.app.platforms.base import ID_PATTERN, BasePlatform, Handing
 from server.app.rights.scrub import with_ids
@@ -19,6 +18,7 @@ from server.app.rights.withdrawal import Withdrawal
 from server.app.settings import Settings, review_backends
 from server.app.storage.db import Database
 from server.app.storage.models import Participant as ParticipantRow
+from server.app.study_file import StudyConfig, StudyConfigError
 from tests.support.server import Participant, demonstrate_each_task, study_config
 
 
@@ -26,7 +26,7 @@ class Toy(BasePlatform):
     name = "toy"
     display_name = "Toy Crowd"
     parameters = {"TOY_ID": ID_PATTERN, "TOY_TURN": ID_PATTERN}
-    ids = {"worker_id": "TOY_ID", "assignment_id": "TOY_TURN"}
+    ids = {"platform_participant_id": "TOY_ID", "platform_submission_id": "TOY_TURN"}
     done = "Your data has been deleted. Toy Crowd forgets your turn too."
 
     def handing(self, participant: Any, study: StudyConfig, code: str) -> Handing:
@@ -75,7 +75,11 @@ def test_a_toy_participant_takes_the_study_to_its_completion(
     assert participant.act("/api/participant/submission")["participant"]["status"] == "submitted"
     with db.read() as s:
         row = s.scalars(select(ParticipantRow)).one()
-        assert (row.platform, row.worker_id, row.assignment_id) == ("toy", "TOY1", "TTOY1")
+        assert (row.platform, row.platform_participant_id, row.platform_submission_id) == (
+            "toy",
+            "TOY1",
+            "TTOY1",
+        )
     # The same ids again: the same participant, resumed.
     again = client.post("/api/arrivals", json={"TOY_ID": "TOY1", "TOY_TURN": "TTOY1"})
     assert again.status_code == 200 and again.json()["resumed"]
@@ -109,7 +113,7 @@ def enum(model: Any, field: str) -> list[str]:
 def test_every_list_of_platform_names_is_the_registry_s() -> None:
     every = ["lab", "mturk", "prolific", "toy"]
     assert list(names()) == every
-    assert enum(config.Completion, "mode") == every
+    assert enum(study_file.Completion, "mode") == every
     assert enum(schemas.Completion, "mode") == every
     assert enum(schemas.ParticipantState, "platform") == every
     assert enum(Withdrawal, "platform") == every

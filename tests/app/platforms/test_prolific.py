@@ -19,7 +19,6 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from server.app.config import StudyConfig, StudyConfigError
 from server.app.errors import ApiError
 from server.app.export.tables import export_tables
 from server.app.main import create_app
@@ -40,6 +39,7 @@ from server.app.storage.replica_models import (
     ProlificReplicaPayment,
     ProlificReplicaSubmission,
 )
+from server.app.study_file import StudyConfig, StudyConfigError
 from tests.support.server import ADMIN_TOKEN, live, study_config
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
@@ -359,9 +359,9 @@ def prolific_participant(
         p = Participant(
             token_hash=os.urandom(32).hex(),
             platform="prolific",
-            worker_id=pid,
-            assignment_id=submission,
-            hit_id=study["id"],
+            platform_participant_id=pid,
+            platform_submission_id=submission,
+            platform_study_id=study["id"],
             status="submitted",
         )
         s.add(p)

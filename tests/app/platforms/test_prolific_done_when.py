@@ -18,7 +18,6 @@ import httpx
 import pytest
 from sqlalchemy import select
 
-from server.app.config import StudyConfig
 from server.app.export.tables import export_tables
 from server.app.main import create_app
 from server.app.platforms.prolific import ProlificBackend, ProlificClient, draft_study
@@ -28,6 +27,7 @@ from server.app.storage.db import Database
 from server.app.storage.models import Participant as ParticipantRow
 from server.app.storage.models import utcnow
 from server.app.storage.replica_models import ProlificReplicaMessage, ProlificReplicaPayment
+from server.app.study_file import StudyConfig
 from server.app.updates.queue import QueueState
 from server.commands.main import main
 from tests.app.platforms.test_prolific import FailingPay

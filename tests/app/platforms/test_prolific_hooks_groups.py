@@ -18,7 +18,6 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from server.app.config import StudyConfig
 from server.app.main import create_app
 from server.app.platforms import review
 from server.app.platforms.prolific import ProlificBackend, ProlificClient, ProlificRefused
@@ -27,6 +26,7 @@ from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Bonus, Participant
 from server.app.storage.replica_models import ProlificReplicaStudy
+from server.app.study_file import StudyConfig
 from tests.app.platforms.test_prolific import (
     ADMIN,
     age,
@@ -148,7 +148,9 @@ def participant_of(
     arrived = httpx.post(f"{base}/api/arrivals", json=ids)
     assert arrived.status_code == 201, arrived.text
     with db.read() as s:
-        p = s.scalar(select(Participant).where(Participant.assignment_id == ids["SESSION_ID"]))
+        p = s.scalar(
+            select(Participant).where(Participant.platform_submission_id == ids["SESSION_ID"])
+        )
         assert p is not None
         return ids["SESSION_ID"], p.id
 

@@ -17,7 +17,6 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from server.app.config import StudyConfig
 from server.app.export.tables import export_tables
 from server.app.main import create_app
 from server.app.platforms.prolific import ProlificClient
@@ -27,6 +26,7 @@ from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Participant
 from server.app.storage.replica_models import ProlificReplicaSubmission
+from server.app.study_file import StudyConfig
 from tests.app.platforms.test_prolific import ADMIN, REASON, draft
 
 # The server with BAM_PROLIFIC_WEBHOOK_SECRET set, and a study that finishes on Prolific.

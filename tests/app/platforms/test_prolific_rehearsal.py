@@ -19,7 +19,6 @@ import httpx
 import pytest
 from sqlalchemy import select
 
-from server.app.config import StudyConfig
 from server.app.export.tables import export_tables
 from server.app.main import create_app
 from server.app.platforms import review
@@ -29,6 +28,7 @@ from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Participant as ParticipantRow
 from server.app.storage.replica_models import ProlificReplicaPayment, ProlificReplicaSubmission
+from server.app.study_file import StudyConfig
 from tests.app.platforms.test_prolific import (
     REASON,
     Crash,

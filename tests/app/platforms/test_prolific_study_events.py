@@ -13,12 +13,12 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
-from server.app.config import StudyConfig
 from server.app.main import create_app
 from server.app.platforms import prolific_sync
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import ProlificEvent, ProlificStudy
+from server.app.study_file import StudyConfig
 from tests.app.platforms.test_prolific import ADMIN, draft
 
 # The server with BAM_PROLIFIC_WEBHOOK_SECRET set, and a study that finishes on Prolific.

@@ -17,7 +17,6 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from server.app.config import StudyConfig
 from server.app.export.tables import export_tables
 from server.app.main import create_app
 from server.app.platforms.prolific import ProlificClient
@@ -32,6 +31,7 @@ from server.app.platforms.prolific_sync import (
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Participant, StatusChange
+from server.app.study_file import StudyConfig
 from tests.app.platforms.test_prolific import ADMIN, draft
 from tests.support.server import ADMIN_TOKEN, live, make_settings, study_config
 from tests.support.server import Participant as Participant_
@@ -61,9 +61,9 @@ def teaching(
         p = Participant(
             token_hash=os.urandom(32).hex(),
             platform="prolific",
-            worker_id=pid,
-            assignment_id=submission,
-            hit_id=study_id,
+            platform_participant_id=pid,
+            platform_submission_id=submission,
+            platform_study_id=study_id,
             status=status,
         )
         s.add(p)
@@ -246,7 +246,7 @@ def test_the_replica_sends_signed_webhooks_that_release_a_returning_participant(
         assert entered.status_code == 200 and entered.url.path == "/study", entered.url
         with db.read() as s:
             (ours,) = s.scalars(select(Participant.id))
-            submission = s.scalar(select(Participant.assignment_id))
+            submission = s.scalar(select(Participant.platform_submission_id))
         browser.post(f"/prolific/submissions/{submission}/return")
         deadline = time.monotonic() + 60
         while status_of(db, ours) != ("returned", "RETURNED"):

@@ -14,12 +14,12 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from server.app.config import StudyConfig
 from server.app.main import create_app
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Participant
 from server.app.storage.replica_models import ReplicaAssignment, ReplicaHit
+from server.app.study_file import StudyConfig
 from tests.support.server import ADMIN_TOKEN, BOUND, live
 
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
@@ -75,8 +75,8 @@ def test_the_holder_of_a_reused_assignment_keeps_it(client: TestClient, db: Data
 
     def server_statuses() -> dict[str, str]:
         with db.read() as s:
-            rows = s.execute(select(Participant.worker_id, Participant.status)).all()
-        return {row.worker_id: row.status for row in rows}
+            rows = s.execute(select(Participant.platform_participant_id, Participant.status)).all()
+        return {row.platform_participant_id: row.status for row in rows}
 
     def replica_statuses() -> list[tuple[str, str]]:
         with db.read() as s:

@@ -13,7 +13,6 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
-from server.app.config import StudyConfig
 from server.app.errors import ApiError
 from server.app.export.files import dictionary_frame
 from server.app.export.tables import export_tables
@@ -22,8 +21,9 @@ from server.app.platforms.mturk import MTurkClientBackend, MTurkReplicaBackend
 from server.app.platforms.review import Reviewed, ReviewRefused, ReviewUnavailable
 from server.app.settings import Settings
 from server.app.storage.db import Database
-from server.app.storage.models import AssignmentReview, Bonus
+from server.app.storage.models import Bonus, Review
 from server.app.storage.replica_models import ReplicaAssignment, ReplicaBonus
+from server.app.study_file import StudyConfig
 from tests.support.server import (
     ADMIN_TOKEN,
     Participant,
@@ -88,7 +88,7 @@ def counts(db: Database) -> tuple[int, int, int, list[str]]:
     """Rows of the study's reviews and bonuses, the replica's bonuses, and its statuses."""
     with db.read() as s:
         return (
-            int(s.scalar(select(func.count()).select_from(AssignmentReview)) or 0),
+            int(s.scalar(select(func.count()).select_from(Review)) or 0),
             int(s.scalar(select(func.count()).select_from(Bonus)) or 0),
             int(s.scalar(select(func.count()).select_from(ReplicaBonus)) or 0),
             list(s.scalars(select(ReplicaAssignment.status).order_by(ReplicaAssignment.id))),
@@ -141,17 +141,17 @@ def test_approve_reject_and_bonus_show_on_the_replica_and_in_the_export(
     participants = tables["participants"].set_index("participant_id")
     reviews = tables["reviews"]
     assert list(reviews["decision"]) == ["approved", "rejected"]
-    assert list(reviews["assignment_id"]) == [
-        participants.loc[first, "assignment_id"],
-        participants.loc[second, "assignment_id"],
+    assert list(reviews["platform_submission_id"]) == [
+        participants.loc[first, "platform_submission_id"],
+        participants.loc[second, "platform_submission_id"],
     ]
-    assert all(value.startswith("w_") for value in reviews["worker_id"])
+    assert all(value.startswith("w_") for value in reviews["platform_participant_id"])
     bonuses = tables["bonuses"]
     assert list(bonuses["amount"]) == ["1.50", "0.25"]
     assert set(bonuses["payment_state"]) == {"paid"} and set(bonuses["currency"]) == {"USD"}
     assert list(bonuses["participant_id"]) == [first, first]
     plain = export_tables(db, pseudonymize=False)
-    assert list(plain["bonuses"]["worker_id"]) == ["WORKER1", "WORKER1"]
+    assert list(plain["bonuses"]["platform_participant_id"]) == ["WORKER1", "WORKER1"]
     dictionary = dictionary_frame()
     for name in ("reviews", "bonuses"):
         described = dictionary[dictionary["file"] == f"{name}.csv"]

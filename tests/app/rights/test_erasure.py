@@ -13,7 +13,6 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from server.app.config import StudyConfig
 from server.app.errors import ApiError
 from server.app.export.minari import StudyFile, study_datasets
 from server.app.export.tables import export_tables
@@ -27,6 +26,7 @@ from server.app.storage.models import (
     LearningSession,
     Participant,
 )
+from server.app.study_file import StudyConfig
 from tests.support.server import (
     ADMIN_TOKEN,
     demonstrate_each_task,
@@ -140,7 +140,9 @@ def test_an_erasure_removes_every_row_of_the_participant_and_no_other(
         sessions = set(
             s.scalars(select(LearningSession.id).where(LearningSession.participant_id == second))
         )
-        assignment = s.scalar(select(Participant.assignment_id).where(Participant.id == second))
+        assignment = s.scalar(
+            select(Participant.platform_submission_id).where(Participant.id == second)
+        )
     assert assignment is not None
     assert "WORKERTWO" in text_in_database(db) and assignment in text_in_database(db)
     before = snapshot(db)
@@ -181,7 +183,7 @@ def test_an_erasure_removes_every_row_of_the_participant_and_no_other(
         "status_changes",
         "questionnaire_answers",
         "participant_tokens",
-        "assignment_reviews",
+        "reviews",
         "bonuses",
     }
 
@@ -204,8 +206,8 @@ def test_an_erasure_removes_every_row_of_the_participant_and_no_other(
         "experimenter",
         "mturk",
     )
-    assert audit["worker_pseudonym"] == pseudonym(secret, "WORKERTWO", "w")
-    assert audit["assignment_pseudonym"] == pseudonym(secret, assignment, "a")
+    assert audit["platform_participant_pseudonym"] == pseudonym(secret, "WORKERTWO", "w")
+    assert audit["platform_submission_pseudonym"] == pseudonym(secret, assignment, "a")
     left = text_in_database(db, leave_out=replica_tables)
     assert "WORKERTWO" not in left and assignment not in left and "second remark" not in left
 
@@ -218,7 +220,7 @@ def test_an_erasure_removes_every_row_of_the_participant_and_no_other(
     assert {first, third} <= set(tables["events"]["participant_id"])
     row = tables["erasures"].iloc[0].to_dict()
     assert row["participant_id"] == second and row["erased_by"] == "experimenter"
-    assert row["worker_id"] == pseudonym(secret, "WORKERTWO", "w")
+    assert row["platform_participant_id"] == pseudonym(secret, "WORKERTWO", "w")
     assert row["events_rows"] == removed["events"] > 0
     # So do the Minari datasets.
     study_file = tmp_path / "study.toml"
@@ -321,7 +323,6 @@ def test_a_table_added_with_a_key_to_a_participant_is_erased_without_a_word_else
     # The study's own tables today, and none of the platform replicas' (their participant_id
     # is a platform's id): what erasure deletes besides the replica rows of the turn.
     assert set(today) == {
-        "assignment_reviews",
         "attention_checks",
         "bonuses",
         "episodes",
@@ -331,6 +332,7 @@ def test_a_table_added_with_a_key_to_a_participant_is_erased_without_a_word_else
         "messages",
         "participant_tokens",
         "questionnaire_answers",
+        "reviews",
         "status_changes",
     }
 

@@ -29,9 +29,9 @@ def add_participants(db: Database) -> tuple[int, int]:
                 token_hash=f"{number}" * 64,
                 platform="prolific",
                 status="submitted",
-                worker_id=worker,
-                assignment_id=f"{worker}-SESSION",
-                hit_id="STUDY1",
+                platform_participant_id=worker,
+                platform_submission_id=f"{worker}-SESSION",
+                platform_study_id="STUDY1",
             )
             for number, worker in ((1, ERASED), (2, SCRUBBED))
         ]
@@ -90,7 +90,10 @@ def test_an_erasure_and_a_scrub_leave_no_raw_id_in_the_files(db: Database) -> No
     # The rows that remain are intact: the scrubbed participant, under pseudonyms.
     with db.read() as s:
         (left,) = s.query(Participant).all()
-    assert left.worker_id is not None and left.worker_id != SCRUBBED
+    assert left.platform_participant_id is not None and left.platform_participant_id != SCRUBBED
+
+
+PLATFORM_ID_COLUMNS = ("platform_participant_id", "platform_submission_id", "platform_study_id")
 
 
 def test_every_table_with_a_platform_id_column_is_rewritten_on_postgresql() -> None:
@@ -98,7 +101,8 @@ def test_every_table_with_a_platform_id_column_is_rewritten_on_postgresql() -> N
         table.name
         for table in Base.metadata.sorted_tables
         for column in table.columns
-        if column.name in ("worker_id", "assignment_id", "hit_id")
+        # The study's names for a platform's ids, and the MTurk replica's (MTurk's words).
+        if column.name in (*PLATFORM_ID_COLUMNS, "worker_id", "assignment_id", "hit_id")
         or (column.name == "participant_id" and isinstance(column.type, String))
     }
     assert holding <= set(PLATFORM_ID_TABLES)

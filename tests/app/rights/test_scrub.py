@@ -12,12 +12,12 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
-from server.app.config import StudyConfig
 from server.app.export.minari import StudyFile, study_datasets
 from server.app.export.tables import export_tables
 from server.app.rights.scrub import scrub
 from server.app.storage.db import Database
 from server.app.storage.models import Erasure, Participant, utcnow
+from server.app.study_file import StudyConfig
 from server.commands.main import main
 from tests.app.rights.test_erasure import replica_worker, snapshot, text_in_database
 from tests.app.rights.test_erasure import study as study
@@ -29,7 +29,11 @@ ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
 def raw_identifiers(db: Database) -> set[str]:
     with db.read() as s:
         rows = s.execute(
-            select(Participant.worker_id, Participant.assignment_id, Participant.completion_code)
+            select(
+                Participant.platform_participant_id,
+                Participant.platform_submission_id,
+                Participant.completion_code,
+            )
         ).all()
     return {value for row in rows for value in row if value}
 
@@ -143,7 +147,7 @@ def test_the_prolific_replica_s_rows_are_scrubbed_and_erased(
         )
         assert paid.status_code == 200, paid.text
     with db.read() as s:
-        pids = {p.id: p.worker_id for p in s.scalars(select(Participant))}
+        pids = {p.id: p.platform_participant_id for p in s.scalars(select(Participant))}
     (kept, kept_session, _), (erased, erased_session, erased_study) = people
     url = db.engine.url.render_as_string(hide_password=False)
 

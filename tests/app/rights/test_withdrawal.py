@@ -9,12 +9,12 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
-from server.app.config import StudyConfig
 from server.app.platforms.mturk import MTURK
 from server.app.platforms.prolific_platform import PROLIFIC
 from server.app.rights.pseudonyms import database_secret, pseudonym
 from server.app.storage.db import Database
 from server.app.storage.models import Erasure, Participant
+from server.app.study_file import StudyConfig
 from server.commands.main import main
 from tests.support.server import (
     ADMIN_TOKEN,
@@ -32,7 +32,8 @@ ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
 def participants(db: Database) -> list[tuple[int, str | None]]:
     with db.read() as s:
         return [
-            (p.id, p.worker_id) for p in s.scalars(select(Participant).order_by(Participant.id))
+            (p.id, p.platform_participant_id)
+            for p in s.scalars(select(Participant).order_by(Participant.id))
         ]
 
 
@@ -101,7 +102,7 @@ def test_a_prolific_participant_is_sent_back_with_the_no_consent_code(
 
 
 def test_the_study_file_checks_the_no_consent_code() -> None:
-    from server.app.config import StudyConfigError
+    from server.app.study_file import StudyConfigError
 
     with pytest.raises(StudyConfigError, match="prolific_no_consent_code"):
         study_config(
@@ -126,7 +127,7 @@ def test_the_experimenter_erases_from_the_admin_api(
     erased = client.post(f"/api/admin/participants/{first}/erasure", headers=ADMIN)
     assert erased.status_code == 200, erased.text
     secret = database_secret(db)
-    assert erased.json()["worker_pseudonym"] == pseudonym(secret, "W1", "w")
+    assert erased.json()["platform_participant_pseudonym"] == pseudonym(secret, "W1", "w")
     assert erased.json()["rows"]["participants"] == 1
     again = client.post(f"/api/admin/participants/{second}/erasure", headers=ADMIN)
     assert again.status_code == 200, again.text

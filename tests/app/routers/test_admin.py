@@ -63,7 +63,11 @@ def test_participants_sessions_exclusion_and_replay(client: TestClient, db: Data
     listing = client.get("/api/admin/participants", headers=ADMIN).json()
     assert [p["participant_id"] for p in listing] == [1, 2]
     first = listing[0]
-    assert first["worker_id"] == "W1" and first["status"] == "teaching" and first["agents"] == 6
+    assert (
+        first["platform_participant_id"] == "W1"
+        and first["status"] == "teaching"
+        and first["agents"] == 6
+    )
     assert first["agents_finished"] == 0 and first["excluded"] is False and first["minutes"] >= 0
     assert (
         client.get("/api/admin/participants?status=tutorial", headers=ADMIN).json()[0][

@@ -15,11 +15,11 @@ import pytest
 import schemathesis
 from hypothesis import HealthCheck, given, settings
 
-from server.app.config import StudyConfig
 from server.app.main import create_app
 from server.app.participants.tokens import TOKEN_HEADER
 from server.app.settings import Settings
 from server.app.storage.db import Database
+from server.app.study_file import StudyConfig
 from tests.support.server import ADMIN_TOKEN, live, teaching_participant, wait_until_ready
 
 # Bounded, so that the whole run (both backends) takes a few minutes.

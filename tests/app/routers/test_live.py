@@ -22,7 +22,6 @@ from pydantic import ValidationError
 from sqlalchemy import func, select, text
 
 from analysis.options import DEFAULT_THRESHOLDS
-from server.app.config import StudyConfig
 from server.app.live import curves, funnel
 from server.app.live.broadcast import Broadcast
 from server.app.live.mirror import mirror_view
@@ -31,6 +30,7 @@ from server.app.main import create_app
 from server.app.settings import Settings
 from server.app.storage.db import Database
 from server.app.storage.models import Event, Participant, utcnow
+from server.app.study_file import StudyConfig
 from tests.support.server import (
     ADMIN_TOKEN,
     demonstrate_each_task,
@@ -103,7 +103,7 @@ def test_the_funnel_counts_each_stage_as_the_database_does(
     # Idle too long: no request for longer than IDLE_MINUTES.
     with db.transaction() as c:
         c.execute(
-            text("UPDATE participants SET last_seen_at = :at WHERE worker_id = 'W4'"),
+            text("UPDATE participants SET last_seen_at = :at WHERE platform_participant_id = 'W4'"),
             {"at": "2000-01-01 00:00:00"},
         )
     again = client.get(f"{LIVE}/funnel", headers=ADMIN).json()
@@ -165,7 +165,11 @@ def test_the_streamed_funnel_equals_the_database_at_each_moment(
         with httpx.Client(base_url=base) as browser:
             new_participant(browser, "W6", "A6")
         with db.transaction() as c:
-            c.execute(text("UPDATE participants SET status = 'returned' WHERE worker_id = 'W4'"))
+            c.execute(
+                text(
+                    "UPDATE participants SET status = 'returned' WHERE platform_participant_id = 'W4'"
+                )
+            )
         for _, _, snapshot in stream:
             if snapshot["stages"]["returned"] == 1 and snapshot["participants_total"] == 6:
                 break
@@ -288,7 +292,9 @@ def test_the_live_views_read_in_a_process_of_their_own_that_is_replaced_when_it_
     teacher.act(f"/api/sessions/{tutorial}/move", action="LEFT")
     wait_for_updates(db)  # the funnel's queue is the same at both reads
     with db.read() as s:
-        participant_id = s.scalar(select(Participant.id).where(Participant.worker_id == "WREAD"))
+        participant_id = s.scalar(
+            select(Participant.id).where(Participant.platform_participant_id == "WREAD")
+        )
     assert participant_id is not None
     state = client.app.state.server  # type: ignore[attr-defined]
     assert state.settings.live_reader == "process"

@@ -3,15 +3,18 @@ an out-of-date PostgreSQL schema with a clear message."""
 
 from __future__ import annotations
 
+import json
 import uuid
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import pytest
 from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
 from fastapi.testclient import TestClient
 from sqlalchemy import func, inspect, select, text
+from sqlalchemy.exc import IntegrityError
 
 from server.app.main import create_app
 from server.app.storage.db import (
@@ -203,6 +206,180 @@ def test_0010_renames_prolific_status_and_keeps_it(database_url: str) -> None:
         with db.engine.connect() as c:
             rows = c.execute(text("SELECT id, prolific_status FROM participants ORDER BY id"))
             assert rows.all() == [(1, "APPROVED"), (2, None)]
+        upgrade(db.engine)
+    finally:
+        db.dispose()
+
+
+# What 0019 renames: (table at 0018, its columns there) -> (table at 0019, the same columns).
+RENAMED_0019 = {
+    ("participants", "id, worker_id, assignment_id, hit_id"): (
+        "participants",
+        "id, platform_participant_id, platform_submission_id, platform_study_id",
+    ),
+    ("assignment_reviews", "id, participant_id, assignment_id, worker_id, message"): (
+        "reviews",
+        "id, participant_id, platform_submission_id, platform_participant_id, message",
+    ),
+    ("bonuses", "id, participant_id, assignment_id, worker_id, amount_cents"): (
+        "bonuses",
+        "id, participant_id, platform_submission_id, platform_participant_id, amount_cents",
+    ),
+    ("messages", "id, participant_id, worker_id, study_id"): (
+        "messages",
+        "id, participant_id, platform_participant_id, study_id",
+    ),
+    ("erasures", "id, worker_pseudonym, assignment_pseudonym"): (
+        "erasures",
+        "id, platform_participant_pseudonym, platform_submission_pseudonym",
+    ),
+    ("status_changes", "id, participant_id, status"): (
+        "status_changes",
+        "id, participant_id, status",
+    ),
+}
+
+
+def _rows_0019(c: Any, renamed: bool) -> dict[str, list[tuple[Any, ...]]]:
+    return {
+        old_table: [
+            tuple(row)
+            for row in c.execute(
+                text(
+                    f"SELECT {new[1] if renamed else columns} "
+                    f"FROM {new[0] if renamed else old_table} ORDER BY id"
+                )
+            )
+        ]
+        for (old_table, columns), new in RENAMED_0019.items()
+    }
+
+
+def test_0019_renames_the_platform_ids_and_the_reviews_and_keeps_every_row(
+    database_url: str,
+) -> None:
+    """0019 names a participant's platform ids for any platform (``platform_participant_id``,
+    ``platform_submission_id``, ``platform_study_id``) and ``assignment_reviews`` ``reviews``:
+    the rows written at 0018, in the renamed tables and in the rows that refer to them, are
+    found under the new names going up and under the old ones coming back down, and the
+    constraints still hold under their new names."""
+    db = Database.from_url(database_url)
+    at = {"at": "2026-01-01 10:00:00+00:00"}
+    try:
+        upgrade(db.engine, "0018")
+        with db.engine.begin() as c:
+            c.execute(
+                text(
+                    "INSERT INTO participants (id, token_hash, platform, worker_id, assignment_id, "
+                    "hit_id, status, next_seq, created_at, last_seen_at) VALUES "
+                    "(1, 'h', 'prolific', 'PID1', 'SESSION1', 'STUDY1', 'submitted', 5, :at, :at), "
+                    "(2, 'i', 'lab', NULL, NULL, NULL, 'arrived', 1, :at, :at)"
+                ),
+                at,
+            )
+            c.execute(
+                text(
+                    "INSERT INTO status_changes (id, participant_id, status, at) VALUES "
+                    "(1, 1, 'arrived', :at), (2, 1, 'submitted', :at), (3, 2, 'arrived', :at)"
+                ),
+                at,
+            )
+            c.execute(
+                text(
+                    "INSERT INTO assignment_reviews (id, participant_id, assignment_id, worker_id, "
+                    "decision, message, backend, state, requested_at, decided_at) VALUES "
+                    "(1, 1, 'SESSION1', 'PID1', 'approved', 'Thanks', 'prolific', 'done', :at, :at)"
+                ),
+                at,
+            )
+            c.execute(
+                text(
+                    "INSERT INTO bonuses (id, participant_id, assignment_id, worker_id, "
+                    "amount_cents, currency, reason, unique_token, backend, state, requested_at) "
+                    "VALUES (1, 1, 'SESSION1', 'PID1', 125, 'GBP', 'Well taught', 't1', "
+                    "'prolific', 'paid', :at)"
+                ),
+                at,
+            )
+            c.execute(
+                text(
+                    "INSERT INTO messages (id, participant_id, worker_id, study_id, body, backend, "
+                    "sent_with, answer_status, sent_at) VALUES (1, 1, 'PID1', 'STUDY1', 'Hello', "
+                    "'prolific', 'messages', 204, :at)"
+                ),
+                at,
+            )
+            c.execute(
+                text(
+                    "INSERT INTO erasures (id, erased_at, erased_by, participant_id, platform, "
+                    "worker_pseudonym, assignment_pseudonym, rows) VALUES (1, :at, "
+                    "'experimenter', 9, 'mturk', 'w_1', 'a_1', :rows)"
+                ),
+                {**at, "rows": json.dumps({"participants": 1, "assignment_reviews": 1})},
+            )
+        with db.engine.connect() as c:
+            before = _rows_0019(c, renamed=False)
+        assert all(before.values())
+
+        upgrade(db.engine, "0019")
+        with db.engine.connect() as c:
+            assert _rows_0019(c, renamed=True) == before
+            rows = c.scalar(text("SELECT rows FROM erasures"))
+            assert (json.loads(rows) if isinstance(rows, str) else rows) == {
+                "participants": 1,
+                "reviews": 1,
+            }
+        inspector = inspect(db.engine)
+        assert "assignment_reviews" not in inspector.get_table_names()
+        assert {u["name"] for u in inspector.get_unique_constraints("participants")} >= {
+            "uq_participants_platform_ids"
+        }
+        assert {i["name"] for i in inspector.get_indexes("participants")} >= {
+            "ix_participants_platform_participant_id"
+        }
+        assert {u["name"] for u in inspector.get_unique_constraints("reviews")} == {
+            "uq_reviews_platform_submission_id",
+            "uq_reviews_participant_id",
+        }
+        with pytest.raises(IntegrityError), db.engine.begin() as c:  # still one review each
+            c.execute(
+                text(
+                    "INSERT INTO reviews (participant_id, platform_submission_id, "
+                    "platform_participant_id, decision, backend, state, requested_at) VALUES "
+                    "(1, 'SESSION2', 'PID1', 'approved', 'prolific', 'done', :at)"
+                ),
+                at,
+            )
+        with pytest.raises(IntegrityError), db.engine.begin() as c:  # and to a participant
+            c.execute(
+                text(
+                    "INSERT INTO reviews (participant_id, platform_submission_id, "
+                    "platform_participant_id, decision, backend, state, requested_at) VALUES "
+                    "(7, 'SESSION7', 'PID7', 'approved', 'prolific', 'done', :at)"
+                ),
+                at,
+            )
+        with db.engine.connect() as connection:
+            context = MigrationContext.configure(connection, opts={"compare_type": True})
+            assert compare_metadata(context, Base.metadata) == []
+
+        downgrade(db.engine, "0018")
+        with db.engine.connect() as c:
+            assert _rows_0019(c, renamed=False) == before
+            rows = c.scalar(text("SELECT rows FROM erasures"))
+            assert (json.loads(rows) if isinstance(rows, str) else rows) == {
+                "participants": 1,
+                "assignment_reviews": 1,
+            }
+        inspector = inspect(db.engine)
+        assert "reviews" not in inspector.get_table_names()
+        assert {u["name"] for u in inspector.get_unique_constraints("assignment_reviews")} == {
+            "uq_assignment_reviews_assignment_id",
+            "uq_assignment_reviews_participant_id",
+        }
+        assert {i["name"] for i in inspector.get_indexes("participants")} >= {
+            "ix_participants_worker_id"
+        }
         upgrade(db.engine)
     finally:
         db.dispose()

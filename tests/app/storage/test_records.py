@@ -45,7 +45,7 @@ def new_session(c: Connection, participant_id: int, **values: Any) -> int:
 
 def test_rows_read_as_sqlalchemy_reads_them(db: Database) -> None:
     with db.transaction() as c:
-        participant_id = new_participant(c, excluded_at=WHEN, worker_id="W1")
+        participant_id = new_participant(c, excluded_at=WHEN, platform_participant_id="W1")
         session_id = new_session(c, participant_id, demonstrated=[3, 0, 5], completed=True)
         event_id = add(
             c,

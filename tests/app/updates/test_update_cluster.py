@@ -598,7 +598,7 @@ def test_a_study_s_own_environment_is_learned_on_workers_that_never_saw_its_file
     import asyncio
 
     from server import domains
-    from server.app.config import load_study_config
+    from server.app.study_file import load_study_config
     from server.app.updates.capacity import UpdateCost, measure_updates, reference_jobs
     from server.app.updates.cluster import UpdateCluster
     from server.app.updates.worker import run_update

@@ -58,7 +58,7 @@ for env_name in ("doorway", "flip", "two-fields", "three-fields"):
                         "base_state": first["learner_state"]})
 # And the updates a server times at start for its capacity (the paper's study file): longer
 # fits, where a step may leave the passes' layouts and take the single dynamics step's path.
-from server.app.config import load_study_config
+from server.app.study_file import load_study_config
 from server.app.updates.capacity import measure_updates, reference_jobs
 study = load_study_config()
 study.register_environments()

@@ -27,7 +27,7 @@ from server.app.export.files import DESCRIPTIONS, write_export
 from server.app.storage.vocabulary import ParticipantStatus, SessionKind
 
 if TYPE_CHECKING:
-    from server.app.config import DatasetRelease, StudyConfig
+    from server.app.study_file import DatasetRelease, StudyConfig
 
 # The formats, each in its own folder under the export's (``all``: the CSVs, the data package
 # and Croissant side by side, since both describe those CSVs; Psych-DS and the Hub's layout

@@ -10,7 +10,6 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from server.app.config import prolific_least_maximum_minutes
 from server.app.platforms.prolific_replica.base import (
     PROJECT_ID,
     Refusal,
@@ -25,6 +24,7 @@ from server.app.storage.replica_models import (
     ProlificReplicaParticipantGroup,
     ProlificReplicaStudy,
 )
+from server.app.study_file import prolific_least_maximum_minutes
 
 STUDY_ACTIONS = {
     "PUBLISH": ({"UNPUBLISHED"}, "ACTIVE"),

@@ -8,7 +8,7 @@ the same for every platform:
 1. the request is checked (the participant submitted work on the backend's platform; the amount
    is a plain decimal with at most two places; message is plain text);
 2. the intent is recorded in the database *before* the platform is called: a decision as a
-   ``pending`` row of ``assignment_reviews``, a bonus as a ``pending`` row of ``bonuses`` with
+   ``pending`` row of ``reviews``, a bonus as a ``pending`` row of ``bonuses`` with
    its request token (sent as MTurk's UniqueRequestToken). On Prolific, whose ``pay`` call is
    not idempotent, the bonus's set-up id is stored (``set_up``) before ``pay`` is called, and
    ``pay`` is called only by the request that moved the row from ``set_up`` to ``paying``;

@@ -79,8 +79,8 @@ class Reviewed:
 
     participant_id: int
     platform: str  # mturk or prolific
-    worker_id: str  # MTurk's workerId or Prolific's PROLIFIC_PID
-    assignment_id: str  # MTurk's assignmentId or Prolific's submission id (SESSION_ID)
+    platform_participant_id: str  # MTurk's workerId or Prolific's PROLIFIC_PID
+    platform_submission_id: str  # MTurk's assignmentId or Prolific's submission id (SESSION_ID)
     study_id: str | None  # MTurk's hitId or Prolific's STUDY_ID
 
 
@@ -162,7 +162,7 @@ def reviewable(
         p = s.get(Participant, participant_id)
         if p is None:
             raise ApiError(404, f"no participant {participant_id}")
-        if p.platform != platform or not p.assignment_id or not p.worker_id:
+        if p.platform != platform or not p.platform_submission_id or not p.platform_participant_id:
             raise ApiError(
                 409,
                 f"participant {participant_id} came from {p.platform}, not from a submission "
@@ -182,7 +182,13 @@ def reviewable(
                 f"participant {participant_id} has not submitted their work (status "
                 f"{p.status}{also}): only submitted work is reviewed",
             )
-        return Reviewed(p.id, p.platform, p.worker_id, p.assignment_id, p.hit_id)
+        return Reviewed(
+            p.id,
+            p.platform,
+            p.platform_participant_id,
+            p.platform_submission_id,
+            p.platform_study_id,
+        )
 
 
 def _wait_for(db: Database, read: Callable[[Any], Any], settled: Callable[[Any], bool]) -> Any:

@@ -76,8 +76,8 @@ def pay_bonus(
                 s.add(
                     Bonus(
                         participant_id=participant_id,
-                        assignment_id=who.assignment_id,
-                        worker_id=who.worker_id,
+                        platform_submission_id=who.platform_submission_id,
+                        platform_participant_id=who.platform_participant_id,
                         amount_cents=cents,
                         currency=backend.currency,
                         reason=reason,
@@ -277,7 +277,7 @@ def _settle_from_record(db: Database, backend: ReviewBackend, who: Reviewed, tok
         sent = s.execute(
             select(Bonus.id, Bonus.state, Bonus.pay_sent_at, Bonus.paid_at, Bonus.requested_at)
             .where(
-                Bonus.assignment_id == row.assignment_id,
+                Bonus.platform_submission_id == row.platform_submission_id,
                 Bonus.backend == row.backend,
                 Bonus.amount_cents == row.amount_cents,
                 Bonus.state.in_(("paid", "paying", "in_doubt")),
@@ -410,8 +410,14 @@ def reconcile_bonuses(db: Database, backend: ReviewBackend) -> list[str]:
     for participant_id, token, cents, reason in rows:
         with db.read() as s:
             p = s.get(Participant, participant_id)
-            assert p is not None and p.worker_id and p.assignment_id
-            who = Reviewed(p.id, p.platform, p.worker_id, p.assignment_id, p.hit_id)
+            assert p is not None and p.platform_participant_id and p.platform_submission_id
+            who = Reviewed(
+                p.id,
+                p.platform,
+                p.platform_participant_id,
+                p.platform_submission_id,
+                p.platform_study_id,
+            )
         try:
             _settle_bonus(db, backend, who, token, money(cents), reason)
         except ApiError:

@@ -19,7 +19,7 @@ from server.app.platforms.review.base import (
     reviewable,
 )
 from server.app.storage.db import Database
-from server.app.storage.models import AssignmentReview, Participant, utcnow
+from server.app.storage.models import Participant, Review, utcnow
 from server.app.storage.vocabulary import (
     ReviewDecision,
     ReviewState,
@@ -50,10 +50,10 @@ def review_submission(
     _send(db, backend, who, decision, message, category)
     with db.write() as s:
         s.execute(
-            update(AssignmentReview)
+            update(Review)
             .where(
-                AssignmentReview.participant_id == participant_id,
-                AssignmentReview.state == ReviewState.PENDING,
+                Review.participant_id == participant_id,
+                Review.state == ReviewState.PENDING,
             )
             .values(state=ReviewState.DONE, decided_at=utcnow())
         )
@@ -80,20 +80,18 @@ def _already_done(
     held the intent and settled it meanwhile); 409 when another decision was recorded."""
     participant_id = who.participant_id
 
-    def read(s: Any) -> AssignmentReview | None:
-        return s.scalar(
-            select(AssignmentReview).where(AssignmentReview.participant_id == participant_id)
-        )
+    def read(s: Any) -> Review | None:
+        return s.scalar(select(Review).where(Review.participant_id == participant_id))
 
     try:
         with db.write() as s:
             earlier = read(s)
             if earlier is None:
                 s.add(
-                    AssignmentReview(
+                    Review(
                         participant_id=participant_id,
-                        assignment_id=who.assignment_id,
-                        worker_id=who.worker_id,
+                        platform_submission_id=who.platform_submission_id,
+                        platform_participant_id=who.platform_participant_id,
                         decision=decision,
                         message=message,
                         rejection_category=category,
@@ -117,7 +115,8 @@ def _already_done(
     if earlier_decision != decision:
         raise ApiError(
             409,
-            f"submission {who.assignment_id} was already {earlier_decision}: a decision is final",
+            f"submission {who.platform_submission_id} was already {earlier_decision}: "
+            "a decision is final",
         )
     if earlier_state == ReviewState.DONE:
         return True
@@ -153,9 +152,9 @@ def _send(
         if now != decision:
             with db.write() as s:
                 s.execute(
-                    delete(AssignmentReview).where(
-                        AssignmentReview.participant_id == who.participant_id,
-                        AssignmentReview.state == ReviewState.PENDING,
+                    delete(Review).where(
+                        Review.participant_id == who.participant_id,
+                        Review.state == ReviewState.PENDING,
                     )
                 )
             raise ApiError(409, str(refused)) from None

@@ -16,9 +16,6 @@ import asyncio
 import logging
 import multiprocessing
 import os
-import signal
-import threading
-import time
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from datetime import datetime
@@ -27,12 +24,12 @@ from typing import Any
 from server.app.live import curves, funnel, mirror
 from server.app.storage.db import Database
 from server.app.study_file import StudyConfig
+from server.app.updates.worker import serve_the_server
 from server.domains import register_all, registered
 from server.domains.spec import EnvironmentSpec
 
 log = logging.getLogger("bam_study")
 
-PARENT_CHECK_SECONDS = 2.0  # how often the reader asks whether the server is still there
 UNCHANGED = "unchanged"  # a mirror read: the participant's view is as it was
 
 # The reading process's own: set by ``_start`` there.
@@ -50,18 +47,7 @@ def _start(
     """The reading process's initialiser: the study's environments known, the update
     processes' priority, and gone with the server (a killed server leaves no reader behind)."""
     global _db, _study
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server stops its reader itself
-    if os.getppid() != server_pid:
-        os._exit(0)
-    if niceness and hasattr(os, "nice"):
-        os.nice(niceness)
-
-    def leave_with_server() -> None:
-        while os.getppid() == server_pid:
-            time.sleep(PARENT_CHECK_SECONDS)
-        os._exit(0)
-
-    threading.Thread(target=leave_with_server, name="leave-with-server", daemon=True).start()
+    serve_the_server(niceness, server_pid)
     register_all(environments)
     _db, _study = Database.from_url(database_url), study
 

@@ -35,15 +35,12 @@ if TYPE_CHECKING:
 PARENT_CHECK_SECONDS = 1.0
 
 
-def worker_init(
-    niceness: int, server_pid: int, environments: tuple[EnvironmentSpec, ...] = ()
-) -> None:
-    """Lower the worker's priority, leave with the server, import the learners once, know
-    the study's own environments."""
-    # Ctrl-C reaches the whole process group: the server stops its workers itself (``stop``),
+def serve_the_server(niceness: int, server_pid: int) -> None:
+    """A helper process of the server's (an update worker, the live views' reader): Ctrl-C
+    ignored, its priority lowered, and gone with the server."""
+    # Ctrl-C reaches the whole process group: the server stops its helpers itself (``stop``),
     # and a worker interrupted in its warm-up printed a traceback and broke the pool.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    register_all(environments)
     # A server that dies without shutting its pool down (killed, or stopped while it was
     # replacing workers that a SIGTERM to its process group had killed) leaves its workers
     # waiting on a queue no one writes to: they must notice and go. A worker whose server died
@@ -60,6 +57,15 @@ def worker_init(
         os._exit(0)
 
     threading.Thread(target=leave_with_parent, name="leave-with-server", daemon=True).start()
+
+
+def worker_init(
+    niceness: int, server_pid: int, environments: tuple[EnvironmentSpec, ...] = ()
+) -> None:
+    """Lower the worker's priority, leave with the server, import the learners once, know
+    the study's own environments."""
+    serve_the_server(niceness, server_pid)
+    register_all(environments)
     from server.app.updates.compiling import warm_up_here
 
     # The kernels loaded now, not on a participant's first update; where numba's cache lacks
